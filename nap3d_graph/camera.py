@@ -1,0 +1,258 @@
+"""Pinhole intrinsics, RGB-D value objects, back-projection and projection.
+
+Camera frame: OpenCV (x right, y down, z forward); pixel centres at integer coordinates.
+Depth images are z-depth in metres (float32); 0 or NaN means missing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .conventions import pixel_ray_norms
+
+__all__ = [
+    "CameraError",
+    "Intrinsics",
+    "RGBDFrame",
+    "RenderedView",
+    "backproject",
+    "backproject_depth",
+    "project",
+    "valid_depth_mask",
+]
+
+
+class CameraError(ValueError):
+    """Invalid intrinsics or an image that does not match its intrinsics."""
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels; ``distortion`` holds OpenCV's k1 k2 p1 p2 k3 if any.
+
+    Images described by an ``Intrinsics`` with non-zero distortion are *raw*; every value
+    object in this library holds undistorted images, so their intrinsics have none.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    distortion: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if not np.isfinite(value):
+                raise CameraError(f"Intrinsics.{name} must be finite, got {value}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise CameraError(f"focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise CameraError(f"image size must be positive, got {self.width}x{self.height}")
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "distortion", tuple(float(d) for d in self.distortion))
+
+    @property
+    def K(self) -> np.ndarray:
+        """3x3 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """Image shape ``(height, width)``."""
+        return (self.height, self.width)
+
+    @classmethod
+    def from_K(cls, K: np.ndarray, width: int, height: int, distortion=()) -> "Intrinsics":
+        K = np.asarray(K, dtype=float)
+        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height, tuple(distortion))
+
+    def scaled(self, width: int, height: int) -> "Intrinsics":
+        """The same camera at another resolution (pixel centres at integer coordinates)."""
+        sx, sy = width / self.width, height / self.height
+        # Pixel centres sit at integer coordinates, so the image edge is at -0.5.
+        return Intrinsics(
+            self.fx * sx,
+            self.fy * sy,
+            (self.cx + 0.5) * sx - 0.5,
+            (self.cy + 0.5) * sy - 0.5,
+            width,
+            height,
+            self.distortion,
+        )
+
+    def shifted(self, focal_scale: float = 1.0, principal_offset_px: float = 0.0) -> "Intrinsics":
+        """Perturbed intrinsics as the paper's Evaluation K applies them.
+
+        Focal lengths are multiplied by ``focal_scale`` and both principal-point
+        coordinates move by ``principal_offset_px`` pixels.
+        """
+        return Intrinsics(
+            self.fx * focal_scale,
+            self.fy * focal_scale,
+            self.cx + principal_offset_px,
+            self.cy + principal_offset_px,
+            self.width,
+            self.height,
+            self.distortion,
+        )
+
+    def without_distortion(self) -> "Intrinsics":
+        return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+    def ray_norms(self) -> np.ndarray:
+        """Per-pixel norm of the ray direction with unit z, shape (H, W)."""
+        return pixel_ray_norms(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
+
+    def to_dict(self) -> dict:
+        return {
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "width": self.width,
+            "height": self.height,
+            "distortion": list(self.distortion),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Intrinsics":
+        try:
+            return cls(
+                float(d["fx"]),
+                float(d["fy"]),
+                float(d["cx"]),
+                float(d["cy"]),
+                int(d["width"]),
+                int(d["height"]),
+                tuple(d.get("distortion", ()) or ()),
+            )
+        except KeyError as exc:
+            raise CameraError(f"intrinsics lack the key {exc}") from None
+
+
+def _check_image(name: str, image: np.ndarray, intrinsics: Intrinsics) -> None:
+    if image.shape[:2] != intrinsics.shape:
+        raise CameraError(
+            f"{name} has shape {image.shape[:2]} but the intrinsics say "
+            f"{intrinsics.height}x{intrinsics.width} (height x width)"
+        )
+
+
+def _as_depth(name: str, depth_m: np.ndarray) -> np.ndarray:
+    depth_m = np.asarray(depth_m)
+    if depth_m.ndim != 2:
+        raise CameraError(f"{name} must be HxW, got shape {depth_m.shape}")
+    if not np.issubdtype(depth_m.dtype, np.floating):
+        raise CameraError(
+            f"{name} must be float metres, got dtype {depth_m.dtype} "
+            "(convert TUM uint16 depth with / 5000)"
+        )
+    return depth_m.astype(np.float32, copy=False)
+
+
+def _as_rgb(rgb: np.ndarray) -> np.ndarray:
+    rgb = np.asarray(rgb)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise CameraError(f"rgb must be HxWx3, got shape {rgb.shape}")
+    if rgb.dtype != np.uint8:
+        raise CameraError(f"rgb must be uint8 (0..255, RGB order), got dtype {rgb.dtype}")
+    return rgb
+
+
+@dataclass(frozen=True)
+class RGBDFrame:
+    """A real (or simulated sensor) RGB-D frame.
+
+    rgb: (H, W, 3) uint8, RGB order. depth_m: (H, W) float32 z-depth in metres, 0 or NaN
+    where missing. intrinsics: undistorted pinhole camera of both images.
+    """
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    intrinsics: Intrinsics
+    timestamp: float = 0.0
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rgb", _as_rgb(self.rgb))
+        object.__setattr__(self, "depth_m", _as_depth("depth_m", self.depth_m))
+        _check_image("rgb", self.rgb, self.intrinsics)
+        _check_image("depth_m", self.depth_m, self.intrinsics)
+
+    def with_intrinsics(self, intrinsics: Intrinsics) -> "RGBDFrame":
+        """Same images described by other intrinsics (e.g. the paper's intrinsics noise)."""
+        return RGBDFrame(self.rgb, self.depth_m, intrinsics, self.timestamp)
+
+
+@dataclass(frozen=True)
+class RenderedView:
+    """What a radiance field renders at a pose.
+
+    rgb: (H, W, 3) uint8. depth_m: (H, W) float32 z-depth in metres. opacity: (H, W) float32
+    accumulated opacity in [0, 1]. intrinsics: the virtual pinhole camera.
+    """
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+    opacity: np.ndarray
+    intrinsics: Intrinsics
+    extras: dict = field(default_factory=dict, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "rgb", _as_rgb(self.rgb))
+        object.__setattr__(self, "depth_m", _as_depth("depth_m", self.depth_m))
+        opacity = _as_depth("opacity", self.opacity)
+        finite = opacity[np.isfinite(opacity)]
+        if finite.size and (finite.min() < -1e-6 or finite.max() > 1 + 1e-6):
+            raise CameraError(
+                f"opacity must lie in [0, 1], got range [{finite.min():.3g}, {finite.max():.3g}]"
+            )
+        object.__setattr__(self, "opacity", np.clip(opacity, 0.0, 1.0))
+        _check_image("rgb", self.rgb, self.intrinsics)
+        _check_image("depth_m", self.depth_m, self.intrinsics)
+        _check_image("opacity", self.opacity, self.intrinsics)
+
+
+def valid_depth_mask(depth_m: np.ndarray, min_m: float = 0.0, max_m: float = np.inf) -> np.ndarray:
+    """True where depth is finite and inside (min_m, max_m]."""
+    depth_m = np.asarray(depth_m)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(depth_m) & (depth_m > min_m) & (depth_m <= max_m)
+
+
+def backproject(uv: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """Pixels (N, 2) ``[u, v]`` with z-depths (N,) to camera points (N, 3), OpenCV frame."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    z = np.asarray(depth_m, dtype=float).reshape(-1)
+    x = (uv[:, 0] - intrinsics.cx) / intrinsics.fx * z
+    y = (uv[:, 1] - intrinsics.cy) / intrinsics.fy * z
+    return np.stack([x, y, z], axis=1)
+
+
+def backproject_depth(depth_m: np.ndarray, intrinsics: Intrinsics, stride: int = 1):
+    """Back-project a depth image on a pixel grid.
+
+    Returns ``(points_cam (N, 3), uv (N, 2))`` for the valid pixels of every ``stride``-th
+    row and column.
+    """
+    depth_m = np.asarray(depth_m)
+    v, u = np.mgrid[0 : depth_m.shape[0] : stride, 0 : depth_m.shape[1] : stride]
+    z = depth_m[v, u]
+    ok = valid_depth_mask(z)
+    uv = np.stack([u[ok], v[ok]], axis=1).astype(float)
+    return backproject(uv, z[ok], intrinsics), uv
+
+
+def project(points_cam: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Camera points (N, 3) to pixels (N, 2) and their z-depth (N,). z <= 0 gives NaN pixels."""
+    p = np.asarray(points_cam, dtype=float).reshape(-1, 3)
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(z > 0, intrinsics.fx * p[:, 0] / z + intrinsics.cx, np.nan)
+        v = np.where(z > 0, intrinsics.fy * p[:, 1] / z + intrinsics.cy, np.nan)
+    return np.stack([u, v], axis=1), z
