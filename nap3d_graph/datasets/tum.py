@@ -1,0 +1,435 @@
+"""TUM RGB-D benchmark I/O: sequences, file lists, association and trajectory files.
+
+A TUM sequence folder (as TUM publishes it) holds ``rgb.txt`` and ``depth.txt`` (lines
+``timestamp filename``), the ``rgb/`` and ``depth/`` PNGs (depth uint16, 5000 per metre,
+0 = missing) and, optionally, ``groundtruth.txt`` (``timestamp tx ty tz qx qy qz qw``,
+the pose ``T_world_cam`` of the colour camera's optical centre).
+
+Why not evo for everything: evo reads and writes trajectories well (our files are checked
+against its reader), but it has no image-list reader, its ``associate_trajectories`` pairs
+trajectories rather than image lists, and it cannot interpolate ground truth to the image
+timestamps. TUM's own ``associate.py`` is a script, not an importable package, so its
+greedy association is re-implemented here (vectorised candidate search).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import operator
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
+
+from ..camera import CameraError, Intrinsics, RGBDFrame
+from ..conventions import T_to_tum, tum_to_T
+
+__all__ = [
+    "DatasetError",
+    "TumSequence",
+    "read_tum_trajectory",
+    "write_tum_trajectory",
+    "read_file_list",
+    "associate",
+    "interpolate_poses",
+    "tum_intrinsics_for",
+    "TUM_DEPTH_SCALE",
+    "GT_MAX_GAP_S",
+]
+
+logger = logging.getLogger(__name__)
+
+#: TUM depth PNGs store z-depth in units of 1/5000 m.
+TUM_DEPTH_SCALE = 5000.0
+#: Ground truth runs at 100 Hz; a larger hole than this between two poses is a gap.
+GT_MAX_GAP_S = 0.1
+
+# TUM's published colour-camera calibrations (https://cvg.cit.tum.de/data/datasets/rgbd-dataset
+# "file formats" page). Depth is registered to colour by the driver, so one camera serves both.
+_TUM_CAMERAS = {
+    "freiburg1": Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480,
+                            (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "freiburg2": Intrinsics(520.9, 521.0, 325.1, 249.7, 640, 480,
+                            (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    "freiburg3": Intrinsics(535.4, 539.2, 320.1, 247.6, 640, 480),
+}
+_TUM_DEFAULT_CAMERA = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+
+
+class DatasetError(ValueError):
+    """A sequence, list or trajectory file that cannot be read; the message names the file."""
+
+
+# --- text files ---------------------------------------------------------------------------
+
+
+def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(line number, fields) of every non-empty, non-comment line; fields split on blanks/commas."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: cannot read ({exc})") from None
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        yield number, line.replace(",", " ").split()
+
+
+def _parse_float(path: Path, number: int, token: str) -> float:
+    try:
+        value = float(token)
+    except ValueError:
+        raise DatasetError(f"{path}:{number}: {token!r} is not a number") from None
+    if not math.isfinite(value):
+        raise DatasetError(f"{path}:{number}: non-finite value {token!r}")
+    return value
+
+
+def read_file_list(path) -> tuple[np.ndarray, list[str]]:
+    """Read a TUM ``rgb.txt`` / ``depth.txt``: lines ``timestamp filename``, ``#`` comments.
+
+    Returns ``(timestamps (N,) float seconds, filenames list of N str)`` in file order; the
+    file names are relative to the sequence folder as written in the file.
+    """
+    path = Path(path)
+    stamps, names = [], []
+    for number, fields in _data_lines(path):
+        if len(fields) < 2:
+            raise DatasetError(f"{path}:{number}: expected 'timestamp filename', got {' '.join(fields)!r}")
+        stamps.append(_parse_float(path, number, fields[0]))
+        names.append(" ".join(fields[1:]))
+    return np.asarray(stamps, dtype=float), names
+
+
+def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory file (``timestamp tx ty tz qx qy qz qw``, ``#`` comments).
+
+    Returns ``(timestamps (N,), T_world_cam (N, 4, 4))`` in file order.
+    """
+    path = Path(path)
+    rows = []
+    for number, fields in _data_lines(path):
+        if len(fields) != 8:
+            raise DatasetError(
+                f"{path}:{number}: expected 8 columns 'timestamp tx ty tz qx qy qz qw', got {len(fields)}"
+            )
+        row = [_parse_float(path, number, token) for token in fields]
+        if np.linalg.norm(row[4:8]) < 1e-6:
+            raise DatasetError(f"{path}:{number}: quaternion has zero norm")
+        rows.append(row)
+    if not rows:
+        raise DatasetError(f"{path}: no poses in trajectory file")
+    mat = np.asarray(rows, dtype=float)
+    return mat[:, 0].copy(), tum_to_T(mat[:, 1:8])
+
+
+def write_tum_trajectory(path, timestamps: np.ndarray, T_world_cam: np.ndarray, header: str | None = None) -> None:
+    """Write poses as a TUM trajectory file that ``evo_ape tum`` reads.
+
+    timestamps: (N,) seconds. T_world_cam: (N, 4, 4) camera-to-world poses. Time is written
+    with 6 decimals (microseconds, as TUM does), translations and quaternions with 9.
+    """
+    path = Path(path)
+    timestamps = np.asarray(timestamps, dtype=float).reshape(-1)
+    T_world_cam = np.asarray(T_world_cam, dtype=float)
+    if T_world_cam.ndim != 3 or T_world_cam.shape[1:] != (4, 4) or len(T_world_cam) != len(timestamps):
+        raise DatasetError(
+            f"{path}: need timestamps (N,) and T_world_cam (N, 4, 4), got {timestamps.shape} "
+            f"and {T_world_cam.shape}"
+        )
+    if not (np.all(np.isfinite(timestamps)) and np.all(np.isfinite(T_world_cam))):
+        raise DatasetError(f"{path}: refusing to write non-finite timestamps or poses")
+    rows = np.concatenate([timestamps[:, None], T_to_tum(T_world_cam)], axis=1)
+    header = header if header is not None else "timestamp tx ty tz qx qy qz qw"
+    # evo reads with a single-space delimiter: no trailing blanks, one space between columns.
+    np.savetxt(path, rows, fmt=["%.6f"] + ["%.9f"] * 7, delimiter=" ", header=header, comments="# ")
+
+
+# --- association and interpolation ----------------------------------------------------------
+
+
+def associate(
+    stamps_a: Sequence[float],
+    stamps_b: Sequence[float],
+    max_difference: float = 0.02,
+    offset: float = 0.0,
+) -> np.ndarray:
+    """Pair two timestamp lists as TUM's ``associate.py`` does.
+
+    Every pair with ``|a - (b + offset)| < max_difference`` is a candidate; candidates are
+    taken greedily in order of increasing difference (ties by ``a`` then ``b``), each stamp
+    used at most once. Returns index pairs ``(K, 2)`` int ``[i_a, i_b]`` sorted by
+    ``stamps_a[i_a]``.
+    """
+    a = np.asarray(stamps_a, dtype=float).reshape(-1)
+    b = np.asarray(stamps_b, dtype=float).reshape(-1) + offset
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((0, 2), dtype=int)
+    order_b = np.argsort(b, kind="stable")
+    b_sorted = b[order_b]
+    # Candidate window per a by binary search (O((Na + Nb) log Nb) rather than Na x Nb);
+    # widened a little, then filtered with TUM's exact test so rounding cannot change pairs.
+    slack = max_difference * 1e-9 + 1e-12
+    lo = np.searchsorted(b_sorted, a - max_difference - slack, side="left")
+    hi = np.searchsorted(b_sorted, a + max_difference + slack, side="right")
+    counts = hi - lo
+    ia = np.repeat(np.arange(len(a)), counts)
+    starts = np.repeat(np.cumsum(counts) - counts, counts)
+    ib = order_b[np.repeat(lo, counts) + (np.arange(counts.sum()) - starts)]
+    diff = np.abs(a[ia] - b[ib])
+    keep = diff < max_difference
+    ia, ib, diff = ia[keep], ib[keep], diff[keep]
+    order = np.lexsort((b[ib], a[ia], diff))  # sort by diff, then a, then b (TUM's tuple sort)
+    used_a = np.zeros(len(a), dtype=bool)
+    used_b = np.zeros(len(b), dtype=bool)
+    pairs = []
+    # The greedy pass is inherently sequential; it runs over the few candidates only.
+    for i, j in zip(ia[order].tolist(), ib[order].tolist()):
+        if not used_a[i] and not used_b[j]:
+            used_a[i] = used_b[j] = True
+            pairs.append((i, j))
+    if not pairs:
+        return np.zeros((0, 2), dtype=int)
+    pairs = np.asarray(pairs, dtype=int)
+    return pairs[np.lexsort((pairs[:, 0], a[pairs[:, 0]]))]
+
+
+def interpolate_poses(
+    stamps_gt: np.ndarray,
+    T_gt: np.ndarray,
+    query_stamps: np.ndarray,
+    max_gap: float = GT_MAX_GAP_S,
+) -> np.ndarray:
+    """Interpolate poses at query times: linear in translation, SLERP in rotation.
+
+    stamps_gt: (N,) seconds, any order, no duplicates. T_gt: (N, 4, 4). query_stamps: (M,).
+    Returns (M, 4, 4); a query outside ``[stamps_gt.min(), stamps_gt.max()]`` or between two
+    poses more than ``max_gap`` seconds apart gets an all-NaN matrix.
+    """
+    stamps_gt = np.asarray(stamps_gt, dtype=float).reshape(-1)
+    T_gt = np.asarray(T_gt, dtype=float)
+    query = np.asarray(query_stamps, dtype=float).reshape(-1)
+    if T_gt.shape != (len(stamps_gt), 4, 4):
+        raise DatasetError(f"need stamps (N,) and poses (N, 4, 4), got {stamps_gt.shape} and {T_gt.shape}")
+    out = np.full((len(query), 4, 4), np.nan)
+    if len(stamps_gt) == 0 or len(query) == 0:
+        return out
+    order = np.argsort(stamps_gt, kind="stable")
+    stamps_gt, T_gt = stamps_gt[order], T_gt[order]
+    if np.any(np.diff(stamps_gt) <= 0):
+        raise DatasetError("ground-truth timestamps contain duplicates")
+    if len(stamps_gt) == 1:
+        exact = query == stamps_gt[0]
+        out[exact] = T_gt[0]
+        return out
+    # Bracket [k, k+1] of each query; a query exactly at the last stamp uses the last bracket.
+    k = np.clip(np.searchsorted(stamps_gt, query, side="right") - 1, 0, len(stamps_gt) - 2)
+    t0, t1 = stamps_gt[k], stamps_gt[k + 1]
+    ok = (query >= stamps_gt[0]) & (query <= stamps_gt[-1]) & (t1 - t0 <= max_gap)
+    if not np.any(ok):
+        return out
+    alpha = ((query[ok] - t0[ok]) / (t1[ok] - t0[ok]))[:, None]
+    p0, p1 = T_gt[k[ok], :3, 3], T_gt[k[ok] + 1, :3, 3]
+    slerp = Slerp(stamps_gt, Rotation.from_matrix(T_gt[:, :3, :3]))
+    T = np.zeros((int(ok.sum()), 4, 4))
+    T[:, :3, :3] = slerp(query[ok]).as_matrix()
+    T[:, :3, 3] = (1.0 - alpha) * p0 + alpha * p1
+    T[:, 3, 3] = 1.0
+    out[ok] = T
+    return out
+
+
+# --- intrinsics -----------------------------------------------------------------------------
+
+
+def tum_intrinsics_for(name: str) -> Intrinsics | None:
+    """TUM's published (raw, distorted) intrinsics for a sequence name with ``freiburgN``."""
+    name = name.lower()
+    for key, intrinsics in _TUM_CAMERAS.items():
+        if key in name:
+            return intrinsics
+    return None
+
+
+def _resolve_intrinsics(folder: Path, intrinsics) -> Intrinsics:
+    """Explicit argument, else ``intrinsics.json``, else TUM's camera from the name, else default."""
+    if intrinsics is not None:
+        if isinstance(intrinsics, dict):
+            try:
+                return Intrinsics.from_dict(intrinsics)
+            except (CameraError, TypeError, ValueError) as exc:
+                raise DatasetError(f"{folder}: invalid intrinsics argument ({exc})") from None
+        if not isinstance(intrinsics, Intrinsics):
+            raise DatasetError(f"{folder}: intrinsics must be an Intrinsics or its dict, got {type(intrinsics).__name__}")
+        return intrinsics
+    json_path = folder / "intrinsics.json"
+    if json_path.is_file():
+        try:
+            return Intrinsics.from_dict(json.loads(json_path.read_text()))
+        except (CameraError, TypeError, ValueError, AttributeError, OSError) as exc:
+            message = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise DatasetError(f"{json_path}: invalid intrinsics ({message})") from None
+    from_name = tum_intrinsics_for(folder.name)
+    if from_name is not None:
+        return from_name
+    logger.warning(
+        "%s: no intrinsics given, no intrinsics.json and no freiburg1/2/3 in the name; "
+        "using TUM's default camera (fx=fy=525, cx=319.5, cy=239.5)", folder
+    )
+    return _TUM_DEFAULT_CAMERA
+
+
+# --- sequence -------------------------------------------------------------------------------
+
+
+class TumSequence:
+    """A TUM RGB-D sequence folder, frames loaded lazily.
+
+    Colour frames are associated with the nearest depth frame within ``max_difference``
+    seconds (TUM's greedy association); ground truth, when ``groundtruth.txt`` exists, is
+    interpolated to each colour timestamp and frames it cannot cover are dropped.
+
+    Attributes: ``timestamps`` (N,) colour stamps, ``depth_timestamps`` (N,),
+    ``T_world_cam_gt`` (N, 4, 4) or None, ``rgb_paths`` / ``depth_paths`` (N Paths),
+    ``intrinsics`` (of the delivered images: undistorted pinhole when ``undistort`` and the
+    camera has distortion), ``raw_intrinsics`` (as resolved, possibly with distortion),
+    ``path``, ``name``, ``num_dropped_no_gt``.
+    """
+
+    def __init__(self, path, intrinsics=None, max_difference: float = 0.02, undistort: bool = True):
+        self.path = Path(path)
+        if not self.path.is_dir():
+            raise DatasetError(f"{self.path}: sequence folder not found")
+        self.name = self.path.name
+        self.max_difference = float(max_difference)
+        self.raw_intrinsics = _resolve_intrinsics(self.path, intrinsics)
+        has_distortion = any(d != 0.0 for d in self.raw_intrinsics.distortion)
+        self.undistort = bool(undistort) and has_distortion
+        if self.undistort or not has_distortion:
+            self.intrinsics = self.raw_intrinsics.without_distortion()
+        else:
+            self.intrinsics = self.raw_intrinsics  # raw images: say so with the distortion
+        self._maps: tuple[np.ndarray, np.ndarray] | None = None
+
+        rgb_list, depth_list = self.path / "rgb.txt", self.path / "depth.txt"
+        for listed in (rgb_list, depth_list):
+            if not listed.is_file():
+                raise DatasetError(f"{listed}: file not found")
+        rgb_stamps, rgb_names = read_file_list(rgb_list)
+        depth_stamps, depth_names = read_file_list(depth_list)
+        pairs = associate(rgb_stamps, depth_stamps, self.max_difference)
+        if len(pairs) == 0:
+            raise DatasetError(
+                f"{depth_list}: no depth timestamp within {self.max_difference} s of any in {rgb_list.name}"
+            )
+        logger.info(
+            "%s: %d rgb, %d depth frames, %d associated within %.3f s",
+            self.name, len(rgb_stamps), len(depth_stamps), len(pairs), self.max_difference,
+        )
+        self.timestamps = rgb_stamps[pairs[:, 0]]
+        self.depth_timestamps = depth_stamps[pairs[:, 1]]
+        self.rgb_paths = [self.path / rgb_names[i] for i in pairs[:, 0]]
+        self.depth_paths = [self.path / depth_names[j] for j in pairs[:, 1]]
+        self.T_world_cam_gt = None
+        self.num_dropped_no_gt = 0
+        self._attach_ground_truth(self.path / "groundtruth.txt")
+        for image_path in (*self.rgb_paths, *self.depth_paths):
+            if not image_path.is_file():
+                raise DatasetError(f"{image_path}: listed image file not found")
+
+    def _attach_ground_truth(self, gt_path: Path) -> None:
+        if not gt_path.is_file():
+            return
+        stamps_gt, T_gt = read_tum_trajectory(gt_path)
+        try:
+            T = interpolate_poses(stamps_gt, T_gt, self.timestamps)
+        except DatasetError as exc:
+            raise DatasetError(f"{gt_path}: {exc}") from None
+        keep = np.all(np.isfinite(T), axis=(1, 2))
+        if not np.any(keep):
+            raise DatasetError(f"{gt_path}: ground truth covers none of the {len(keep)} frames")
+        self.num_dropped_no_gt = int((~keep).sum())
+        if self.num_dropped_no_gt:
+            logger.info(
+                "%s: dropped %d of %d frames outside the ground truth (or in its gaps > %.2f s)",
+                self.name, self.num_dropped_no_gt, len(keep), GT_MAX_GAP_S,
+            )
+        self.timestamps = self.timestamps[keep]
+        self.depth_timestamps = self.depth_timestamps[keep]
+        self.rgb_paths = [p for p, k in zip(self.rgb_paths, keep) if k]
+        self.depth_paths = [p for p, k in zip(self.depth_paths, keep) if k]
+        self.T_world_cam_gt = T[keep]
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def __getitem__(self, index) -> RGBDFrame:
+        i = operator.index(index)
+        n = len(self)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError(f"frame index {index} out of range for {n} frames of {self.name}")
+        rgb = self._read_rgb(self.rgb_paths[i])
+        depth_m = self._read_depth(self.depth_paths[i])
+        return RGBDFrame(rgb, depth_m, self.intrinsics, float(self.timestamps[i]))
+
+    def __iter__(self) -> Iterator[RGBDFrame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def __repr__(self) -> str:
+        return (
+            f"TumSequence({str(self.path)!r}, frames={len(self)}, "
+            f"ground_truth={self.T_world_cam_gt is not None}, undistort={self.undistort})"
+        )
+
+    # --- image reading ---
+
+    def _check_size(self, path: Path, image: np.ndarray) -> None:
+        if image.shape[:2] != self.raw_intrinsics.shape:
+            raise DatasetError(
+                f"{path}: image is {image.shape[1]}x{image.shape[0]} but the intrinsics say "
+                f"{self.raw_intrinsics.width}x{self.raw_intrinsics.height}"
+            )
+
+    def _undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._maps is None:
+            K = self.raw_intrinsics.K
+            dist = np.asarray(self.raw_intrinsics.distortion, dtype=float)
+            size = (self.raw_intrinsics.width, self.raw_intrinsics.height)
+            # Same K as new camera matrix: the delivered pinhole camera keeps TUM's fx fy cx cy.
+            self._maps = cv2.initUndistortRectifyMap(K, dist, None, K, size, cv2.CV_32FC1)
+        return self._maps
+
+    def _read_rgb(self, path: Path) -> np.ndarray:
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise DatasetError(f"{path}: cannot read colour image (missing or corrupt)")
+        self._check_size(path, bgr)
+        if self.undistort:
+            map_x, map_y = self._undistort_maps()
+            bgr = cv2.remap(bgr, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def _read_depth(self, path: Path) -> np.ndarray:
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise DatasetError(f"{path}: cannot read depth image (missing or corrupt)")
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise DatasetError(
+                f"{path}: depth must be a single-channel uint16 PNG, got {raw.dtype} with shape {raw.shape}"
+            )
+        self._check_size(path, raw)
+        if self.undistort:
+            map_x, map_y = self._undistort_maps()
+            # Nearest neighbour: interpolating across a depth edge would invent surfaces.
+            raw = cv2.remap(raw, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        return raw.astype(np.float32) / np.float32(TUM_DEPTH_SCALE)

@@ -1,0 +1,169 @@
+"""Sensor models: RGB-D camera noise, drifting odometry and an IMU.
+
+All models take a ``numpy.random.Generator`` so every simulation is reproducible.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from nap3d_graph.conventions import exp_se3, inv_T
+
+from .trajectories import Trajectory
+
+__all__ = [
+    "DepthNoise",
+    "add_depth_noise",
+    "add_rgb_noise",
+    "OdometryNoise",
+    "drifting_odometry",
+    "ImuNoise",
+    "simulate_imu",
+    "GRAVITY_M_S2",
+]
+
+GRAVITY_M_S2 = 9.81
+
+
+@dataclass(frozen=True)
+class DepthNoise:
+    """Structured-light-like depth: ``sigma(z) = sigma_z2_per_m * z^2`` (Khoshelham's Kinect
+    model is ~1.4e-3 z^2), random holes, no return beyond ``max_range_m`` or at grazing
+    angles."""
+
+    sigma_z2_per_m: float = 1.4e-3
+    hole_fraction: float = 0.01
+    hole_radius_px: int = 4
+    max_range_m: float = 6.0
+    min_range_m: float = 0.3
+
+    def sigma_m(self, z_m: np.ndarray) -> np.ndarray:
+        return self.sigma_z2_per_m * np.asarray(z_m) ** 2
+
+
+def add_depth_noise(depth_m: np.ndarray, noise: DepthNoise, rng: np.random.Generator) -> np.ndarray:
+    """Noisy sensor depth (H, W) float32 from noise-free z-depth; 0 marks missing."""
+    import cv2
+
+    depth = depth_m.astype(np.float64)
+    noisy = depth + rng.normal(size=depth.shape) * noise.sigma_m(depth)
+    missing = (depth <= noise.min_range_m) | (depth > noise.max_range_m) | ~np.isfinite(depth)
+    if noise.hole_fraction > 0:
+        # Holes come in blobs (specular spots, IR shadows), not as salt noise.
+        seeds = (rng.random(depth.shape) < noise.hole_fraction / (np.pi * noise.hole_radius_px**2)).astype(np.uint8)
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * noise.hole_radius_px + 1,) * 2)
+        missing |= cv2.dilate(seeds, kernel).astype(bool)
+    noisy[missing] = 0.0
+    return noisy.astype(np.float32)
+
+
+def add_rgb_noise(rgb01: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """uint8 image (H, W, 3) from a float image in [0, 1] plus Gaussian noise of ``sigma``
+    (in 0..1 units)."""
+    noisy = rgb01 + rng.normal(scale=sigma, size=rgb01.shape)
+    return np.clip(np.round(noisy * 255.0), 0, 255).astype(np.uint8)
+
+
+@dataclass(frozen=True)
+class OdometryNoise:
+    """Drift of frame-to-frame odometry.
+
+    Each increment ``T_k_k+1`` is perturbed on the right by ``Exp(xi_k)`` with
+    ``xi_k = b_k * dt + w_k``: white noise ``w_k ~ N(0, diag(sigma^2))`` per frame (rotation
+    rad, translation m, GTSAM order) plus a slowly wandering bias ``b`` (rad/s, m/s) that
+    follows a random walk with ``bias_walk`` per sqrt(second), starting at ``bias_init``.
+    The bias makes the error grow like real odometry's (faster than a random walk).
+    """
+
+    rot_sigma_rad: float = 2e-3
+    trans_sigma_m: float = 2e-3
+    bias_init: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.004, 0.01, 0.0, 0.0)
+    bias_walk: float = 1e-3
+
+    @property
+    def sigmas(self) -> np.ndarray:
+        return np.array([self.rot_sigma_rad] * 3 + [self.trans_sigma_m] * 3)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def drifting_odometry(
+    T_world_cam_gt: np.ndarray, stamps: np.ndarray, noise: OdometryNoise, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Drifting odometry poses (N, 4, 4) starting at the true first pose, and the
+    per-increment errors ``xi`` (N-1, 6) that were applied (GTSAM order)."""
+    n = len(T_world_cam_gt)
+    T_odom = np.empty_like(T_world_cam_gt)
+    T_odom[0] = T_world_cam_gt[0]
+    bias = np.asarray(noise.bias_init, dtype=float).copy()
+    errors = np.zeros((max(n - 1, 0), 6))
+    for k in range(n - 1):
+        dt = float(stamps[k + 1] - stamps[k])
+        increment = inv_T(T_world_cam_gt[k]) @ T_world_cam_gt[k + 1]
+        xi = bias * dt + rng.normal(size=6) * noise.sigmas
+        errors[k] = xi
+        T_odom[k + 1] = T_odom[k] @ increment @ exp_se3(xi)
+        bias = bias + rng.normal(size=6) * noise.bias_walk * np.sqrt(dt)
+    return T_odom, errors
+
+
+@dataclass(frozen=True)
+class ImuNoise:
+    """Continuous-time IMU noise (BMI055-like, as in RealSense D435i/D455):
+    white noise densities and bias random walks per sqrt(Hz)."""
+
+    rate_hz: float = 200.0
+    accel_noise_density: float = 2.0e-3  # m/s^2/sqrt(Hz)
+    gyro_noise_density: float = 2.4e-4  # rad/s/sqrt(Hz)
+    accel_bias_walk: float = 1.0e-4  # m/s^3/sqrt(Hz)
+    gyro_bias_walk: float = 2.0e-6  # rad/s^2/sqrt(Hz)
+    accel_bias_init_sigma: float = 0.02  # m/s^2
+    gyro_bias_init_sigma: float = 0.002  # rad/s
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def simulate_imu(
+    trajectory: Trajectory,
+    t_start: float,
+    t_end: float,
+    noise: ImuNoise | None,
+    rng: np.random.Generator,
+) -> dict[str, np.ndarray]:
+    """IMU samples in the camera frame (the IMU is taken as co-located with the camera).
+
+    The accelerometer measures specific force ``R^T (a - g)`` with ``g = (0, 0, -9.81)``
+    (world +Z up); the gyroscope the body angular velocity. ``noise=None`` gives exact
+    samples. Returns ``stamps`` (M,), ``accel`` (M, 3), ``gyro`` (M, 3) and the true biases
+    ``accel_bias`` and ``gyro_bias`` (M, 3).
+    """
+    rate = noise.rate_hz if noise is not None else 200.0
+    dt = 1.0 / rate
+    stamps = np.arange(t_start, t_end, dt)
+    g_world = np.array([0.0, 0.0, -GRAVITY_M_S2])
+    accel = np.empty((len(stamps), 3))
+    gyro = np.empty((len(stamps), 3))
+    for i, t in enumerate(stamps):
+        # Sample at the middle of the interval the measurement will be integrated over:
+        # preintegration holds each sample constant over [t, t + dt].
+        tm = float(t) + dt / 2
+        R = trajectory.T_world_cam(tm)[:3, :3]
+        accel[i] = R.T @ (trajectory.acceleration_world(tm) - g_world)
+        gyro[i] = trajectory.angular_velocity_cam(tm)
+    accel_bias = np.zeros_like(accel)
+    gyro_bias = np.zeros_like(gyro)
+    if noise is not None:
+        ba = rng.normal(size=3) * noise.accel_bias_init_sigma
+        bg = rng.normal(size=3) * noise.gyro_bias_init_sigma
+        walk_a = np.cumsum(rng.normal(size=accel.shape) * noise.accel_bias_walk * np.sqrt(dt), axis=0)
+        walk_g = np.cumsum(rng.normal(size=gyro.shape) * noise.gyro_bias_walk * np.sqrt(dt), axis=0)
+        accel_bias = ba + walk_a
+        gyro_bias = bg + walk_g
+        # Discrete white-noise sigma = density * sqrt(rate).
+        accel = accel + accel_bias + rng.normal(size=accel.shape) * noise.accel_noise_density * np.sqrt(rate)
+        gyro = gyro + gyro_bias + rng.normal(size=gyro.shape) * noise.gyro_noise_density * np.sqrt(rate)
+    return {"stamps": stamps, "accel": accel, "gyro": gyro, "accel_bias": accel_bias, "gyro_bias": gyro_bias}

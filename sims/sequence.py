@@ -1,0 +1,134 @@
+"""Write a simulated RGB-D sequence in the TUM RGB-D layout.
+
+The folder reads back through :class:`nap3d_graph.datasets.TumSequence` with no special
+case: ``rgb.txt``, ``depth.txt``, ``rgb/``, ``depth/`` (uint16, 5000 per metre, 0 = missing),
+``groundtruth.txt`` (100 Hz plus the frame instants, so interpolation at a frame is exact)
+and ``intrinsics.json``. Depth stamps are offset from colour stamps by a few milliseconds,
+as in the real dataset, so association is needed. Extra files: ``odometry.txt`` (TUM,
+drifting odometry at the colour stamps), ``imu.txt`` (``timestamp ax ay az gx gy gz``,
+camera frame), ``scene.json`` (rebuilds the oracle field) and ``sim.json`` (settings).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from nap3d_graph.camera import Intrinsics
+from nap3d_graph.conventions import T_to_tum
+
+from .scene import make_scene
+from .sensors import DepthNoise, ImuNoise, OdometryNoise, add_depth_noise, add_rgb_noise, drifting_odometry, simulate_imu
+from .trajectories import make_trajectory
+
+__all__ = ["SimConfig", "simulate_sequence", "default_intrinsics", "DEPTH_SCALE", "TIME_ORIGIN_S"]
+
+log = logging.getLogger(__name__)
+
+DEPTH_SCALE = 5000.0  # TUM: uint16 units per metre
+TIME_ORIGIN_S = 1_700_000_000.0  # epoch-like stamps, as real recordings have
+_GT_RATE_HZ = 100.0
+
+
+def default_intrinsics(width: int = 640, height: int = 480) -> Intrinsics:
+    """A Kinect-like pinhole camera (TUM's default 525 px focal length at 640x480)."""
+    return Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480).scaled(width, height)
+
+
+@dataclass
+class SimConfig:
+    frames: int = 150
+    scene_seed: int = 0
+    seed: int = 0
+    path: str = "traverse"
+    fps: float = 15.0
+    width: int = 640
+    height: int = 480
+    rgb_noise_sigma: float = 0.01
+    depth: DepthNoise = field(default_factory=DepthNoise)
+    odometry: OdometryNoise = field(default_factory=OdometryNoise)
+    imu: ImuNoise = field(default_factory=ImuNoise)
+
+    def to_dict(self) -> dict:
+        d = {k: getattr(self, k) for k in ("frames", "scene_seed", "seed", "path", "fps", "width",
+                                             "height", "rgb_noise_sigma")}
+        d["depth"] = self.depth.__dict__.copy()
+        d["odometry"] = self.odometry.to_dict()
+        d["imu"] = self.imu.to_dict()
+        return d
+
+
+def _write_list(path: Path, header: str, stamps: np.ndarray, folder: str) -> None:
+    lines = [f"# {header}", "# file: simulated by nap3d-graph", "# timestamp filename"]
+    lines += [f"{t:.6f} {folder}/{t:.6f}.png" for t in stamps]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _write_tum(path: Path, stamps: np.ndarray, T: np.ndarray, header: str) -> None:
+    rows = np.column_stack([stamps, T_to_tum(T)])
+    np.savetxt(path, rows, fmt=["%.6f"] + ["%.9f"] * 7, header=f"{header}\ntimestamp tx ty tz qx qy qz qw")
+
+
+def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, progress: bool = False) -> Path:
+    """Render a sequence into ``out_dir`` (created) and return its path."""
+    import cv2
+    from tqdm import tqdm
+
+    config = config or SimConfig()
+    if config.frames < 2:
+        raise ValueError(f"need at least 2 frames, got {config.frames}")
+    out = Path(out_dir)
+    (out / "rgb").mkdir(parents=True, exist_ok=True)
+    (out / "depth").mkdir(exist_ok=True)
+
+    scene = make_scene(config.scene_seed)
+    # Separate streams: the path, the image noise, the odometry and the IMU each get their
+    # own generator, so changing one model does not reshuffle the others.
+    path_rng, image_rng, odom_rng, imu_rng, stamp_rng = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(5))
+    duration = (config.frames - 1) / config.fps
+    trajectory = make_trajectory(config.path, scene, path_rng, duration)
+    intrinsics = default_intrinsics(config.width, config.height)
+
+    t_rel = np.arange(config.frames) / config.fps
+    rgb_stamps = TIME_ORIGIN_S + t_rel
+    depth_stamps = rgb_stamps + stamp_rng.uniform(-0.008, 0.008, config.frames)
+    T_gt = trajectory.poses(t_rel)
+
+    for k in tqdm(range(config.frames), desc="render", unit="frame", disable=not progress):
+        rgb01, depth_m, _ = scene.render(T_gt[k], intrinsics)
+        rgb = add_rgb_noise(rgb01, config.rgb_noise_sigma, image_rng)
+        depth_noisy = add_depth_noise(depth_m, config.depth, image_rng)
+        depth_u16 = np.clip(np.round(depth_noisy * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+        cv2.imwrite(str(out / "rgb" / f"{rgb_stamps[k]:.6f}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(out / "depth" / f"{depth_stamps[k]:.6f}.png"), depth_u16)
+
+    _write_list(out / "rgb.txt", "color images", rgb_stamps, "rgb")
+    _write_list(out / "depth.txt", "depth maps", depth_stamps, "depth")
+
+    # Ground truth at 100 Hz on its own clock, plus the exact frame instants.
+    gt_rel = np.arange(-0.05, duration + 0.05, 1.0 / _GT_RATE_HZ) + 0.0037
+    gt_rel = np.clip(np.union1d(gt_rel, t_rel), 0.0, duration)
+    gt_rel = np.unique(np.round(gt_rel, 6))
+    _write_tum(out / "groundtruth.txt", TIME_ORIGIN_S + gt_rel, trajectory.poses(gt_rel),
+               "ground truth trajectory (simulated), T_world_cam, OpenCV camera, world +Z up")
+
+    T_odom, _ = drifting_odometry(T_gt, rgb_stamps, config.odometry, odom_rng)
+    _write_tum(out / "odometry.txt", rgb_stamps, T_odom, "drifting odometry (simulated), T_world_cam")
+
+    imu = simulate_imu(trajectory, 0.0, duration, config.imu, imu_rng)
+    imu_rows = np.column_stack([TIME_ORIGIN_S + imu["stamps"], imu["accel"], imu["gyro"]])
+    np.savetxt(out / "imu.txt", imu_rows, fmt=["%.6f"] + ["%.9f"] * 6,
+               header="IMU in the camera frame (OpenCV axes), specific force m/s^2 and rate rad/s\n"
+                      "timestamp ax ay az gx gy gz")
+
+    (out / "intrinsics.json").write_text(json.dumps(intrinsics.to_dict(), indent=1))
+    scene.save(out / "scene.json")
+    (out / "sim.json").write_text(json.dumps({"generator": "nap3d-graph simulate", **config.to_dict(),
+                                              "duration_s": duration}, indent=1))
+    log.info("simulated %d frames of %s path into %s", config.frames, config.path, out)
+    return out
