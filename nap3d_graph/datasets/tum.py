@@ -130,7 +130,9 @@ def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
     return mat[:, 0].copy(), tum_to_T(mat[:, 1:8])
 
 
-def write_tum_trajectory(path, timestamps: np.ndarray, T_world_cam: np.ndarray, header: str | None = None) -> None:
+def write_tum_trajectory(
+    path, timestamps: np.ndarray, T_world_cam: np.ndarray, header: str | None = None
+) -> None:
     """Write poses as a TUM trajectory file that ``evo_ape tum`` reads.
 
     timestamps: (N,) seconds. T_world_cam: (N, 4, 4) camera-to-world poses. Time is written
@@ -232,7 +234,9 @@ def interpolate_poses(
     # Bracket [k, k+1] of each query; a query exactly at the last stamp uses the last bracket.
     k = np.clip(np.searchsorted(stamps_gt, query, side="right") - 1, 0, len(stamps_gt) - 2)
     t0, t1 = stamps_gt[k], stamps_gt[k + 1]
-    ok = (query >= stamps_gt[0]) & (query <= stamps_gt[-1]) & (t1 - t0 <= max_gap)
+    # A query exactly on a ground-truth stamp is valid even when that pose borders a gap.
+    on_stamp = (query == t0) | (query == t1)
+    ok = (query >= stamps_gt[0]) & (query <= stamps_gt[-1]) & ((t1 - t0 <= max_gap) | on_stamp)
     if not np.any(ok):
         return out
     alpha = ((query[ok] - t0[ok]) / (t1[ok] - t0[ok]))[:, None]
@@ -267,7 +271,9 @@ def _resolve_intrinsics(folder: Path, intrinsics) -> Intrinsics:
             except (CameraError, TypeError, ValueError) as exc:
                 raise DatasetError(f"{folder}: invalid intrinsics argument ({exc})") from None
         if not isinstance(intrinsics, Intrinsics):
-            raise DatasetError(f"{folder}: intrinsics must be an Intrinsics or its dict, got {type(intrinsics).__name__}")
+            raise DatasetError(
+                f"{folder}: intrinsics must be an Intrinsics or its dict, got {type(intrinsics).__name__}"
+            )
         return intrinsics
     json_path = folder / "intrinsics.json"
     if json_path.is_file():
@@ -431,5 +437,7 @@ class TumSequence:
         if self.undistort:
             map_x, map_y = self._undistort_maps()
             # Nearest neighbour: interpolating across a depth edge would invent surfaces.
-            raw = cv2.remap(raw, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            raw = cv2.remap(
+                raw, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
+            )
         return raw.astype(np.float32) / np.float32(TUM_DEPTH_SCALE)

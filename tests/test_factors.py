@@ -1,0 +1,574 @@
+"""Tests of nap3d_graph.factors, in the style of GTSAM's own factor tests.
+
+Every factor is checked against numerical derivatives (``gtsam.utils.numerical_derivative``,
+central differences over ``Pose3.retract``) and, for the NAP3D prior, against a
+``gtsam.CustomFactor`` re-implementation (as ``python/gtsam/tests/test_custom_factor.py``
+does for a built-in factor).
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.symbol_shorthand import B, M, V, X
+from gtsam.utils.numerical_derivative import numericalDerivative11, numericalDerivative21, numericalDerivative22
+from scipy.stats import chi2
+
+from nap3d_graph.conventions import exp_se3, inv_T, make_T, pose_error
+from nap3d_graph.factors import (
+    GateResult,
+    anchor_prior_factor,
+    base_gaussian,
+    chi2_gate,
+    chi2_gate_with_marginal,
+    factor_error_and_covariance,
+    imu_factor,
+    imu_params,
+    mahalanobis_sq,
+    nap3d_anchor_factor,
+    nap3d_prior_factor,
+    noise_model,
+    odometry_factor,
+    pose_prior_factor,
+    preintegrate,
+)
+from nap3d_graph.results import Alignment, Correction
+
+G = 9.81
+
+
+# --- helpers ---------------------------------------------------------------------------
+
+
+def random_covariance(rng: np.random.Generator, rot_sigma: float = 0.005,
+                      trans_sigma: float = 0.01) -> np.ndarray:
+    """A correlated 6x6 SPD covariance, GTSAM order, ~rot_sigma rad / trans_sigma m."""
+    A = rng.normal(size=(6, 6))
+    corr = A @ A.T + 6 * np.eye(6)
+    d = 1.0 / np.sqrt(np.diag(corr))
+    corr = corr * d[:, None] * d[None, :]
+    s = np.array([rot_sigma] * 3 + [trans_sigma] * 3)
+    return corr * s[:, None] * s[None, :]
+
+
+def random_T(rng: np.random.Generator, rot_scale: float = 0.5, trans_scale: float = 2.0) -> np.ndarray:
+    return exp_se3(np.concatenate([rng.normal(scale=rot_scale, size=3),
+                                   rng.normal(scale=trans_scale, size=3)]))
+
+
+def vals(*items) -> gtsam.Values:
+    """``vals((key, Pose3), ...)`` -> Values."""
+    v = gtsam.Values()
+    for key, value in items:
+        v.insert(key, value)
+    return v
+
+
+def unwhitened_jacobian(factor, values: gtsam.Values) -> tuple[list[np.ndarray], np.ndarray]:
+    """Jacobians (per key) and error of ``factor`` from its linearisation, unwhitened.
+
+    ``linearize`` returns ``A = R H`` and ``b = -R e`` with ``R`` the square-root
+    information of the (Gaussian) noise; undo ``R`` to compare with numerical derivatives.
+    """
+    A, b = factor.linearize(values).jacobian()
+    R = base_gaussian(factor.noiseModel()).R()
+    H = np.linalg.solve(R, A)
+    e = -np.linalg.solve(R, b)
+    dims = [6] * factor.size()
+    return np.split(H, np.cumsum(dims)[:-1], axis=1), e
+
+
+def alignment_for(T_field_cam_est: np.ndarray, T_field_cam_true: np.ndarray,
+                  covariance: np.ndarray) -> Alignment:
+    """The Alignment NAP3D would return when the field renders at the estimate."""
+    # corrected = est @ inv(T_real_rendered) = true  =>  T_real_rendered = inv(true) @ est
+    return Alignment(T_real_rendered=inv_T(T_field_cam_true) @ T_field_cam_est,
+                     covariance=covariance, num_matches=200, num_inliers=150,
+                     inlier_rmse_m=0.01, success=True)
+
+
+# --- noise models ----------------------------------------------------------------------
+
+
+def test_sigmas_and_diagonal_covariance_whiten_the_same():
+    rot = np.array([0.01, 0.02, 0.03])
+    trans = np.array([0.1, 0.2, 0.3])
+    from_sigmas = noise_model(rot_sigma_rad=rot, trans_sigma_m=trans)
+    from_cov = noise_model(covariance=np.diag(np.concatenate([rot, trans]) ** 2))
+    e = np.array([0.01, -0.02, 0.03, 0.1, 0.2, -0.3])
+    np.testing.assert_allclose(from_sigmas.whiten(e), from_cov.whiten(e), rtol=1e-12)
+    np.testing.assert_allclose(from_sigmas.whiten(e), e / np.concatenate([rot, trans]), rtol=1e-12)
+    np.testing.assert_allclose(from_sigmas.information(), from_cov.information(), rtol=1e-12)
+    # Scalars broadcast to all three axes, rotation first (GTSAM Pose3 order).
+    np.testing.assert_allclose(noise_model(rot_sigma_rad=0.1, trans_sigma_m=2.0).sigmas(),
+                               [0.1, 0.1, 0.1, 2.0, 2.0, 2.0])
+
+
+def test_full_covariance_whitening_is_mahalanobis():
+    rng = np.random.default_rng(0)
+    C = random_covariance(rng)
+    model = noise_model(covariance=C)
+    e = rng.normal(size=6) * 0.01
+    assert np.sum(model.whiten(e) ** 2) == pytest.approx(e @ np.linalg.solve(C, e), rel=1e-10)
+    np.testing.assert_allclose(model.covariance(), C, rtol=1e-10, atol=1e-18)
+    # Rounding-level asymmetry (as from inv(J^T J)) is accepted and symmetrised.
+    C_asym = C.copy()
+    C_asym[0, 1] *= 1 + 1e-12
+    np.testing.assert_allclose(noise_model(covariance=C_asym).covariance(),
+                               noise_model(covariance=C).covariance(), rtol=1e-9)
+
+
+@pytest.mark.parametrize("bad, message", [
+    (np.full((6, 6), np.nan), "non-finite"),
+    (np.diag([1, 1, 1, 1, 1, np.inf]), "non-finite"),
+    (np.diag([1, 1, 1, 1, 1, -1.0]), "not positive definite"),
+    (np.zeros((6, 6)), "not positive definite"),
+    (np.eye(5), r"shape \(6, 6\)"),
+    (np.eye(6)[:, :5], r"shape \(6, 6\)"),
+    (np.eye(6) + np.triu(np.ones((6, 6)), 1) * 0.1, "not symmetric"),
+    (np.diag([1, 1, 1, 1, 1, 1e-20]), "numerically singular"),
+])
+def test_bad_covariance_raises_clear_value_error(bad, message):
+    with pytest.raises(ValueError, match=message):
+        noise_model(covariance=bad)
+
+
+def test_bad_noise_arguments_raise():
+    with pytest.raises(ValueError, match="not both"):
+        noise_model(rot_sigma_rad=0.1, trans_sigma_m=0.1, covariance=np.eye(6))
+    with pytest.raises(ValueError, match="needs both"):
+        noise_model(rot_sigma_rad=0.1)
+    with pytest.raises(ValueError, match="> 0"):
+        noise_model(rot_sigma_rad=-0.1, trans_sigma_m=0.1)
+    with pytest.raises(ValueError, match="3-vector"):
+        noise_model(rot_sigma_rad=[0.1, 0.1], trans_sigma_m=0.1)
+    with pytest.raises(ValueError, match="unknown robust kernel"):
+        noise_model(rot_sigma_rad=0.1, trans_sigma_m=0.1, robust="tukeyy")
+
+
+@pytest.mark.parametrize("kernel, estimator", [("huber", gtsam.noiseModel.mEstimator.Huber),
+                                               ("cauchy", gtsam.noiseModel.mEstimator.Cauchy)])
+def test_robust_wrapper_and_base_gaussian(kernel, estimator):
+    C = random_covariance(np.random.default_rng(1))
+    robust = noise_model(covariance=C, robust=kernel)
+    assert isinstance(robust, gtsam.noiseModel.Robust)
+    assert isinstance(robust.robust(), estimator)
+    base = base_gaussian(robust)
+    assert isinstance(base, gtsam.noiseModel.Gaussian)
+    assert not isinstance(base, gtsam.noiseModel.Robust)
+    np.testing.assert_allclose(base.covariance(), C, rtol=1e-10, atol=1e-18)
+    plain = noise_model(rot_sigma_rad=0.1, trans_sigma_m=0.2)
+    assert base_gaussian(plain) is plain
+    with pytest.raises(TypeError):
+        base_gaussian(object())
+
+
+# --- NAP3D prior -----------------------------------------------------------------------
+
+
+@pytest.fixture
+def nap3d_case():
+    rng = np.random.default_rng(2)
+    T_world_cam_true = random_T(rng)
+    T_world_cam_est = T_world_cam_true @ exp_se3(np.array([0.02, -0.03, 0.05, 0.2, -0.1, 0.15]))
+    C = random_covariance(rng)
+    return T_world_cam_est, T_world_cam_true, C, alignment_for(T_world_cam_est, T_world_cam_true, C)
+
+
+def test_prior_factor_is_zero_at_corrected_pose(nap3d_case):
+    T_est, T_true, C, alignment = nap3d_case
+    factor = nap3d_prior_factor(X(3), T_est, alignment)
+    assert isinstance(factor, gtsam.PriorFactorPose3)
+    assert isinstance(factor.noiseModel(), gtsam.noiseModel.Robust)  # huber by default
+    np.testing.assert_allclose(factor.prior().matrix(), T_true, atol=1e-12)
+    v = vals((X(3), gtsam.Pose3(T_true)))
+    np.testing.assert_allclose(factor.unwhitenedError(v), np.zeros(6), atol=1e-10)
+    assert factor.error(v) == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_allclose(base_gaussian(factor.noiseModel()).covariance(), C, rtol=1e-10, atol=1e-18)
+    # The same pose from a Correction, which carries its corrected pose itself.
+    correction = Correction(T_world_cam_est=T_est, T_world_cam_corrected=T_true, covariance=C,
+                            alignment=alignment, iterations=2, success=True)
+    factor_c = nap3d_prior_factor(X(3), None, correction, robust=None)
+    np.testing.assert_allclose(factor_c.prior().matrix(), T_true, atol=1e-12)
+    assert isinstance(factor_c.noiseModel(), gtsam.noiseModel.Gaussian)
+
+
+def test_prior_factor_jacobian_matches_numerical(nap3d_case):
+    T_est, _, _, alignment = nap3d_case
+    factor = nap3d_prior_factor(X(0), T_est, alignment, robust=None)
+    x = gtsam.Pose3(T_est)  # away from the measurement: a non-trivial Jacobian
+    (H,), e = unwhitened_jacobian(factor, vals((X(0), x)))
+    H_num = numericalDerivative11(lambda p: factor.unwhitenedError(vals((X(0), p))), x, 1e-6)
+    np.testing.assert_allclose(H, H_num, atol=1e-6)
+    np.testing.assert_allclose(e, factor.unwhitenedError(vals((X(0), x))), atol=1e-12)
+    np.testing.assert_allclose(e, gtsam.Pose3.Logmap(factor.prior().between(x)), atol=1e-12)
+
+
+def test_prior_factor_matches_custom_factor(nap3d_case):
+    """Same linearisation as a CustomFactor with error Logmap(measured^-1 x)."""
+    T_est, T_true, C, alignment = nap3d_case
+    measured = gtsam.Pose3(T_true)
+    noise = noise_model(covariance=C)
+
+    def error_func(this: gtsam.CustomFactor, v: gtsam.Values, H):
+        x = v.atPose3(this.keys()[0])
+        H_between = np.zeros((6, 6), order="F")
+        H_log = np.zeros((6, 6), order="F")
+        delta = measured.between(x, np.zeros((6, 6), order="F"), H_between)
+        error = gtsam.Pose3.Logmap(delta, H_log)
+        if H is not None:
+            H[0] = H_log @ H_between
+        return error
+
+    custom = gtsam.CustomFactor(noise, [X(0)], error_func)
+    builtin = nap3d_prior_factor(X(0), T_est, alignment, robust=None)
+    for x in (gtsam.Pose3(T_est), gtsam.Pose3(T_true @ exp_se3([0.3, -0.2, 0.1, 1.0, 0.5, -0.7]))):
+        v = vals((X(0), x))
+        A_c, b_c = custom.linearize(v).jacobian()
+        A_b, b_b = builtin.linearize(v).jacobian()
+        np.testing.assert_allclose(A_b, A_c, rtol=1e-9, atol=1e-7)
+        np.testing.assert_allclose(b_b, b_c, rtol=1e-9, atol=1e-7)
+        assert builtin.error(v) == pytest.approx(custom.error(v), rel=1e-10)
+
+
+def test_robust_prior_differs_from_gaussian_only_beyond_threshold():
+    sigma = 0.01
+    alignment = Alignment(T_real_rendered=np.eye(4), covariance=np.eye(6) * sigma ** 2, success=True)
+    huber = nap3d_prior_factor(X(0), np.eye(4), alignment, robust="huber", robust_threshold=1.345)
+    gauss = nap3d_prior_factor(X(0), np.eye(4), alignment, robust=None)
+    for n_sigma in (0.2, 0.8, 1.3):  # inside the kernel: identical
+        v = vals((X(0), gtsam.Pose3(make_T(np.eye(3), [n_sigma * sigma, 0, 0]))))
+        assert huber.error(v) == pytest.approx(gauss.error(v), rel=1e-9)
+        np.testing.assert_allclose(huber.whitenedError(v), gauss.whitenedError(v), rtol=1e-9)
+        np.testing.assert_allclose(huber.linearize(v).jacobian()[1], gauss.linearize(v).jacobian()[1], rtol=1e-9)
+    for n_sigma in (2.0, 10.0):  # beyond: down-weighted
+        v = vals((X(0), gtsam.Pose3(make_T(np.eye(3), [n_sigma * sigma, 0, 0]))))
+        k = 1.345
+        assert huber.error(v) == pytest.approx(k * n_sigma - 0.5 * k ** 2, rel=1e-9)  # Huber loss
+        assert huber.error(v) < gauss.error(v)
+        # ... but the unwhitened error, which gating uses, is the same.
+        np.testing.assert_allclose(huber.unwhitenedError(v), gauss.unwhitenedError(v), atol=1e-15)
+
+
+def test_prior_factor_rejects_failed_or_bad_results(nap3d_case):
+    T_est, T_true, C, alignment = nap3d_case
+    with pytest.raises(ValueError, match="too few matches"):
+        nap3d_prior_factor(X(0), T_est, Alignment.failure("too few matches"))
+    bad_cov = Alignment(T_real_rendered=alignment.T_real_rendered, covariance=np.full((6, 6), np.nan),
+                        success=True)
+    with pytest.raises(ValueError, match="non-finite"):
+        nap3d_prior_factor(X(0), T_est, bad_cov)
+    not_pd = Alignment(T_real_rendered=alignment.T_real_rendered, covariance=-np.eye(6), success=True)
+    with pytest.raises(ValueError, match="positive definite"):
+        nap3d_prior_factor(X(0), T_est, not_pd)
+    failed = Correction(T_world_cam_est=T_est, T_world_cam_corrected=T_true, covariance=C,
+                        alignment=alignment, success=False, reason="gated out")
+    with pytest.raises(ValueError, match="gated out"):
+        nap3d_prior_factor(X(0), T_est, failed)
+    with pytest.raises(TypeError):
+        nap3d_prior_factor(X(0), T_est, "not a result")
+
+
+# --- anchor ----------------------------------------------------------------------------
+
+
+def test_anchor_factor_measures_map_pose_and_jacobians(nap3d_case):
+    T_map_cam_est, T_map_cam_true, C, alignment = nap3d_case
+    T_world_map = make_T(gtsam.Rot3.Yaw(np.radians(5)).matrix(), [0.3, -0.1, 0.05])
+    factor = nap3d_anchor_factor(X(1), M(0), T_map_cam_est, alignment, robust=None)
+    assert isinstance(factor, gtsam.BetweenFactorPose3)
+    assert list(factor.keys()) == [M(0), X(1)]
+    anchor, pose = gtsam.Pose3(T_world_map), gtsam.Pose3(T_world_map @ T_map_cam_true)
+    np.testing.assert_allclose(factor.unwhitenedError(vals((M(0), anchor), (X(1), pose))), 0, atol=1e-10)
+    # Jacobians at a perturbed point, against central differences.
+    anchor = anchor.retract(np.array([0.01, 0.02, -0.03, 0.1, 0.0, -0.2]))
+    pose = pose.retract(np.array([-0.05, 0.01, 0.02, 0.3, -0.2, 0.1]))
+    (H_anchor, H_pose), _ = unwhitened_jacobian(factor, vals((M(0), anchor), (X(1), pose)))
+
+    def h(a, p):
+        return factor.unwhitenedError(vals((M(0), a), (X(1), p)))
+
+    np.testing.assert_allclose(H_anchor, numericalDerivative21(h, anchor, pose, 1e-6), atol=1e-6)
+    np.testing.assert_allclose(H_pose, numericalDerivative22(h, anchor, pose, 1e-6), atol=1e-6)
+
+
+def make_anchor_problem(seed: int = 3):
+    """Poses X(0..9) on a path, world frame != map frame by 0.3 m and 5 deg of yaw.
+
+    Returns the truth, the noisy odometry increments and the NAP3D alignments (computed by
+    rendering the field at the dead-reckoned pose, taken as a map-frame pose).
+    """
+    rng = np.random.default_rng(seed)
+    T_world_map = make_T(gtsam.Rot3.Yaw(np.radians(5.0)).matrix(), [0.3, 0.0, 0.0])
+    T_world_cam = [make_T(gtsam.Rot3.Ypr(0.15 * k, 0.02 * np.sin(k), 0.0).matrix(),
+                          [0.5 * k, 0.2 * np.sin(0.5 * k), 0.05 * k]) for k in range(10)]
+    odo_sigmas = (np.radians(1.0), 0.02)
+    odometry = [inv_T(T_world_cam[k - 1]) @ T_world_cam[k]
+                @ exp_se3(np.concatenate([rng.normal(scale=odo_sigmas[0], size=3),
+                                          rng.normal(scale=odo_sigmas[1], size=3)]))
+                for k in range(1, 10)]
+    dead_reckoned = [T_world_cam[0]]
+    for T in odometry:
+        dead_reckoned.append(dead_reckoned[-1] @ T)
+    C_meas = np.diag([np.radians(0.02)] * 3 + [0.001] * 3) ** 2
+    alignments = {}
+    for k in (0, 2, 4, 5, 7, 9):
+        T_map_cam_true = inv_T(T_world_map) @ T_world_cam[k]
+        T_map_cam_measured = T_map_cam_true @ exp_se3(rng.multivariate_normal(np.zeros(6), C_meas))
+        alignments[k] = alignment_for(dead_reckoned[k], T_map_cam_measured, C_meas)
+    return T_world_map, T_world_cam, odometry, odo_sigmas, dead_reckoned, alignments
+
+
+def test_anchor_recovered_by_levenberg_marquardt():
+    T_world_map, T_world_cam, odometry, odo_sigmas, dead_reckoned, alignments = make_anchor_problem()
+    graph = gtsam.NonlinearFactorGraph()
+    initial = gtsam.Values()
+    graph.add(pose_prior_factor(X(0), T_world_cam[0], rot_sigma_rad=1e-4, trans_sigma_m=1e-4))
+    graph.add(anchor_prior_factor(M(0)))
+    initial.insert(M(0), gtsam.Pose3())
+    for k, T in enumerate(dead_reckoned):
+        initial.insert(X(k), gtsam.Pose3(T))
+    for k, T_odo in enumerate(odometry, start=1):
+        graph.add(odometry_factor(X(k - 1), X(k), T_odo, rot_sigma_rad=odo_sigmas[0],
+                                  trans_sigma_m=odo_sigmas[1]))
+    for k, alignment in alignments.items():
+        graph.add(nap3d_anchor_factor(X(k), M(0), dead_reckoned[k], alignment))
+    result = gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize()
+    dt, dr = pose_error(result.atPose3(M(0)).matrix(), T_world_map)
+    assert dt < 0.005 and dr < 0.1, (dt, dr)
+    # The anchor also removes the odometry drift at the measured poses.
+    dt9, _ = pose_error(result.atPose3(X(9)).matrix(), T_world_cam[9])
+    assert dt9 < 0.005
+
+
+def test_anchor_recovered_by_isam2_incrementally():
+    T_world_map, T_world_cam, odometry, odo_sigmas, dead_reckoned, alignments = make_anchor_problem()
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(0.001)
+    params.relinearizeSkip = 1
+    isam = gtsam.ISAM2(params)
+    for k in range(10):
+        # Fresh containers per update, as the iSAM2 loop in DESIGN.md prescribes.
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if k == 0:
+            graph.add(pose_prior_factor(X(0), T_world_cam[0], rot_sigma_rad=1e-4, trans_sigma_m=1e-4))
+            graph.add(anchor_prior_factor(M(0), np.eye(4)))
+            values.insert(X(0), gtsam.Pose3(T_world_cam[0]))
+            values.insert(M(0), gtsam.Pose3())
+        else:
+            graph.add(odometry_factor(X(k - 1), X(k), odometry[k - 1], rot_sigma_rad=odo_sigmas[0],
+                                      trans_sigma_m=odo_sigmas[1]))
+            previous = isam.calculateEstimate().atPose3(X(k - 1))
+            values.insert(X(k), previous.compose(gtsam.Pose3(odometry[k - 1])))
+        if k in alignments:
+            # The pipeline renders at its current estimate taken as a map-frame pose.
+            graph.add(nap3d_anchor_factor(X(k), M(0), dead_reckoned[k], alignments[k]))
+        isam.update(graph, values)
+    for _ in range(3):  # let relinearisation settle
+        isam.update()
+    estimate = isam.calculateEstimate()
+    dt, dr = pose_error(estimate.atPose3(M(0)).matrix(), T_world_map)
+    assert dt < 0.005 and dr < 0.1, (dt, dr)
+
+
+# --- odometry --------------------------------------------------------------------------
+
+
+def test_odometry_factor_error_and_jacobians():
+    rng = np.random.default_rng(4)
+    T_w_i, T_w_j = random_T(rng), random_T(rng)
+    T_i_j = inv_T(T_w_i) @ T_w_j
+    C = random_covariance(rng, 0.01, 0.05)
+    factor = odometry_factor(X(0), X(1), T_i_j, C)
+    v = vals((X(0), gtsam.Pose3(T_w_i)), (X(1), gtsam.Pose3(T_w_j)))
+    np.testing.assert_allclose(factor.unwhitenedError(v), 0, atol=1e-10)
+    xi = gtsam.Pose3(T_w_i).retract(np.array([0.1, -0.05, 0.2, 0.3, 0.1, -0.4]))
+    xj = gtsam.Pose3(T_w_j).retract(np.array([-0.2, 0.1, 0.05, -0.1, 0.5, 0.2]))
+    (H_i, H_j), _ = unwhitened_jacobian(factor, vals((X(0), xi), (X(1), xj)))
+
+    def h(a, b):
+        return factor.unwhitenedError(vals((X(0), a), (X(1), b)))
+
+    np.testing.assert_allclose(H_i, numericalDerivative21(h, xi, xj, 1e-6), atol=1e-6)
+    np.testing.assert_allclose(H_j, numericalDerivative22(h, xi, xj, 1e-6), atol=1e-6)
+    by_sigmas = odometry_factor(X(0), X(1), gtsam.Pose3(T_i_j), rot_sigma_rad=0.01, trans_sigma_m=0.05)
+    np.testing.assert_allclose(by_sigmas.noiseModel().sigmas(), [0.01] * 3 + [0.05] * 3)
+    with pytest.raises(ValueError):
+        odometry_factor(X(0), X(1), T_i_j)  # neither covariance nor sigmas
+
+
+# --- IMU -------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def params():
+    return imu_params(accel_noise_density=0.01, gyro_noise_density=0.001,
+                      accel_bias_rw=1e-4, gyro_bias_rw=1e-5, gravity=G)
+
+
+def uniform_samples(rate_hz: float, duration_s: float, accel, gyro):
+    stamps = np.arange(0.0, duration_s + 1e-9, 1.0 / rate_hz)
+    n = len(stamps)
+    return stamps, np.tile(np.asarray(accel, float), (n, 1)), np.tile(np.asarray(gyro, float), (n, 1))
+
+
+def test_imu_at_rest_predicts_no_motion(params):
+    stamps, acc, gyr = uniform_samples(200, 1.0, [0, 0, G], [0, 0, 0])
+    pim = preintegrate(params, None, stamps, acc, gyr, 0.0, 1.0)
+    assert pim.deltaTij() == pytest.approx(1.0, abs=1e-12)
+    state = pim.predict(gtsam.NavState(gtsam.Pose3(), np.zeros(3)), gtsam.imuBias.ConstantBias())
+    np.testing.assert_allclose(state.pose().matrix(), np.eye(4), atol=1e-9)
+    np.testing.assert_allclose(state.velocity(), np.zeros(3), atol=1e-9)
+
+
+def test_imu_constant_yaw_rate_gives_yaw(params):
+    w = 0.7
+    stamps, acc, gyr = uniform_samples(100, 1.0, [0, 0, G], [0, 0, w])
+    pim = preintegrate(params, None, stamps, acc, gyr, 0.0, 1.0)
+    np.testing.assert_allclose(pim.deltaRij().matrix(), gtsam.Rot3.Yaw(w).matrix(), atol=1e-12)
+    assert pim.deltaRij().yaw() == pytest.approx(w, abs=1e-12)
+
+
+def test_preintegrate_cuts_partial_first_and_last_intervals(params):
+    stamps = np.arange(11) * 0.1
+    gyro = np.zeros((11, 3))
+    gyro[:, 2] = np.arange(11)  # sample k reads k rad/s of yaw
+    acc = np.tile([0, 0, G], (11, 1))
+    pim = preintegrate(params, None, stamps, acc, gyro, 0.05, 0.35)
+    assert pim.deltaTij() == pytest.approx(0.30, abs=1e-12)
+    # [0.05, 0.1) sample 0, [0.1, 0.2) sample 1, [0.2, 0.3) sample 2, [0.3, 0.35) sample 3
+    assert pim.deltaRij().yaw() == pytest.approx(0.05 * 0 + 0.1 * 1 + 0.1 * 2 + 0.05 * 3, abs=1e-12)
+    # Consecutive keyframe intervals add up: no time lost or counted twice.
+    a = preintegrate(params, None, stamps, acc, gyro, 0.05, 0.23).deltaRij().yaw()
+    b = preintegrate(params, None, stamps, acc, gyro, 0.23, 0.35).deltaRij().yaw()
+    assert a + b == pytest.approx(0.45, abs=1e-12)
+    with pytest.raises(ValueError, match="t_end > t_start"):
+        preintegrate(params, None, stamps, acc, gyro, 0.3, 0.3)
+    with pytest.raises(ValueError, match="shape"):
+        preintegrate(params, None, stamps, acc[:, :2], gyro, 0.0, 0.3)
+    acc_nan = acc.copy()
+    acc_nan[2] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        preintegrate(params, None, stamps, acc_nan, gyro, 0.0, 0.3)
+    preintegrate(params, None, stamps, acc_nan, gyro, 0.5, 0.7)  # NaN outside the interval is fine
+
+
+def test_combined_imu_factor_zero_error_at_true_states(params):
+    # Constant world acceleration, constant tilted attitude, non-zero velocity and bias:
+    # the accelerometer reads R^T (a + g_up) + b_a, which is constant, so ZOH is exact.
+    R0 = gtsam.Rot3.Ypr(0.4, -0.1, 0.2)
+    p0, v0, a_world = np.array([1.0, 2.0, 0.5]), np.array([0.3, -0.2, 0.1]), np.array([0.5, -0.2, 0.1])
+    bias = gtsam.imuBias.ConstantBias(np.array([0.02, -0.01, 0.03]), np.array([0.001, 0.002, -0.001]))
+    T = 1.0
+    f_body = R0.matrix().T @ (a_world + np.array([0, 0, G])) + bias.accelerometer()
+    stamps, acc, gyr = uniform_samples(200, T, f_body, bias.gyroscope())
+    pim = preintegrate(params, bias, stamps, acc, gyr, 0.0, T)
+    factor = imu_factor(X(0), V(0), X(1), V(1), B(0), B(1), pim)
+    assert isinstance(factor, gtsam.CombinedImuFactor)
+    v = gtsam.Values()
+    v.insert(X(0), gtsam.Pose3(R0, p0))
+    v.insert(V(0), v0)
+    v.insert(X(1), gtsam.Pose3(R0, p0 + v0 * T + 0.5 * a_world * T ** 2))
+    v.insert(V(1), v0 + a_world * T)
+    v.insert(B(0), bias)
+    v.insert(B(1), bias)
+    error = factor.unwhitenedError(v)
+    assert error.shape == (15,)
+    np.testing.assert_allclose(error, np.zeros(15), atol=1e-9)
+    # A wrong end position is seen by the factor.
+    v.update(X(1), gtsam.Pose3(R0, p0 + v0 * T + 0.5 * a_world * T ** 2 + np.array([0.1, 0, 0])))
+    assert np.linalg.norm(factor.unwhitenedError(v)) > 0.05
+
+
+def test_imu_params_validate():
+    with pytest.raises(ValueError, match="gyro_noise_density"):
+        imu_params(0.01, -1.0, 1e-4, 1e-5)
+    p = imu_params(0.02, 0.003, 1e-4, 1e-5, gravity=9.8)
+    np.testing.assert_allclose(p.n_gravity, [0, 0, -9.8])
+    np.testing.assert_allclose(p.getAccelerometerCovariance(), 0.02 ** 2 * np.eye(3))
+    np.testing.assert_allclose(p.getGyroscopeCovariance(), 0.003 ** 2 * np.eye(3))
+
+
+# --- gate ------------------------------------------------------------------------------
+
+
+def prior_at_identity(C: np.ndarray, robust=None) -> gtsam.PriorFactorPose3:
+    return gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), noise_model(covariance=C, robust=robust))
+
+
+def test_gate_accepts_correct_and_rejects_wrong_factor():
+    C = np.diag([np.radians(0.5)] * 3 + [0.01] * 3) ** 2
+    factor = prior_at_identity(C, robust="huber")
+    ok = chi2_gate(factor, vals((X(0), gtsam.Pose3.Expmap(np.array([0.005, 0, 0, 0.01, -0.01, 0])))))
+    assert isinstance(ok, GateResult)
+    assert ok.accepted and ok.reason == ""
+    assert ok.threshold == pytest.approx(chi2.ppf(0.997, 6))
+    wrong = chi2_gate(factor, vals((X(0), gtsam.Pose3(gtsam.Rot3(), np.array([0.5, 0, 0])))))
+    assert not wrong.accepted
+    assert wrong.d2 == pytest.approx((0.5 / 0.01) ** 2, rel=1e-9)  # reported, not clipped
+    assert "d2=2500" in wrong.reason
+
+
+def test_gate_uses_base_gaussian_not_robust_error():
+    rng = np.random.default_rng(5)
+    C = random_covariance(rng)
+    x = gtsam.Pose3.Expmap(np.array([0.02, -0.01, 0.03, 0.2, -0.1, 0.3]))  # a gross outlier
+    v = vals((X(0), x))
+    robust, gauss = prior_at_identity(C, "cauchy"), prior_at_identity(C)
+    e = gtsam.Pose3.Logmap(x)
+    expected = e @ np.linalg.solve(C, e)
+    assert mahalanobis_sq(gauss, v) == pytest.approx(expected, rel=1e-9)
+    assert mahalanobis_sq(robust, v) == pytest.approx(expected, rel=1e-9)
+    assert 2 * robust.error(v) < 0.05 * expected  # what a naive gate would have used
+    assert chi2_gate(robust, v).d2 == pytest.approx(expected, rel=1e-9)
+    xi, cov = factor_error_and_covariance(robust, v)
+    np.testing.assert_allclose(xi, e, atol=1e-12)
+    np.testing.assert_allclose(cov, C, rtol=1e-9, atol=1e-18)
+
+
+def test_gate_rejection_rate_matches_chi2():
+    rng = np.random.default_rng(6)
+    C = random_covariance(rng)
+    factor = prior_at_identity(C, robust="huber")
+    draws = rng.multivariate_normal(np.zeros(6), C, size=2000)
+    rejected = np.mean([not chi2_gate(factor, vals((X(0), gtsam.Pose3.Expmap(xi))), p=0.95).accepted
+                        for xi in draws])
+    assert abs(rejected - 0.05) < 0.015, rejected
+    # The innovation gate with S = R + P has the same rate on errors drawn from R + P.
+    P = random_covariance(rng, 0.02, 0.1)
+    draws = rng.multivariate_normal(np.zeros(6), C + P, size=2000)
+    rejected = np.mean([not chi2_gate_with_marginal(xi, C, P, p=0.95).accepted for xi in draws])
+    assert abs(rejected - 0.05) < 0.015, rejected
+
+
+def test_gate_with_marginal_accepts_correction_of_drifted_estimate():
+    C = np.diag([np.radians(0.5)] * 3 + [0.01] * 3) ** 2
+    P = np.diag([np.radians(2.0)] * 3 + [0.3] * 3) ** 2  # drifted: 30 cm uncertain
+    factor = prior_at_identity(C)
+    v = vals((X(0), gtsam.Pose3(gtsam.Rot3(), np.array([0.4, 0.0, 0.0]))))
+    assert not chi2_gate(factor, v).accepted
+    xi, cov = factor_error_and_covariance(factor, v)
+    with_marginal = chi2_gate_with_marginal(xi, cov, P)
+    assert with_marginal.accepted, with_marginal
+    assert with_marginal.d2 == pytest.approx(0.4 ** 2 / (0.01 ** 2 + 0.3 ** 2), rel=1e-6)
+    # Without an estimate covariance it is the plain gate.
+    assert chi2_gate_with_marginal(xi, cov, None).d2 == pytest.approx(chi2_gate(factor, v).d2, rel=1e-9)
+    # An explicit Jacobian is used as J P J^T.
+    J = 2.0 * np.eye(6)
+    assert chi2_gate_with_marginal(xi, cov, P, jacobian=J).d2 == pytest.approx(
+        0.4 ** 2 / (0.01 ** 2 + 4 * 0.3 ** 2), rel=1e-6)
+
+
+def test_gate_never_raises_on_nan():
+    C = np.eye(6) * 1e-4
+    nan_prior = gtsam.PriorFactorPose3(X(0), gtsam.Pose3(gtsam.Rot3(), np.array([np.nan, 0, 0])),
+                                       noise_model(covariance=C, robust="huber"))
+    result = chi2_gate(nan_prior, vals((X(0), gtsam.Pose3())))
+    assert not result.accepted and np.isnan(result.d2) and "non-finite" in result.reason
+    result = chi2_gate_with_marginal(np.array([np.nan] + [0.0] * 5), C, C)
+    assert not result.accepted and "non-finite" in result.reason
+    result = chi2_gate_with_marginal(np.zeros(6), C, np.full((6, 6), np.nan))
+    assert not result.accepted and "non-finite" in result.reason
+    result = chi2_gate_with_marginal(np.ones(6), -C, None)
+    assert not result.accepted and "positive definite" in result.reason

@@ -1,0 +1,481 @@
+"""TUM RGB-D reader on the real fr1/xyz frames in shared/data, plus association,
+interpolation, trajectory files (checked against evo) and bad-input errors."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from nap3d_graph.camera import Intrinsics, RGBDFrame, backproject_depth, project
+from nap3d_graph.conventions import inv_T, make_T, rotation_angle_deg, transform_points
+from nap3d_graph.datasets import SOURCES, DatasetError, TumSequence, read_tum_trajectory, write_tum_trajectory
+from nap3d_graph.datasets.tum import associate, interpolate_poses, read_file_list
+
+TUM_DIR = Path(__file__).resolve().parents[2] / "shared/data/tum/rgbd_dataset_freiburg1_xyz"
+needs_data = pytest.mark.skipif(
+    not TUM_DIR.is_dir(), reason=f"real TUM fr1/xyz frames not found at {TUM_DIR} (shared/ beside the checkout)"
+)
+FR1 = Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480)
+FR1_DISTORTION = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
+
+
+@pytest.fixture(scope="module")
+def seq() -> TumSequence:
+    if not TUM_DIR.is_dir():
+        pytest.skip(f"real TUM fr1/xyz frames not found at {TUM_DIR}")
+    return TumSequence(TUM_DIR)
+
+
+@pytest.fixture(scope="module")
+def raw_gt():
+    if not TUM_DIR.is_dir():
+        pytest.skip(f"real TUM fr1/xyz frames not found at {TUM_DIR}")
+    return read_tum_trajectory(TUM_DIR / "groundtruth.txt")
+
+
+def small_copy(tmp_path: Path, frames: int = 4, name: str = "rgbd_dataset_freiburg1_xyz") -> Path:
+    """First ``frames`` colour and depth frames of fr1/xyz in TUM's layout, writable."""
+    if not TUM_DIR.is_dir():
+        pytest.skip(f"real TUM fr1/xyz frames not found at {TUM_DIR}")
+    out = tmp_path / name
+    (out / "rgb").mkdir(parents=True)
+    (out / "depth").mkdir()
+    for list_name in ("rgb.txt", "depth.txt"):
+        lines = (TUM_DIR / list_name).read_text().splitlines()
+        header = [line for line in lines if line.startswith("#")]
+        data = [line for line in lines if line and not line.startswith("#")][:frames]
+        (out / list_name).write_text("\n".join(header + data) + "\n")
+        for line in data:
+            rel = line.split()[1]
+            shutil.copyfile(TUM_DIR / rel, out / rel)
+    shutil.copyfile(TUM_DIR / "groundtruth.txt", out / "groundtruth.txt")
+    return out
+
+
+# --- the real sequence ------------------------------------------------------------------------
+
+
+@needs_data
+def test_real_sequence_association_and_intrinsics(seq):
+    # TUM's greedy association at 0.02 s keeps 32 of the 37 colour frames of this excerpt:
+    # depth runs ~15 ms before colour, so the later depth frame (17-20 ms away) is sometimes
+    # the nearer one and is taken, and its own colour frame loses its partner (TUM's
+    # associate.py gives the same 32; see test_associate_real_lists for the offset that pairs 37).
+    assert len(seq) == 32
+    assert seq.timestamps.shape == (32,) and seq.depth_timestamps.shape == (32,)
+    assert np.all(np.diff(seq.timestamps) > 0)
+    assert np.all(np.abs(seq.timestamps - seq.depth_timestamps) < 0.02)
+    assert len(seq.rgb_paths) == len(seq.depth_paths) == 32
+    assert seq.num_dropped_no_gt == 0  # the ground truth spans the whole excerpt
+    assert seq.name == "rgbd_dataset_freiburg1_xyz" and seq.path == TUM_DIR
+    # fr1 calibration, reported without distortion because the images are undistorted.
+    assert seq.intrinsics == FR1
+    assert seq.intrinsics.distortion == ()
+    assert seq.raw_intrinsics.distortion == pytest.approx(FR1_DISTORTION)
+    assert SOURCES["tum"] is TumSequence
+
+
+@needs_data
+def test_real_frames(seq):
+    frame = seq[0]
+    assert isinstance(frame, RGBDFrame)
+    assert frame.rgb.shape == (480, 640, 3) and frame.rgb.dtype == np.uint8
+    assert frame.depth_m.shape == (480, 640) and frame.depth_m.dtype == np.float32
+    assert frame.timestamp == seq.timestamps[0]
+    assert frame.intrinsics == FR1
+    valid = frame.depth_m > 0
+    # A desk scene about 1.2 m away; a fifth to a third of the pixels have no depth.
+    assert 0.6 < valid.mean() < 0.8
+    assert 1.0 < np.median(frame.depth_m[valid]) < 1.4
+    assert frame.depth_m.max() < 10.0
+    # Depth is raw uint16 / 5000 (nearest-neighbour undistortion invents no values).
+    raw = cv2.imread(str(seq.depth_paths[0]), cv2.IMREAD_UNCHANGED)
+    assert np.isin(np.round(frame.depth_m[valid] * 5000).astype(np.uint16), raw).all()
+    # RGB order: the colour image equals OpenCV's own undistortion of the BGR file, flipped.
+    bgr = cv2.imread(str(seq.rgb_paths[0]))
+    expected = cv2.undistort(bgr, FR1.K, np.array(FR1_DISTORTION))[..., ::-1]
+    inner = (slice(40, -40), slice(40, -40))  # black borders differ by a pixel
+    assert np.abs(frame.rgb[inner].astype(int) - expected[inner]).mean() < 1.0
+    # Undistortion keeps the principal point and pulls the corners from outside the raw
+    # image (fr1's distortion maps undistorted pixel (0, 0) to raw (-24, -21)): black corners.
+    plain = TumSequence(TUM_DIR, undistort=False)
+    assert plain.intrinsics.distortion == pytest.approx(FR1_DISTORTION)  # raw images say so
+    raw_frame = plain[0]
+    assert np.array_equal(raw_frame.rgb[255, 318], frame.rgb[255, 318])
+    assert np.all(frame.rgb[:5, :5] == 0) and np.all(frame.depth_m[:5, :5] == 0)
+    assert (raw_frame.rgb.sum(axis=2) == 0).sum() == 0
+    assert (frame.rgb.sum(axis=2) == 0).sum() > 10_000
+
+
+@needs_data
+def test_indexing_and_iteration(seq):
+    assert seq[-1].timestamp == seq.timestamps[-1]
+    assert seq[np.int64(3)].timestamp == seq.timestamps[3]
+    with pytest.raises(IndexError):
+        seq[len(seq)]
+    with pytest.raises(IndexError):
+        seq[-len(seq) - 1]
+    stamps = [frame.timestamp for _, frame in zip(range(3), seq)]
+    assert stamps == list(seq.timestamps[:3])
+
+
+@needs_data
+def test_ground_truth_interpolated_to_rgb_stamps(seq, raw_gt):
+    stamps_gt, T_gt = raw_gt
+    assert stamps_gt.shape == (3000,) and T_gt.shape == (3000, 4, 4)
+    T = seq.T_world_cam_gt
+    assert T.shape == (32, 4, 4) and np.all(np.isfinite(T))
+    nearest = np.abs(stamps_gt[None, :] - seq.timestamps[:, None]).argmin(axis=1)
+    assert np.abs(stamps_gt[nearest] - seq.timestamps).max() < 0.0051  # 100 Hz ground truth
+    dist_mm = 1000 * np.linalg.norm(T[:, :3, 3] - T_gt[nearest, :3, 3], axis=1)
+    angle_deg = rotation_angle_deg(np.swapaxes(T[:, :3, :3], 1, 2) @ T_gt[nearest, :3, :3])
+    assert dist_mm.max() < 3.0  # <= 5 ms of motion at fr1/xyz's ~0.4 m/s
+    assert angle_deg.max() < 0.3
+    assert np.allclose(T[:, :3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2), np.eye(3), atol=1e-9)
+
+
+def _depth_agreement_mm(frame_a, frame_b, T_world_a, T_world_b):
+    """Median |z_b - z(a moved into b)| (mm) and count over pixels valid in both within 5 cm."""
+    K = frame_a.intrinsics
+    points_a, _ = backproject_depth(frame_a.depth_m, K)
+    points_b = transform_points(inv_T(T_world_b) @ T_world_a, points_a)
+    uv, z = project(points_b, K)
+    u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+    inside = (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
+    measured = frame_b.depth_m[v[inside].astype(int), u[inside].astype(int)]
+    diff = measured - z[inside]
+    same_surface = (measured > 0) & (np.abs(diff) < 0.05)
+    return 1000 * float(np.median(np.abs(diff[same_surface]))), int(same_surface.sum())
+
+
+@needs_data
+@pytest.mark.parametrize("k", [10, 30])
+def test_depth_reprojects_consistently_with_ground_truth(seq, raw_gt, k):
+    # Depth is captured ~15 ms before (sometimes after) colour; at ~0.4 m/s that is mm, so
+    # poses are interpolated at the depth timestamps for this purely geometric check.
+    T_depth = interpolate_poses(*raw_gt, seq.depth_timestamps)
+    frame_0, frame_k = seq[0], seq[k]
+    median_mm, count = _depth_agreement_mm(frame_0, frame_k, T_depth[0], T_depth[k])
+    # Measured: 8.1 mm (k=10), 7.4 mm (k=30) over ~140k / ~90k pixels. The floor is the
+    # Kinect itself: one disparity step (1/8 px) is ~4 mm of depth at this scene's 1.2 m.
+    assert median_mm < 10.0
+    assert count > 50_000
+    # A 3 cm error in the relative pose must show clearly against that floor.
+    shifted = T_depth[k] @ make_T(np.eye(3), [0.0, 0.0, 0.03])
+    wrong_mm, _ = _depth_agreement_mm(frame_0, frame_k, T_depth[0], shifted)
+    assert wrong_mm > median_mm + 10.0
+
+
+# --- laziness ---------------------------------------------------------------------------------
+
+
+@needs_data
+def test_construction_reads_no_images(monkeypatch):
+    calls = []
+    real_imread = cv2.imread
+
+    def counting_imread(*args, **kwargs):
+        calls.append(args[0])
+        return real_imread(*args, **kwargs)
+
+    monkeypatch.setattr(cv2, "imread", counting_imread)
+    lazy = TumSequence(TUM_DIR)
+    assert calls == []
+    lazy[5]
+    assert sorted(calls) == sorted([str(lazy.rgb_paths[5]), str(lazy.depth_paths[5])])
+
+
+# --- trajectory files -------------------------------------------------------------------------
+
+
+@needs_data
+def test_trajectory_round_trip_and_evo(seq, tmp_path):
+    from evo.tools import file_interface
+
+    a = tmp_path / "a.txt"
+    write_tum_trajectory(a, seq.timestamps, seq.T_world_cam_gt)
+    lines = a.read_text().splitlines()
+    assert lines[0].startswith("#")
+    assert all(len(line.split(" ")) == 8 for line in lines[1:])
+    stamps, T = read_tum_trajectory(a)
+    assert np.allclose(stamps, seq.timestamps, rtol=0, atol=1e-6)
+    assert np.allclose(T, seq.T_world_cam_gt, rtol=0, atol=1e-6)
+
+    traj = file_interface.read_tum_trajectory_file(str(a))
+    assert traj.num_poses == 32
+    assert np.allclose(traj.timestamps, seq.timestamps, atol=1e-6)
+    assert np.allclose(traj.positions_xyz, seq.T_world_cam_gt[:, :3, 3], atol=1e-6)
+    assert np.allclose(np.stack(traj.poses_se3), seq.T_world_cam_gt, atol=1e-6)
+
+
+@needs_data
+def test_evo_ape_cli_reads_written_files(seq, tmp_path):
+    evo_ape = shutil.which("evo_ape")
+    if evo_ape is None:
+        pytest.skip("evo_ape console script not on PATH")
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    write_tum_trajectory(a, seq.timestamps, seq.T_world_cam_gt)
+    shifted = seq.T_world_cam_gt.copy()
+    shifted[:, 0, 3] += 0.01  # 1 cm along world x: unaligned APE is exactly 1 cm everywhere
+    write_tum_trajectory(b, seq.timestamps, shifted)
+    # HOME in tmp_path: evo writes its settings file there instead of the user's home.
+    env = {**os.environ, "HOME": str(tmp_path), "MPLBACKEND": "Agg"}
+    result = subprocess.run(
+        [evo_ape, "tum", str(a), str(b)], capture_output=True, text=True, env=env, timeout=60, check=False
+    )
+    assert result.returncode == 0, result.stderr
+    rmse = re.search(r"rmse\s+([0-9.]+)", result.stdout)
+    assert rmse is not None, result.stdout
+    assert float(rmse.group(1)) == pytest.approx(0.01, abs=1e-6)
+
+
+def test_write_refuses_bad_poses(tmp_path):
+    path = tmp_path / "bad.txt"
+    with pytest.raises(DatasetError, match="bad.txt"):
+        write_tum_trajectory(path, [0.0], np.full((1, 4, 4), np.nan))
+    with pytest.raises(DatasetError, match="bad.txt"):
+        write_tum_trajectory(path, [0.0, 1.0], np.eye(4)[None])
+
+
+def test_read_trajectory_errors(tmp_path):
+    path = tmp_path / "traj.txt"
+    path.write_text("# header\n0.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"traj\.txt:3: expected 8 columns"):
+        read_tum_trajectory(path)
+    path.write_text("0.0 0 0 0 0 0 0 x\n")
+    with pytest.raises(DatasetError, match=r"traj\.txt:1: 'x' is not a number"):
+        read_tum_trajectory(path)
+    path.write_text("0.0 0 0 0 0 0 0 0\n")
+    with pytest.raises(DatasetError, match="zero norm"):
+        read_tum_trajectory(path)
+    path.write_text("# only a comment\n")
+    with pytest.raises(DatasetError, match="no poses"):
+        read_tum_trajectory(path)
+    with pytest.raises(DatasetError, match="missing.txt"):
+        read_tum_trajectory(tmp_path / "missing.txt")
+
+
+# --- association ------------------------------------------------------------------------------
+
+
+def _reference_associate(first, second, offset, max_difference):
+    """TUM associate.py's algorithm, literally (quadratic), on index lists."""
+    candidates = sorted(
+        (abs(a - (b + offset)), a, b, i, j)
+        for i, a in enumerate(first)
+        for j, b in enumerate(second)
+        if abs(a - (b + offset)) < max_difference
+    )
+    free_a, free_b, matches = set(range(len(first))), set(range(len(second))), []
+    for _, a, _, i, j in candidates:
+        if i in free_a and j in free_b:
+            free_a.remove(i)
+            free_b.remove(j)
+            matches.append((a, i, j))
+    return [(i, j) for _, i, j in sorted(matches)]
+
+
+def test_associate_offset_stamps():
+    a = np.arange(20) * 0.033
+    b = a - 0.015  # depth 15 ms early, as on the Kinect
+    assert associate(a, b, 0.02, offset=0.015).tolist() == [[i, i] for i in range(20)]
+    shifted = associate(a, b + 10.0, 0.02, offset=-9.985)
+    assert shifted.tolist() == [[i, i] for i in range(20)]
+    assert len(associate(a, b + 10.0, 0.02)) == 0
+
+
+def test_associate_is_greedy_and_unique():
+    # (a1, b0) is the closest pair, so a0 loses b0 although b0 is a0's only neighbour.
+    pairs = associate([0.0, 0.012], [0.010, 0.030], max_difference=0.02)
+    assert pairs.tolist() == [[1, 0]]
+    # One b stamp between two a stamps is used once, by the nearer a.
+    assert associate([0.0, 0.01], [0.006], 0.02).tolist() == [[1, 0]]
+    # Output sorted by the first stamp, whatever the input order.
+    assert associate([0.2, 0.1, 0.0], [0.0, 0.1, 0.2], 0.02).tolist() == [[2, 0], [1, 1], [0, 2]]
+    assert associate([], [1.0]).shape == (0, 2)
+
+
+def test_associate_tolerance_is_strict():
+    assert associate([0.0], [0.019], 0.02).tolist() == [[0, 0]]
+    assert associate([0.0], [0.021], 0.02).tolist() == []
+    assert associate([0.0], [0.25], 0.3).tolist() == [[0, 0]]
+
+
+def test_associate_matches_tum_reference():
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        a = np.sort(rng.uniform(0, 2, rng.integers(1, 60)))
+        b = np.sort(rng.uniform(0, 2, rng.integers(1, 60)))
+        offset = rng.uniform(-0.02, 0.02)
+        expected = _reference_associate(a.tolist(), b.tolist(), offset, 0.03)
+        assert associate(a, b, 0.03, offset).tolist() == [list(p) for p in expected]
+
+
+@needs_data
+def test_associate_real_lists():
+    stamps_rgb, names_rgb = read_file_list(TUM_DIR / "rgb.txt")
+    stamps_depth, names_depth = read_file_list(TUM_DIR / "depth.txt")
+    assert len(stamps_rgb) == len(stamps_depth) == 37
+    assert names_rgb[0] == "rgb/1305031102.175304.png" and stamps_rgb[0] == 1305031102.175304
+    expected = _reference_associate(stamps_rgb.tolist(), stamps_depth.tolist(), 0.0, 0.02)
+    assert associate(stamps_rgb, stamps_depth).tolist() == [list(p) for p in expected]
+    assert len(expected) == 32
+    # With the Kinect's ~15 ms depth lead as offset, every colour frame gets its own depth.
+    assert associate(stamps_rgb, stamps_depth, 0.02, offset=0.015).tolist() == [[i, i] for i in range(37)]
+
+
+def test_read_file_list_errors(tmp_path):
+    path = tmp_path / "rgb.txt"
+    path.write_text("# colour\n\n1.0 rgb/1.png\n2.0\n")
+    with pytest.raises(DatasetError, match=r"rgb\.txt:4: expected 'timestamp filename'"):
+        read_file_list(path)
+    path.write_text("abc rgb/1.png\n")
+    with pytest.raises(DatasetError, match=r"rgb\.txt:1: 'abc' is not a number"):
+        read_file_list(path)
+
+
+# --- interpolation ----------------------------------------------------------------------------
+
+
+def test_interpolate_poses():
+    from scipy.spatial.transform import Rotation
+
+    T0 = make_T(np.eye(3), [0.0, 0.0, 0.0])
+    T1 = make_T(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [1.0, 2.0, 0.0])
+    T2 = make_T(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [5.0, 2.0, 0.0])
+    stamps = np.array([0.0, 0.1, 1.0])  # a 0.9 s hole between the last two
+    queries = [-0.01, 0.0, 0.025, 0.05, 0.1, 0.5, 1.0, 1.01]
+    T = interpolate_poses(stamps, np.stack([T0, T1, T2]), queries, max_gap=0.2)
+    ok = np.all(np.isfinite(T), axis=(1, 2))
+    # Outside the span, or inside the hole, is NaN; the stamps on either side of it are not.
+    assert ok.tolist() == [False, True, True, True, True, False, True, False]
+    assert np.allclose(T[1], T0) and np.allclose(T[4], T1) and np.allclose(T[6], T2)
+    assert np.allclose(T[3][:3, 3], [0.5, 1.0, 0.0])
+    assert Rotation.from_matrix(T[3][:3, :3]).as_euler("zyx", degrees=True) == pytest.approx([45, 0, 0])
+    assert Rotation.from_matrix(T[2][:3, :3]).as_euler("zyx", degrees=True) == pytest.approx([22.5, 0, 0])
+    # A wide enough max_gap bridges the hole; the last stamp itself is inside the span.
+    T = interpolate_poses(stamps, np.stack([T0, T1, T2]), [0.55, 1.0], max_gap=1.0)
+    assert np.allclose(T[0][:3, 3], [3.0, 2.0, 0.0]) and np.allclose(T[1], T2)
+
+
+# --- intrinsics resolution --------------------------------------------------------------------
+
+
+def test_intrinsics_resolution(tmp_path, caplog):
+    fr1_copy = small_copy(tmp_path / "a")
+    custom = Intrinsics(500.0, 501.0, 320.0, 240.0, 640, 480)
+    assert TumSequence(fr1_copy, intrinsics=custom).intrinsics == custom
+    assert TumSequence(fr1_copy, intrinsics=custom.to_dict()).intrinsics == custom
+    (fr1_copy / "intrinsics.json").write_text(json.dumps(custom.to_dict()))
+    from_json = TumSequence(fr1_copy)
+    assert from_json.intrinsics == custom and from_json[0].intrinsics == custom
+    (fr1_copy / "intrinsics.json").write_text('{"fx": 1}')
+    with pytest.raises(DatasetError, match=r"intrinsics\.json"):
+        TumSequence(fr1_copy)
+
+    fr3 = small_copy(tmp_path / "b", name="rgbd_dataset_freiburg3_office")
+    assert TumSequence(fr3).intrinsics == Intrinsics(535.4, 539.2, 320.1, 247.6, 640, 480)
+    fr2 = small_copy(tmp_path / "c", name="rgbd_dataset_freiburg2_desk")
+    fr2_distortion = (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)
+    assert TumSequence(fr2).raw_intrinsics.distortion == pytest.approx(fr2_distortion)
+
+    unnamed = small_copy(tmp_path / "d", name="my_recording")
+    with caplog.at_level(logging.WARNING, logger="nap3d_graph.datasets.tum"):
+        default = TumSequence(unnamed)
+    assert default.intrinsics == Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    assert "default camera" in caplog.text
+
+
+# --- bad input --------------------------------------------------------------------------------
+
+
+def test_missing_folder_and_lists(tmp_path):
+    with pytest.raises(DatasetError, match="nowhere"):
+        TumSequence(tmp_path / "nowhere")
+    folder = small_copy(tmp_path)
+    (folder / "rgb.txt").unlink()
+    with pytest.raises(DatasetError, match=r"rgb\.txt: file not found"):
+        TumSequence(folder)
+    folder = small_copy(tmp_path / "b")
+    (folder / "depth.txt").unlink()
+    with pytest.raises(DatasetError, match=r"depth\.txt: file not found"):
+        TumSequence(folder)
+
+
+def test_missing_image_file(tmp_path):
+    folder = small_copy(tmp_path)
+    seq = TumSequence(folder)
+    seq.rgb_paths[1].unlink()
+    with pytest.raises(DatasetError, match=re.escape(seq.rgb_paths[1].name) + ".*not found"):
+        TumSequence(folder)
+
+
+def test_corrupt_png(tmp_path):
+    seq = TumSequence(small_copy(tmp_path))
+    seq.rgb_paths[0].write_bytes(b"\x89PNG garbage, not an image" * 10)
+    with pytest.raises(DatasetError, match=re.escape(seq.rgb_paths[0].name) + ".*corrupt"):
+        seq[0]
+    seq.depth_paths[1].write_bytes(os.urandom(500))
+    with pytest.raises(DatasetError, match=re.escape(seq.depth_paths[1].name)):
+        seq[1]
+
+
+def test_depth_of_wrong_size_or_type(tmp_path):
+    seq = TumSequence(small_copy(tmp_path))
+    cv2.imwrite(str(seq.depth_paths[0]), np.full((240, 320), 5000, np.uint16))
+    with pytest.raises(DatasetError, match=re.escape(seq.depth_paths[0].name) + ".*320x240"):
+        seq[0]
+    cv2.imwrite(str(seq.depth_paths[1]), np.full((480, 640), 50, np.uint8))
+    with pytest.raises(DatasetError, match=re.escape(seq.depth_paths[1].name) + ".*uint16"):
+        seq[1]
+
+
+def test_timestamps_that_never_associate(tmp_path):
+    folder = small_copy(tmp_path)
+    lines = []
+    for line in (folder / "depth.txt").read_text().splitlines():
+        if line.startswith("#"):
+            lines.append(line)
+        else:
+            stamp, name = line.split()
+            lines.append(f"{float(stamp) + 10.0:.6f} {name}")
+    (folder / "depth.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=r"depth\.txt: no depth timestamp within 0\.02 s"):
+        TumSequence(folder)
+
+
+def test_malformed_list_line(tmp_path):
+    folder = small_copy(tmp_path)
+    with open(folder / "rgb.txt", "a") as f:
+        f.write("not-a-stamp rgb/x.png\n")
+    with pytest.raises(DatasetError, match=r"rgb\.txt:8: 'not-a-stamp' is not a number"):
+        TumSequence(folder)
+
+
+def test_ground_truth_outside_frames(tmp_path, caplog):
+    folder = small_copy(tmp_path, frames=8)
+    full = TumSequence(folder)
+    # Keep only ground truth up to the middle of the frames: later frames are dropped.
+    cut = full.timestamps[3] + 0.02  # past frame 3 (GT every 10 ms), before frame 4 (+33 ms)
+    lines = (folder / "groundtruth.txt").read_text().splitlines()
+    kept = [line for line in lines if line.startswith("#") or float(line.split()[0]) <= cut]
+    (folder / "groundtruth.txt").write_text("\n".join(kept) + "\n")
+    with caplog.at_level(logging.INFO, logger="nap3d_graph.datasets.tum"):
+        partial = TumSequence(folder)
+    assert len(partial) == 4 and partial.num_dropped_no_gt == len(full) - 4
+    assert np.array_equal(partial.timestamps, full.timestamps[:4])
+    assert "dropped" in caplog.text
+    (folder / "groundtruth.txt").write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"groundtruth\.txt: ground truth covers none"):
+        TumSequence(folder)
+    (folder / "groundtruth.txt").unlink()
+    assert TumSequence(folder).T_world_cam_gt is None
