@@ -41,6 +41,7 @@ __all__ = [
     "AlignConfig",
     "align_views",
     "align_correspondences",
+    "prepare_correspondences",
     "Correspondences",
     "build_correspondences",
     "sample_depth",
@@ -87,6 +88,7 @@ class AlignConfig:
     min_sample_sine: float = 0.1
     refine_iterations: int = 8
     huber_k: float = 2.5
+    covariance: str = "hessian"
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -195,7 +197,10 @@ class Correspondences:
     """Matched 3D points and what the refinement needs about them.
 
     x: (N, 3) rendered camera; y: (N, 3) real camera; uv_real: (N, 2) real keypoints;
-    opacity: (N,) field opacity at the rendered keypoint; z_real: (N,) real depth.
+    opacity: (N,) field opacity at the rendered keypoint; depth_grad: (N, 2) gradient of the
+    rendered z-depth at the rendered keypoint in metres per pixel (d/du, d/dv): how much a
+    keypoint's position error moves its depth, so the refinement can whiten the correlated
+    reprojection and depth residuals of one correspondence.
     """
 
     x: np.ndarray
@@ -204,6 +209,7 @@ class Correspondences:
     opacity: np.ndarray
     num_matches: int
     reason: str = ""
+    depth_grad: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.x)
@@ -229,7 +235,28 @@ def build_correspondences(real: RGBDFrame, view: RenderedView, matches: Matches,
         reason = "no valid depth at the matches" if not depth_ok.any() else "low opacity at the matches"
     x = backproject(matches.uv_b[keep], z_rend[keep], view.intrinsics)
     y = backproject(matches.uv_a[keep], z_real[keep], real.intrinsics)
-    return Correspondences(x, y, matches.uv_a[keep], opacity[keep], len(matches), reason)
+    grad = depth_gradient(view.depth_m, matches.uv_b[keep])
+    return Correspondences(x, y, matches.uv_a[keep], opacity[keep], len(matches), reason, grad)
+
+
+def depth_gradient(depth_m: np.ndarray, uv: np.ndarray, max_rel_jump: float = 0.02) -> np.ndarray:
+    """Central-difference z-depth gradient (N, 2) in m/px at pixels ``uv`` (N, 2).
+
+    NaN across a depth edge or next to a hole: there the depth at the keypoint is not a
+    smooth function of its position, and the refinement drops that depth residual's weight.
+    """
+    depth = np.asarray(depth_m, dtype=np.float64)
+    h, w = depth.shape
+    u = np.clip(np.round(uv[:, 0]).astype(int), 1, w - 2)
+    v = np.clip(np.round(uv[:, 1]).astype(int), 1, h - 2)
+    left, right, up, down, centre = depth[v, u - 1], depth[v, u + 1], depth[v - 1, u], depth[v + 1, u], depth[v, u]
+    grad = np.stack([(right - left) / 2.0, (down - up) / 2.0], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        neighbours = np.stack([left, right, up, down], axis=1)
+        ok = np.all(np.isfinite(neighbours) & (neighbours > 0), axis=1) & (centre > 0)
+        ok &= np.max(np.abs(neighbours - centre[:, None]), axis=1) <= max_rel_jump * centre
+    grad[~ok] = np.nan
+    return grad
 
 
 def _noise_sigmas(corr: Correspondences, intrinsics: Intrinsics, config: AlignConfig):
@@ -373,66 +400,103 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
                 config: AlignConfig, use_depth: bool = True, use_reprojection: bool = True):
     """Weighted Gauss-Newton over reprojection (px) and depth (m) residuals of each inlier.
 
-    Starts from ``(R, t)`` = T_real_rendered; returns the refined ``(R, t)``, the 6x6
-    covariance of the corrected camera pose (GTSAM order, right perturbation) and the
-    final per-correspondence normalised residual norms (N,).
+    Each correspondence contributes ``r = [pi(p) - uv_real, p_z - z_real]`` with a 3x3
+    covariance: the two keypoints' localisation noise ``2 s_px^2`` on the pixels, and on the
+    depth the sensor/field depth noise plus the same pixel noise carried through the depth
+    gradient ``g`` (so the rows are correlated: ``cov(r_uv, r_z) = 2 s_px^2 g``). Huber
+    weights guard against remaining outliers; variance factors for the pixel and the depth
+    noise are estimated from the residuals. Starts from ``(R, t)`` = T_real_rendered; returns
+    the refined ``(R, t)``, the 6x6 covariance of the corrected camera pose (GTSAM order,
+    right perturbation) and the per-correspondence normalised residual norms (N,), or None
+    when the problem is singular.
     """
     x, uv = corr.x, corr.uv_real
+    n = len(x)
     z_real = corr.y[:, 2]
-    s_px = np.sqrt(2.0) * config.keypoint_sigma_px
-    s_depth = np.sqrt((config.depth_sigma_floor_m + config.depth_sigma_z2_per_m * z_real**2) ** 2
-                      + config.render_depth_sigma_m**2)
+    grad = np.zeros((n, 2)) if corr.depth_grad is None else corr.depth_grad
+    var_px0 = 2.0 * config.keypoint_sigma_px**2
+    var_z0 = (config.depth_sigma_floor_m + config.depth_sigma_z2_per_m * z_real**2) ** 2 + config.render_depth_sigma_m**2
+    # At a depth edge the linearised depth model does not hold: keep the pixel residuals and
+    # give the depth residual a (1 m)^2 variance, i.e. no say.
+    edge = ~np.all(np.isfinite(grad), axis=1)
+    grad = np.where(edge[:, None], 0.0, grad)
+    var_z0 = np.where(edge, 1.0, var_z0)
     scale_px, scale_z = 1.0, 1.0  # variance factors, estimated from the residuals
     T = make_T(R, t)
+    H = np.full((6, 6), np.nan)
+    norm_sq = np.zeros(n)
+    rows = int(use_reprojection) * 2 + int(use_depth)
     for iteration in range(config.refine_iterations + 2):
         p = x @ T[:3, :3].T + T[:3, 3]
         if np.any(p[:, 2] <= 1e-6):
-            break
+            return None
         r_px, J_px = _reprojection_terms(p, uv, intrinsics)
         r_z = p[:, 2] - z_real
         J_z = _point_jacobian(p)[:, 2, :]
-        sig_px = s_px * np.sqrt(scale_px)
-        sig_z = s_depth * np.sqrt(scale_z)
-        norm_sq = np.zeros(len(p))
-        if use_reprojection:
-            norm_sq += np.sum(r_px**2, axis=1) / sig_px**2
-        if use_depth:
-            norm_sq += r_z**2 / sig_z**2
-        rob = _huber_weights(np.sqrt(norm_sq / (int(use_reprojection) * 2 + int(use_depth))), config.huber_k)
-        H = np.zeros((6, 6))
-        g = np.zeros(6)
-        if use_reprojection:
-            w = rob / sig_px**2
-            H += np.einsum("n,nri,nrj->ij", w, J_px, J_px)
-            g += np.einsum("n,nri,nr->i", w, J_px, r_px)
-        if use_depth:
-            w = rob / sig_z**2
-            H += np.einsum("n,ni,nj->ij", w, J_z, J_z)
-            g += np.einsum("n,ni,n->i", w, J_z, r_z)
+        r, J, W = _stack_rows(r_px, J_px, r_z, J_z, grad, var_px0 * scale_px, var_z0 * scale_z,
+                              use_reprojection, use_depth)
+        norm_sq = np.einsum("ni,nij,nj->n", r, W, r)
+        rob = _huber_weights(np.sqrt(norm_sq / rows), config.huber_k)
+        H = np.einsum("n,nri,nrs,nsj->ij", rob, J, W, J)
+        g = np.einsum("n,nri,nrs,ns->i", rob, J, W, r)
         try:
             delta = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             return None
         # T_true <- T_true Exp(delta)  <=>  T_real_rendered <- Exp(-delta) T_real_rendered
         T = exp_se3(-delta) @ T
-        if iteration >= 2 and np.linalg.norm(delta) < 1e-10:
+        if iteration in (1, 3):
+            scale_px, scale_z = _variance_factors(r_px, r_z, grad, rob, var_px0, var_z0, use_reprojection,
+                                                  use_depth)
+        elif iteration > 3 and np.linalg.norm(delta) < 1e-10:
             break
-        if iteration == 1 or iteration == config.refine_iterations - 1:
-            scale_px, scale_z = _variance_factors(r_px, r_z, rob, s_px, s_depth, use_reprojection, use_depth)
     cov = _covariance(H)
+    if config.covariance == "sandwich":
+        # Heteroscedasticity-consistent (HC1) sandwich: the spread of each correspondence's
+        # actual residual, not only the model's, enters the covariance.
+        score = rob[:, None] * np.einsum("nri,nrs,ns->ni", J, W, r)
+        B = score.T @ score * n / max(n - 6, 1)
+        cov = cov @ B @ cov
+        cov = 0.5 * (cov + cov.T)
     return T[:3, :3], T[:3, 3], cov, np.sqrt(norm_sq)
 
 
-def _variance_factors(r_px, r_z, rob, s_px, s_depth, use_reprojection, use_depth):
-    """Per-group variance factors (reprojection, depth) from the robust-weighted residuals.
+def _stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use_depth):
+    """Residuals (N, m), Jacobians (N, m, 6) and information matrices (N, m, m) per
+    correspondence, m = 3 (pixels + depth), 2 (pixels) or 1 (depth)."""
+    n = len(r_z)
+    if use_reprojection and use_depth:
+        C = np.zeros((n, 3, 3))
+        C[:, 0, 0] = C[:, 1, 1] = var_px
+        C[:, :2, 2] = C[:, 2, :2] = var_px * grad
+        C[:, 2, 2] = var_px * np.sum(grad**2, axis=1) + var_z
+        return np.concatenate([r_px, r_z[:, None]], 1), np.concatenate([J_px, J_z[:, None]], 1), np.linalg.inv(C)
+    if use_reprojection:
+        W = np.broadcast_to(np.eye(2) / var_px, (n, 2, 2))
+        return r_px, J_px, W
+    var = var_px * np.sum(grad**2, axis=1) + var_z
+    return r_z[:, None], J_z[:, None], (1.0 / var)[:, None, None]
 
-    Floored at 0.1^2 so noise-free data never yields an infinitely confident factor.
+
+def _variance_factors(r_px, r_z, grad, rob, var_px0, var_z0, use_reprojection, use_depth):
+    """Variance factors (pixel, depth) from the robust-weighted residuals.
+
+    The depth factor uses the depth residual *conditioned* on the pixel residual
+    (``r_z - g . r_uv``), whose variance is the depth noise alone. Floored at 0.1^2 so
+    noise-free data never yields an infinitely confident factor.
     """
     n = len(r_z)
     rows = 2 * n * use_reprojection + n * use_depth
     redundancy = max(1.0 - 6.0 / max(rows, 7), 0.05)
-    f_px = np.sum(rob[:, None] * r_px**2) / (s_px**2 * 2 * n * redundancy) if use_reprojection else 1.0
-    f_z = np.sum(rob * r_z**2 / s_depth**2) / (n * redundancy) if use_depth else 1.0
+    f_px = 1.0
+    if use_reprojection:
+        f_px = np.sum(rob[:, None] * r_px**2) / (var_px0 * 2 * n * redundancy)
+    f_z = 1.0
+    if use_depth:
+        conditional = r_z - np.sum(grad * r_px, axis=1) if use_reprojection else r_z
+        smooth = var_z0 < 1.0  # edge points carry a nominal 1 m^2 and say nothing here
+        n_z = max(int(smooth.sum()), 1)
+        f_z = np.sum((rob * conditional**2 / var_z0)[smooth]) / (n_z * redundancy)
     return max(f_px, 0.01), max(f_z, 0.01)
 
 
@@ -518,7 +582,35 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
 
 
 def _subset(corr: Correspondences, mask: np.ndarray) -> Correspondences:
-    return replace(corr, x=corr.x[mask], y=corr.y[mask], uv_real=corr.uv_real[mask], opacity=corr.opacity[mask])
+    grad = None if corr.depth_grad is None else corr.depth_grad[mask]
+    return replace(corr, x=corr.x[mask], y=corr.y[mask], uv_real=corr.uv_real[mask], opacity=corr.opacity[mask],
+                   depth_grad=grad)
+
+
+def prepare_correspondences(real: RGBDFrame, view: RenderedView, config: AlignConfig | None = None,
+                            timings: dict | None = None) -> tuple[Correspondences | None, str]:
+    """SIFT + FLANN + back-projection for one pair: ``(correspondences, "")`` or
+    ``(None, reason)``. NAP3D and the PnP baseline both start from this, so an evaluation
+    compares them on the very same matches."""
+    config = config or AlignConfig()
+    timings = {} if timings is None else timings
+    t0 = time.perf_counter()
+    feats_real = detect_features(real.rgb, config.max_features)
+    feats_view = detect_features(view.rgb, config.max_features, mask=view.opacity >= config.min_opacity)
+    timings["sift"] = time.perf_counter() - t0
+    if len(feats_real) < 3:
+        return None, "no keypoints in the real image"
+    if len(feats_view) < 3:
+        return None, "no keypoints in the rendered view"
+    t0 = time.perf_counter()
+    matches = match_features(feats_real, feats_view, ratio=config.ratio, mutual=config.mutual)
+    timings["flann"] = time.perf_counter() - t0
+    if len(matches) < config.min_matches:
+        return None, f"too few matches ({len(matches)} < {config.min_matches})"
+    corr = build_correspondences(real, view, matches, config)
+    if corr.reason:
+        return None, corr.reason
+    return corr, ""
 
 
 def align_views(real: RGBDFrame, view: RenderedView, config: AlignConfig | None = None) -> Alignment:
@@ -531,21 +623,9 @@ def align_views(real: RGBDFrame, view: RenderedView, config: AlignConfig | None 
     method = f"nap3d-{config.method}"
     timings: dict = {}
     try:
-        t0 = time.perf_counter()
-        feats_real = detect_features(real.rgb, config.max_features)
-        feats_view = detect_features(view.rgb, config.max_features, mask=view.opacity >= config.min_opacity)
-        timings["sift"] = time.perf_counter() - t0
-        if len(feats_real) < 3:
-            return Alignment.failure("no keypoints in the real image", method=method, timings_s=timings)
-        if len(feats_view) < 3:
-            return Alignment.failure("no keypoints in the rendered view", method=method, timings_s=timings)
-        t0 = time.perf_counter()
-        matches = match_features(feats_real, feats_view, ratio=config.ratio, mutual=config.mutual)
-        timings["flann"] = time.perf_counter() - t0
-        if len(matches) < config.min_matches:
-            return Alignment.failure(f"too few matches ({len(matches)} < {config.min_matches})", len(matches),
-                                     method=method, timings_s=timings)
-        corr = build_correspondences(real, view, matches, config)
+        corr, reason = prepare_correspondences(real, view, config, timings)
+        if corr is None:
+            return Alignment.failure(reason, method=method, timings_s=timings)
         return align_correspondences(corr, real.intrinsics, config, timings)
     except (ValueError, np.linalg.LinAlgError) as exc:  # numerical trouble is a failed alignment, not a crash
         log.warning("alignment failed: %s", exc)

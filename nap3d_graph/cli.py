@@ -56,6 +56,12 @@ class _UsageError(Exception):
     """A bad argument the user can fix."""
 
 
+def _evaluation_builders():
+    from nap3d_graph.evaluation.commands import add_eval_j, add_eval_k
+
+    return [add_eval_k, add_eval_j]
+
+
 _BUILDERS = [_add_simulate]
 
 
@@ -68,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for builder in _BUILDERS:
+    for builder in [*_BUILDERS, *_evaluation_builders()]:
         builder(sub)
     return parser
 
@@ -76,8 +82,9 @@ def build_parser() -> argparse.ArgumentParser:
 def _known_errors() -> tuple[type[BaseException], ...]:
     errors: list[type[BaseException]] = [_UsageError, FileNotFoundError]
     from nap3d_graph.camera import CameraError
+    from nap3d_graph.fields import FieldError
 
-    errors.append(CameraError)
+    errors += [CameraError, FieldError]
     try:
         from nap3d_graph.datasets import DatasetError
 

@@ -22,6 +22,7 @@ __all__ = [
     "ImuNoise",
     "simulate_imu",
     "GRAVITY_M_S2",
+    "sensor_frame",
 ]
 
 GRAVITY_M_S2 = 9.81
@@ -167,3 +168,17 @@ def simulate_imu(
         accel = accel + accel_bias + rng.normal(size=accel.shape) * noise.accel_noise_density * np.sqrt(rate)
         gyro = gyro + gyro_bias + rng.normal(size=gyro.shape) * noise.gyro_noise_density * np.sqrt(rate)
     return {"stamps": stamps, "accel": accel, "gyro": gyro, "accel_bias": accel_bias, "gyro_bias": gyro_bias}
+
+
+def sensor_frame(scene, T_world_cam: np.ndarray, intrinsics, rng: np.random.Generator,
+                 depth_noise: DepthNoise | None = DepthNoise(), rgb_noise_sigma: float = 0.01,
+                 depth_scale: float = 5000.0, timestamp: float = 0.0):
+    """What the simulated RGB-D sensor sees at ``T_world_cam``: an :class:`RGBDFrame` with
+    RGB noise, z^2 depth noise and holes, and depth quantised like TUM's PNGs
+    (1/``depth_scale`` m). ``depth_noise=None`` gives exact depth."""
+    from nap3d_graph.camera import RGBDFrame
+
+    rgb01, depth, _ = scene.render(T_world_cam, intrinsics)
+    if depth_noise is not None:
+        depth = np.round(add_depth_noise(depth, depth_noise, rng) * depth_scale) / depth_scale
+    return RGBDFrame(add_rgb_noise(rgb01, rgb_noise_sigma, rng), depth.astype(np.float32), intrinsics, timestamp)

@@ -157,27 +157,17 @@ def write_tum_trajectory(
 # --- association and interpolation ----------------------------------------------------------
 
 
-def associate(
-    stamps_a: Sequence[float],
-    stamps_b: Sequence[float],
-    max_difference: float = 0.02,
-    offset: float = 0.0,
-) -> np.ndarray:
-    """Pair two timestamp lists as TUM's ``associate.py`` does.
+ASSOCIATION_METHODS = ("optimal", "greedy")
 
-    Every pair with ``|a - (b + offset)| < max_difference`` is a candidate; candidates are
-    taken greedily in order of increasing difference (ties by ``a`` then ``b``), each stamp
-    used at most once. Returns index pairs ``(K, 2)`` int ``[i_a, i_b]`` sorted by
-    ``stamps_a[i_a]``.
+
+def _candidate_pairs(a: np.ndarray, b: np.ndarray, max_difference: float):
+    """All ``(i_a, i_b, |a - b|)`` with ``|a - b| < max_difference`` (b already offset).
+
+    Binary search per ``a`` (O((Na + Nb) log Nb + candidates), not Na x Nb); the window is
+    widened a little, then filtered with TUM's exact test so rounding cannot change pairs.
     """
-    a = np.asarray(stamps_a, dtype=float).reshape(-1)
-    b = np.asarray(stamps_b, dtype=float).reshape(-1) + offset
-    if len(a) == 0 or len(b) == 0:
-        return np.zeros((0, 2), dtype=int)
     order_b = np.argsort(b, kind="stable")
     b_sorted = b[order_b]
-    # Candidate window per a by binary search (O((Na + Nb) log Nb) rather than Na x Nb);
-    # widened a little, then filtered with TUM's exact test so rounding cannot change pairs.
     slack = max_difference * 1e-9 + 1e-12
     lo = np.searchsorted(b_sorted, a - max_difference - slack, side="left")
     hi = np.searchsorted(b_sorted, a + max_difference + slack, side="right")
@@ -187,16 +177,125 @@ def associate(
     ib = order_b[np.repeat(lo, counts) + (np.arange(counts.sum()) - starts)]
     diff = np.abs(a[ia] - b[ib])
     keep = diff < max_difference
-    ia, ib, diff = ia[keep], ib[keep], diff[keep]
+    return ia[keep], ib[keep], diff[keep]
+
+
+def _greedy_pairs(a, b, ia, ib, diff) -> list[tuple[int, int]]:
+    """TUM's associate.py: candidates by increasing difference (ties by a, then b), each
+    stamp used once. Sequential, but over the few candidates only."""
     order = np.lexsort((b[ib], a[ia], diff))  # sort by diff, then a, then b (TUM's tuple sort)
     used_a = np.zeros(len(a), dtype=bool)
     used_b = np.zeros(len(b), dtype=bool)
     pairs = []
-    # The greedy pass is inherently sequential; it runs over the few candidates only.
     for i, j in zip(ia[order].tolist(), ib[order].tolist()):
         if not used_a[i] and not used_b[j]:
             used_a[i] = used_b[j] = True
             pairs.append((i, j))
+    return pairs
+
+
+def _optimal_pairs(a, b, ia, ib, diff, max_difference: float) -> list[tuple[int, int]]:
+    """Most one-to-one pairs among the candidates and, among those, least total |a - b|.
+
+    Exact, in O(candidates), by dynamic programming over *order-preserving* matchings. On a
+    line, two crossing pairs ``(a1, b1), (a2, b2)`` with ``a1 <= a2``, ``b2 <= b1`` can be
+    swapped to ``(a1, b2), (a2, b1)``: both stay within ``max_difference`` and the total
+    ``|a - b|`` does not grow (``|x|`` is convex). So some optimum pairs the stamps in order,
+    and an LCS-like scan over ``a`` in time order, looking only at each stamp's candidate
+    band, finds it. This is the assignment problem ``linear_sum_assignment`` solves on the
+    dense Na x Nb cost matrix (infeasible pairs costing more than any feasible total), which
+    the tests use as the reference; the scan needs no dense matrix, no splitting into
+    components and no windows, so long sequences are neither slow nor approximated.
+    """
+    if len(ia) == 0:
+        return []
+    # Rank b in time order; each a's candidates are a contiguous run of b ranks.
+    order_b = np.argsort(b, kind="stable")
+    rank_b = np.empty(len(b), dtype=int)
+    rank_b[order_b] = np.arange(len(b))
+    rb = rank_b[ib]
+    # Process a in time order (ties in index order), its candidates by increasing b rank.
+    order = np.lexsort((rb, ia, a[ia]))
+    ia, rb, cost = ia[order], rb[order], diff[order] / max_difference  # cost in [0, 1)
+    # Score = pairs * big - total cost: with big above any total cost (< min(Na, Nb)),
+    # one more pair always wins, and among equally many pairs the cheaper total does.
+    big = float(min(len(a), len(b)) + 1)
+    # best[p]: score of the best matching so far whose last used b has rank p - 1 (p = 0:
+    # none used); node[p] its last pair. Pairs form a tree of (i_a, i_b, parent) nodes.
+    n_b = len(b)
+    best = [-math.inf] * (n_b + 1)
+    node = [-1] * (n_b + 1)
+    best[0] = 0.0
+    pair_a, pair_b, parent = [], [], []
+    done, done_best, done_node = 0, -math.inf, -1  # running max over best[:done], final
+    ia_l, rb_l, cost_l = ia.tolist(), rb.tolist(), cost.tolist()
+    start, n = 0, len(ia_l)
+    while start < n:
+        stop = start
+        while stop < n and ia_l[stop] == ia_l[start]:
+            stop += 1
+        i, lo = ia_l[start], rb_l[start]
+        # Later stamps only write at positions > lo, so best[:lo + 1] is final: fold it.
+        while done <= lo:
+            if best[done] > done_best:
+                done_best, done_node = best[done], node[done]
+            done += 1
+        # For each candidate rank k: the best matching using only b ranks < k (positions
+        # <= k, old values), plus the pair (i, k).
+        run_best, run_node, p = done_best, done_node, done
+        scored = []
+        for t in range(start, stop):
+            k = rb_l[t]
+            while p <= k:
+                if best[p] > run_best:
+                    run_best, run_node = best[p], node[p]
+                p += 1
+            scored.append((k, run_best + big - cost_l[t], run_node))
+        for k, score, parent_node in scored:
+            if score > best[k + 1]:
+                best[k + 1] = score
+                node[k + 1] = len(pair_a)
+                pair_a.append(i)
+                pair_b.append(int(order_b[k]))
+                parent.append(parent_node)
+        start = stop
+    top = max(range(n_b + 1), key=best.__getitem__)
+    pairs, m = [], node[top]
+    while m >= 0:
+        pairs.append((pair_a[m], pair_b[m]))
+        m = parent[m]
+    return pairs
+
+
+def associate(
+    stamps_a: Sequence[float],
+    stamps_b: Sequence[float],
+    max_difference: float = 0.02,
+    offset: float = 0.0,
+    association: str = "optimal",
+) -> np.ndarray:
+    """Pair two timestamp lists one-to-one; a pair needs ``|a - (b + offset)| < max_difference``.
+
+    ``association="optimal"`` (default) keeps the most pairs and, among those, the least
+    total time difference (exact; see ``_optimal_pairs``). ``"greedy"`` is TUM's
+    ``associate.py``: candidates taken in order of increasing difference (ties by ``a``
+    then ``b``), each stamp used once. Greedy can lose pairs: on fr1/xyz the depth frame
+    ~18 ms after a colour frame is sometimes taken, leaving the next colour frame with none
+    (greedy keeps 32 of 37 frames there, optimal all 37).
+
+    Returns index pairs ``(K, 2)`` int ``[i_a, i_b]`` sorted by ``stamps_a[i_a]``.
+    """
+    if association not in ASSOCIATION_METHODS:
+        raise ValueError(f"association must be one of {ASSOCIATION_METHODS}, got {association!r}")
+    a = np.asarray(stamps_a, dtype=float).reshape(-1)
+    b = np.asarray(stamps_b, dtype=float).reshape(-1) + offset
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((0, 2), dtype=int)
+    ia, ib, diff = _candidate_pairs(a, b, max_difference)
+    if association == "greedy":
+        pairs = _greedy_pairs(a, b, ia, ib, diff)
+    else:
+        pairs = _optimal_pairs(a, b, ia, ib, diff, max_difference)
     if not pairs:
         return np.zeros((0, 2), dtype=int)
     pairs = np.asarray(pairs, dtype=int)
@@ -309,15 +408,29 @@ class TumSequence:
     ``path``, ``name``, ``num_dropped_no_gt``.
     """
 
-    def __init__(self, path, intrinsics=None, max_difference: float = 0.02, undistort: bool = True):
+    def __init__(
+        self,
+        path,
+        intrinsics=None,
+        max_difference: float = 0.02,
+        undistort: bool = True,
+        undistort_depth: bool = True,
+        association: str = "optimal",
+        offset: float = 0.0,
+    ):
         self.path = Path(path)
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: sequence folder not found")
+        if association not in ASSOCIATION_METHODS:
+            raise DatasetError(f"{self.path}: association must be one of {ASSOCIATION_METHODS}, got {association!r}")
         self.name = self.path.name
         self.max_difference = float(max_difference)
+        self.association = association
+        self.offset = float(offset)
         self.raw_intrinsics = _resolve_intrinsics(self.path, intrinsics)
         has_distortion = any(d != 0.0 for d in self.raw_intrinsics.distortion)
         self.undistort = bool(undistort) and has_distortion
+        self.undistort_depth = self.undistort and bool(undistort_depth)
         if self.undistort or not has_distortion:
             self.intrinsics = self.raw_intrinsics.without_distortion()
         else:
@@ -330,7 +443,7 @@ class TumSequence:
                 raise DatasetError(f"{listed}: file not found")
         rgb_stamps, rgb_names = read_file_list(rgb_list)
         depth_stamps, depth_names = read_file_list(depth_list)
-        pairs = associate(rgb_stamps, depth_stamps, self.max_difference)
+        pairs = associate(rgb_stamps, depth_stamps, self.max_difference, self.offset, association)
         if len(pairs) == 0:
             raise DatasetError(
                 f"{depth_list}: no depth timestamp within {self.max_difference} s of any in {rgb_list.name}"
@@ -434,7 +547,7 @@ class TumSequence:
                 f"{path}: depth must be a single-channel uint16 PNG, got {raw.dtype} with shape {raw.shape}"
             )
         self._check_size(path, raw)
-        if self.undistort:
+        if self.undistort_depth:
             map_x, map_y = self._undistort_maps()
             # Nearest neighbour: interpolating across a depth edge would invent surfaces.
             raw = cv2.remap(

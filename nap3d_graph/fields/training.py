@@ -1,0 +1,577 @@
+"""Train a :class:`~nap3d_graph.fields.grid.GridField` from any posed RGB-D sequence, and
+evaluate a field on held-out frames.
+
+Any sequence works that has ``len(seq)``, ``seq[i] -> RGBDFrame``, ``seq.T_world_cam_gt``
+(N, 4, 4) and ``seq.intrinsics``: a TUM folder, a simulated room, a RealSense recording.
+
+What makes a grid converge in minutes on a CPU (found by a prototype, kept here):
+
+* depth-guided sampling: per ray a few stratified free-space samples between the camera and
+  the measured depth, and most samples in a window around it (its half-width follows the
+  sensor's ``sigma(z) = k z^2`` noise, at least a few centimetres);
+* losses: RGB L2 against a *random background colour* per ray (so a see-through surface
+  costs colour error, which drives opacity to 1 in a closed room), a DS-NeRF-like
+  ``(1 - weight inside the depth window)^2``, an L1 of the termination distribution around
+  the measured depth (URF's near-surface term), and a small ``|1 - opacity|``;
+* a near-transparent start, Adam with ``fused=True`` on CPU (several times faster on
+  millions of parameters), colour evaluated only where a sample's weight exceeds ~1e-4;
+* coarse-to-fine: the first part of the budget on a grid twice as coarse, which fills
+  space several times faster, then the full-resolution grid resampled from it;
+* a learning rate that decays with the *time* budget (the budget is minutes, not steps).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from nap3d_graph.camera import Intrinsics, RenderedView, valid_depth_mask
+
+from .base import FieldError
+from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device
+
+__all__ = [
+    "TrainConfig",
+    "TrainingRays",
+    "train_field",
+    "evaluate_field",
+    "split_frames",
+    "scene_bounds_from_depth",
+    "oracle_for",
+    "psnr",
+]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class TrainConfig:
+    """Training settings; every field has a default that works for a room-sized scene.
+
+    Geometry: ``voxel_size_m`` (final grid), ``coarse_voxel_size_m`` (first stage; None for
+    a single stage) for ``coarse_fraction`` of the budget. Budget: ``minutes`` of optimisation
+    (loading and evaluation not counted), or ``max_steps`` if set. Frames: every ``every``-th
+    frame is used for training; ``eval_frames`` held-out frames are evaluated.
+    Sampling: ``rays_per_step``, ``free_samples`` and ``window_samples`` per ray; the window
+    half-width is ``max(window_min_m, window_sigmas * depth_sigma_z2 * z^2)``.
+    """
+
+    voxel_size_m: float = 0.03
+    coarse_voxel_size_m: float | None = 0.06
+    coarse_fraction: float = 0.2
+    minutes: float = 5.0
+    max_steps: int | None = None
+    every: int = 1
+    eval_frames: int = 8
+    seed: int = 0
+    rays_per_step: int = 4096
+    free_samples: int = 16
+    window_samples: int = 32
+    window_min_m: float = 0.04
+    window_sigmas: float = 3.0
+    depth_sigma_z2: float = 1.4e-3
+    min_depth_m: float = 0.1
+    max_depth_m: float = 8.0
+    bounds_margin_m: float = 0.15
+    lr_density: float = 0.1
+    lr_color: float = 0.1
+    lr_final_ratio: float = 0.1
+    weight_rgb: float = 1.0
+    weight_window: float = 0.05
+    weight_near: float = 0.5
+    weight_opacity: float = 0.01
+    color_weight_eps: float = 1e-4
+    device: str | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+# --- frames, rays and bounds ------------------------------------------------------------------
+
+
+def split_frames(num_frames: int, every: int = 1, eval_frames: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """Training and held-out frame indices.
+
+    Training uses frames ``0, every, 2 every, ...``; held out are ``eval_frames`` frames
+    spread evenly over the rest. With ``every == 1`` every tenth frame (offset 5) is held out
+    of training first, so there always is something to evaluate on.
+    """
+    if num_frames < 2:
+        raise FieldError(f"need at least 2 frames to train and evaluate, got {num_frames}")
+    every = int(every)
+    if every < 1:
+        raise FieldError(f"--every must be at least 1, got {every}")
+    all_idx = np.arange(num_frames)
+    if every == 1:
+        held = all_idx[(all_idx % 10) == 5] if num_frames > 5 else all_idx[-1:]
+        train = np.setdiff1d(all_idx, held)
+    else:
+        train = all_idx[::every]
+        held = np.setdiff1d(all_idx, train)
+    if len(train) == 0:
+        raise FieldError("no training frames left")
+    if eval_frames > 0 and len(held) > eval_frames:
+        held = held[np.round(np.linspace(0, len(held) - 1, eval_frames)).astype(int)]
+    return train, held[: max(eval_frames, 0)] if eval_frames > 0 else held[:0]
+
+
+@dataclass
+class TrainingRays:
+    """Every training pixel with a valid depth, kept compact on the training device.
+
+    rgb (F, H, W, 3) uint8; depth (F, H, W) float32 z-depth metres (0 = missing);
+    R_world_cam (F, 3, 3) float32; t_world_cam (F, 3) float64; valid (M,) int64 flat indices
+    into F*H*W of the pixels whose depth is usable.
+    """
+
+    rgb: torch.Tensor
+    depth: torch.Tensor
+    R_world_cam: torch.Tensor
+    t_world_cam: np.ndarray
+    valid: torch.Tensor
+    intrinsics: Intrinsics
+
+    @classmethod
+    def from_sequence(cls, sequence, indices: Sequence[int], config: TrainConfig, device,
+                      progress: bool = False) -> "TrainingRays":
+        from tqdm import tqdm
+
+        poses = _poses_of(sequence)
+        intrinsics = sequence.intrinsics.without_distortion()
+        h, w = intrinsics.height, intrinsics.width
+        rgb = np.empty((len(indices), h, w, 3), dtype=np.uint8)
+        depth = np.empty((len(indices), h, w), dtype=np.float32)
+        for k, i in enumerate(tqdm(indices, desc="load frames", unit="frame", disable=not progress, leave=False)):
+            frame = sequence[int(i)]
+            if frame.rgb.shape[:2] != (h, w):
+                raise FieldError(f"frame {i} is {frame.rgb.shape[1]}x{frame.rgb.shape[0]}, "
+                                 f"the sequence's intrinsics say {w}x{h}")
+            rgb[k] = frame.rgb
+            d = np.nan_to_num(frame.depth_m, nan=0.0)
+            d[~valid_depth_mask(d, config.min_depth_m, config.max_depth_m)] = 0.0
+            depth[k] = d
+        T = poses[np.asarray(indices, dtype=int)]
+        valid = np.flatnonzero(depth.reshape(-1) > 0)
+        if len(valid) == 0:
+            raise FieldError("no training frame has a valid depth pixel")
+        return cls(
+            rgb=torch.from_numpy(rgb).to(device),
+            depth=torch.from_numpy(depth).to(device),
+            R_world_cam=torch.as_tensor(T[:, :3, :3], dtype=torch.float32, device=device),
+            t_world_cam=T[:, :3, 3].copy(),
+            valid=torch.from_numpy(valid).to(device),
+            intrinsics=intrinsics,
+        )
+
+    @property
+    def num_frames(self) -> int:
+        return self.rgb.shape[0]
+
+
+def _poses_of(sequence) -> np.ndarray:
+    poses = getattr(sequence, "T_world_cam_gt", None)
+    if poses is None:
+        raise FieldError("training a field needs posed frames, but the sequence has no ground-truth poses")
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape != (len(sequence), 4, 4) or not np.all(np.isfinite(poses)):
+        raise FieldError(f"sequence poses must be finite (N, 4, 4) with N = {len(sequence)}, got {poses.shape}")
+    return poses
+
+
+def scene_bounds_from_depth(depth_m: np.ndarray, T_world_cam: np.ndarray, intrinsics: Intrinsics,
+                            margin_m: float = 0.15, stride: int = 4, percentile: float = 0.02) -> np.ndarray:
+    """World box (2, 3) that holds what the depth images see and the cameras.
+
+    depth_m (F, H, W) z-depth metres (0 = missing); T_world_cam (F, 4, 4). Points are
+    back-projected on every ``stride``-th pixel; the box spans their ``percentile`` to
+    ``100 - percentile`` percentiles per axis (stray far returns do not blow it up), grown by
+    ``margin_m`` so windows behind the farthest surfaces still fit.
+    """
+    depth_m = np.asarray(depth_m)
+    v, u = np.mgrid[0 : depth_m.shape[1] : stride, 0 : depth_m.shape[2] : stride]
+    rays = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones_like(u, float)], -1)
+    chunks = []
+    for k in range(depth_m.shape[0]):
+        z = depth_m[k, v, u]
+        ok = z > 0
+        p_cam = rays[ok] * z[ok, None]
+        chunks.append(p_cam @ T_world_cam[k, :3, :3].T + T_world_cam[k, :3, 3])
+    points = np.concatenate(chunks) if chunks else np.zeros((0, 3))
+    if len(points) < 10:
+        raise FieldError("too few valid depth pixels to find the scene's bounds")
+    lo = np.percentile(points, percentile, axis=0)
+    hi = np.percentile(points, 100.0 - percentile, axis=0)
+    cams = T_world_cam[:, :3, 3]
+    lo = np.minimum(lo, cams.min(axis=0))
+    hi = np.maximum(hi, cams.max(axis=0))
+    return np.stack([lo - margin_m, hi + margin_m])
+
+
+# --- the training step ---------------------------------------------------------------------------
+
+
+class _Trainer:
+    """One optimisation stage on one grid: sampling, losses and Adam."""
+
+    def __init__(self, field: GridField, rays: TrainingRays, config: TrainConfig, generator: torch.Generator):
+        self.field = field
+        self.rays = rays
+        self.config = config
+        self.generator = generator
+        self.device = field.device
+        field.density.requires_grad_(True)
+        field.color.requires_grad_(True)
+        fused = {"fused": True} if self.device.type in ("cpu", "cuda") else {}
+        self.optimizer = torch.optim.Adam(
+            [{"params": [field.density], "lr": config.lr_density},
+             {"params": [field.color], "lr": config.lr_color}],
+            betas=(0.9, 0.99), eps=1e-15, **fused)
+        self.base_lrs = [config.lr_density, config.lr_color]
+        k = rays.intrinsics
+        self.K = (k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+        self.t_local = torch.as_tensor(rays.t_world_cam - field.grid_min, dtype=torch.float32, device=self.device)
+        self.box_hi = (torch.tensor(field.shape_xyz, dtype=torch.float32, device=self.device) - 1) * field.voxel_size
+
+    def set_lr_scale(self, scale: float) -> None:
+        for group, lr in zip(self.optimizer.param_groups, self.base_lrs):
+            group["lr"] = lr * scale
+
+    def sample_batch(self):
+        cfg, rays = self.config, self.rays
+        fx, fy, cx, cy, w, h = self.K
+        pick = torch.randint(len(rays.valid), (cfg.rays_per_step,), generator=self.generator, device=self.device)
+        flat = rays.valid[pick]
+        frame = flat // (h * w)
+        pixel = flat % (h * w)
+        v = (pixel // w).float()
+        u = (pixel % w).float()
+        d_cam = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)
+        dirs = torch.einsum("nij,nj->ni", rays.R_world_cam[frame], d_cam)
+        origins = self.t_local[frame]
+        z = rays.depth.reshape(-1)[flat]
+        target = rays.rgb.reshape(-1, 3)[flat].float() / 255.0
+        return origins, dirs, z, target
+
+    def sample_t(self, origins, dirs, z):
+        """Stratified free-space samples, then window samples around the measured depth."""
+        cfg = self.config
+        n = z.shape[0]
+        half = torch.clamp(cfg.window_sigmas * cfg.depth_sigma_z2 * z * z, min=cfg.window_min_m)
+        safe = torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)
+        t0, t1 = (0.0 - origins) / safe, (self.box_hi - origins) / safe
+        t_near = torch.minimum(t0, t1).amax(dim=-1).clamp(min=0.05)
+        win_start = z - half
+        t_near = torch.minimum(t_near, win_start)
+        jitter_free = torch.rand((n, cfg.free_samples), generator=self.generator, device=self.device)
+        jitter_win = torch.rand((n, cfg.window_samples), generator=self.generator, device=self.device)
+        k_free = torch.arange(cfg.free_samples, device=self.device, dtype=torch.float32)
+        k_win = torch.arange(cfg.window_samples, device=self.device, dtype=torch.float32)
+        free_len = (win_start - t_near)[:, None]
+        t_free = t_near[:, None] + free_len * (k_free + jitter_free) / cfg.free_samples
+        t_win = win_start[:, None] + (2 * half)[:, None] * (k_win + jitter_win) / cfg.window_samples
+        t = torch.cat([t_free, t_win], dim=1)
+        last = (2 * half / cfg.window_samples)[:, None]
+        dt = torch.cat([t[:, 1:] - t[:, :-1], last], dim=1)
+        return t, dt
+
+    def step(self):
+        cfg, fld = self.config, self.field
+        origins, dirs, z, target = self.sample_batch()
+        t, dt = self.sample_t(origins, dirs, z)
+        norms = dirs.norm(dim=-1, keepdim=True)
+        points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
+        raw = fld.raw_density_local(points)
+        sigma = F.softplus(raw - DENSITY_SHIFT) / fld.voxel_size
+        tau = sigma * dt * norms
+        cum = torch.cumsum(tau, dim=1)
+        trans = torch.exp(-(cum - tau))
+        weights = trans * (1.0 - torch.exp(-tau))
+        opacity = weights.sum(dim=1)
+
+        # Colour only where a sample matters: most samples are free space or behind the surface.
+        keep = weights.detach() > cfg.color_weight_eps
+        ray_idx = keep.nonzero()[:, 0]
+        rgb_samples = fld.rgb_local(points[keep])
+        color = torch.zeros_like(target).index_add(0, ray_idx, weights[keep][:, None] * rgb_samples)
+        background = torch.rand(target.shape, generator=self.generator, device=self.device)
+        color = color + (1.0 - opacity)[:, None] * background
+
+        nf = cfg.free_samples
+        window_mass = weights[:, nf:].sum(dim=1)
+        spread = (weights[:, nf:] * (t[:, nf:] - z[:, None]).abs()).sum(dim=1) * norms[:, 0]
+        rgb_loss = F.mse_loss(color, target)
+        loss = (cfg.weight_rgb * rgb_loss
+                + cfg.weight_window * ((1.0 - window_mass) ** 2).mean()
+                + cfg.weight_near * spread.mean()
+                + cfg.weight_opacity * (1.0 - opacity).abs().mean())
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        with torch.no_grad():
+            depth = (weights * t).sum(dim=1) / opacity.clamp(min=1e-6)
+            depth_err = (depth - z).abs().median()
+        return float(rgb_loss), float(depth_err)
+
+
+def psnr(mse: float) -> float:
+    """Peak signal-to-noise ratio (dB) of a mean squared error on [0, 1] colours."""
+    return float(-10.0 * math.log10(max(mse, 1e-12)))
+
+
+# --- evaluation ------------------------------------------------------------------------------------
+
+
+def oracle_for(sequence):
+    """The noise-free oracle of a simulated sequence, or None for real data.
+
+    Uses ``sequence.oracle_field()`` when the sequence offers one (``SimSequence``), else a
+    ``scene.json`` in the sequence's folder.
+    """
+    if hasattr(sequence, "oracle_field"):
+        try:
+            return sequence.oracle_field()
+        except Exception as exc:  # a broken scene only costs the noise-free figures
+            log.warning("cannot build the oracle field: %s", exc)
+            return None
+    folder = getattr(sequence, "path", None)
+    if folder is not None and (Path(folder) / "scene.json").is_file():
+        from nap3d_graph.sims.scene import OracleField
+
+        try:
+            return OracleField.from_file(Path(folder) / "scene.json")
+        except ValueError as exc:
+            log.warning("cannot build the oracle field: %s", exc)
+    return None
+
+
+def evaluate_field(field, sequence, indices: Sequence[int], oracle=None) -> dict:
+    """Held-out metrics of any field on frames ``indices`` of ``sequence``.
+
+    Returns a dict: ``psnr_db`` (rendered vs sensor RGB, all pixels), ``depth_abs_err_m``
+    median / p90 / mean (against the oracle's noise-free depth when ``oracle`` is given,
+    otherwise against the sensor depth; ``depth_reference`` says which), ``opacity_on_surfaces``
+    (mean opacity where the reference sees a surface), ``unit_check`` (the paper's linear fit
+    of sensor depth Y against field depth X: slope ``a``, offset ``b``, ``r2``, pixel count),
+    ``render_seconds`` (mean per view) and the frame indices.
+    """
+    poses = _poses_of(sequence)
+    intrinsics = sequence.intrinsics.without_distortion()
+    sq_err, n_px = 0.0, 0
+    abs_errs, opac, xs, ys, secs, per_frame = [], [], [], [], [], []
+    for i in indices:
+        frame = sequence[int(i)]
+        started = time.perf_counter()
+        view = field.render(poses[int(i)], intrinsics)
+        secs.append(time.perf_counter() - started)
+        diff = view.rgb.astype(np.float64) - frame.rgb.astype(np.float64)
+        frame_mse = float(np.mean((diff / 255.0) ** 2))
+        sq_err += frame_mse * diff[..., 0].size
+        n_px += diff[..., 0].size
+        sensor = np.nan_to_num(frame.depth_m, nan=0.0)
+        reference = oracle.render(poses[int(i)], intrinsics).depth_m if oracle is not None else sensor
+        surface = reference > 0
+        err = np.abs(view.depth_m - reference)[surface]
+        abs_errs.append(err)
+        opac.append(view.opacity[surface])
+        fit = (sensor > 0) & (view.opacity > 0.5) & (view.depth_m > 0)
+        xs.append(view.depth_m[fit])
+        ys.append(sensor[fit])
+        per_frame.append({"index": int(i), "psnr_db": psnr(frame_mse),
+                          "depth_abs_err_median_m": float(np.median(err)) if err.size else None})
+    errs = np.concatenate(abs_errs) if abs_errs else np.zeros(0)
+    x, y = (np.concatenate(xs), np.concatenate(ys)) if xs else (np.zeros(0), np.zeros(0))
+    return {
+        "frames": [int(i) for i in indices],
+        "psnr_db": psnr(sq_err / max(n_px, 1)),
+        "depth_reference": "noise-free (simulator oracle)" if oracle is not None else "sensor depth",
+        "depth_abs_err_m": {
+            "median": float(np.median(errs)) if errs.size else None,
+            "p90": float(np.percentile(errs, 90)) if errs.size else None,
+            "mean": float(np.mean(errs)) if errs.size else None,
+        },
+        "opacity_on_surfaces": float(np.mean(np.concatenate(opac))) if opac else None,
+        "unit_check": _unit_check(x, y),
+        "render_seconds": float(np.mean(secs)) if secs else None,
+        "per_frame": per_frame,
+    }
+
+
+def _unit_check(x: np.ndarray, y: np.ndarray) -> dict:
+    """Least-squares ``y = a x + b`` and its R^2 (the paper's check that field depth is metric)."""
+    if len(x) < 10 or np.ptp(x) <= 0:
+        return {"a": None, "b": None, "r2": None, "pixels": int(len(x))}
+    a, b = np.polyfit(x, y, 1)
+    residual = y - (a * x + b)
+    total = np.sum((y - y.mean()) ** 2)
+    r2 = 1.0 - np.sum(residual**2) / total if total > 0 else None
+    return {"a": float(a), "b": float(b), "r2": None if r2 is None else float(r2), "pixels": int(len(x))}
+
+
+# --- the whole run -------------------------------------------------------------------------------
+
+
+def train_field(
+    sequence,
+    config: TrainConfig | None = None,
+    *,
+    minutes: float | None = None,
+    every: int | None = None,
+    seed: int | None = None,
+    progress: bool = True,
+    eval_sequence=None,
+    eval_indices: Sequence[int] | None = None,
+    oracle=None,
+    snapshot_seconds: Sequence[float] = (),
+    callback: Callable[[dict], None] | None = None,
+) -> tuple[GridField, dict]:
+    """Train a grid field on a posed RGB-D ``sequence``; returns ``(field, report)``.
+
+    ``minutes``, ``every`` and ``seed`` override the config's. Held-out evaluation runs on
+    ``eval_sequence`` (frames ``eval_indices``, default: evenly spread) when given, else on
+    frames of ``sequence`` kept out of training (see :func:`split_frames`). Depth errors are
+    measured against ``oracle`` (default: the sequence's simulator oracle if it has one). The
+    report also holds an evaluation at each of ``snapshot_seconds`` of training (the clock
+    pauses meanwhile). ``callback`` gets a small dict every few steps (progress hooks).
+    """
+    config = replace(config or TrainConfig())
+    if minutes is not None:
+        config.minutes = float(minutes)
+    if every is not None:
+        config.every = int(every)
+    if seed is not None:
+        config.seed = int(seed)
+    if not config.minutes > 0 and not config.max_steps:
+        raise FieldError(f"the training budget must be positive, got {config.minutes} minutes")
+    device = torch.device(config.device) if config.device else default_device()
+    torch.manual_seed(config.seed)
+    generator = torch.Generator(device=device).manual_seed(config.seed)
+
+    train_idx, held_idx = split_frames(len(sequence), config.every, config.eval_frames)
+    if eval_sequence is None:
+        eval_sequence, eval_indices = sequence, (held_idx if eval_indices is None else eval_indices)
+        oracle = oracle if oracle is not None else oracle_for(sequence)
+    else:
+        if eval_indices is None:
+            n = len(eval_sequence)
+            eval_indices = np.unique(np.round(np.linspace(0, n - 1, min(config.eval_frames, n))).astype(int))
+        oracle = oracle if oracle is not None else oracle_for(eval_sequence)
+
+    started = time.perf_counter()
+    rays = TrainingRays.from_sequence(sequence, train_idx, config, device, progress=progress)
+    bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), _poses_of(sequence)[train_idx],
+                                     rays.intrinsics, margin_m=config.bounds_margin_m)
+    load_seconds = time.perf_counter() - started
+    log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), len(rays.valid), bounds.round(2).tolist())
+
+    stages = _stages(config)
+    field = GridField.empty(bounds, stages[0][0], device=device)
+    budget_s = config.minutes * 60.0
+    snapshots = sorted(float(s) for s in snapshot_seconds if 0 < float(s) < budget_s)
+    snapshot_reports = []
+    history = []
+    train_seconds = 0.0
+    steps = 0
+    last_psnr, last_depth = float("nan"), float("nan")
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=round(budget_s) if not config.max_steps else config.max_steps,
+               desc="train field", unit="s" if not config.max_steps else "step", disable=not progress,
+               bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} {unit} [{elapsed}<{remaining}{postfix}]")
+    trainer = None
+    stage_index = -1
+    try:
+        while True:
+            fraction = (steps / config.max_steps) if config.max_steps else (train_seconds / budget_s)
+            if fraction >= 1.0:
+                break
+            wanted = _stage_at(stages, fraction)
+            if wanted != stage_index:
+                if stage_index >= 0:
+                    field = field.resampled(stages[wanted][0])
+                stage_index = wanted
+                trainer = _Trainer(field, rays, config, generator)
+            trainer.set_lr_scale(config.lr_final_ratio ** fraction)
+            tick = time.perf_counter()
+            rgb_mse, depth_err = trainer.step()
+            train_seconds += time.perf_counter() - tick
+            steps += 1
+            last_psnr, last_depth = psnr(rgb_mse), depth_err
+            if steps % 20 == 0:
+                history.append({"step": steps, "seconds": round(train_seconds, 2), "train_psnr_db": round(last_psnr, 2),
+                                "train_depth_err_m": round(last_depth, 5)})
+                bar.set_postfix_str(f"PSNR {last_psnr:.1f} dB, depth err {last_depth * 100:.2f} cm, step {steps}")
+                bar.n = steps if config.max_steps else min(round(train_seconds), bar.total)
+                bar.refresh()
+                if callback is not None:
+                    callback(history[-1])
+            if snapshots and train_seconds >= snapshots[0]:
+                snapshots.pop(0)
+                view_field = _frozen(field)
+                snap = evaluate_field(view_field, eval_sequence, eval_indices, oracle)
+                snap.pop("per_frame", None)
+                snapshot_reports.append({"train_seconds": round(train_seconds, 2), "steps": steps, **snap})
+    finally:
+        bar.close()
+
+    field = _frozen(field)
+    field.meta = {
+        "trained_by": "nap3d-graph train-field",
+        "checkpoint_version": CHECKPOINT_VERSION,
+        "train_config": config.to_dict(),
+        "source": str(getattr(sequence, "path", type(sequence).__name__)),
+        "train_frames": [int(i) for i in train_idx],
+        "steps": steps,
+        "train_seconds": round(train_seconds, 2),
+    }
+    evaluation = evaluate_field(field, eval_sequence, eval_indices, oracle) if len(eval_indices) else None
+    report = {
+        "field": repr(field),
+        "voxel_size_m": field.voxel_size,
+        "bounds_m": field.bounds.tolist(),
+        "device": str(device),
+        "torch_threads": torch.get_num_threads(),
+        "train_frames": len(train_idx),
+        "train_rays_with_depth": int(len(rays.valid)),
+        "steps": steps,
+        "train_seconds": round(train_seconds, 2),
+        "load_seconds": round(load_seconds, 2),
+        "final_train_psnr_db": round(last_psnr, 2),
+        "final_train_depth_err_m": round(last_depth, 5),
+        "held_out": evaluation,
+        "snapshots": snapshot_reports,
+        "history": history,
+        "config": config.to_dict(),
+    }
+    return field, report
+
+
+def _stages(config: TrainConfig) -> list[tuple[float, float]]:
+    """(voxel size, budget fraction at which the stage starts)."""
+    if config.coarse_voxel_size_m and config.coarse_voxel_size_m > config.voxel_size_m and config.coarse_fraction > 0:
+        return [(config.coarse_voxel_size_m, 0.0), (config.voxel_size_m, config.coarse_fraction)]
+    return [(config.voxel_size_m, 0.0)]
+
+
+def _stage_at(stages, fraction: float) -> int:
+    index = 0
+    for k, (_, start) in enumerate(stages):
+        if fraction >= start:
+            index = k
+    return index
+
+
+def _frozen(field: GridField) -> GridField:
+    """A detached copy of the field for rendering (training keeps its own tensors)."""
+    out = GridField(field.density[0, 0].detach().clone(), field.color[0].detach().clone(), field.grid_min,
+                    field.voxel_size, field.meta, field.render_config)
+    return out
