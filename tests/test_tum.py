@@ -9,11 +9,13 @@ import os
 import re
 import shutil
 import subprocess
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from scipy.optimize import linear_sum_assignment
 
 from nap3d_graph.camera import Intrinsics, RGBDFrame, backproject_depth, project
 from nap3d_graph.conventions import inv_T, make_T, rotation_angle_deg, transform_points
@@ -66,15 +68,15 @@ def small_copy(tmp_path: Path, frames: int = 4, name: str = "rgbd_dataset_freibu
 
 @needs_data
 def test_real_sequence_association_and_intrinsics(seq):
-    # TUM's greedy association at 0.02 s keeps 32 of the 37 colour frames of this excerpt:
-    # depth runs ~15 ms before colour, so the later depth frame (17-20 ms away) is sometimes
-    # the nearer one and is taken, and its own colour frame loses its partner (TUM's
-    # associate.py gives the same 32; see test_associate_real_lists for the offset that pairs 37).
-    assert len(seq) == 32
-    assert seq.timestamps.shape == (32,) and seq.depth_timestamps.shape == (32,)
-    assert np.all(np.diff(seq.timestamps) > 0)
-    assert np.all(np.abs(seq.timestamps - seq.depth_timestamps) < 0.02)
-    assert len(seq.rgb_paths) == len(seq.depth_paths) == 32
+    # Every colour frame is associated: the depth stream's lead (~13 ms) is estimated and
+    # removed before pairing within TUM's 0.02 s.
+    assert len(seq) == 37 and seq.association == "optimal"
+    assert 0.010 < seq.offset < 0.016
+    assert seq.timestamps.shape == (37,) and seq.depth_timestamps.shape == (37,)
+    assert np.all(np.diff(seq.timestamps) > 0) and np.all(np.diff(seq.depth_timestamps) > 0)
+    assert np.all(np.abs(seq.timestamps - seq.depth_timestamps - seq.offset) < 0.02)
+    assert len(seq.rgb_paths) == len(seq.depth_paths) == 37
+    assert len(set(seq.depth_paths)) == 37
     assert seq.num_dropped_no_gt == 0  # the ground truth spans the whole excerpt
     assert seq.name == "rgbd_dataset_freiburg1_xyz" and seq.path == TUM_DIR
     # fr1 calibration, reported without distortion because the images are undistorted.
@@ -82,6 +84,25 @@ def test_real_sequence_association_and_intrinsics(seq):
     assert seq.intrinsics.distortion == ()
     assert seq.raw_intrinsics.distortion == pytest.approx(FR1_DISTORTION)
     assert SOURCES["tum"] is TumSequence
+
+
+@needs_data
+def test_real_sequence_every_frame_associated():
+    stamps_rgb, _ = read_file_list(TUM_DIR / "rgb.txt")
+    # Without the offset (TUM associate.py's default), colour frame 31's own depth frame is
+    # 20.2 ms before it: optimal pairing keeps 36, TUM's greedy one 32.
+    greedy = TumSequence(TUM_DIR, association="greedy", offset=0.0)
+    assert len(greedy) == 32 and greedy.association == "greedy"
+    assert len(TumSequence(TUM_DIR, offset=0.0)) == 36
+    # Allowing for the depth lead (estimated, or TUM's --offset), or 1 ms more tolerance,
+    # every colour frame gets its own depth frame.
+    for kwargs in ({}, {"offset": 0.015}, {"offset": 0.0, "max_difference": 0.021}):
+        every = TumSequence(TUM_DIR, **kwargs)
+        assert len(every) == 37, kwargs
+        assert np.array_equal(every.timestamps, stamps_rgb)
+        assert [p.name for p in every.depth_paths] == sorted(p.name for p in (TUM_DIR / "depth").glob("*.png"))
+    with pytest.raises(DatasetError, match="association must be one of"):
+        TumSequence(TUM_DIR, association="nearest")
 
 
 @needs_data
@@ -97,9 +118,10 @@ def test_real_frames(seq):
     assert 0.6 < valid.mean() < 0.8
     assert 1.0 < np.median(frame.depth_m[valid]) < 1.4
     assert frame.depth_m.max() < 10.0
-    # Depth is raw uint16 / 5000 (nearest-neighbour undistortion invents no values).
+    # Depth is delivered as stored (registered by the Kinect driver): raw uint16 / 5000.
     raw = cv2.imread(str(seq.depth_paths[0]), cv2.IMREAD_UNCHANGED)
-    assert np.isin(np.round(frame.depth_m[valid] * 5000).astype(np.uint16), raw).all()
+    assert not seq.undistort_depth
+    assert np.array_equal(frame.depth_m, raw.astype(np.float32) / np.float32(5000))
     # RGB order: the colour image equals OpenCV's own undistortion of the BGR file, flipped.
     bgr = cv2.imread(str(seq.rgb_paths[0]))
     expected = cv2.undistort(bgr, FR1.K, np.array(FR1_DISTORTION))[..., ::-1]
@@ -111,9 +133,15 @@ def test_real_frames(seq):
     assert plain.intrinsics.distortion == pytest.approx(FR1_DISTORTION)  # raw images say so
     raw_frame = plain[0]
     assert np.array_equal(raw_frame.rgb[255, 318], frame.rgb[255, 318])
-    assert np.all(frame.rgb[:5, :5] == 0) and np.all(frame.depth_m[:5, :5] == 0)
+    assert np.all(frame.rgb[:5, :5] == 0)
     assert (raw_frame.rgb.sum(axis=2) == 0).sum() == 0
     assert (frame.rgb.sum(axis=2) == 0).sum() > 10_000
+    # Depth undistorted on request: nearest neighbour invents no values, corners go empty.
+    remapped = TumSequence(TUM_DIR, undistort_depth=True)[0].depth_m
+    valid_remapped = remapped > 0
+    assert np.isin(np.round(remapped[valid_remapped] * 5000).astype(np.uint16), raw).all()
+    assert np.all(remapped[:5, :5] == 0)
+    assert np.array_equal(remapped[255, 318], frame.depth_m[255, 318])
 
 
 @needs_data
@@ -133,7 +161,7 @@ def test_ground_truth_interpolated_to_rgb_stamps(seq, raw_gt):
     stamps_gt, T_gt = raw_gt
     assert stamps_gt.shape == (3000,) and T_gt.shape == (3000, 4, 4)
     T = seq.T_world_cam_gt
-    assert T.shape == (32, 4, 4) and np.all(np.isfinite(T))
+    assert T.shape == (37, 4, 4) and np.all(np.isfinite(T))
     nearest = np.abs(stamps_gt[None, :] - seq.timestamps[:, None]).argmin(axis=1)
     assert np.abs(stamps_gt[nearest] - seq.timestamps).max() < 0.0051  # 100 Hz ground truth
     dist_mm = 1000 * np.linalg.norm(T[:, :3, 3] - T_gt[nearest, :3, 3], axis=1)
@@ -143,36 +171,87 @@ def test_ground_truth_interpolated_to_rgb_stamps(seq, raw_gt):
     assert np.allclose(T[:, :3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2), np.eye(3), atol=1e-9)
 
 
-def _depth_agreement_mm(frame_a, frame_b, T_world_a, T_world_b):
-    """Median |z_b - z(a moved into b)| (mm) and count over pixels valid in both within 5 cm."""
-    K = frame_a.intrinsics
-    points_a, _ = backproject_depth(frame_a.depth_m, K)
+def _depth_agreement_mm(depth_a, depth_b, K, T_world_a, T_world_b):
+    """Median |z_b - z(a moved into b)| (mm) and count over pixels valid in both within 5 cm.
+
+    Every second pixel of a is back-projected (the median barely moves; 4x faster).
+    """
+    points_a, _ = backproject_depth(depth_a, K, stride=2)
     points_b = transform_points(inv_T(T_world_b) @ T_world_a, points_a)
     uv, z = project(points_b, K)
     u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
     inside = (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height)
-    measured = frame_b.depth_m[v[inside].astype(int), u[inside].astype(int)]
+    measured = depth_b[v[inside].astype(int), u[inside].astype(int)]
     diff = measured - z[inside]
     same_surface = (measured > 0) & (np.abs(diff) < 0.05)
     return 1000 * float(np.median(np.abs(diff[same_surface]))), int(same_surface.sum())
 
 
+def _pair_agreements(sequence, T_world_cam, k, step):
+    """Depth agreement (mm, count) of the frame pairs (i, i + k), i = 0, step, 2 step, ..."""
+    depths = {}
+
+    def depth(i):
+        if i not in depths:
+            depths[i] = sequence[i].depth_m
+        return depths[i]
+
+    return [
+        _depth_agreement_mm(depth(i), depth(i + k), sequence.intrinsics, T_world_cam[i], T_world_cam[i + k])
+        for i in range(0, len(sequence) - k, step)
+    ]
+
+
+@pytest.fixture(scope="module")
+def T_at_depth(seq, raw_gt):
+    # Depth is stamped 12-20 ms before colour; at fr1/xyz's ~0.4 m/s that is several mm, so
+    # the geometric checks take the ground truth at the depth timestamps.
+    return interpolate_poses(*raw_gt, seq.depth_timestamps)
+
+
+# Measured on every pair (i, i + k) of the 36 frames (each pair's median |diff|; raw depth,
+# ground truth at the depth stamps; stride 2 changes no figure by more than 0.05 mm):
+#   k               1     3     5     10    20    30
+#   median, mm      2.4   3.4   3.6   3.5   4.4   5.4
+#   worst pair, mm  6.1   7.3   6.0   8.9   8.2   10.1
+# The floor is the Kinect (one disparity step, 1/8 px, is ~4 mm of depth at this scene's
+# 1.2 m); it grows with the baseline as more of each pair is seen obliquely. Frames 0-1 and
+# 9 are the worst (more motion blur / rolling shutter at the start of the motion).
 @needs_data
-@pytest.mark.parametrize("k", [10, 30])
-def test_depth_reprojects_consistently_with_ground_truth(seq, raw_gt, k):
-    # Depth is captured ~15 ms before (sometimes after) colour; at ~0.4 m/s that is mm, so
-    # poses are interpolated at the depth timestamps for this purely geometric check.
-    T_depth = interpolate_poses(*raw_gt, seq.depth_timestamps)
-    frame_0, frame_k = seq[0], seq[k]
-    median_mm, count = _depth_agreement_mm(frame_0, frame_k, T_depth[0], T_depth[k])
-    # Measured: 8.1 mm (k=10), 7.4 mm (k=30) over ~140k / ~90k pixels. The floor is the
-    # Kinect itself: one disparity step (1/8 px) is ~4 mm of depth at this scene's 1.2 m.
-    assert median_mm < 10.0
-    assert count > 50_000
+@pytest.mark.parametrize(
+    ("k", "median_limit_mm", "worst_limit_mm"), [(1, 3.0, 6.5), (10, 4.0, 9.5), (30, 6.0, 10.5)]
+)
+def test_depth_reprojects_consistently_with_ground_truth(seq, T_at_depth, k, median_limit_mm, worst_limit_mm):
+    results = _pair_agreements(seq, T_at_depth, k, step=1)
+    medians = np.array([m for m, _ in results])
+    assert np.median(medians) < median_limit_mm
+    assert medians.max() < worst_limit_mm
+    assert min(count for _, count in results) > 20_000  # stride 2: a quarter of the pixels
+    if k == 1:
+        # Neighbouring frames see the same surfaces: under 5 mm, as the issue asks, for
+        # all but one pair (frames 1-2: 6.1 mm), the first pair included.
+        assert medians[0] < 5.0
+        assert (medians < 5.0).sum() >= len(medians) - 1
     # A 3 cm error in the relative pose must show clearly against that floor.
-    shifted = T_depth[k] @ make_T(np.eye(3), [0.0, 0.0, 0.03])
-    wrong_mm, _ = _depth_agreement_mm(frame_0, frame_k, T_depth[0], shifted)
-    assert wrong_mm > median_mm + 10.0
+    frame_0, frame_k = seq[0], seq[k]
+    shifted = T_at_depth[k] @ make_T(np.eye(3), [0.0, 0.0, 0.03])
+    wrong_mm, _ = _depth_agreement_mm(frame_0.depth_m, frame_k.depth_m, FR1, T_at_depth[0], shifted)
+    assert wrong_mm > medians[0] + 10.0
+
+
+@needs_data
+def test_depth_choices_raw_depth_and_depth_stamps(seq, T_at_depth):
+    # Ground truth at the colour stamps (what T_world_cam_gt holds) is ~15 ms off for depth:
+    # 3.2 instead of 2.4 mm for neighbouring frames.
+    at_depth = np.median([m for m, _ in _pair_agreements(seq, T_at_depth, 1, step=1)])
+    at_rgb = np.median([m for m, _ in _pair_agreements(seq, seq.T_world_cam_gt, 1, step=1)])
+    assert at_depth < at_rgb - 0.5
+    # Depth remapped with the colour distortion agrees worse at long baselines (6.3 against
+    # 5.4 mm 30 frames apart; within 0.1 mm either way for k <= 10), hence the default.
+    remapped = TumSequence(TUM_DIR, undistort_depth=True)
+    raw_mm = np.median([m for m, _ in _pair_agreements(seq, T_at_depth, 30, step=1)])
+    remapped_mm = np.median([m for m, _ in _pair_agreements(remapped, T_at_depth, 30, step=1)])
+    assert raw_mm < remapped_mm - 0.5
 
 
 # --- laziness ---------------------------------------------------------------------------------
@@ -211,7 +290,7 @@ def test_trajectory_round_trip_and_evo(seq, tmp_path):
     assert np.allclose(T, seq.T_world_cam_gt, rtol=0, atol=1e-6)
 
     traj = file_interface.read_tum_trajectory_file(str(a))
-    assert traj.num_poses == 32
+    assert traj.num_poses == len(seq)
     assert np.allclose(traj.timestamps, seq.timestamps, atol=1e-6)
     assert np.allclose(traj.positions_xyz, seq.T_world_cam_gt[:, :3, 3], atol=1e-6)
     assert np.allclose(np.stack(traj.poses_se3), seq.T_world_cam_gt, atol=1e-6)
@@ -293,31 +372,112 @@ def test_associate_offset_stamps():
     assert len(associate(a, b + 10.0, 0.02)) == 0
 
 
-def test_associate_is_greedy_and_unique():
-    # (a1, b0) is the closest pair, so a0 loses b0 although b0 is a0's only neighbour.
-    pairs = associate([0.0, 0.012], [0.010, 0.030], max_difference=0.02)
-    assert pairs.tolist() == [[1, 0]]
-    # One b stamp between two a stamps is used once, by the nearer a.
-    assert associate([0.0, 0.01], [0.006], 0.02).tolist() == [[1, 0]]
-    # Output sorted by the first stamp, whatever the input order.
-    assert associate([0.2, 0.1, 0.0], [0.0, 0.1, 0.2], 0.02).tolist() == [[2, 0], [1, 1], [0, 2]]
-    assert associate([], [1.0]).shape == (0, 2)
+def _assignment_reference(a, b, offset, max_difference):
+    """Optimal association as the dense assignment problem: (number of pairs, total |diff|).
+
+    Infeasible pairs cost more than any feasible total (costs in units of max_difference
+    are < 1 each, so min(Na, Nb) + 1 is enough): the assignment first avoids them, which
+    maximises the pairs, then minimises the total difference.
+    """
+    diff = np.abs(np.asarray(a)[:, None] - (np.asarray(b)[None, :] + offset))
+    feasible = diff < max_difference
+    cost = np.where(feasible, diff / max_difference, min(len(a), len(b)) + 1.0)
+    rows, cols = linear_sum_assignment(cost)
+    kept = feasible[rows, cols]
+    return int(kept.sum()), float(diff[rows[kept], cols[kept]].sum())
+
+
+def _check_one_to_one(pairs, a, b, offset, max_difference):
+    assert len(set(pairs[:, 0].tolist())) == len(set(pairs[:, 1].tolist())) == len(pairs)
+    diff = np.abs(np.asarray(a)[pairs[:, 0]] - (np.asarray(b)[pairs[:, 1]] + offset))
+    assert np.all(diff < max_difference)
+    assert np.all(np.diff(np.asarray(a)[pairs[:, 0]]) >= 0)  # sorted by the first stamp
+    return float(diff.sum())
+
+
+def test_associate_greedy_is_tums_and_unique():
+    # (a1, b0) is the closest pair, so greedy gives a0 nothing although b0 is a0's only
+    # neighbour; optimal pairs both (a0-b0 10 ms, a1-b1 18 ms).
+    assert associate([0.0, 0.012], [0.010, 0.030], 0.02, association="greedy").tolist() == [[1, 0]]
+    assert associate([0.0, 0.012], [0.010, 0.030], 0.02).tolist() == [[0, 0], [1, 1]]
+    # One b stamp between two a stamps is used once, by the nearer a (both methods).
+    for method in ("greedy", "optimal"):
+        assert associate([0.0, 0.01], [0.006], 0.02, association=method).tolist() == [[1, 0]]
+        # Output sorted by the first stamp, whatever the input order.
+        assert associate([0.2, 0.1, 0.0], [0.0, 0.1, 0.2], 0.02, association=method).tolist() == [
+            [2, 0], [1, 1], [0, 2]
+        ]
+        assert associate([], [1.0], association=method).shape == (0, 2)
+    with pytest.raises(ValueError, match="association must be one of"):
+        associate([0.0], [0.0], association="hungarian")
+
+
+def test_associate_optimal_least_total_difference():
+    # Both ways pair both stamps: greedy takes the 1 ms pair first and is left with 19 ms
+    # (20 ms in all); optimal pairs in order, 9 + 9 ms.
+    a, b = [0.0, 0.010], [0.009, 0.019]
+    assert associate(a, b, 0.02, association="greedy").tolist() == [[0, 1], [1, 0]]
+    assert associate(a, b, 0.02).tolist() == [[0, 0], [1, 1]]
+    # A chain where greedy's first choice (a1-b0, 1 ms) costs two pairs.
+    a, b = [0.0, 0.019, 0.038], [0.018, 0.037, 0.056]
+    assert associate(a, b, 0.02, association="greedy").tolist() == [[1, 0], [2, 1]]
+    assert associate(a, b, 0.02).tolist() == [[0, 0], [1, 1], [2, 2]]
 
 
 def test_associate_tolerance_is_strict():
-    assert associate([0.0], [0.019], 0.02).tolist() == [[0, 0]]
-    assert associate([0.0], [0.021], 0.02).tolist() == []
-    assert associate([0.0], [0.25], 0.3).tolist() == [[0, 0]]
+    for method in ("greedy", "optimal"):
+        assert associate([0.0], [0.019], 0.02, association=method).tolist() == [[0, 0]]
+        assert associate([0.0], [0.021], 0.02, association=method).tolist() == []
+        assert associate([0.0], [0.25], 0.3, association=method).tolist() == [[0, 0]]
 
 
-def test_associate_matches_tum_reference():
+def test_associate_greedy_matches_tum_reference():
     rng = np.random.default_rng(7)
     for _ in range(20):
         a = np.sort(rng.uniform(0, 2, rng.integers(1, 60)))
         b = np.sort(rng.uniform(0, 2, rng.integers(1, 60)))
         offset = rng.uniform(-0.02, 0.02)
         expected = _reference_associate(a.tolist(), b.tolist(), offset, 0.03)
-        assert associate(a, b, 0.03, offset).tolist() == [list(p) for p in expected]
+        assert associate(a, b, 0.03, offset, association="greedy").tolist() == [list(p) for p in expected]
+
+
+def test_associate_optimal_matches_assignment_reference():
+    rng = np.random.default_rng(11)
+    greedy_short = 0
+    for trial in range(300):
+        na, nb = rng.integers(1, 50, size=2)
+        if trial % 3 == 0:  # unordered, arbitrary stamps
+            a, b = rng.uniform(0, 1, na), rng.uniform(0, 1, nb)
+        elif trial % 3 == 1:  # ties: 10 ms grid
+            a, b = np.round(rng.uniform(0, 1, na), 2), np.round(rng.uniform(0, 1, nb), 2)
+        else:  # camera-like: 30 Hz streams, depth ~15 ms early, jitter
+            a = np.arange(na) / 30 + rng.normal(0, 0.003, na)
+            b = np.arange(nb) / 30 - 0.015 + rng.normal(0, 0.003, nb)
+        max_difference, offset = rng.uniform(0.005, 0.1), rng.uniform(-0.02, 0.02)
+        pairs = associate(a, b, max_difference, offset)
+        count, total = _assignment_reference(a, b, offset, max_difference)
+        assert len(pairs) == count, trial
+        assert _check_one_to_one(pairs, a, b, offset, max_difference) == pytest.approx(total, abs=1e-9)
+        greedy_short += len(associate(a, b, max_difference, offset, association="greedy")) < count
+    assert greedy_short > 30  # greedy loses pairs often on such lists
+
+
+def test_associate_long_streams_fast():
+    # 5000 frames of 30 Hz colour and depth 15 ms early with jitter: each colour frame has
+    # its own depth frame within 20 ms (so all 5000 can pair), often a second one too.
+    rng = np.random.default_rng(3)
+    a = np.arange(5000) / 30 + rng.uniform(-0.002, 0.002, 5000)
+    b = a - 0.015 + rng.uniform(-0.003, 0.003, 5000)
+    start = time.perf_counter()
+    pairs = associate(a, b, 0.02)
+    elapsed = time.perf_counter() - start
+    assert len(pairs) == 5000 and pairs.tolist() == [[i, i] for i in range(5000)]
+    assert elapsed < 0.5, f"optimal association of 5000 frames took {elapsed:.2f} s"
+    start = time.perf_counter()
+    greedy = associate(a, b, 0.02, association="greedy")
+    assert time.perf_counter() - start < 0.5
+    assert 4000 < len(greedy) < 5000  # greedy takes the later depth frame when it is nearer
+    _check_one_to_one(greedy, a, b, 0.0, 0.02)
 
 
 @needs_data
@@ -327,10 +487,17 @@ def test_associate_real_lists():
     assert len(stamps_rgb) == len(stamps_depth) == 37
     assert names_rgb[0] == "rgb/1305031102.175304.png" and stamps_rgb[0] == 1305031102.175304
     expected = _reference_associate(stamps_rgb.tolist(), stamps_depth.tolist(), 0.0, 0.02)
-    assert associate(stamps_rgb, stamps_depth).tolist() == [list(p) for p in expected]
+    assert associate(stamps_rgb, stamps_depth, association="greedy").tolist() == [list(p) for p in expected]
     assert len(expected) == 32
+    # Optimal: 36, the most any pairing within 0.02 s can have (colour 31's depth is 20.2 ms
+    # before it); every frame but 31 with its own depth frame.
+    optimal = associate(stamps_rgb, stamps_depth)
+    assert optimal.tolist() == [[i, i] for i in range(37) if i != 31]
+    assert len(optimal) == _assignment_reference(stamps_rgb, stamps_depth, 0.0, 0.02)[0]
     # With the Kinect's ~15 ms depth lead as offset, every colour frame gets its own depth.
-    assert associate(stamps_rgb, stamps_depth, 0.02, offset=0.015).tolist() == [[i, i] for i in range(37)]
+    for method in ("greedy", "optimal"):
+        pairs = associate(stamps_rgb, stamps_depth, 0.02, offset=0.015, association=method)
+        assert pairs.tolist() == [[i, i] for i in range(37)]
 
 
 def test_read_file_list_errors(tmp_path):

@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.alignment import AlignConfig, align_correspondences, prepare_correspondences
+from nap3d_graph.alignment import AlignConfig, align_correspondences, prepare_correspondences, view_features
+from nap3d_graph.matching import detect_features
 from nap3d_graph.camera import RGBDFrame, backproject_depth
 from nap3d_graph.conventions import pose_error, transform_points
 from nap3d_graph.nap3d import correct_pose, render_safely
@@ -84,12 +85,12 @@ def _blur(frame: RGBDFrame, sigma: float) -> RGBDFrame:
     return RGBDFrame(rgb, frame.depth_m, frame.intrinsics, frame.timestamp)
 
 
-def _run_methods(frame_given: RGBDFrame, view, field_obj, T_est, config: EvalKConfig):
-    """Every method on one cell, sharing one set of matches. Yields (method, Alignment or
-    corrected pose, seconds)."""
+def _run_methods(frame_given: RGBDFrame, view, field_obj, T_est, config: EvalKConfig, feats_real, feats_view):
+    """Every method on one cell, sharing one set of matches. Yields (method, success,
+    reason, corrected pose, matches, inliers, seconds)."""
     timings: dict = {}
     t0 = time.perf_counter()
-    corr, reason = prepare_correspondences(frame_given, view, config.align, timings)
+    corr, reason = prepare_correspondences(frame_given, view, config.align, timings, feats_real, feats_view)
     t_match = time.perf_counter() - t0
     for method in config.methods:
         t0 = time.perf_counter()
@@ -138,8 +139,12 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
         T_est = T_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)
         frame = sequence[index]
         view, render_reason = render_safely(field_obj, T_est, frame.intrinsics)
+        # Features depend on the image only: once per view and per blur level, reused by
+        # the four intrinsics settings (which only change the back-projection).
+        feats_view = view_features(view, config.align) if view is not None else None
         for sigma in config.blur_sigmas:
             blurred = _blur(frame, sigma)
+            feats_real = detect_features(blurred.rgb, config.align.max_features)
             for name, (focal_scale, offset_px) in config.intrinsics_noise.items():
                 given = blurred.with_intrinsics(frame.intrinsics.shifted(focal_scale, offset_px))
                 base = {"scenario": scenario, "frame_index": index, "timestamp": f"{frame.timestamp:.6f}",
@@ -149,8 +154,8 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
                         rows.append({**base, "method": method, "success": False, "reason": render_reason})
                     bar.update()
                     continue
-                for method, ok, reason, T_corr, n_match, n_in, secs in _run_methods(given, view, field_obj, T_est,
-                                                                                   config):
+                for method, ok, reason, T_corr, n_match, n_in, secs in _run_methods(
+                        given, view, field_obj, T_est, config, feats_real, feats_view):
                     row = {**base, "method": method, "success": ok, "reason": reason, "num_matches": n_match,
                            "num_inliers": n_in, "time_s": round(secs, 4)}
                     if ok:

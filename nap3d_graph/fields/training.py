@@ -73,8 +73,9 @@ class TrainConfig:
     eval_frames: int = 8
     seed: int = 0
     rays_per_step: int = 4096
-    free_samples: int = 16
-    window_samples: int = 32
+    patch_size: int = 8
+    free_samples: int = 8
+    window_samples: int = 16
     window_min_m: float = 0.04
     window_sigmas: float = 3.0
     depth_sigma_z2: float = 1.4e-3
@@ -129,15 +130,15 @@ class TrainingRays:
     """Every training pixel with a valid depth, kept compact on the training device.
 
     rgb (F, H, W, 3) uint8; depth (F, H, W) float32 z-depth metres (0 = missing);
-    R_world_cam (F, 3, 3) float32; t_world_cam (F, 3) float64; valid (M,) int64 flat indices
-    into F*H*W of the pixels whose depth is usable.
+    R_world_cam (F, 3, 3) float32; t_world_cam (F, 3) float64; num_valid: how many pixels
+    have a usable depth.
     """
 
     rgb: torch.Tensor
     depth: torch.Tensor
     R_world_cam: torch.Tensor
     t_world_cam: np.ndarray
-    valid: torch.Tensor
+    num_valid: int
     intrinsics: Intrinsics
 
     @classmethod
@@ -160,15 +161,15 @@ class TrainingRays:
             d[~valid_depth_mask(d, config.min_depth_m, config.max_depth_m)] = 0.0
             depth[k] = d
         T = poses[np.asarray(indices, dtype=int)]
-        valid = np.flatnonzero(depth.reshape(-1) > 0)
-        if len(valid) == 0:
+        num_valid = int(np.count_nonzero(depth))
+        if num_valid == 0:
             raise FieldError("no training frame has a valid depth pixel")
         return cls(
             rgb=torch.from_numpy(rgb).to(device),
             depth=torch.from_numpy(depth).to(device),
             R_world_cam=torch.as_tensor(T[:, :3, :3], dtype=torch.float32, device=device),
             t_world_cam=T[:, :3, 3].copy(),
-            valid=torch.from_numpy(valid).to(device),
+            num_valid=num_valid,
             intrinsics=intrinsics,
         )
 
@@ -246,18 +247,27 @@ class _Trainer:
             group["lr"] = lr * scale
 
     def sample_batch(self):
+        """Rays of ``rays_per_step // patch**2`` random square pixel patches of random training
+        frames (neighbouring rays touch the same voxels, which keeps the grid lookups in cache),
+        without the pixels that have no depth."""
         cfg, rays = self.config, self.rays
         fx, fy, cx, cy, w, h = self.K
-        pick = torch.randint(len(rays.valid), (cfg.rays_per_step,), generator=self.generator, device=self.device)
-        flat = rays.valid[pick]
-        frame = flat // (h * w)
-        pixel = flat % (h * w)
-        v = (pixel // w).float()
-        u = (pixel % w).float()
+        p = max(1, min(cfg.patch_size, w, h))
+        n_patches = max(1, cfg.rays_per_step // (p * p))
+        frame = torch.randint(rays.num_frames, (n_patches, 1), generator=self.generator, device=self.device)
+        u0 = torch.randint(w - p + 1, (n_patches, 1), generator=self.generator, device=self.device)
+        v0 = torch.randint(h - p + 1, (n_patches, 1), generator=self.generator, device=self.device)
+        offset = torch.arange(p, device=self.device)
+        u = (u0 + offset.repeat(p)[None, :]).reshape(-1)
+        v = (v0 + offset.repeat_interleave(p)[None, :]).reshape(-1)
+        frame = frame.expand(-1, p * p).reshape(-1)
+        flat = (frame * h + v) * w + u
+        z = rays.depth.reshape(-1)[flat]
+        ok = z > 0
+        flat, frame, u, v, z = flat[ok], frame[ok], u[ok].float(), v[ok].float(), z[ok]
         d_cam = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)
         dirs = torch.einsum("nij,nj->ni", rays.R_world_cam[frame], d_cam)
         origins = self.t_local[frame]
-        z = rays.depth.reshape(-1)[flat]
         target = rays.rgb.reshape(-1, 3)[flat].float() / 255.0
         return origins, dirs, z, target
 
@@ -319,7 +329,7 @@ class _Trainer:
         with torch.no_grad():
             depth = (weights * t).sum(dim=1) / opacity.clamp(min=1e-6)
             depth_err = (depth - z).abs().median()
-        return float(rgb_loss), float(depth_err)
+        return float(rgb_loss.detach()), float(depth_err)
 
 
 def psnr(mse: float) -> float:
@@ -470,7 +480,7 @@ def train_field(
     bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), _poses_of(sequence)[train_idx],
                                      rays.intrinsics, margin_m=config.bounds_margin_m)
     load_seconds = time.perf_counter() - started
-    log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), len(rays.valid), bounds.round(2).tolist())
+    log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), rays.num_valid, bounds.round(2).tolist())
 
     stages = _stages(config)
     field = GridField.empty(bounds, stages[0][0], device=device)
@@ -541,7 +551,7 @@ def train_field(
         "device": str(device),
         "torch_threads": torch.get_num_threads(),
         "train_frames": len(train_idx),
-        "train_rays_with_depth": int(len(rays.valid)),
+        "train_rays_with_depth": int(rays.num_valid),
         "steps": steps,
         "train_seconds": round(train_seconds, 2),
         "load_seconds": round(load_seconds, 2),
