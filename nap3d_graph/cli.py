@@ -14,8 +14,13 @@ from pathlib import Path
 log = logging.getLogger("nap3d_graph")
 
 EPILOG = """examples:
+  nap3d-graph run                                  # the embedded default, end to end
   nap3d-graph simulate data/room_map --frames 300 --path mapping --scene-seed 0 --seed 1
   nap3d-graph simulate data/room_walk --frames 150 --path traverse --scene-seed 0 --seed 2
+  nap3d-graph train-field data/room_map --out room.pt --minutes 5
+  nap3d-graph run --traj sim --data data/room_walk --field room.pt
+  nap3d-graph run --traj tum --data rgbd_dataset_freiburg1_xyz --field fr1.pt --odom noisy
+  nap3d-graph eval-k data/room_walk --field oracle --scenarios 40 --out evalk
 """
 
 
@@ -56,10 +61,19 @@ class _UsageError(Exception):
     """A bad argument the user can fix."""
 
 
-def _evaluation_builders():
+def _other_builders():
+    """Subcommands defined next to the code they run (imported lazily when called)."""
     from nap3d_graph.evaluation.commands import add_eval_j, add_eval_k
+    from nap3d_graph.run_command import add_run
 
-    return [add_eval_k, add_eval_j]
+    builders = [add_run, add_eval_k, add_eval_j]
+    try:
+        from nap3d_graph.fields.commands import add_export_nerfstudio, add_train_field
+
+        builders += [add_train_field, add_export_nerfstudio]
+    except ImportError:  # pragma: no cover - the fields package always ships
+        pass
+    return builders
 
 
 _BUILDERS = [_add_simulate]
@@ -74,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for builder in [*_BUILDERS, *_evaluation_builders()]:
+    for builder in [*_BUILDERS, *_other_builders()]:
         builder(sub)
     return parser
 
@@ -83,8 +97,9 @@ def _known_errors() -> tuple[type[BaseException], ...]:
     errors: list[type[BaseException]] = [_UsageError, FileNotFoundError]
     from nap3d_graph.camera import CameraError
     from nap3d_graph.fields import FieldError
+    from nap3d_graph.run_command import RunError
 
-    errors += [CameraError, FieldError]
+    errors += [CameraError, FieldError, RunError]
     try:
         from nap3d_graph.datasets import DatasetError
 

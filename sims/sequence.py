@@ -73,10 +73,53 @@ def _write_tum(path: Path, stamps: np.ndarray, T: np.ndarray, header: str) -> No
     np.savetxt(path, rows, fmt=["%.6f"] + ["%.9f"] * 7, header=f"{header}\ntimestamp tx ty tz qx qy qz qw")
 
 
-def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, progress: bool = False) -> Path:
-    """Render a sequence into ``out_dir`` (created) and return its path."""
+def _render_and_write(job) -> None:
+    """Render one sensor frame and write its two PNGs (runs in a worker process)."""
     import cv2
+
+    scene, T_world_cam, intrinsics, rgb_sigma, depth_noise, seed, rgb_path, depth_path = job
+    rng = np.random.default_rng(seed)
+    rgb01, depth_m, _ = scene.render(T_world_cam, intrinsics)
+    rgb = add_rgb_noise(rgb01, rgb_sigma, rng)
+    depth_noisy = add_depth_noise(depth_m, depth_noise, rng)
+    depth_u16 = np.clip(np.round(depth_noisy * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+    if not (cv2.imwrite(rgb_path, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)) and cv2.imwrite(depth_path, depth_u16)):
+        raise OSError(f"could not write {rgb_path} / {depth_path}")
+
+
+class _SerialPool:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def map(self, fn, jobs, chunksize=1):
+        return map(fn, jobs)
+
+
+def _pool(workers: int):
+    """A process pool of ``workers`` (fork, so nothing is re-imported), or a serial one."""
+    if workers <= 1:
+        return _SerialPool()
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("fork"))
+
+
+def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, progress: bool = False,
+                      workers: int | None = None) -> Path:
+    """Render a sequence into ``out_dir`` (created) and return its path.
+
+    ``workers`` processes render frames in parallel (default: the CPU count, at most 4);
+    the output does not depend on it.
+    """
+    import os
+
     from tqdm import tqdm
+
+    workers = min(os.cpu_count() or 1, 4) if workers is None else int(workers)
 
     config = config or SimConfig()
     if config.frames < 2:
@@ -99,13 +142,15 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     depth_stamps = rgb_stamps + stamp_rng.uniform(-0.008, 0.008, config.frames)
     T_gt = trajectory.poses(t_rel)
 
-    for k in tqdm(range(config.frames), desc="render", unit="frame", disable=not progress):
-        rgb01, depth_m, _ = scene.render(T_gt[k], intrinsics)
-        rgb = add_rgb_noise(rgb01, config.rgb_noise_sigma, image_rng)
-        depth_noisy = add_depth_noise(depth_m, config.depth, image_rng)
-        depth_u16 = np.clip(np.round(depth_noisy * DEPTH_SCALE), 0, 65535).astype(np.uint16)
-        cv2.imwrite(str(out / "rgb" / f"{rgb_stamps[k]:.6f}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        cv2.imwrite(str(out / "depth" / f"{depth_stamps[k]:.6f}.png"), depth_u16)
+    # One noise seed per frame, so the images do not depend on which worker renders them.
+    frame_seeds = image_rng.integers(0, 2**63 - 1, config.frames)
+    jobs = [(scene, T_gt[k], intrinsics, config.rgb_noise_sigma, config.depth, int(frame_seeds[k]),
+             str(out / "rgb" / f"{rgb_stamps[k]:.6f}.png"), str(out / "depth" / f"{depth_stamps[k]:.6f}.png"))
+            for k in range(config.frames)]
+    with _pool(workers) as pool:
+        for _ in tqdm(pool.map(_render_and_write, jobs, chunksize=4), total=len(jobs), desc="render",
+                      unit="frame", disable=not progress):
+            pass
 
     _write_list(out / "rgb.txt", "color images", rgb_stamps, "rgb")
     _write_list(out / "depth.txt", "depth maps", depth_stamps, "depth")

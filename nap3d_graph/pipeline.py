@@ -1,0 +1,353 @@
+"""The drift-correction run: drifting odometry in an iSAM2 graph, NAP3D corrections as factors.
+
+Graph: one ``Pose3`` node ``X(k)`` per keyframe (``T_world_cam``, OpenCV camera), a prior on
+``X(0)``, odometry ``BetweenFactorPose3`` between consecutive keyframes (the frame-to-frame
+increments composed, covariance propagated), and at each keyframe the NAP3D correction as a
+robust ``PriorFactorPose3`` (or, with a map anchor, a between factor from ``M(0)``, the
+field's frame in the world). A correction enters only if it passes the chi-square gate
+against the predicted pose and its marginal covariance. Frames between keyframes are
+chained from the nearest keyframe with the odometry increments for the output trajectory.
+
+``Pipeline.run()`` reads as its steps; no failed correction stops a run or reaches the graph.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import M, X
+
+from nap3d_graph.factors import (anchor_prior_factor, chi2_gate_with_marginal, factor_error_and_covariance,
+                                 nap3d_anchor_factor, nap3d_prior_factor, odometry_factor, pose_prior_factor)
+
+from .alignment import AlignConfig
+from .camera import Intrinsics
+from .conventions import inv_T, pose3_to_T, pose_error, T_to_pose3
+from .nap3d import correct_pose
+from .results import Correction
+
+__all__ = ["PipelineConfig", "Pipeline", "KeyframeRecord", "RunResult", "compose_covariance"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PipelineConfig:
+    """Settings of one run.
+
+    keyframe_every: a keyframe every N frames; keyframe_distance_m / keyframe_angle_deg
+        (when > 0) also make one once the odometry moved that far since the last.
+    correction_iterations: render-align rounds per correction (see ``correct_pose``).
+    render_width, render_height: the field renders at this size (None: the frame's).
+    gate_p: chi-square gate probability (6 dof) of a correction against the prediction.
+    use_anchor: estimate the field's frame in the world (``M(0)``) instead of assuming it is
+        the world frame.
+    """
+
+    keyframe_every: int = 5
+    keyframe_distance_m: float = 0.0
+    keyframe_angle_deg: float = 0.0
+    correction_iterations: int = 2
+    render_width: int | None = 320
+    render_height: int | None = 240
+    robust: str | None = "huber"
+    gate_p: float = 0.997
+    use_anchor: bool = False
+    anchor_rot_sigma_rad: float = 0.1
+    anchor_trans_sigma_m: float = 0.5
+    prior_rot_sigma_rad: float = 1e-3
+    prior_trans_sigma_m: float = 1e-3
+    relinearize_threshold: float = 0.01
+    max_frames: int | None = None
+    progress: bool = False
+    align: AlignConfig = field(default_factory=AlignConfig)
+
+    def __post_init__(self) -> None:
+        if self.keyframe_every < 1:
+            raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
+
+
+@dataclass
+class KeyframeRecord:
+    """What happened at one keyframe (one row of corrections.csv)."""
+
+    frame_index: int
+    timestamp: float
+    key: int
+    matches: int = 0
+    inliers: int = 0
+    iterations: int = 0
+    accepted: bool = False
+    reason: str = ""
+    gate_d2: float = float("nan")
+    correction_m: float = float("nan")
+    correction_deg: float = float("nan")
+    timings_s: dict = field(default_factory=dict)
+
+
+@dataclass
+class RunResult:
+    """Per-frame trajectories (N, 4, 4) at ``timestamps`` (N,) and per-keyframe records."""
+
+    timestamps: np.ndarray
+    T_world_cam_estimate: np.ndarray
+    T_world_cam_odometry: np.ndarray
+    T_world_cam_gt: np.ndarray | None
+    keyframes: list[KeyframeRecord]
+    keyframe_indices: list[int]
+    T_world_map: np.ndarray | None = None
+    wall_time_s: float = 0.0
+
+    @property
+    def num_accepted(self) -> int:
+        return sum(k.accepted for k in self.keyframes)
+
+    @property
+    def num_rejected(self) -> int:
+        return len(self.keyframes) - self.num_accepted
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """GTSAM's 6x6 adjoint of a pose (tangent order [rotation, translation])."""
+    return np.asarray(T_to_pose3(T).AdjointMap())
+
+
+def compose_covariance(cov_a: np.ndarray, T_b: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
+    """Covariance of ``T_a @ T_b`` (right perturbations) from those of ``T_a`` and ``T_b``:
+    ``Ad(T_b^-1) cov_a Ad(T_b^-1)^T + cov_b``."""
+    A = adjoint(inv_T(T_b))
+    out = A @ cov_a @ A.T + cov_b
+    return 0.5 * (out + out.T)
+
+
+class Pipeline:
+    """One drift-correction run over a sequence.
+
+    sequence: ``len``, ``seq[i] -> RGBDFrame``, ``timestamps``, ``T_world_cam_gt`` (or None).
+    field: anything with ``render(T_world_cam, intrinsics)`` (None: odometry only).
+    odometry: an odometry source (``initial_pose()``, ``increment(i, frame)``).
+    correction_hook: optional ``f(frame_index, Correction) -> Correction`` applied before the
+        gate (tests use it to inject a wrong correction).
+    """
+
+    def __init__(self, sequence, field, odometry, config: PipelineConfig | None = None, correction_hook=None):
+        self.sequence = sequence
+        self.field = field
+        self.odometry = odometry
+        self.config = config or PipelineConfig()
+        self.correction_hook = correction_hook
+
+    # --- the run, as its steps ---------------------------------------------------------
+
+    def run(self) -> RunResult:
+        from tqdm import tqdm
+
+        t_start = time.perf_counter()
+        self._start()
+        n = len(self.sequence) if self.config.max_frames is None else min(len(self.sequence), self.config.max_frames)
+        for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
+            frame = self._read_frame(i) if self._odometry_needs_frames() else None
+            if i > 0:
+                self._propagate_odometry(i, frame)
+            if self._is_keyframe(i):
+                self._add_keyframe(i)
+                self._correct_keyframe(i, frame if frame is not None else self._read_frame(i))
+                self._update_graph()
+        result = self._finish(n)
+        result.wall_time_s = time.perf_counter() - t_start
+        return result
+
+    # --- steps -----------------------------------------------------------------------------
+
+    def _start(self) -> None:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        self.isam = gtsam.ISAM2(params)
+        self.new_factors = gtsam.NonlinearFactorGraph()
+        self.new_values = gtsam.Values()
+        self.T_odom = [self.odometry.initial_pose()]
+        self.increments: list[np.ndarray] = [np.eye(4)]
+        self.T_since_kf = np.eye(4)
+        self.cov_since_kf = np.zeros((6, 6))
+        self.keyframe_indices: list[int] = []
+        self.records: list[KeyframeRecord] = []
+        self.T_last_kf_est: np.ndarray | None = None
+        self.P_last_kf = np.zeros((6, 6))
+        self.T_pred = self.T_odom[0]
+        self.P_pred = np.zeros((6, 6))
+        self._pending_record: KeyframeRecord | None = None
+        if self.config.use_anchor:
+            self.new_factors.add(anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
+                                                     self.config.anchor_trans_sigma_m))
+            self.new_values.insert(M(0), gtsam.Pose3())
+
+    def _odometry_needs_frames(self) -> bool:
+        return getattr(self.odometry, "name", "") == "vo"
+
+    def _read_frame(self, i: int):
+        """Frame i, or None when it cannot be read (the reason is logged and recorded)."""
+        from nap3d_graph.datasets import DatasetError
+
+        try:
+            frame = self.sequence[i]
+        except (DatasetError, OSError) as exc:
+            log.warning("frame %d unreadable: %s", i, exc)
+            self._frame_error = str(exc)
+            return None
+        if i == 0 and hasattr(self.odometry, "prime"):
+            self.odometry.prime(frame)
+        return frame
+
+    def _propagate_odometry(self, i: int, frame) -> None:
+        inc = self.odometry.increment(i, frame)
+        self.increments.append(inc.T_prev_cur)
+        self.T_odom.append(self.T_odom[-1] @ inc.T_prev_cur)
+        self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
+        self.T_since_kf = self.T_since_kf @ inc.T_prev_cur
+
+    def _is_keyframe(self, i: int) -> bool:
+        if not self.keyframe_indices:
+            return i == 0
+        last = self.keyframe_indices[-1]
+        if i - last >= self.config.keyframe_every:
+            return True
+        moved_m, turned_deg = pose_error(self.T_since_kf, np.eye(4))
+        if self.config.keyframe_distance_m > 0 and moved_m >= self.config.keyframe_distance_m:
+            return True
+        return self.config.keyframe_angle_deg > 0 and turned_deg >= self.config.keyframe_angle_deg
+
+    def _add_keyframe(self, i: int) -> None:
+        j = len(self.keyframe_indices)
+        self.keyframe_indices.append(i)
+        if j == 0:
+            T0 = self.T_odom[0]
+            self.new_factors.add(pose_prior_factor(X(0), T0, rot_sigma_rad=self.config.prior_rot_sigma_rad,
+                                                   trans_sigma_m=self.config.prior_trans_sigma_m))
+            self.new_values.insert(X(0), T_to_pose3(T0))
+            self.T_pred = T0
+            self.P_pred = np.diag([self.config.prior_rot_sigma_rad**2] * 3 + [self.config.prior_trans_sigma_m**2] * 3)
+        else:
+            self.new_factors.add(odometry_factor(X(j - 1), X(j), self.T_since_kf, self.cov_since_kf))
+            self.T_pred = self.T_last_kf_est @ self.T_since_kf
+            self.P_pred = compose_covariance(self.P_last_kf, self.T_since_kf, self.cov_since_kf)
+            self.new_values.insert(X(j), T_to_pose3(self.T_pred))
+        self.T_since_kf = np.eye(4)
+        self.cov_since_kf = np.zeros((6, 6))
+        self._pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j))
+
+    def _correct_keyframe(self, i: int, frame) -> None:
+        record = self._pending_record
+        if self.field is None:
+            record.reason = "no field"
+            return
+        if frame is None:
+            record.reason = f"frame unreadable: {getattr(self, '_frame_error', 'unknown error')}"
+            return
+        T_render = self.T_pred
+        if self.config.use_anchor:
+            T_render = inv_T(self._anchor_estimate()) @ self.T_pred  # the field's frame
+        correction = correct_pose(frame, self.field, T_render, iterations=self.config.correction_iterations,
+                                  config=self.config.align, render_intrinsics=self._render_intrinsics(frame))
+        if self.correction_hook is not None:
+            correction = self.correction_hook(i, correction)
+        record.timings_s.update({k: round(v, 4) for k, v in correction.timings_s.items()})
+        record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
+                                                             correction.iterations)
+        if not correction.success:
+            record.reason = correction.reason
+            return
+        record.correction_m, record.correction_deg = pose_error(correction.T_world_cam_corrected, T_render)
+        t0 = time.perf_counter()
+        factor, gate = self._gated_factor(record.key, correction)
+        record.timings_s["gate"] = round(time.perf_counter() - t0, 5)
+        record.gate_d2 = gate.d2 if gate is not None else float("nan")
+        if factor is None:
+            record.reason = gate.reason if gate is not None else "invalid covariance"
+            return
+        self.new_factors.add(factor)
+        record.accepted = True
+
+    def _gated_factor(self, key: int, correction: Correction):
+        """The NAP3D factor and its gate result; ``(None, gate)`` when gated out."""
+        try:
+            if self.config.use_anchor:
+                factor = nap3d_anchor_factor(key, M(0), None, correction, robust=self.config.robust)
+            else:
+                factor = nap3d_prior_factor(key, None, correction, robust=self.config.robust)
+        except ValueError as exc:  # a covariance GTSAM cannot use: skip, never corrupt the graph
+            log.warning("correction at %s not usable: %s", gtsam.DefaultKeyFormatter(key), exc)
+            return None, None
+        values = gtsam.Values()
+        values.insert(key, T_to_pose3(self.T_pred))
+        P = self.P_pred
+        if self.config.use_anchor:
+            values.insert(M(0), T_to_pose3(self._anchor_estimate()))
+            P = P + self._anchor_covariance()
+        xi, cov = factor_error_and_covariance(factor, values)
+        gate = chi2_gate_with_marginal(xi, cov, P, p=self.config.gate_p)
+        return (factor if gate.accepted else None), gate
+
+    def _update_graph(self) -> None:
+        t0 = time.perf_counter()
+        self.isam.update(self.new_factors, self.new_values)
+        record = self._pending_record
+        if record is not None and record.accepted:
+            self.isam.update()  # one more relinearisation step after a correction moved the pose
+        # Fresh containers every update: iSAM2 keeps what it was given.
+        self.new_factors = gtsam.NonlinearFactorGraph()
+        self.new_values = gtsam.Values()
+        key = X(len(self.keyframe_indices) - 1)
+        self.T_last_kf_est = pose3_to_T(self.isam.calculateEstimatePose3(key))
+        self.P_last_kf = np.asarray(self.isam.marginalCovariance(key))
+        if record is not None:
+            record.timings_s["isam"] = round(time.perf_counter() - t0, 5)
+            self.records.append(record)
+            self._pending_record = None
+
+    def _finish(self, n: int) -> RunResult:
+        estimate = self.isam.calculateEstimate()
+        T_kf = {idx: pose3_to_T(estimate.atPose3(X(j))) for j, idx in enumerate(self.keyframe_indices)}
+        T_est = self._chain_between_keyframes(T_kf, n)
+        T_gt = None if self.sequence.T_world_cam_gt is None else np.asarray(self.sequence.T_world_cam_gt[:n])
+        T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
+        return RunResult(np.asarray(self.sequence.timestamps[:n], dtype=float), T_est, np.stack(self.T_odom[:n]),
+                         T_gt, self.records, list(self.keyframe_indices), T_map)
+
+    # --- helpers -----------------------------------------------------------------------------
+
+    def _chain_between_keyframes(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
+        """Every frame's pose: keyframes from the graph, the others chained from the nearest
+        keyframe with the odometry increments (forwards or backwards)."""
+        kf = np.array(self.keyframe_indices)
+        T = np.empty((n, 4, 4))
+        for i in range(n):
+            k = int(kf[np.argmin(np.abs(kf - i))])
+            pose = T_kf[k]
+            if i > k:
+                for m in range(k + 1, i + 1):
+                    pose = pose @ self.increments[m]
+            elif i < k:
+                for m in range(k, i, -1):
+                    pose = pose @ inv_T(self.increments[m])
+            T[i] = pose
+        return T
+
+    def _render_intrinsics(self, frame) -> Intrinsics:
+        w, h = self.config.render_width, self.config.render_height
+        if w is None or h is None or (w, h) == (frame.intrinsics.width, frame.intrinsics.height):
+            return frame.intrinsics
+        return frame.intrinsics.scaled(w, h)
+
+    def _anchor_estimate(self) -> np.ndarray:
+        if self.isam.valueExists(M(0)):
+            return pose3_to_T(self.isam.calculateEstimatePose3(M(0)))
+        return np.eye(4)
+
+    def _anchor_covariance(self) -> np.ndarray:
+        if self.isam.valueExists(M(0)):
+            return np.asarray(self.isam.marginalCovariance(M(0)))
+        return np.diag([self.config.anchor_rot_sigma_rad**2] * 3 + [self.config.anchor_trans_sigma_m**2] * 3)
