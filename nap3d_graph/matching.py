@@ -70,9 +70,21 @@ def detect_features(rgb: np.ndarray, max_features: int = 0, mask: np.ndarray | N
     return Features(uv, descriptors.astype(np.float32))
 
 
+def _seed_flann(seed: int = 0) -> None:
+    """FLANN's randomised kd-trees draw from the C library's ``rand()``: seed it, so the same
+    images always give the same matches (evaluations must reproduce)."""
+    import ctypes
+
+    try:
+        ctypes.CDLL(None).srand(ctypes.c_uint(seed))
+    except (OSError, AttributeError):  # pragma: no cover - non-glibc platforms
+        pass
+
+
 def _knn(desc_query: np.ndarray, desc_train: np.ndarray, checks: int):
     import cv2
 
+    _seed_flann()
     matcher = cv2.FlannBasedMatcher({"algorithm": _FLANN_INDEX_KDTREE, "trees": 5}, {"checks": checks})
     return matcher.knnMatch(desc_query, desc_train, k=2)
 

@@ -44,6 +44,7 @@ def pnp_from_correspondences(corr: Correspondences, intrinsics: Intrinsics, conf
         return Alignment.failure(f"too few matches with valid depth ({n})", corr.num_matches, method="pnp-ransac",
                                  timings_s=timings)
     t0 = time.perf_counter()
+    cv2.setRNGSeed(align_config.seed)  # OpenCV's RANSAC sampling: reproducible runs
     ok, rvec, tvec, inliers = cv2.solvePnPRansac(
         corr.x.astype(np.float64), corr.uv_real.astype(np.float64), intrinsics.K, None,
         iterationsCount=config.iterations, reprojectionError=config.reprojection_error_px,

@@ -346,8 +346,9 @@ def make_scene(seed: int = 0) -> Scene:
     rng = np.random.default_rng(seed)
     size = (float(rng.uniform(5.5, 7.0)), float(rng.uniform(4.5, 5.8)), float(rng.uniform(2.6, 3.0)))
     room = Room(size, tuple(TextureSpec.random(rng) for _ in range(6)))
-    band = 1.0  # furniture depth along the walls
-    free = ((band + 0.35, size[0] - band - 0.35), (band + 0.35, size[1] - band - 0.35))
+    band = 1.0  # furniture stands within this distance of the walls
+    # Cameras keep half a metre from the furniture band, so no view is a close-up of one object.
+    free = ((band + 0.5, size[0] - band - 0.5), (band + 0.5, size[1] - band - 0.5))
     objects: list = []
     occupied: list[tuple[float, float, float]] = []  # (x, y, radius) footprints
 
@@ -355,7 +356,8 @@ def make_scene(seed: int = 0) -> Scene:
         for _ in range(200):
             wall = rng.integers(4)
             along = rng.uniform(radius + 0.1, (size[0] if wall < 2 else size[1]) - radius - 0.1)
-            off = rng.uniform(radius + 0.05, band - 0.05) if radius < band else band / 2
+            # The whole footprint stays inside the band along the wall.
+            off = rng.uniform(radius + 0.05, max(band - radius, radius + 0.05))
             if wall == 0:
                 x, y = along, off
             elif wall == 1:
@@ -370,7 +372,7 @@ def make_scene(seed: int = 0) -> Scene:
         return None
 
     for _ in range(int(rng.integers(6, 10))):
-        half = (rng.uniform(0.15, 0.45), rng.uniform(0.15, 0.45), rng.uniform(0.2, 0.9))
+        half = (rng.uniform(0.15, 0.32), rng.uniform(0.15, 0.32), rng.uniform(0.2, 0.9))
         xy = place(float(np.hypot(half[0], half[1])))
         if xy is not None:
             objects.append(Box((xy[0], xy[1], half[2]), half, float(rng.uniform(0, np.pi)),

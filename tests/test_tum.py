@@ -582,7 +582,15 @@ def test_missing_image_file(tmp_path):
     folder = small_copy(tmp_path)
     seq = TumSequence(folder)
     seq.rgb_paths[1].unlink()
+    # The sequence still opens (a run can skip the frame); reading that frame names the file.
+    again = TumSequence(folder)
+    assert again.missing_images == [seq.rgb_paths[1]]
+    again[0]
     with pytest.raises(DatasetError, match=re.escape(seq.rgb_paths[1].name) + ".*not found"):
+        again[1]
+    for p in (*seq.rgb_paths, *seq.depth_paths):
+        p.unlink(missing_ok=True)
+    with pytest.raises(DatasetError, match="none of the listed images exist"):
         TumSequence(folder)
 
 

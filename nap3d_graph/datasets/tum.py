@@ -506,9 +506,14 @@ class TumSequence:
         self.T_world_cam_gt = None
         self.num_dropped_no_gt = 0
         self._attach_ground_truth(self.path / "groundtruth.txt")
-        for image_path in (*self.rgb_paths, *self.depth_paths):
-            if not image_path.is_file():
-                raise DatasetError(f"{image_path}: listed image file not found")
+        # A listed image that is gone does not make the whole sequence unusable: say so now,
+        # and raise (naming the file) only when that frame is read, so a run can skip it.
+        self.missing_images = [p for p in (*self.rgb_paths, *self.depth_paths) if not p.is_file()]
+        if len(self.missing_images) == len(self.rgb_paths) + len(self.depth_paths):
+            raise DatasetError(f"{self.path}: none of the listed images exist (first: {self.missing_images[0]})")
+        if self.missing_images:
+            logger.warning("%s: %d listed image(s) not found, e.g. %s; those frames will fail to load",
+                           self.name, len(self.missing_images), self.missing_images[0])
 
     def _attach_ground_truth(self, gt_path: Path) -> None:
         if not gt_path.is_file():
@@ -576,6 +581,8 @@ class TumSequence:
         return self._maps
 
     def _read_rgb(self, path: Path) -> np.ndarray:
+        if not path.is_file():
+            raise DatasetError(f"{path}: listed image file not found")
         bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if bgr is None:
             raise DatasetError(f"{path}: cannot read colour image (missing or corrupt)")
@@ -586,6 +593,8 @@ class TumSequence:
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
     def _read_depth(self, path: Path) -> np.ndarray:
+        if not path.is_file():
+            raise DatasetError(f"{path}: listed image file not found")
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None:
             raise DatasetError(f"{path}: cannot read depth image (missing or corrupt)")

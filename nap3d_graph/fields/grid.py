@@ -55,6 +55,7 @@ __all__ = [
     "DENSITY_SHIFT",
     "default_device",
     "pixel_directions",
+    "trilinear_corners",
 ]
 
 log = logging.getLogger(__name__)
@@ -110,6 +111,33 @@ def pixel_directions(intrinsics: Intrinsics, device=None) -> torch.Tensor:
     return torch.stack(
         [(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, torch.ones_like(u)], dim=-1
     )
+
+
+def trilinear_corners(points_local: torch.Tensor, shape_xyz: tuple[int, int, int], voxel_size: float):
+    """The 8 grid vertices around each point and their trilinear weights.
+
+    points_local (N, 3) metres relative to the grid's first vertex; points outside the grid
+    are clamped onto its faces. Returns ``idx`` (N, 8) int64 flat vertex indices into a
+    ``[z, y, x]``-ordered grid and ``w`` (N, 8) weights summing to 1, corner order
+    ``(dz, dy, dx)`` -- the same interpolation as ``grid_sample(align_corners=True)``.
+    """
+    nx, ny, nz = shape_xyz
+    device = points_local.device
+    hi = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=torch.float32, device=device)
+    q = torch.minimum((points_local / voxel_size).clamp_(min=0.0), hi)
+    i0 = torch.minimum(q.floor(), hi - 1.0)
+    frac = q - i0
+    i0 = i0.long()
+    base = i0[:, 0] + i0[:, 1] * nx + i0[:, 2] * (nx * ny)
+    offsets = torch.tensor([dz * nx * ny + dy * nx + dx for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)],
+                           device=device)
+    idx = base[:, None] + offsets
+    lo = 1.0 - frac
+    wx = torch.stack([lo[:, 0], frac[:, 0]], dim=1)
+    wy = torch.stack([lo[:, 1], frac[:, 1]], dim=1)
+    wz = torch.stack([lo[:, 2], frac[:, 2]], dim=1)
+    w = ((wz[:, :, None] * wy[:, None, :])[:, :, :, None] * wx[:, None, None, :]).reshape(-1, 8)
+    return idx, w
 
 
 def _lattice(n: int, stride: int) -> torch.Tensor:

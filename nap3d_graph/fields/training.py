@@ -36,7 +36,7 @@ import torch.nn.functional as F
 from nap3d_graph.camera import Intrinsics, RenderedView, valid_depth_mask
 
 from .base import FieldError
-from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device
+from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, trilinear_corners
 
 __all__ = [
     "TrainConfig",
@@ -82,12 +82,12 @@ class TrainConfig:
     min_depth_m: float = 0.1
     max_depth_m: float = 8.0
     bounds_margin_m: float = 0.15
-    lr_density: float = 0.1
+    lr_density: float = 1.0
     lr_color: float = 0.1
     lr_final_ratio: float = 0.1
     weight_rgb: float = 1.0
-    weight_window: float = 0.05
-    weight_near: float = 0.5
+    weight_window: float = 1.0
+    weight_near: float = 5.0
     weight_opacity: float = 0.01
     color_weight_eps: float = 1e-4
     device: str | None = None
@@ -220,8 +220,52 @@ def scene_bounds_from_depth(depth_m: np.ndarray, T_world_cam: np.ndarray, intrin
 # --- the training step ---------------------------------------------------------------------------
 
 
+class _LazyAdam:
+    """Adam on the columns of a (C, V) grid table that a step touched ("lazy" Adam).
+
+    Why not ``torch.optim.Adam``: a step touches a few percent of the grid's vertices, but a
+    dense optimiser (and ``grid_sample``'s backward, which zero-fills a gradient the size of
+    the grid) costs O(grid) per step -- most of a CPU step's time on a 3 cm room grid.
+    Gradients are scattered here with ``index_add_`` and only touched columns are updated, so
+    a step costs O(samples). Bias correction uses the global step, as ``torch.optim.SparseAdam``.
+    """
+
+    def __init__(self, table: torch.Tensor, lr: float, betas=(0.9, 0.99), eps: float = 1e-8):
+        self.table = table  # a (C, V) view of the field's tensor, updated in place
+        self.lr = lr
+        self.beta1, self.beta2 = betas
+        self.eps = eps
+        self.grad = torch.zeros_like(table)
+        self.m = torch.zeros_like(table)
+        self.v = torch.zeros_like(table)
+        self.touched = torch.zeros(table.shape[1], dtype=torch.bool, device=table.device)
+        self.steps = 0
+
+    def accumulate(self, idx: torch.Tensor, contrib: torch.Tensor) -> None:
+        """Add gradient ``contrib`` (C, K) at vertex indices ``idx`` (K,)."""
+        self.grad.index_add_(1, idx, contrib)
+        self.touched[idx] = True
+
+    def step(self, lr_scale: float = 1.0) -> None:
+        cols = self.touched.nonzero()[:, 0]
+        if cols.numel() == 0:
+            return
+        self.touched[cols] = False
+        self.steps += 1
+        g = self.grad[:, cols]
+        self.grad[:, cols] = 0.0
+        m = self.m[:, cols].mul_(self.beta1).add_(g, alpha=1.0 - self.beta1)
+        v = self.v[:, cols].mul_(self.beta2).addcmul_(g, g, value=1.0 - self.beta2)
+        self.m[:, cols] = m
+        self.v[:, cols] = v
+        bc1 = 1.0 - self.beta1 ** self.steps
+        bc2 = 1.0 - self.beta2 ** self.steps
+        update = (m / bc1) / ((v / bc2).sqrt_().add_(self.eps))
+        self.table[:, cols] = self.table[:, cols] - (self.lr * lr_scale) * update
+
+
 class _Trainer:
-    """One optimisation stage on one grid: sampling, losses and Adam."""
+    """One optimisation stage on one grid: sampling, losses and lazy Adam."""
 
     def __init__(self, field: GridField, rays: TrainingRays, config: TrainConfig, generator: torch.Generator):
         self.field = field
@@ -229,22 +273,18 @@ class _Trainer:
         self.config = config
         self.generator = generator
         self.device = field.device
-        field.density.requires_grad_(True)
-        field.color.requires_grad_(True)
-        fused = {"fused": True} if self.device.type in ("cpu", "cuda") else {}
-        self.optimizer = torch.optim.Adam(
-            [{"params": [field.density], "lr": config.lr_density},
-             {"params": [field.color], "lr": config.lr_color}],
-            betas=(0.9, 0.99), eps=1e-15, **fused)
-        self.base_lrs = [config.lr_density, config.lr_color]
+        self.density_table = field.density.view(1, -1)
+        self.color_table = field.color.view(3, -1)
+        self.density_adam = _LazyAdam(self.density_table, config.lr_density)
+        self.color_adam = _LazyAdam(self.color_table, config.lr_color)
+        self.lr_scale = 1.0
         k = rays.intrinsics
         self.K = (k.fx, k.fy, k.cx, k.cy, k.width, k.height)
         self.t_local = torch.as_tensor(rays.t_world_cam - field.grid_min, dtype=torch.float32, device=self.device)
         self.box_hi = (torch.tensor(field.shape_xyz, dtype=torch.float32, device=self.device) - 1) * field.voxel_size
 
     def set_lr_scale(self, scale: float) -> None:
-        for group, lr in zip(self.optimizer.param_groups, self.base_lrs):
-            group["lr"] = lr * scale
+        self.lr_scale = scale
 
     def sample_batch(self):
         """Rays of ``rays_per_step // patch**2`` random square pixel patches of random training
@@ -297,9 +337,12 @@ class _Trainer:
         cfg, fld = self.config, self.field
         origins, dirs, z, target = self.sample_batch()
         t, dt = self.sample_t(origins, dirs, z)
+        n, s = t.shape
         norms = dirs.norm(dim=-1, keepdim=True)
-        points = origins[:, None, :] + t[..., None] * dirs[:, None, :]
-        raw = fld.raw_density_local(points)
+        points = (origins[:, None, :] + t[..., None] * dirs[:, None, :]).reshape(-1, 3)
+        # Autograd runs over per-sample values only; grid gradients are scattered by hand.
+        idx, w = trilinear_corners(points, fld.shape_xyz, fld.voxel_size)
+        raw = (self.density_table[0].take(idx) * w).sum(dim=1).reshape(n, s).requires_grad_(True)
         sigma = F.softplus(raw - DENSITY_SHIFT) / fld.voxel_size
         tau = sigma * dt * norms
         cum = torch.cumsum(tau, dim=1)
@@ -308,10 +351,11 @@ class _Trainer:
         opacity = weights.sum(dim=1)
 
         # Colour only where a sample matters: most samples are free space or behind the surface.
-        keep = weights.detach() > cfg.color_weight_eps
-        ray_idx = keep.nonzero()[:, 0]
-        rgb_samples = fld.rgb_local(points[keep])
-        color = torch.zeros_like(target).index_add(0, ray_idx, weights[keep][:, None] * rgb_samples)
+        keep = (weights.detach() > cfg.color_weight_eps).reshape(-1).nonzero()[:, 0]
+        idx_c, w_c = idx[keep], w[keep]
+        color_raw = (self.color_table[:, idx_c] * w_c[None]).sum(dim=2).T.contiguous().requires_grad_(True)
+        ray_of = keep // s
+        color = torch.zeros_like(target).index_add(0, ray_of, weights.reshape(-1)[keep][:, None] * torch.sigmoid(color_raw))
         background = torch.rand(target.shape, generator=self.generator, device=self.device)
         color = color + (1.0 - opacity)[:, None] * background
 
@@ -323,10 +367,12 @@ class _Trainer:
                 + cfg.weight_window * ((1.0 - window_mass) ** 2).mean()
                 + cfg.weight_near * spread.mean()
                 + cfg.weight_opacity * (1.0 - opacity).abs().mean())
-        self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        self.optimizer.step()
         with torch.no_grad():
+            self.density_adam.accumulate(idx.reshape(-1), (raw.grad.reshape(-1, 1) * w).reshape(1, -1))
+            self.color_adam.accumulate(idx_c.reshape(-1), (color_raw.grad.T[:, :, None] * w_c[None]).reshape(3, -1))
+            self.density_adam.step(self.lr_scale)
+            self.color_adam.step(self.lr_scale)
             depth = (weights * t).sum(dim=1) / opacity.clamp(min=1e-6)
             depth_err = (depth - z).abs().median()
         return float(rgb_loss.detach()), float(depth_err)
