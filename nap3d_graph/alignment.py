@@ -69,6 +69,12 @@ class AlignConfig:
     inlier_chi2: RANSAC threshold on r^2 (3 dof; 11.34 is chi2(3) at 99%).
     covariance: "hessian" (Gauss-Newton Hessian with estimated variance factors) or
         "sandwich" (heteroscedasticity-consistent; for diagnostics).
+    estimate_intrinsics: also estimate the real camera's fx, fy, cx, cy in the refinement
+        (self-calibration against the field's exact 3D points: the depth residuals fix the
+        pose, the pixels the intrinsics), with a prior of ``intrinsics_focal_sigma``
+        (relative) and ``intrinsics_principal_sigma_px``. For cameras whose calibration
+        drifted (the paper's intrinsics noise); the pose covariance then includes the
+        intrinsics' uncertainty.
     covariance_inflation: multiplies the refined covariance. Residuals cannot show the
         part of SIFT's localisation error that the real and the rendered keypoint share, so
         the Hessian alone is ~20% optimistic in NEES; 1.2 was calibrated on simulated rooms
@@ -99,6 +105,9 @@ class AlignConfig:
     huber_k: float = 2.5
     covariance: str = "hessian"
     covariance_inflation: float = 1.2
+    estimate_intrinsics: bool = False
+    intrinsics_focal_sigma: float = 0.05
+    intrinsics_principal_sigma_px: float = 10.0
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -308,6 +317,12 @@ def _noise_sigmas(corr: Correspondences, intrinsics: Intrinsics, config: AlignCo
     f = 0.5 * (intrinsics.fx + intrinsics.fy)
     # Both keypoints are localised with sigma_px; each shifts its point laterally by z*s/f.
     s_xy = np.sqrt(2.0) * config.keypoint_sigma_px * z / f
+    if config.estimate_intrinsics:
+        # Intrinsics still to be estimated: their prior uncertainty moves the real point
+        # sideways too, more the farther it is from the principal point.
+        off_axis_px = np.hypot(corr.uv_real[:, 0] - intrinsics.cx, corr.uv_real[:, 1] - intrinsics.cy)
+        s_calib_px = np.hypot(config.intrinsics_focal_sigma * off_axis_px, config.intrinsics_principal_sigma_px)
+        s_xy = np.hypot(s_xy, s_calib_px * z / f)
     s_z = np.sqrt((config.depth_sigma_floor_m + config.depth_sigma_z2_per_m * z**2) ** 2
                   + config.render_depth_sigma_m**2)
     return s_xy, s_z
@@ -455,8 +470,23 @@ def _huber_weights(r_norm: np.ndarray, k: float) -> np.ndarray:
     return np.where(r_norm <= k, 1.0, k / np.maximum(r_norm, 1e-12))
 
 
+def _intrinsics_jacobian(p: np.ndarray) -> np.ndarray:
+    """d pixel / d (fx, fy, cx, cy), (N, 2, 4)."""
+    J = np.zeros((len(p), 2, 4))
+    J[:, 0, 0] = p[:, 0] / p[:, 2]
+    J[:, 1, 1] = p[:, 1] / p[:, 2]
+    J[:, 0, 2] = 1.0
+    J[:, 1, 3] = 1.0
+    return J
+
+
+def _with_intrinsics_delta(K: Intrinsics, d: np.ndarray) -> Intrinsics:
+    return Intrinsics(K.fx + d[0], K.fy + d[1], K.cx + d[2], K.cy + d[3], K.width, K.height)
+
+
 def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics: Intrinsics,
-                config: AlignConfig, use_depth: bool = True, use_reprojection: bool = True):
+                config: AlignConfig, use_depth: bool = True, use_reprojection: bool = True,
+                return_intrinsics: bool = False):
     """Weighted Gauss-Newton over reprojection (px) and depth (m) residuals of each inlier.
 
     Each correspondence contributes ``r = [pi(p) - uv_real, p_z - z_real]`` with a 3x3
@@ -467,7 +497,8 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
     noise are estimated from the residuals. Starts from ``(R, t)`` = T_real_rendered; returns
     the refined ``(R, t)``, the 6x6 covariance of the corrected camera pose (GTSAM order,
     right perturbation) and the per-correspondence normalised residual norms (N,), or None
-    when the problem is singular.
+    when the problem is singular. With ``config.estimate_intrinsics`` the real camera's
+    intrinsics are refined too (returned last when ``return_intrinsics``).
     """
     x, uv = corr.x, corr.uv_real
     n = len(x)
@@ -485,23 +516,37 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
     H = np.full((6, 6), np.nan)
     norm_sq = np.zeros(n)
     rows = int(use_reprojection) * 2 + int(use_depth)
+    calibrate = config.estimate_intrinsics and use_reprojection
+    d_K = np.zeros(4)  # fx, fy, cx, cy corrections (pixels)
+    f_mean = 0.5 * (intrinsics.fx + intrinsics.fy)
+    K_prior_info = 1.0 / np.array([config.intrinsics_focal_sigma * f_mean] * 2
+                                  + [config.intrinsics_principal_sigma_px] * 2) ** 2
     for iteration in range(config.refine_iterations + 2):
         p = x @ T[:3, :3].T + T[:3, 3]
         if np.any(p[:, 2] <= 1e-6):
             return None
-        r_px, J_px = _reprojection_terms(p, uv, intrinsics)
+        r_px, J_px = _reprojection_terms(p, uv, _with_intrinsics_delta(intrinsics, d_K))
         r_z = p[:, 2] - z_real
         J_z = _point_jacobian(p)[:, 2, :]
+        if calibrate:
+            J_px = np.concatenate([J_px, _intrinsics_jacobian(p)], axis=2)
+            J_z = np.concatenate([J_z, np.zeros((n, 4))], axis=1)
         r, J, W = _stack_rows(r_px, J_px, r_z, J_z, grad, var_px0 * scale_px, var_z0 * scale_z,
                               use_reprojection, use_depth)
         norm_sq = np.einsum("ni,nij,nj->n", r, W, r)
         rob = _huber_weights(np.sqrt(norm_sq / rows), config.huber_k)
         H = np.einsum("n,nri,nrs,nsj->ij", rob, J, W, J)
         g = np.einsum("n,nri,nrs,ns->i", rob, J, W, r)
+        if calibrate:  # the prior keeps the intrinsics near their given values
+            H[6:, 6:] += np.diag(K_prior_info)
+            g[6:] += K_prior_info * d_K
         try:
-            delta = -np.linalg.solve(H, g)
+            step = -np.linalg.solve(H, g)
         except np.linalg.LinAlgError:
             return None
+        delta = step[:6]
+        if calibrate:
+            d_K = d_K + step[6:]
         # T_true <- T_true Exp(delta)  <=>  T_real_rendered <- Exp(-delta) T_real_rendered
         T = exp_se3(-delta) @ T
         if iteration in (1, 3):
@@ -509,14 +554,17 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
                                                   use_depth)
         elif iteration > 3 and np.linalg.norm(delta) < 1e-10:
             break
-    cov = _covariance(H)
+    cov = _covariance(H)[:6, :6]  # the pose block: intrinsics, if estimated, marginalised
     if config.covariance == "sandwich":
         # Heteroscedasticity-consistent (HC1) sandwich: the spread of each correspondence's
         # actual residual, not only the model's, enters the covariance.
         score = rob[:, None] * np.einsum("nri,nrs,ns->ni", J, W, r)
         B = score.T @ score * n / max(n - 6, 1)
-        cov = cov @ B @ cov
+        full = _covariance(H)
+        cov = (full @ B @ full)[:6, :6]
         cov = 0.5 * (cov + cov.T)
+    if return_intrinsics:
+        return T[:3, :3], T[:3, 3], cov, np.sqrt(norm_sq), _with_intrinsics_delta(intrinsics, d_K)
     return T[:3, :3], T[:3, 3], cov, np.sqrt(norm_sq)
 
 
@@ -609,21 +657,24 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
     if config.method == "plain":
         cov = _plain_covariance(R, t, corr.x[inliers], corr.y[inliers], corr.opacity[inliers])
     else:
-        sub = _subset(corr, inliers)
-        refined = refine_pose(R, t, sub, intrinsics, config)
+        refined = refine_pose(R, t, _subset(corr, inliers), intrinsics, config, return_intrinsics=True)
         if refined is None:
             return Alignment.failure("degenerate geometry (singular refinement)", corr.num_matches,
                                      int(inliers.sum()), method=method, timings_s=timings)
-        R, t, cov, _ = refined
+        R, t, cov, _, K_refined = refined
+        # The refined pose (and intrinsics) may admit points RANSAC's cruder estimate
+        # rejected, or the reverse: re-select the inliers once and refine again.
+        for _ in range(4 if config.estimate_intrinsics else 1):
+            y = backproject(corr.uv_real, corr.y[:, 2], K_refined) if config.estimate_intrinsics else corr.y
+            new_inliers = anisotropic_residual_sq(R, t, corr.x, y, 1 / s_xy**2, 1 / s_z**2) < config.inlier_chi2
+            if new_inliers.sum() < config.min_inliers or np.array_equal(new_inliers, inliers):
+                break
+            again = refine_pose(R, t, _subset(corr, new_inliers), intrinsics, config, return_intrinsics=True)
+            if again is None:
+                break
+            inliers = new_inliers
+            R, t, cov, _, K_refined = again
         cov = cov * config.covariance_inflation
-        # The refined pose may admit points RANSAC's cruder estimate rejected (or vice versa).
-        new_inliers = anisotropic_residual_sq(R, t, corr.x, corr.y, 1 / s_xy**2, 1 / s_z**2) < config.inlier_chi2
-        if new_inliers.sum() >= config.min_inliers and not np.array_equal(new_inliers, inliers):
-            refined = refine_pose(R, t, _subset(corr, new_inliers), intrinsics, config)
-            if refined is not None:
-                inliers = new_inliers
-                R, t, cov, _ = refined
-                cov = cov * config.covariance_inflation
     timings["refine"] = time.perf_counter() - t0
     if not np.all(np.isfinite(cov)) or np.min(np.linalg.eigvalsh(cov)) <= 0:
         return Alignment.failure("degenerate geometry (covariance not positive definite)", corr.num_matches,

@@ -45,20 +45,23 @@ def test_eval_k_writes_files_and_reproduces(sim_room, tmp_path):
     with open(tmp_path / "a" / "results.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == CSV_COLUMNS
-    assert len(rows) == 2 * 16 * 3  # scenarios x cells x methods
+    assert len(rows) == 2 * 16 * 4  # scenarios x cells x methods
     assert {r["intrinsics"] for r in rows} == {"CLEAN", "MILD", "MEDIUM", "HARSH"}
     assert {float(r["blur_sigma"]) for r in rows} == {0.0, 1.0, 1.8, 2.2}
     clean = [r for r in rows if r["intrinsics"] == "CLEAN" and float(r["blur_sigma"]) == 0 and r["method"] == "nap3d"]
     assert all(r["success"] == "True" for r in clean)
     assert max(float(r["trans_err_m"]) for r in clean) < 0.01  # from +-10 cm to millimetres
     cell = summary["cells"]["blur0/CLEAN"]
-    assert set(cell["methods"]) == {"nap3d", "nap3d-plain", "pnp"}
+    assert set(cell["methods"]) == {"nap3d", "nap3d-plain", "nap3d-selfcal", "pnp"}
     assert cell["methods"]["nap3d"]["success_rate"] == 1.0
     # Wrong intrinsics hurt: HARSH is worse than CLEAN for every method.
     harsh = summary["cells"]["blur0/HARSH"]["methods"]
     for method in ("nap3d", "pnp"):
         if harsh[method]["trans_err_m"]["median"] is not None:
             assert harsh[method]["trans_err_m"]["median"] > cell["methods"][method]["trans_err_m"]["median"]
+    # ... unless the intrinsics are estimated too: then HARSH stays at centimetres or better.
+    if harsh["nap3d-selfcal"]["trans_err_m"]["median"] is not None:
+        assert harsh["nap3d-selfcal"]["trans_err_m"]["median"] < 0.02
     # Same seed, same numbers.
     again = run_eval_k(seq, field, tmp_path / "b", config)
     assert json.dumps(again["cells"], sort_keys=True) == json.dumps(summary["cells"], sort_keys=True)

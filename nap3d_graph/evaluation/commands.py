@@ -50,7 +50,7 @@ def _cmd_eval_k(args) -> int:
         raise ValueError(f"--scenarios must be positive, got {args.scenarios}")
     sequence = open_sequence(args.data)
     field_obj = resolve_field(args.field, sequence)
-    methods = ("nap3d", "nap3d-plain", "pnp") + (("nap3d-iter",) if args.iterate else ())
+    methods = ("nap3d", "nap3d-plain", "nap3d-selfcal", "pnp") + (("nap3d-iter",) if args.iterate else ())
     summary = run_eval_k(sequence, field_obj, args.out, EvalKConfig(scenarios=args.scenarios, seed=args.seed,
                                                                      methods=methods), progress=True)
     print(_format_k(summary))
@@ -60,17 +60,17 @@ def _cmd_eval_k(args) -> int:
 
 def _format_k(summary: dict) -> str:
     methods = summary["config"]["methods"]
-    lines = [f"{'cell':<18}" + "".join(f"{m + ' t/r/3D':>34}" for m in methods)]
+    lines = [f"{'cell':<16}" + "".join(f"{m:>30}" for m in methods)]
     for key, cell in summary["cells"].items():
         parts = []
         for m in methods:
             s = cell["methods"][m]
             if s["trans_err_m"]["median"] is None:
-                parts.append(f"{'failed':>34}")
+                parts.append(f"{'failed':>30}")
                 continue
-            parts.append(f"{s['trans_err_m']['median'] * 1000:9.2f}mm {s['rot_err_deg']['median']:7.3f}deg "
-                         f"{s['rmse_3d_m']['mean'] * 1000:8.2f}mm")
-        lines.append(f"{key:<18}" + "".join(f"{p:>34}" for p in parts))
+            parts.append(f"{s['trans_err_m']['median'] * 1000:8.2f}mm {s['rot_err_deg']['median']:6.3f}deg "
+                         f"{s['rmse_3d_m']['mean'] * 1000:7.2f}mm")
+        lines.append(f"{key:<16}" + "".join(f"{p:>30}" for p in parts))
     lines.append("(median translation, median rotation, mean 3D RMSE, over successful trials)")
     return "\n".join(lines)
 
