@@ -90,6 +90,8 @@ class RenderConfig:
 
     coarse_rays: int = 5000
     march_step_vox: float = 1.0 / 3.0
+    window_voxels: float = 8.0
+    max_march_windows: int = 6
     window_samples: int = 8
     window_margin_m: float = 0.03
     edge_gap_m: float = 0.08
@@ -337,7 +339,7 @@ class GridField:
         opacity = torch.zeros((h, w), device=self.device)
         known = torch.zeros((h, w), dtype=torch.bool, device=self.device)
         stride = 1
-        while (h * w) / float(stride * stride * 4) >= cfg.coarse_rays:
+        while (h * w) / float(stride * stride) > cfg.coarse_rays:
             stride *= 2
         stats = {"level0_stride": stride, "marched": 0, "windowed": 0, "fallback": 0}
 
@@ -349,6 +351,7 @@ class GridField:
         opacity[vv, uu] = a.reshape(vv.shape)
         known[vv, uu] = True
         stats["marched"] += vv.numel()
+        stats["t_level0"] = time.perf_counter() - started
 
         # Finer levels: windows around the depths of the bracketing coarse pixels.
         while stride > 1:
@@ -376,6 +379,7 @@ class GridField:
             stats["windowed"] += int(vv.numel())
             us, vs, stride = us_f, vs_f, fine
 
+        stats["t_levels"] = time.perf_counter() - started
         hit = opacity > 1e-3
         points = origin + dirs * depth[..., None]
         rgb = torch.zeros((h, w, 3), device=self.device)
@@ -397,42 +401,82 @@ class GridField:
         t_out = torch.maximum(t0, t1).amin(dim=-1)
         return t_in, t_out
 
-    def _march(self, origin: torch.Tensor, dirs: torch.Tensor, chunk: int = 4096):
-        """Full march of rays (N, 3): median depth (N,) and opacity (N,)."""
-        z_all, a_all = [], []
-        for start in range(0, dirs.shape[0], chunk):
-            z, a = self._march_chunk(origin, dirs[start : start + chunk])
-            z_all.append(z)
-            a_all.append(a)
-        if not z_all:
-            empty = torch.zeros(0, device=self.device)
-            return empty, empty
-        return torch.cat(z_all), torch.cat(a_all)
+    def _march(self, origin: torch.Tensor, dirs: torch.Tensor):
+        """Full march of rays (N, 3): median depth (N,) and opacity (N,).
 
-    def _march_chunk(self, origin: torch.Tensor, dirs: torch.Tensor):
+        Repeats: find the first occupied coarse cell from the current start (cheap nearest
+        lookups, one per voxel), then sample the trilinear density finely in a window from
+        just before it; rays whose transmittance has not crossed 0.5 go on from the window's
+        end, carrying their optical depth.
+        """
         cfg = self.render_config
         n = dirs.shape[0]
+        depth = torch.zeros(n, device=self.device)
+        opacity = torch.zeros(n, device=self.device)
+        if n == 0:
+            return depth, opacity
         norms = dirs.norm(dim=-1)
-        t_in, t_out = self._box_range(origin, dirs, cfg.near_m)
-        # Step in t (z-depth) so the metric step is march_step_vox voxels on every ray.
-        dt = cfg.march_step_vox * self.voxel_size / norms
-        steps = int(torch.clamp(((t_out - t_in) / dt).max(), min=1).ceil())
-        k = torch.arange(steps, device=self.device, dtype=torch.float32)
-        t = t_in[:, None] + (k[None, :] + 0.5) * dt[:, None]  # (n, S)
-        inside = t < t_out[:, None]
-        points = origin + t[..., None] * dirs[:, None, :]
-        occ = self.occupancy()
-        cell = torch.floor(points / (2.0 * self.voxel_size)).long()
-        cz, cy, cx = occ.shape
-        cell_x = cell[..., 0].clamp(0, cx - 1)
-        cell_y = cell[..., 1].clamp(0, cy - 1)
-        cell_z = cell[..., 2].clamp(0, cz - 1)
-        active = inside & occ.reshape(-1)[(cell_z * cy + cell_y) * cx + cell_x]
-        sigma = torch.zeros_like(t)
-        if bool(active.any()):
-            sigma[active] = self.sigma_from_raw(self.raw_density_local(points[active]))
-        tau = sigma * (dt * norms)[:, None]
-        return _median_depth(t, dt[:, None].expand_as(t), tau, n, self, origin, dirs, refine=self.render_config.refine_samples)
+        t_start, t_end = self._box_range(origin, dirs, cfg.near_m)
+        step = self.voxel_size / norms  # one voxel of metric length, in t (z-depth) units
+        tau0 = torch.zeros(n, device=self.device)
+        active = torch.arange(n, device=self.device)
+        fine = max(2, int(round(cfg.window_voxels / cfg.march_step_vox)))
+        for _ in range(cfg.max_march_windows):
+            if active.numel() == 0:
+                break
+            t_hit, found = self._first_occupied(origin, dirs[active], t_start[active], t_end[active], step[active])
+            active, t_hit = active[found], t_hit[found]
+            if active.numel() == 0:
+                break
+            a0 = t_hit - 1.5 * step[active]
+            length = cfg.window_voxels * step[active]
+            k = (torch.arange(fine, device=self.device, dtype=torch.float32) + 0.5) / fine
+            t = a0[:, None] + length[:, None] * k[None, :]
+            dt = (length / fine)[:, None].expand_as(t)
+            d = dirs[active]
+            inside = t < t_end[active, None]
+            points = origin + t[..., None] * d[:, None, :]
+            sigma = self.sigma_from_raw(self.raw_density_local(points)) * inside
+            tau = sigma * dt * norms[active, None]
+            z, a = _median_depth(t, dt, tau, active.numel(), self, origin, d, refine=cfg.refine_samples,
+                                 tau0=tau0[active])
+            depth[active] = z
+            opacity[active] = a
+            tau0[active] = tau0[active] + tau.sum(dim=1)
+            go_on = a < 0.5
+            t_start[active] = a0 + length
+            active = active[go_on]
+        return depth, opacity
+
+    def _first_occupied(self, origin, dirs, t_start, t_end, step, chunk_steps: int = 48):
+        """First ``t`` at or after ``t_start`` (N,) where the ray (N, 3) is in an occupied
+        coarse cell, sampling every ``step`` (N,); ``found`` is False for rays that leave
+        the grid first."""
+        n = dirs.shape[0]
+        occ = self.occupancy().reshape(-1)
+        cz, cy, cx = self.occupancy().shape
+        inv_cell = 1.0 / (2.0 * self.voxel_size)
+        t_hit = torch.zeros(n, device=self.device)
+        found = torch.zeros(n, dtype=torch.bool, device=self.device)
+        pending = torch.arange(n, device=self.device)
+        k = torch.arange(chunk_steps, device=self.device, dtype=torch.float32)
+        start = t_start.clone()
+        while pending.numel() > 0:
+            t = start[pending, None] + (k[None, :] + 0.5) * step[pending, None]  # (P, K)
+            cell = ((origin + t[..., None] * dirs[pending, None, :]) * inv_cell).floor_()
+            cell_x = cell[..., 0].clamp_(0, cx - 1)
+            cell_y = cell[..., 1].clamp_(0, cy - 1)
+            cell_z = cell[..., 2].clamp_(0, cz - 1)
+            flat = ((cell_z * cy + cell_y) * cx + cell_x).long()
+            hit = occ[flat] & (t < t_end[pending, None])
+            any_hit = hit.any(dim=1)
+            first = hit.float().argmax(dim=1)
+            rows = pending[any_hit]
+            t_hit[rows] = t[any_hit, first[any_hit]]
+            found[rows] = True
+            start[pending] = start[pending] + chunk_steps * step[pending]
+            pending = pending[~any_hit & (start[pending] < t_end[pending])]
+        return t_hit, found
 
     def _windows(self, origin: torch.Tensor, dirs: torch.Tensor, corners_z: torch.Tensor, corners_ok: torch.Tensor):
         """Depth and opacity of rays (N, 3) whose surface lies near one of their four coarse
@@ -597,17 +641,20 @@ def _json_default(value):
     raise TypeError(f"cannot store {type(value).__name__} in checkpoint metadata")
 
 
-def _median_depth(t, dt, tau, n, field: GridField, origin, dirs, refine: int):
+def _median_depth(t, dt, tau, n, field: GridField, origin, dirs, refine: int, tau0=None):
     """Median termination depth and opacity from samples.
 
     t, dt, tau: (N, S) sample positions (z-depth), their interval lengths (in t) and optical
     depths, sorted along each ray; a sample stands for ``[t - dt/2, t + dt/2]``. The depth is
     where the optical depth reaches ln 2 (transmittance 0.5); ``refine`` extra density samples
     inside that interval place it more precisely. Rays that never reach transmittance 0.5 get
-    their expected depth (weights normalised).
+    their expected depth (weights normalised). ``tau0`` (N,): optical depth already
+    accumulated before the first sample.
     """
     cum = torch.cumsum(tau, dim=1)
-    total = cum[:, -1] if cum.shape[1] else torch.zeros(n, device=t.device)
+    if tau0 is not None:
+        cum = cum + tau0[:, None]
+    total = cum[:, -1] if cum.shape[1] else (tau0 if tau0 is not None else torch.zeros(n, device=t.device))
     opacity = 1.0 - torch.exp(-total)
     crossed = total >= _LN2
     idx = torch.searchsorted(cum, torch.full((n, 1), _LN2, device=t.device)).clamp(max=max(t.shape[1] - 1, 0))
