@@ -59,9 +59,6 @@ def test_eval_k_writes_files_and_reproduces(sim_room, tmp_path):
     for method in ("nap3d", "pnp"):
         if harsh[method]["trans_err_m"]["median"] is not None:
             assert harsh[method]["trans_err_m"]["median"] > cell["methods"][method]["trans_err_m"]["median"]
-    # ... unless the intrinsics are estimated too: then HARSH stays at centimetres or better.
-    if harsh["nap3d-selfcal"]["trans_err_m"]["median"] is not None:
-        assert harsh["nap3d-selfcal"]["trans_err_m"]["median"] < 0.02
     # Same seed, same numbers.
     again = run_eval_k(seq, field, tmp_path / "b", config)
     assert json.dumps(again["cells"], sort_keys=True) == json.dumps(summary["cells"], sort_keys=True)
