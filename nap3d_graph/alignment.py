@@ -69,12 +69,13 @@ class AlignConfig:
     inlier_chi2: RANSAC threshold on r^2 (3 dof; 11.34 is chi2(3) at 99%).
     covariance: "hessian" (Gauss-Newton Hessian with estimated variance factors) or
         "sandwich" (heteroscedasticity-consistent; for diagnostics).
-    estimate_intrinsics: also estimate the real camera's fx, fy, cx, cy in the refinement
+    estimate_intrinsics: True: also estimate the real camera's fx, fy, cx, cy in the refinement
         (self-calibration against the field's exact 3D points: the depth residuals fix the
         pose, the pixels the intrinsics), with a prior of ``intrinsics_focal_sigma``
         (relative) and ``intrinsics_principal_sigma_px``. For cameras whose calibration
         drifted (the paper's intrinsics noise); the pose covariance then includes the
-        intrinsics' uncertainty.
+        intrinsics' uncertainty. "auto": fit both and keep the self-calibrated solution
+        only when the data call for it (see :func:`align_correspondences`).
     covariance_inflation: multiplies the refined covariance. Residuals cannot show the
         part of SIFT's localisation error that the real and the rendered keypoint share, so
         the Hessian alone is ~20% optimistic in NEES; 1.2 was calibrated on simulated rooms
@@ -105,7 +106,8 @@ class AlignConfig:
     huber_k: float = 2.5
     covariance: str = "hessian"
     covariance_inflation: float = 1.2
-    estimate_intrinsics: bool = False
+    estimate_intrinsics: bool | str = "auto"
+    auto_intrinsics_ratio: float = 1.5
     intrinsics_focal_sigma: float = 0.05
     intrinsics_principal_sigma_px: float = 10.0
     seed: int = 0
@@ -317,7 +319,7 @@ def _noise_sigmas(corr: Correspondences, intrinsics: Intrinsics, config: AlignCo
     f = 0.5 * (intrinsics.fx + intrinsics.fy)
     # Both keypoints are localised with sigma_px; each shifts its point laterally by z*s/f.
     s_xy = np.sqrt(2.0) * config.keypoint_sigma_px * z / f
-    if config.estimate_intrinsics:
+    if config.estimate_intrinsics is True:
         # Intrinsics still to be estimated: their prior uncertainty moves the real point
         # sideways too, more the farther it is from the principal point.
         off_axis_px = np.hypot(corr.uv_real[:, 0] - intrinsics.cx, corr.uv_real[:, 1] - intrinsics.cy)
@@ -516,7 +518,7 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
     H = np.full((6, 6), np.nan)
     norm_sq = np.zeros(n)
     rows = int(use_reprojection) * 2 + int(use_depth)
-    calibrate = config.estimate_intrinsics and use_reprojection
+    calibrate = config.estimate_intrinsics is True and use_reprojection
     d_K = np.zeros(4)  # fx, fy, cx, cy corrections (pixels)
     f_mean = 0.5 * (intrinsics.fx + intrinsics.fy)
     K_prior_info = 1.0 / np.array([config.intrinsics_focal_sigma * f_mean] * 2
@@ -564,7 +566,8 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
         cov = (full @ B @ full)[:6, :6]
         cov = 0.5 * (cov + cov.T)
     if return_intrinsics:
-        return T[:3, :3], T[:3, 3], cov, np.sqrt(norm_sq), _with_intrinsics_delta(intrinsics, d_K)
+        diagnostics = {"pixel_variance_factor": float(scale_px), "depth_variance_factor": float(scale_z)}
+        return T[:3, :3], T[:3, 3], cov, np.sqrt(norm_sq), _with_intrinsics_delta(intrinsics, d_K), diagnostics
     return T[:3, :3], T[:3, 3], cov, np.sqrt(norm_sq)
 
 
@@ -632,8 +635,27 @@ def _plain_covariance(R, t, x, y, weights) -> np.ndarray:
 
 def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config: AlignConfig | None = None,
                           timings: dict | None = None) -> Alignment:
-    """NAP3D on ready-made correspondences (rendered ``x``, real ``y``). Never raises."""
+    """NAP3D on ready-made correspondences (rendered ``x``, real ``y``). Never raises.
+
+    With ``estimate_intrinsics="auto"`` both models are fitted and the self-calibrated one
+    is kept only when it explains the pixels much better (the pixel variance factor drops by
+    more than ``auto_intrinsics_ratio``): with a good calibration, four extra parameters
+    barely move it; with a drifted one, the fixed model's pixel residuals are several times
+    the keypoint noise.
+    """
     config = config or AlignConfig()
+    if config.estimate_intrinsics == "auto" and config.method == "refined":
+        fixed = align_correspondences(corr, intrinsics, replace(config, estimate_intrinsics=False), timings)
+        calibrated = align_correspondences(corr, intrinsics, replace(config, estimate_intrinsics=True), {})
+        if not calibrated.success:
+            return fixed
+        if not fixed.success:
+            return calibrated
+        ratio = fixed.diagnostics["pixel_variance_factor"] / max(calibrated.diagnostics["pixel_variance_factor"],
+                                                                 1e-12)
+        chosen = calibrated if ratio > config.auto_intrinsics_ratio else fixed
+        chosen.diagnostics["intrinsics_ratio"] = float(ratio)
+        return chosen
     timings = {} if timings is None else timings
     method = f"nap3d-{config.method}"
     n = len(corr)
@@ -654,6 +676,8 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
                                  corr.num_matches, int(inliers.sum()), method=method, timings_s=timings)
     t0 = time.perf_counter()
     R, t = ransac.R, ransac.t
+    diagnostics: dict = {}
+    K_refined = intrinsics
     if config.method == "plain":
         cov = _plain_covariance(R, t, corr.x[inliers], corr.y[inliers], corr.opacity[inliers])
     else:
@@ -661,11 +685,11 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
         if refined is None:
             return Alignment.failure("degenerate geometry (singular refinement)", corr.num_matches,
                                      int(inliers.sum()), method=method, timings_s=timings)
-        R, t, cov, _, K_refined = refined
+        R, t, cov, _, K_refined, diagnostics = refined
         # The refined pose (and intrinsics) may admit points RANSAC's cruder estimate
         # rejected, or the reverse: re-select the inliers once and refine again.
-        for _ in range(4 if config.estimate_intrinsics else 1):
-            y = backproject(corr.uv_real, corr.y[:, 2], K_refined) if config.estimate_intrinsics else corr.y
+        for _ in range(4 if config.estimate_intrinsics is True else 1):
+            y = backproject(corr.uv_real, corr.y[:, 2], K_refined) if config.estimate_intrinsics is True else corr.y
             new_inliers = anisotropic_residual_sq(R, t, corr.x, y, 1 / s_xy**2, 1 / s_z**2) < config.inlier_chi2
             if new_inliers.sum() < config.min_inliers or np.array_equal(new_inliers, inliers):
                 break
@@ -673,7 +697,7 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
             if again is None:
                 break
             inliers = new_inliers
-            R, t, cov, _, K_refined = again
+            R, t, cov, _, K_refined, diagnostics = again
         cov = cov * config.covariance_inflation
     timings["refine"] = time.perf_counter() - t0
     if not np.all(np.isfinite(cov)) or np.min(np.linalg.eigvalsh(cov)) <= 0:
@@ -690,6 +714,7 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
         method=method,
         timings_s=timings,
         inlier_mask=inliers,
+        diagnostics={**diagnostics, "intrinsics": K_refined.to_dict()} if config.estimate_intrinsics is True else diagnostics,
     )
 
 

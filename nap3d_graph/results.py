@@ -36,6 +36,7 @@ class Alignment:
     method: str = ""
     timings_s: dict = field(default_factory=dict)
     inlier_mask: np.ndarray | None = None
+    diagnostics: dict = field(default_factory=dict)
 
     @classmethod
     def failure(cls, reason: str, num_matches: int = 0, num_inliers: int = 0, method: str = "",

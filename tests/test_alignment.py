@@ -252,7 +252,9 @@ def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
         view = field.render(T_est, K_true)
         corr, _ = prepare_correspondences(given, view)
         a = align_correspondences(corr, given.intrinsics, AlignConfig(estimate_intrinsics=True))
-        b = align_correspondences(corr, given.intrinsics, AlignConfig())
+        b = align_correspondences(corr, given.intrinsics, AlignConfig(estimate_intrinsics=False))
+        auto = align_correspondences(corr, given.intrinsics, AlignConfig())  # the default: "auto"
+        assert auto.diagnostics["intrinsics_ratio"] > 1.5 and "intrinsics" in auto.diagnostics
         assert a.success
         errors.append(pose_error(a.corrected_pose(T_est), T_gt)[0])
         if b.success:
@@ -261,8 +263,8 @@ def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
         # is held by its prior: it is the pose that matters).
         sub = corr.__class__(corr.x[a.inlier_mask], corr.y[a.inlier_mask], corr.uv_real[a.inlier_mask],
                              corr.opacity[a.inlier_mask], corr.num_matches, "", corr.depth_grad[a.inlier_mask])
-        *_, K_est = refine_pose(a.T_real_rendered[:3, :3], a.T_real_rendered[:3, 3], sub, given.intrinsics,
-                                AlignConfig(estimate_intrinsics=True), return_intrinsics=True)
+        *_, K_est, _ = refine_pose(a.T_real_rendered[:3, :3], a.T_real_rendered[:3, 3], sub, given.intrinsics,
+                                   AlignConfig(estimate_intrinsics=True), return_intrinsics=True)
         assert abs(K_est.fx - K_true.fx) < 0.25 * abs(given.intrinsics.fx - K_true.fx)
     print("self-calibrated translation errors (m):", np.round(errors, 4), "without:", np.round(plain_errors, 4))
     assert np.median(errors) < 0.005

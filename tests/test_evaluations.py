@@ -52,11 +52,11 @@ def test_eval_k_writes_files_and_reproduces(sim_room, tmp_path):
     assert all(r["success"] == "True" for r in clean)
     assert max(float(r["trans_err_m"]) for r in clean) < 0.01  # from +-10 cm to millimetres
     cell = summary["cells"]["blur0/CLEAN"]
-    assert set(cell["methods"]) == {"nap3d", "nap3d-plain", "nap3d-selfcal", "pnp"}
+    assert set(cell["methods"]) == {"nap3d", "nap3d-fixed-k", "nap3d-plain", "pnp"}
     assert cell["methods"]["nap3d"]["success_rate"] == 1.0
     # Wrong intrinsics hurt: HARSH is worse than CLEAN for every method.
     harsh = summary["cells"]["blur0/HARSH"]["methods"]
-    for method in ("nap3d", "pnp"):
+    for method in ("nap3d-fixed-k", "pnp"):
         if harsh[method]["trans_err_m"]["median"] is not None:
             assert harsh[method]["trans_err_m"]["median"] > cell["methods"][method]["trans_err_m"]["median"]
     # Same seed, same numbers.

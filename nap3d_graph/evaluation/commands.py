@@ -50,7 +50,7 @@ def _cmd_eval_k(args) -> int:
         raise ValueError(f"--scenarios must be positive, got {args.scenarios}")
     sequence = open_sequence(args.data)
     field_obj = resolve_field(args.field, sequence)
-    methods = ("nap3d", "nap3d-plain", "nap3d-selfcal", "pnp") + (("nap3d-iter",) if args.iterate else ())
+    methods = ("nap3d", "nap3d-fixed-k", "nap3d-plain", "pnp") + (("nap3d-iter",) if args.iterate else ())
     summary = run_eval_k(sequence, field_obj, args.out, EvalKConfig(scenarios=args.scenarios, seed=args.seed,
                                                                      methods=methods), progress=True)
     print(_format_k(summary))

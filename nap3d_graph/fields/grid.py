@@ -125,20 +125,18 @@ def trilinear_corners(points_local: torch.Tensor, shape_xyz: tuple[int, int, int
     """
     nx, ny, nz = shape_xyz
     device = points_local.device
-    hi = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=torch.float32, device=device)
-    q = torch.minimum((points_local / voxel_size).clamp_(min=0.0), hi)
-    i0 = torch.minimum(q.floor(), hi - 1.0)
+    # Clamp just inside the last cell so floor() never selects a cell past the grid.
+    hi = torch.tensor([nx - 1, ny - 1, nz - 1], dtype=torch.float32, device=device) - 1e-4
+    q = torch.clamp(points_local * (1.0 / voxel_size), min=torch.zeros_like(hi), max=hi)
+    i0 = q.floor()
     frac = q - i0
     i0 = i0.long()
     base = i0[:, 0] + i0[:, 1] * nx + i0[:, 2] * (nx * ny)
     offsets = torch.tensor([dz * nx * ny + dy * nx + dx for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)],
                            device=device)
     idx = base[:, None] + offsets
-    lo = 1.0 - frac
-    wx = torch.stack([lo[:, 0], frac[:, 0]], dim=1)
-    wy = torch.stack([lo[:, 1], frac[:, 1]], dim=1)
-    wz = torch.stack([lo[:, 2], frac[:, 2]], dim=1)
-    w = ((wz[:, :, None] * wy[:, None, :])[:, :, :, None] * wx[:, None, None, :]).reshape(-1, 8)
+    pair = torch.stack([1.0 - frac, frac], dim=2)  # (N, 3, 2): weights of the low and high vertex
+    w = ((pair[:, 2, :, None] * pair[:, 1, None, :])[:, :, :, None] * pair[:, 0, None, None, :]).reshape(-1, 8)
     return idx, w
 
 

@@ -91,7 +91,7 @@ class TrainConfig:
     weight_near: float = 5.0
     weight_empty: float = 1.0
     weight_opacity: float = 0.01
-    color_weight_eps: float = 1e-4
+    color_weight_eps: float = 2e-3
     init_from_depth: bool = True
     init_density_raw: float = 14.0
     init_min_weight: float = 1.0
@@ -264,47 +264,48 @@ def splat_init(field: GridField, rays: TrainingRays, config: TrainConfig) -> Gri
 
 
 class _LazyAdam:
-    """Adam on the columns of a (C, V) grid table that a step touched ("lazy" Adam).
+    """Adam on the rows of a (V, C) grid table that a step touched ("lazy" Adam).
 
     Why not ``torch.optim.Adam``: a step touches a few percent of the grid's vertices, but a
     dense optimiser (and ``grid_sample``'s backward, which zero-fills a gradient the size of
     the grid) costs O(grid) per step -- most of a CPU step's time on a 3 cm room grid.
-    Gradients are scattered here with ``index_add_`` and only touched columns are updated, so
-    a step costs O(samples). Bias correction uses the global step, as ``torch.optim.SparseAdam``.
+    Gradients are scattered here with ``index_add_`` and only touched rows are updated, so a
+    step costs O(samples). Bias correction uses the global step, as ``torch.optim.SparseAdam``.
+    Rows are vertices, so a (V, C) channels-last table keeps each update contiguous.
     """
 
     def __init__(self, table: torch.Tensor, lr: float, betas=(0.9, 0.99), eps: float = 1e-8):
-        self.table = table  # a (C, V) view of the field's tensor, updated in place
+        self.table = table  # (V, C), updated in place
         self.lr = lr
         self.beta1, self.beta2 = betas
         self.eps = eps
         self.grad = torch.zeros_like(table)
         self.m = torch.zeros_like(table)
         self.v = torch.zeros_like(table)
-        self.touched = torch.zeros(table.shape[1], dtype=torch.bool, device=table.device)
+        self.touched = torch.zeros(table.shape[0], dtype=torch.bool, device=table.device)
         self.steps = 0
 
     def accumulate(self, idx: torch.Tensor, contrib: torch.Tensor) -> None:
-        """Add gradient ``contrib`` (C, K) at vertex indices ``idx`` (K,)."""
-        self.grad.index_add_(1, idx, contrib)
+        """Add gradient ``contrib`` (K, C) at vertex indices ``idx`` (K,)."""
+        self.grad.index_add_(0, idx, contrib)
         self.touched[idx] = True
 
     def step(self, lr_scale: float = 1.0) -> None:
-        cols = self.touched.nonzero()[:, 0]
-        if cols.numel() == 0:
+        rows = self.touched.nonzero()[:, 0]
+        if rows.numel() == 0:
             return
-        self.touched[cols] = False
+        self.touched[rows] = False
         self.steps += 1
-        g = self.grad[:, cols]
-        self.grad[:, cols] = 0.0
-        m = self.m[:, cols].mul_(self.beta1).add_(g, alpha=1.0 - self.beta1)
-        v = self.v[:, cols].mul_(self.beta2).addcmul_(g, g, value=1.0 - self.beta2)
-        self.m[:, cols] = m
-        self.v[:, cols] = v
+        g = self.grad[rows]
+        self.grad[rows] = 0.0
+        m = self.m[rows].mul_(self.beta1).add_(g, alpha=1.0 - self.beta1)
+        v = self.v[rows].mul_(self.beta2).addcmul_(g, g, value=1.0 - self.beta2)
+        self.m[rows] = m
+        self.v[rows] = v
         bc1 = 1.0 - self.beta1 ** self.steps
         bc2 = 1.0 - self.beta2 ** self.steps
-        update = (m / bc1) / ((v / bc2).sqrt_().add_(self.eps))
-        self.table[:, cols] = self.table[:, cols] - (self.lr * lr_scale) * update
+        update = (m / bc1).div_((v / bc2).sqrt_().add_(self.eps))
+        self.table.index_add_(0, rows, update, alpha=-(self.lr * lr_scale))
 
 
 class _Trainer:
@@ -316,8 +317,9 @@ class _Trainer:
         self.config = config
         self.generator = generator
         self.device = field.device
-        self.density_table = field.density.view(1, -1)
-        self.color_table = field.color.view(3, -1)
+        # Channels-last working copies: a vertex's values are one contiguous row.
+        self.density_table = field.density.view(-1, 1)
+        self.color_table = field.color.view(3, -1).T.contiguous()
         self.density_adam = _LazyAdam(self.density_table, config.lr_density)
         self.color_adam = _LazyAdam(self.color_table, config.lr_color)
         self.lr_scale = 1.0
@@ -328,6 +330,12 @@ class _Trainer:
 
     def set_lr_scale(self, scale: float) -> None:
         self.lr_scale = scale
+
+    def sync_field(self) -> GridField:
+        """Write the channels-last colour back into the field (density is shared) and return it."""
+        self.field.color.view(3, -1).copy_(self.color_table.T)
+        self.field.mark_changed()
+        return self.field
 
     def sample_batch(self):
         """Rays of ``rays_per_step // patch**2`` random square pixel patches of random training
@@ -385,7 +393,7 @@ class _Trainer:
         points = (origins[:, None, :] + t[..., None] * dirs[:, None, :]).reshape(-1, 3)
         # Autograd runs over per-sample values only; grid gradients are scattered by hand.
         idx, w = trilinear_corners(points, fld.shape_xyz, fld.voxel_size)
-        raw = (self.density_table[0].take(idx) * w).sum(dim=1).reshape(n, s).requires_grad_(True)
+        raw = (self.density_table[:, 0].take(idx) * w).sum(dim=1).reshape(n, s).requires_grad_(True)
         sigma = F.softplus(raw - DENSITY_SHIFT) / fld.voxel_size
         tau = sigma * dt * norms
         cum = torch.cumsum(tau, dim=1)
@@ -393,12 +401,16 @@ class _Trainer:
         weights = trans * (1.0 - torch.exp(-tau))
         opacity = weights.sum(dim=1)
 
-        # Colour only where a sample matters: most samples are free space or behind the surface.
+        # Colour only where a sample matters (most are free space or behind the surface); the
+        # kept weights are rescaled to the ray's opacity so dropping the rest adds no bias.
         keep = (weights.detach() > cfg.color_weight_eps).reshape(-1).nonzero()[:, 0]
         idx_c, w_c = idx[keep], w[keep]
-        color_raw = (self.color_table[:, idx_c] * w_c[None]).sum(dim=2).T.contiguous().requires_grad_(True)
+        color_raw = torch.bmm(w_c[:, None, :], self.color_table[idx_c])[:, 0].requires_grad_(True)
         ray_of = keep // s
-        color = torch.zeros_like(target).index_add(0, ray_of, weights.reshape(-1)[keep][:, None] * torch.sigmoid(color_raw))
+        kept_w = weights.reshape(-1)[keep]
+        kept_sum = torch.zeros_like(opacity).index_add(0, ray_of, kept_w.detach())
+        rescale = (opacity.detach() / kept_sum.clamp(min=1e-8))[ray_of]
+        color = torch.zeros_like(target).index_add(0, ray_of, (kept_w * rescale)[:, None] * torch.sigmoid(color_raw))
         background = torch.rand(target.shape, generator=self.generator, device=self.device)
         color = color + (1.0 - opacity)[:, None] * background
 
@@ -414,8 +426,8 @@ class _Trainer:
                 + cfg.weight_opacity * (1.0 - opacity).abs().mean())
         loss.backward()
         with torch.no_grad():
-            self.density_adam.accumulate(idx.reshape(-1), (raw.grad.reshape(-1, 1) * w).reshape(1, -1))
-            self.color_adam.accumulate(idx_c.reshape(-1), (color_raw.grad.T[:, :, None] * w_c[None]).reshape(3, -1))
+            self.density_adam.accumulate(idx.reshape(-1), (raw.grad.reshape(-1, 1) * w).reshape(-1, 1))
+            self.color_adam.accumulate(idx_c.reshape(-1), (w_c[:, :, None] * color_raw.grad[:, None, :]).reshape(-1, 3))
             self.density_adam.step(self.lr_scale)
             self.color_adam.step(self.lr_scale)
             depth = (weights * t).sum(dim=1) / opacity.clamp(min=1e-6)
@@ -602,7 +614,7 @@ def train_field(
             wanted = _stage_at(stages, fraction)
             if wanted != stage_index:
                 if stage_index >= 0:
-                    field = field.resampled(stages[wanted][0])
+                    field = trainer.sync_field().resampled(stages[wanted][0])
                 stage_index = wanted
                 trainer = _Trainer(field, rays, config, generator)
             trainer.set_lr_scale(config.lr_final_ratio ** fraction)
@@ -621,14 +633,14 @@ def train_field(
                     callback(history[-1])
             if snapshots and train_seconds >= snapshots[0]:
                 snapshots.pop(0)
-                view_field = _frozen(field)
+                view_field = _frozen(trainer.sync_field())
                 snap = evaluate_field(view_field, eval_sequence, eval_indices, oracle)
                 snap.pop("per_frame", None)
                 snapshot_reports.append({"train_seconds": round(train_seconds, 2), "steps": steps, **snap})
     finally:
         bar.close()
 
-    field = _frozen(field)
+    field = _frozen(trainer.sync_field() if trainer is not None else field)
     field.meta = {
         "trained_by": "nap3d-graph train-field",
         "checkpoint_version": CHECKPOINT_VERSION,

