@@ -139,7 +139,8 @@ def mapping_trajectory(scene: Scene, rng: np.random.Generator, duration_s: float
         a = angle_of(t)
         # Outward, swinging +-80 deg so walls, furniture and the far side are all seen.
         yaw = a + np.radians(80.0) * sweep(3.0 * a)
-        pitch = np.radians(-12.0) + np.radians(10.0) * np.sin(1.7 * a)
+        # Down to -35 deg so the survey also sees the floor a traversal looks across.
+        pitch = np.radians(-18.0) + np.radians(16.0) * np.sin(1.7 * a)
         return (yaw, pitch, 0.0)
 
     return Trajectory(position, angles, duration, "mapping")

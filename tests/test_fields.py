@@ -1,6 +1,6 @@
 """The torch grid field: rendering contract, short training on a small simulated room,
 checkpoints, and the train-field command. Sized to finish in well under three minutes on a
-2-core CPU: one 64-frame 128x96 survey, 5 cm voxels, a 35 s training budget."""
+2-core CPU: one 100-frame 128x96 survey, 5 cm voxels, a 40 s training budget."""
 
 import argparse
 import json
@@ -15,7 +15,7 @@ from nap3d_graph.fields import FieldError, RadianceField
 from nap3d_graph.fields.grid import CHECKPOINT_VERSION, GridField
 from nap3d_graph.fields.training import TrainConfig, evaluate_field, split_frames, train_field
 
-TRAIN_SECONDS = 35.0
+TRAIN_SECONDS = 40.0
 
 
 @pytest.fixture(scope="module")
@@ -24,7 +24,7 @@ def survey(tmp_path_factory):
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     folder = tmp_path_factory.mktemp("fields") / "survey"
-    simulate_sequence(folder, SimConfig(frames=64, path="mapping", scene_seed=0, seed=5, width=128, height=96))
+    simulate_sequence(folder, SimConfig(frames=100, path="mapping", scene_seed=0, seed=5, width=128, height=96))
     return open_sequence(folder)
 
 
@@ -72,10 +72,11 @@ def test_short_training_beats_the_bars(survey, trained):
     held = report["held_out"]
     assert report["train_seconds"] <= TRAIN_SECONDS + 5
     assert held["depth_reference"].startswith("noise-free")
-    # Bars set from measurements (about 26 dB, 0.3-0.5 cm median) with margin.
+    # Measured here: ~25 dB, 0.14 cm median, 0.7 cm p90, opacity 0.99 after 40 s (~430 steps);
+    # 23.5 dB, 0.4 / 2.3 cm, 0.97 after only 200 steps (a loaded machine). Bars hold for both.
     assert held["psnr_db"] >= 22.0, held
-    assert held["depth_abs_err_m"]["median"] <= 0.015, held
-    assert held["depth_abs_err_m"]["p90"] <= 0.06, held
+    assert held["depth_abs_err_m"]["median"] <= 0.008, held
+    assert held["depth_abs_err_m"]["p90"] <= 0.035, held
     assert held["opacity_on_surfaces"] >= 0.95, held
     unit = held["unit_check"]
     assert unit["r2"] >= 0.97 and abs(unit["a"] - 1.0) < 0.05 and abs(unit["b"]) < 0.1, unit
@@ -83,7 +84,7 @@ def test_short_training_beats_the_bars(survey, trained):
     blank = GridField.empty(field.bounds, voxel_size=0.1)
     oracle = survey.oracle_field()
     untrained = evaluate_field(blank, survey, held["frames"], oracle)
-    assert untrained["psnr_db"] < held["psnr_db"] - 8.0
+    assert untrained["psnr_db"] < 12.0 and untrained["depth_abs_err_m"]["median"] > 0.5
     assert untrained["opacity_on_surfaces"] < 0.05
 
 
@@ -113,7 +114,7 @@ def test_checkpoint_round_trip_is_bit_identical(survey, trained, tmp_path):
     np.testing.assert_array_equal(a.opacity, b.opacity)
     # Plain tensors and values only: loads with weights_only=True.
     state = torch.load(path, weights_only=True)
-    assert state["version"] == CHECKPOINT_VERSION and "bounds" not in state or True
+    assert state["version"] == CHECKPOINT_VERSION and state["voxel_size_m"] == field.voxel_size
 
 
 def test_corrupt_and_foreign_checkpoints_fail_clearly(trained, tmp_path):
@@ -136,6 +137,11 @@ def test_corrupt_and_foreign_checkpoints_fail_clearly(trained, tmp_path):
     torch.save(state, old)
     with pytest.raises(FieldError, match=rf"version {CHECKPOINT_VERSION + 98}.*retrain"):
         load_field(old)
+
+    pickled = tmp_path / "pickled.pt"
+    torch.save({"format": "nap3d-graph grid field", "config": argparse.Namespace(a=1)}, pickled)
+    with pytest.raises(FieldError, match="pickled objects"):
+        load_field(pickled)
 
     foreign = tmp_path / "foreign.pt"
     torch.save({"weights": torch.zeros(3)}, foreign)
@@ -167,7 +173,7 @@ def test_train_field_command_writes_checkpoint_and_report(survey, tmp_path, caps
     for key in ("psnr_db", "depth_abs_err_m", "opacity_on_surfaces", "unit_check"):
         assert key in held
     assert {"median", "p90"} <= set(held["depth_abs_err_m"]) and {"a", "b", "r2"} <= set(held["unit_check"])
-    assert report["train_seconds"] > 0 and report["train_frames"] == 32
+    assert report["train_seconds"] > 0 and report["train_frames"] == 50
     assert "held-out: PSNR" in capsys.readouterr().out
     assert isinstance(load_field(out), GridField)
 
@@ -191,4 +197,4 @@ def test_export_nerfstudio_command(survey, tmp_path, capsys):
     args = _parser().parse_args(["export-nerfstudio", str(survey.path), str(tmp_path / "ns"), "--every", "8"])
     assert args.func(args) == 0
     meta = json.loads((tmp_path / "ns" / "transforms.json").read_text())
-    assert len(meta["frames"]) == 8 and "ns-train" in capsys.readouterr().out
+    assert len(meta["frames"]) == 13 and "ns-train" in capsys.readouterr().out

@@ -16,14 +16,16 @@ Grid axes are the world axes; ``grid_sample``'s (x, y, z) coordinates address th
 Rendering (``render``) is hierarchical because a CPU cannot afford hundreds of trilinear
 samples per pixel (``grid_sample`` does ~15 M coherent samples/s on 2 cores):
 
-1. level 0, a sparse lattice of ~5k pixels: march each ray at 1/3 voxel steps, look up a
-   coarse occupancy grid (max of the raw density over 2x2x2 voxels, a conservative bound, with
-   a cheap nearest lookup), and evaluate the trilinear density only where it is occupied;
-2. each finer lattice level (stride halves until it is 1): a pixel's depth lies near one of
-   its four coarse neighbours' depths, so a few samples in one window spanning them (smooth
-   surface) or two windows around the nearest and farthest (depth edge) suffice;
-3. pixels whose windows found no surface fall back to the full march of step 1;
-4. the depth is the median termination depth (where transmittance crosses 0.5), refined with
+1. level 0, a sparse lattice of ~5k pixels, marches: a coarse occupancy grid (the largest raw
+   density over 2x2x2 voxels, a conservative bound, read with cheap nearest lookups one voxel
+   apart) finds the first cell that could hold a surface, and the trilinear density is
+   sampled every 1/3 voxel in a window from there (again further on if it was not opaque);
+2. each finer lattice level (the stride halves down to 1) starts from the four bracketing
+   coarse pixels: where they agree (a smooth surface) a few samples in one window spanning
+   their depths suffice; at depth edges the ray marches from the nearest of them; a window
+   that finds no surface falls back to the full march. At the last level, cells whose
+   corners are opaque and nearly planar interpolate inverse depth (exact on planes);
+3. the depth is the median termination depth (where transmittance crosses 0.5), refined with
    a few extra samples inside the crossing interval; colour is looked up once, at that point.
 
 Why hand-written: no maintained package renders a voxel radiance field on a CPU without a
@@ -32,10 +34,13 @@ CUDA extension (nerfacc, tiny-cuda-nn, Plenoxels' svox2 and DVGO's kernels all n
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
+import pickle
 import time
+import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -56,6 +61,7 @@ __all__ = [
     "default_device",
     "pixel_directions",
     "trilinear_corners",
+    "torch_threads",
 ]
 
 log = logging.getLogger(__name__)
@@ -70,6 +76,26 @@ _OCCUPIED_RAW = DENSITY_SHIFT - 4.0
 _LN2 = math.log(2.0)
 
 
+@contextlib.contextmanager
+def torch_threads(count: int | None):
+    """Run a block with ``torch.set_num_threads(count)`` and restore the old setting after.
+
+    Why: on a small CPU, and on any CPU other processes also use, torch's OpenMP threads spin
+    while they wait for each other; one thread measured 15x faster than two per training step
+    on this project's 2-core machine under load, and no slower when it was idle.
+    ``None`` leaves torch's setting alone.
+    """
+    if count is None or count == torch.get_num_threads():
+        yield
+        return
+    previous = torch.get_num_threads()
+    torch.set_num_threads(int(count))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
 def default_device() -> torch.device:
     """CUDA when torch sees a GPU, otherwise the CPU; every code path runs on both."""
     return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -79,13 +105,19 @@ def default_device() -> torch.device:
 class RenderConfig:
     """Knobs of the hierarchical renderer (defaults tuned for 3 cm grids on a CPU).
 
-    coarse_rays: about how many rays the level-0 march casts (the lattice stride is the
-    power of two that gets closest). march_step_vox: level-0 step in voxels.
-    window_samples: samples per pixel at the finer levels. window_margin_m: how far beyond
-    the neighbours' depths a window reaches. edge_gap_m: neighbour depth spread above which
-    two windows (near and far) replace one. refine_samples: extra samples inside the interval
-    where transmittance crosses 0.5. min_opacity: a window result below this falls back to
-    the full march. near_m: rays start this far from the camera.
+    coarse_rays: at most this many rays march at level 0 (the lattice stride is the
+    smallest power of two that keeps under it). march_step_vox: sample spacing of a march
+    window, in voxels; window_voxels: its length; max_march_windows: how many windows a ray
+    tries before it gives up. window_samples: samples per pixel at the finer levels;
+    window_margin_m: how far beyond the neighbours' depths that window reaches; edge_gap_m:
+    neighbour depth spread above which the pixel marches instead. refine_samples: extra
+    samples inside the interval where transmittance crosses 0.5. min_opacity: a window result
+    below this falls back to the full march. near_m: rays start this far from the camera.
+    interpolate_below_stride: levels at or below this stride interpolate smooth cells
+    (0: never); a cell is smooth when its corners' opacity >= smooth_min_opacity, their depth
+    spread < smooth_max_spread_m and the twist of their inverse depth, in metres, is below
+    smooth_max_twist_m. threads: torch CPU threads while rendering (see :func:`torch_threads`;
+    None keeps torch's setting).
     """
 
     coarse_rays: int = 5000
@@ -98,6 +130,11 @@ class RenderConfig:
     refine_samples: int = 4
     min_opacity: float = 0.5
     near_m: float = 0.05
+    interpolate_below_stride: int = 1
+    smooth_min_opacity: float = 0.99
+    smooth_max_spread_m: float = 0.05
+    smooth_max_twist_m: float = 0.002
+    threads: int | None = 1
 
 
 def pixel_directions(intrinsics: Intrinsics, device=None) -> torch.Tensor:
@@ -149,12 +186,14 @@ def _lattice(n: int, stride: int) -> torch.Tensor:
 
 
 class GridField:
-    """Dense voxel grid of raw density and colour; satisfies the field protocol.
+    """Dense voxel grids of raw density and colour; satisfies the field protocol.
 
-    density_raw: (nz, ny, nx) float32 tensor; color_raw: (3, nz, ny, nx) float32 tensor;
-    grid_min: world position (3,) of vertex [0, 0, 0], metres; voxel_size: vertex spacing,
-    metres. ``meta`` is a JSON-serialisable dict kept in the checkpoint (training config,
-    data source, report summary).
+    density_raw: (nz, ny, nx) float32 tensor at ``voxel_size`` spacing; color_raw:
+    (3, mz, my, mx) float32 tensor at ``color_voxel_size`` spacing (finer than the density
+    grid by default: texture needs more detail than geometry, and colour is looked up only
+    near surfaces). Both grids start at ``grid_min``, the world position (3,) of vertex
+    [0, 0, 0], metres. ``meta`` is a JSON-serialisable dict kept in the checkpoint (training
+    config, data source, report summary).
     """
 
     name = "grid"
@@ -167,22 +206,25 @@ class GridField:
         voxel_size: float,
         meta: dict | None = None,
         render_config: RenderConfig | None = None,
+        color_voxel_size: float | None = None,
     ):
         density_raw = torch.as_tensor(density_raw, dtype=torch.float32)
         color_raw = torch.as_tensor(color_raw, dtype=torch.float32)
-        if density_raw.ndim != 3 or color_raw.shape != (3, *density_raw.shape):
+        if density_raw.ndim != 3 or color_raw.ndim != 4 or color_raw.shape[0] != 3:
             raise FieldError(
-                f"grid field needs density (nz, ny, nx) and colour (3, nz, ny, nx), got "
+                f"grid field needs density (nz, ny, nx) and colour (3, mz, my, mx), got "
                 f"{tuple(density_raw.shape)} and {tuple(color_raw.shape)}"
             )
-        if min(density_raw.shape) < 2:
+        if min(density_raw.shape) < 2 or min(color_raw.shape[1:]) < 2:
             raise FieldError(f"grid field needs at least 2 vertices per axis, got {tuple(density_raw.shape)}")
-        if not voxel_size > 0:
-            raise FieldError(f"voxel size must be positive, got {voxel_size}")
+        color_voxel_size = float(voxel_size if color_voxel_size is None else color_voxel_size)
+        if not (voxel_size > 0 and color_voxel_size > 0):
+            raise FieldError(f"voxel sizes must be positive, got {voxel_size} and {color_voxel_size}")
         self.density = density_raw.reshape(1, 1, *density_raw.shape)
-        self.color = color_raw.reshape(1, 3, *density_raw.shape)
+        self.color = color_raw.reshape(1, *color_raw.shape)
         self.grid_min = np.asarray(grid_min, dtype=np.float64).reshape(3)
         self.voxel_size = float(voxel_size)
+        self.color_voxel_size = color_voxel_size
         self.meta = dict(meta or {})
         self.render_config = render_config or RenderConfig()
         self._occupancy: torch.Tensor | None = None
@@ -195,9 +237,15 @@ class GridField:
 
     @property
     def shape_xyz(self) -> tuple[int, int, int]:
-        """Vertex counts along world x, y, z."""
+        """Density vertex counts along world x, y, z."""
         nz, ny, nx = self.density.shape[2:]
         return (nx, ny, nz)
+
+    @property
+    def color_shape_xyz(self) -> tuple[int, int, int]:
+        """Colour vertex counts along world x, y, z."""
+        mz, my, mx = self.color.shape[2:]
+        return (mx, my, mz)
 
     @property
     def bounds(self) -> np.ndarray:
@@ -205,47 +253,62 @@ class GridField:
         extent = (np.asarray(self.shape_xyz, dtype=np.float64) - 1.0) * self.voxel_size
         return np.stack([self.grid_min, self.grid_min + extent])
 
+    @staticmethod
+    def _counts(extent: np.ndarray, voxel_size: float) -> tuple[int, int, int]:
+        counts = np.maximum(np.ceil(np.asarray(extent) / voxel_size - 1e-9).astype(int) + 1, 2)
+        return tuple(int(c) for c in counts)
+
     @classmethod
-    def empty(cls, bounds, voxel_size: float, device=None, meta: dict | None = None) -> "GridField":
-        """A near-transparent grey field whose grid covers ``bounds`` (2, 3) at ``voxel_size``."""
+    def empty(cls, bounds, voxel_size: float, device=None, meta: dict | None = None,
+              color_voxel_size: float | None = None) -> "GridField":
+        """A near-transparent grey field whose grids cover ``bounds`` (2, 3): density at
+        ``voxel_size``, colour at ``color_voxel_size`` (default: the same)."""
         bounds = np.asarray(bounds, dtype=np.float64).reshape(2, 3)
         if not np.all(bounds[1] > bounds[0]):
             raise FieldError(f"empty bounds {bounds.tolist()}")
-        counts = np.maximum(np.ceil((bounds[1] - bounds[0]) / voxel_size).astype(int) + 1, 2)
-        nx, ny, nz = (int(c) for c in counts)
-        if nx * ny * nz > 400_000_000:
-            raise FieldError(f"a {nx}x{ny}x{nz} grid is too large; use a larger voxel size")
+        if not (voxel_size > 0 and (color_voxel_size is None or color_voxel_size > 0)):
+            raise FieldError(f"voxel sizes must be positive, got {voxel_size} and {color_voxel_size}")
+        color_voxel_size = voxel_size if color_voxel_size is None else color_voxel_size
+        nx, ny, nz = cls._counts(bounds[1] - bounds[0], voxel_size)
+        extent = (np.array([nx, ny, nz]) - 1.0) * voxel_size
+        mx, my, mz = cls._counts(extent, color_voxel_size)
+        if max(nx * ny * nz, 3 * mx * my * mz) > 400_000_000:
+            raise FieldError(f"a {nx}x{ny}x{nz} grid (colour {mx}x{my}x{mz}) is too large; use larger voxels")
         device = device or default_device()
         return cls(
             torch.zeros((nz, ny, nx), device=device),
-            torch.zeros((3, nz, ny, nx), device=device),
+            torch.zeros((3, mz, my, mx), device=device),
             bounds[0],
             voxel_size,
             meta,
+            color_voxel_size=color_voxel_size,
         )
 
     def to(self, device) -> "GridField":
         """This field on another device (a new object; tensors are copied)."""
-        out = GridField(self.density[0, 0].to(device), self.color[0].to(device), self.grid_min,
-                        self.voxel_size, self.meta, self.render_config)
-        return out
+        return GridField(self.density[0, 0].to(device), self.color[0].to(device), self.grid_min,
+                         self.voxel_size, self.meta, self.render_config, self.color_voxel_size)
 
-    def resampled(self, voxel_size: float) -> "GridField":
-        """The same field on a grid of another voxel size (coarse-to-fine training).
+    def resampled(self, voxel_size: float, color_voxel_size: float | None = None) -> "GridField":
+        """The same field on grids of other voxel sizes (coarse-to-fine training).
 
         Raw values are interpolated trilinearly at the new vertices, which keeps the
         interpolated raw field (and so every rendered ray) nearly unchanged.
         """
-        target = GridField.empty(self.bounds, voxel_size, device=self.device)
-        nx, ny, nz = target.shape_xyz
-        axes = [torch.arange(n, device=self.device, dtype=torch.float32) * voxel_size for n in (nx, ny, nz)]
-        zz, yy, xx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
-        offset = torch.as_tensor(target.grid_min - self.grid_min, dtype=torch.float32, device=self.device)
-        points = torch.stack([xx + offset[0], yy + offset[1], zz + offset[2]], dim=-1).reshape(-1, 3)
-        grid = self._local_to_grid(points).reshape(1, nz, ny, nx, 3)
+        target = GridField.empty(self.bounds, voxel_size, device=self.device, color_voxel_size=color_voxel_size)
+
+        def vertices(shape_xyz, spacing):
+            nx, ny, nz = shape_xyz
+            axes = [torch.arange(n, device=self.device, dtype=torch.float32) * spacing for n in (nx, ny, nz)]
+            zz, yy, xx = torch.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+            return torch.stack([xx, yy, zz], dim=-1).reshape(1, nz, ny, nx, 3)
+
         with torch.no_grad():
-            target.density = F.grid_sample(self.density.detach(), grid, align_corners=True, padding_mode="border")
-            target.color = F.grid_sample(self.color.detach(), grid, align_corners=True, padding_mode="border")
+            grid = self._local_to_grid(vertices(target.shape_xyz, voxel_size), self.shape_xyz, self.voxel_size)
+            target.density = F.grid_sample(self.density, grid, align_corners=True, padding_mode="border")
+            grid = self._local_to_grid(vertices(target.color_shape_xyz, target.color_voxel_size),
+                                       self.color_shape_xyz, self.color_voxel_size)
+            target.color = F.grid_sample(self.color, grid, align_corners=True, padding_mode="border")
         target.meta = dict(self.meta)
         return target
 
@@ -255,14 +318,13 @@ class GridField:
 
     # --- sampling -------------------------------------------------------------------------
 
-    def _scale_offset(self) -> tuple[torch.Tensor, torch.Tensor]:
-        extent = (torch.tensor(self.shape_xyz, dtype=torch.float32, device=self.device) - 1.0) * self.voxel_size
-        return 2.0 / extent, torch.full((3,), -1.0, device=self.device)
-
-    def _local_to_grid(self, points_local: torch.Tensor) -> torch.Tensor:
-        """Points relative to ``grid_min`` (..., 3) -> grid_sample coordinates in [-1, 1]."""
-        scale, offset = self._scale_offset()
-        return points_local * scale + offset
+    def _local_to_grid(self, points_local: torch.Tensor, shape_xyz=None, spacing: float | None = None) -> torch.Tensor:
+        """Points relative to ``grid_min`` (..., 3) -> grid_sample coordinates in [-1, 1] of a
+        grid with ``shape_xyz`` vertices at ``spacing`` (default: the density grid)."""
+        shape_xyz = self.shape_xyz if shape_xyz is None else shape_xyz
+        spacing = self.voxel_size if spacing is None else spacing
+        extent = (torch.tensor(shape_xyz, dtype=torch.float32, device=points_local.device) - 1.0) * spacing
+        return points_local * (2.0 / extent) - 1.0
 
     def world_to_local(self, points_world) -> torch.Tensor:
         """World points (..., 3) to float32 coordinates relative to ``grid_min``.
@@ -286,7 +348,7 @@ class GridField:
     def rgb_local(self, points_local: torch.Tensor) -> torch.Tensor:
         """Colour in [0, 1] at local points (..., 3) -> (..., 3)."""
         shape = points_local.shape[:-1]
-        grid = self._local_to_grid(points_local.reshape(1, -1, 1, 1, 3))
+        grid = self._local_to_grid(points_local.reshape(1, -1, 1, 1, 3), self.color_shape_xyz, self.color_voxel_size)
         raw = F.grid_sample(self.color, grid, align_corners=True).reshape(3, -1).T
         return torch.sigmoid(raw).reshape(*shape, 3)
 
@@ -311,7 +373,7 @@ class GridField:
         if T_world_cam.shape != (4, 4) or not np.all(np.isfinite(T_world_cam)):
             raise FieldError(f"T_world_cam must be a finite 4x4 matrix, got shape {T_world_cam.shape}")
         intrinsics = intrinsics.without_distortion()
-        with torch.no_grad():
+        with torch.no_grad(), torch_threads(self.render_config.threads if self.device.type == "cpu" else None):
             rgb, depth, opacity, stats = self._render_image(T_world_cam, intrinsics)
         rgb8 = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return RenderedView(
@@ -339,7 +401,7 @@ class GridField:
         stride = 1
         while (h * w) / float(stride * stride) > cfg.coarse_rays:
             stride *= 2
-        stats = {"level0_stride": stride, "marched": 0, "windowed": 0, "fallback": 0}
+        stats = {"level0_stride": stride, "marched": 0, "windowed": 0, "interpolated": 0, "fallback": 0}
 
         # Level 0: full march on a sparse lattice.
         us, vs = _lattice(w, stride).to(self.device), _lattice(h, stride).to(self.device)
@@ -365,16 +427,43 @@ class GridField:
             v1 = vs[torch.clamp(iv + (vs[iv] != vv).long(), max=len(vs) - 1)]
             corners_z = torch.stack([depth[v0, u0], depth[v0, u1], depth[v1, u0], depth[v1, u1]], dim=1)
             corners_a = torch.stack([opacity[v0, u0], opacity[v0, u1], opacity[v1, u0], opacity[v1, u1]], dim=1)
-            z, a = self._windows(origin, dirs[vv, uu], corners_z, corners_a >= cfg.min_opacity)
-            retry = a < cfg.min_opacity
-            if bool(retry.any()):
-                zr, ar = self._march(origin, dirs[vv[retry], uu[retry]])
-                z[retry], a[retry] = zr, ar
-                stats["fallback"] += int(retry.sum())
+            z = torch.zeros(vv.shape[0], device=self.device)
+            a = torch.zeros(vv.shape[0], device=self.device)
+            todo = torch.ones(vv.shape[0], dtype=torch.bool, device=self.device)
+            if fine <= cfg.interpolate_below_stride:
+                # Smooth, opaque neighbourhoods: interpolate inverse depth (exact on planes).
+                smooth = _smooth_cells(corners_z, corners_a, cfg)
+                if bool(smooth.any()):
+                    wu = _fraction(uu, u0, u1)[smooth]
+                    wv = _fraction(vv, v0, v1)[smooth]
+                    bilinear = torch.stack([(1 - wu) * (1 - wv), wu * (1 - wv), (1 - wu) * wv, wu * wv], dim=1)
+                    z[smooth] = 1.0 / (bilinear / corners_z[smooth]).sum(dim=1)
+                    a[smooth] = (bilinear * corners_a[smooth]).sum(dim=1)
+                    todo = ~smooth
+                    stats["interpolated"] += int(smooth.sum())
+            # Smooth cells: one window spanning the corners' depths. Depth edges (or corners
+            # without a surface): march, from just before the nearest corner's surface.
+            ok = corners_a >= cfg.min_opacity
+            big = torch.full_like(corners_z, 1e9)
+            z_near = torch.where(ok, corners_z, big).amin(dim=1)
+            z_far = torch.where(ok, corners_z, -big).amax(dim=1)
+            windowed = todo & ok.any(dim=1) & ((z_far - z_near) <= cfg.edge_gap_m)
+            sel = windowed.nonzero()[:, 0]
+            zs, as_ = self._window(origin, dirs[vv[sel], uu[sel]], z_near[sel], z_far[sel])
+            z[sel], a[sel] = zs, as_
+            stats["windowed"] += int(sel.numel())
+            march = (todo & ~windowed) | (windowed & (a < cfg.min_opacity))
+            rows = march.nonzero()[:, 0]
+            if rows.numel():
+                start = torch.where(ok[rows].any(dim=1), z_near[rows] - cfg.window_margin_m,
+                                    torch.zeros_like(z_near[rows]))
+                # A window that found nothing starts over from the camera.
+                start = torch.where(windowed[rows], torch.zeros_like(start), start)
+                z[rows], a[rows] = self._march(origin, dirs[vv[rows], uu[rows]], t_start=start)
+                stats["fallback"] += int(rows.numel())
             depth[vv, uu] = z
             opacity[vv, uu] = a
             known[vv, uu] = True
-            stats["windowed"] += int(vv.numel())
             us, vs, stride = us_f, vs_f, fine
 
         stats["t_levels"] = time.perf_counter() - started
@@ -399,8 +488,18 @@ class GridField:
         t_out = torch.maximum(t0, t1).amin(dim=-1)
         return t_in, t_out
 
-    def _march(self, origin: torch.Tensor, dirs: torch.Tensor):
-        """Full march of rays (N, 3): median depth (N,) and opacity (N,).
+    def _march(self, origin: torch.Tensor, dirs: torch.Tensor, t_start: torch.Tensor | None = None,
+               chunk: int = 32768):
+        """:meth:`_march_chunk` over chunks of rays, so temporaries stay small."""
+        if dirs.shape[0] <= chunk:
+            return self._march_chunk(origin, dirs, t_start)
+        parts = [self._march_chunk(origin, dirs[i : i + chunk], None if t_start is None else t_start[i : i + chunk])
+                 for i in range(0, dirs.shape[0], chunk)]
+        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+
+    def _march_chunk(self, origin: torch.Tensor, dirs: torch.Tensor, t_start: torch.Tensor | None = None):
+        """Full march of rays (N, 3) from ``t_start`` (N,) (default: the camera or the grid's
+        entry): median depth (N,) and opacity (N,).
 
         Repeats: find the first occupied coarse cell from the current start (cheap nearest
         lookups, one per voxel), then sample the trilinear density finely in a window from
@@ -414,7 +513,8 @@ class GridField:
         if n == 0:
             return depth, opacity
         norms = dirs.norm(dim=-1)
-        t_start, t_end = self._box_range(origin, dirs, cfg.near_m)
+        t_in, t_end = self._box_range(origin, dirs, cfg.near_m)
+        t_start = t_in if t_start is None else torch.maximum(t_in, t_start)
         step = self.voxel_size / norms  # one voxel of metric length, in t (z-depth) units
         tau0 = torch.zeros(n, device=self.device)
         active = torch.arange(n, device=self.device)
@@ -476,41 +576,26 @@ class GridField:
             pending = pending[~any_hit & (start[pending] < t_end[pending])]
         return t_hit, found
 
-    def _windows(self, origin: torch.Tensor, dirs: torch.Tensor, corners_z: torch.Tensor, corners_ok: torch.Tensor):
-        """Depth and opacity of rays (N, 3) whose surface lies near one of their four coarse
-        neighbours' depths ``corners_z`` (N, 4) (valid where ``corners_ok``)."""
+    def _window(self, origin: torch.Tensor, dirs: torch.Tensor, z_lo: torch.Tensor, z_hi: torch.Tensor):
+        """Depth and opacity of rays (N, 3) whose surface lies in ``[z_lo, z_hi]`` (N,), give or
+        take the window margin: a few samples there, then the crossing refined."""
         cfg = self.render_config
         n = dirs.shape[0]
         if n == 0:
             empty = torch.zeros(0, device=self.device)
             return empty, empty
-        big = torch.full_like(corners_z, 1e9)
-        z_near = torch.where(corners_ok, corners_z, big).amin(dim=1)
-        z_far = torch.where(corners_ok, corners_z, -big).amax(dim=1)
-        any_ok = corners_ok.any(dim=1)
-        z_near = torch.where(any_ok, z_near, torch.ones_like(z_near))
-        z_far = torch.where(any_ok, z_far, torch.ones_like(z_far))
-        margin = cfg.window_margin_m
-        half = cfg.window_samples // 2
-        edge = (z_far - z_near) > cfg.edge_gap_m
-        # Smooth: one window [near - m, far + m] split in two halves; edge: two windows.
-        a0 = z_near - margin
-        a1 = torch.where(edge, z_near + margin, 0.5 * (z_near + z_far))
-        b0 = torch.where(edge, z_far - margin, a1)
-        b1 = z_far + margin
-        frac = (torch.arange(half, device=self.device, dtype=torch.float32) + 0.5) / half
-        ta = a0[:, None] + (a1 - a0)[:, None] * frac[None, :]
-        tb = b0[:, None] + (b1 - b0)[:, None] * frac[None, :]
-        t = torch.cat([ta, tb], dim=1)
-        dt = torch.cat([((a1 - a0) / half)[:, None].expand(-1, half), ((b1 - b0) / half)[:, None].expand(-1, half)], dim=1)
+        a0 = z_lo - cfg.window_margin_m
+        length = (z_hi + cfg.window_margin_m) - a0
+        k = (torch.arange(cfg.window_samples, device=self.device, dtype=torch.float32) + 0.5) / cfg.window_samples
+        t = a0[:, None] + length[:, None] * k[None, :]
+        dt = (length / cfg.window_samples)[:, None].expand_as(t)
         norms = dirs.norm(dim=-1)
         t_in, t_out = self._box_range(origin, dirs, cfg.near_m)
         inside = (t > t_in[:, None]) & (t < t_out[:, None])
         points = origin + t[..., None] * dirs[:, None, :]
         sigma = self.sigma_from_raw(self.raw_density_local(points)) * inside
         tau = sigma * dt * norms[:, None]
-        z, a = _median_depth(t, dt, tau, n, self, origin, dirs, refine=cfg.refine_samples)
-        return z, torch.where(any_ok, a, torch.zeros_like(a))
+        return _median_depth(t, dt, tau, n, self, origin, dirs, refine=cfg.refine_samples)
 
     # --- reference renderer (slow, exact enough to check the fast one) ------------------------
 
@@ -520,7 +605,7 @@ class GridField:
         check the hierarchical renderer. Depth is the median termination depth."""
         T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
         intrinsics = intrinsics.without_distortion()
-        with torch.no_grad():
+        with torch.no_grad(), torch_threads(self.render_config.threads if self.device.type == "cpu" else None):
             origin, dirs = self._camera_rays(T_world_cam, intrinsics)
             flat = dirs.reshape(-1, 3)
             z_out, a_out, rgb_out = [], [], []
@@ -563,6 +648,7 @@ class GridField:
             "color_raw": self.color[0].detach().cpu().contiguous(),
             "grid_min_m": torch.as_tensor(self.grid_min, dtype=torch.float64),
             "voxel_size_m": float(self.voxel_size),
+            "color_voxel_size_m": float(self.color_voxel_size),
             "density_shift": float(DENSITY_SHIFT),
             "conventions": "units=metres; depth=z-depth; camera=OpenCV (x right, y down, z forward); "
                            "poses=T_world_cam; grid tensors indexed [z, y, x]; "
@@ -606,8 +692,11 @@ class GridField:
         except (TypeError, ValueError) as exc:
             raise FieldError(f"{source}: unreadable checkpoint metadata ({exc})") from None
         device = device or default_device()
+        if density.ndim != 3 or color.ndim != 4 or color.shape[0] != 3:
+            raise FieldError(f"{source}: density/colour grids have shapes {tuple(density.shape)} and {tuple(color.shape)}")
         return cls(density.to(device), color.to(device), state["grid_min_m"].numpy(),
-                   float(state["voxel_size_m"]), meta, render_config)
+                   float(state["voxel_size_m"]), meta, render_config,
+                   float(state.get("color_voxel_size_m", state["voxel_size_m"])))
 
     @classmethod
     def load(cls, path, device=None) -> "GridField":
@@ -617,8 +706,14 @@ class GridField:
         path = Path(path)
         if not path.is_file():
             raise FieldError(f"{path}: no such field checkpoint")
+        if not zipfile.is_zipfile(path):
+            raise FieldError(f"{path}: not a readable grid field checkpoint (not a torch zip archive: "
+                             "corrupt, truncated or another format)")
         try:
             state = torch.load(path, map_location="cpu", weights_only=True)
+        except pickle.UnpicklingError:
+            raise FieldError(f"{path}: not a readable grid field checkpoint (it holds pickled objects other "
+                             "than tensors and plain values, which are refused)") from None
         except Exception as exc:  # torch raises many types for damaged files; all mean the same
             detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise FieldError(f"{path}: not a readable grid field checkpoint ({detail[:200]})") from None
@@ -626,7 +721,26 @@ class GridField:
 
     def __repr__(self) -> str:
         nx, ny, nz = self.shape_xyz
-        return f"GridField({nx}x{ny}x{nz} vertices, voxel {self.voxel_size * 100:.1f} cm, device={self.device})"
+        return (f"GridField({nx}x{ny}x{nz} vertices, voxel {self.voxel_size * 100:.1f} cm, colour voxel "
+                f"{self.color_voxel_size * 100:.1f} cm, device={self.device})")
+
+
+def _fraction(x: torch.Tensor, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
+    """Position of ``x`` between lattice neighbours ``x0 <= x <= x1`` in [0, 1] (0 when equal)."""
+    span = (x1 - x0).float()
+    return torch.where(span > 0, (x - x0).float() / span.clamp(min=1.0), torch.zeros_like(span))
+
+
+def _smooth_cells(corners_z: torch.Tensor, corners_a: torch.Tensor, cfg: RenderConfig) -> torch.Tensor:
+    """Cells whose four corner pixels (N, 4) all see an opaque surface at nearly the same,
+    nearly planar depth: inverse depth is bilinear in the pixel coordinates on a plane, so
+    interpolating it there is exact up to curvature over a couple of pixels."""
+    opaque = (corners_a >= cfg.smooth_min_opacity).all(dim=1) & (corners_z > 0).all(dim=1)
+    spread = corners_z.amax(dim=1) - corners_z.amin(dim=1)
+    inv = 1.0 / corners_z.clamp(min=1e-3)
+    # Twist of the bilinear patch of inverse depth; zero on any plane (in metres at this depth).
+    twist = (inv[:, 0] + inv[:, 3] - inv[:, 1] - inv[:, 2]).abs() * corners_z.mean(dim=1) ** 2
+    return opaque & (spread < cfg.smooth_max_spread_m) & (twist < cfg.smooth_max_twist_m)
 
 
 def _json_default(value):
@@ -669,7 +783,7 @@ def _median_depth(t, dt, tau, n, field: GridField, origin, dirs, refine: int, ta
         k = (torch.arange(refine, device=t.device, dtype=torch.float32) + 0.5) / refine
         sub_dt = dt_i[sel] / refine
         ts = start[sel, None] + k[None, :] * dt_i[sel, None]
-        d = dirs[sel] if dirs.shape[0] == n else dirs
+        d = dirs[sel]
         points = origin + ts[..., None] * d[:, None, :]
         norms = d.norm(dim=-1)
         sub_tau = field.sigma_from_raw(field.raw_density_local(points)) * (sub_dt * norms)[:, None]

@@ -28,7 +28,6 @@ trained with tiny-cuda-nn does not load into the torch fallback (clear message).
 from __future__ import annotations
 
 import contextlib
-import importlib
 import importlib.util
 import json
 import logging
@@ -39,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RenderedView
-from nap3d_graph.conventions import OPENCV_FROM_OPENGL, inv_T, pixel_ray_norms
+from nap3d_graph.conventions import OPENCV_FROM_OPENGL, inv_T
 
 from .base import FieldError
 

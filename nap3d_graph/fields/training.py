@@ -4,19 +4,26 @@ evaluate a field on held-out frames.
 Any sequence works that has ``len(seq)``, ``seq[i] -> RGBDFrame``, ``seq.T_world_cam_gt``
 (N, 4, 4) and ``seq.intrinsics``: a TUM folder, a simulated room, a RealSense recording.
 
-What makes a grid converge in minutes on a CPU (found by a prototype, kept here):
+What makes a grid converge in minutes on a CPU (a prototype's findings, then ours):
 
 * depth-guided sampling: per ray a few stratified free-space samples between the camera and
   the measured depth, and most samples in a window around it (its half-width follows the
   sensor's ``sigma(z) = k z^2`` noise, at least a few centimetres);
 * losses: RGB L2 against a *random background colour* per ray (so a see-through surface
   costs colour error, which drives opacity to 1 in a closed room), a DS-NeRF-like
-  ``(1 - weight inside the depth window)^2``, an L1 of the termination distribution around
-  the measured depth (URF's near-surface term), and a small ``|1 - opacity|``;
-* a near-transparent start, Adam with ``fused=True`` on CPU (several times faster on
-  millions of parameters), colour evaluated only where a sample's weight exceeds ~1e-4;
-* coarse-to-fine: the first part of the budget on a grid twice as coarse, which fills
-  space several times faster, then the full-resolution grid resampled from it;
+  ``(1 - weight inside the depth window)^2``, URF-like terms on the weight that lands in
+  free space and on the spread of the termination distribution around the measured depth,
+  and a small ``|1 - opacity|``;
+* a start from the depth images (:func:`splat_init`): back-projected points splatted into
+  the grid give an opaque shell around the observed surfaces and their mean colour, so the
+  optimiser refines instead of building surfaces from nothing (which a grid does slowly, and
+  which filled free space with haze in the prototype);
+* sparse work per step: patches of neighbouring rays (cache-friendly lookups), trilinear
+  interpolation by explicit gathers, gradients scattered by hand and a lazy Adam that updates
+  only the touched vertices (:class:`_LazyAdam`) -- a dense optimiser and ``grid_sample``'s
+  backward cost O(grid) per step, most of a CPU step; colour only where a sample's weight
+  exceeds ``color_weight_eps``; one torch thread (see ``grid.torch_threads``);
+* colour on a grid 1.5x finer than density: texture needs more detail than geometry;
 * a learning rate that decays with the *time* budget (the budget is minutes, not steps).
 """
 
@@ -25,7 +32,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -33,10 +40,10 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from nap3d_graph.camera import Intrinsics, RenderedView, valid_depth_mask
+from nap3d_graph.camera import Intrinsics, valid_depth_mask
 
 from .base import FieldError
-from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, trilinear_corners
+from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, torch_threads, trilinear_corners
 
 __all__ = [
     "TrainConfig",
@@ -57,16 +64,21 @@ log = logging.getLogger(__name__)
 class TrainConfig:
     """Training settings; every field has a default that works for a room-sized scene.
 
-    Geometry: ``voxel_size_m`` (final grid), ``coarse_voxel_size_m`` (first stage; None for
-    a single stage) for ``coarse_fraction`` of the budget. Budget: ``minutes`` of optimisation
+    Geometry: ``voxel_size_m`` (density grid; colour is ``color_voxel_ratio`` times finer),
+    ``coarse_voxel_size_m`` (an optional first stage on a coarser grid, for
+    ``coarse_fraction`` of the budget; off by default since ``init_from_depth`` starts the
+    grid from the back-projected depth). Budget: ``minutes`` of optimisation
     (loading and evaluation not counted), or ``max_steps`` if set. Frames: every ``every``-th
     frame is used for training; ``eval_frames`` held-out frames are evaluated.
     Sampling: ``rays_per_step``, ``free_samples`` and ``window_samples`` per ray; the window
     half-width is ``max(window_min_m, window_sigmas * depth_sigma_z2 * z^2)``.
+    ``threads``: torch CPU threads during training (1: see ``grid.torch_threads``; None keeps
+    torch's setting).
     """
 
     voxel_size_m: float = 0.03
-    coarse_voxel_size_m: float | None = 0.06
+    color_voxel_ratio: float = 1.5
+    coarse_voxel_size_m: float | None = None
     coarse_fraction: float = 0.2
     minutes: float = 5.0
     max_steps: int | None = None
@@ -97,6 +109,7 @@ class TrainConfig:
     init_min_weight: float = 1.0
     init_stride: int = 2
     device: str | None = None
+    threads: int | None = 1
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -243,7 +256,8 @@ def splat_init(field: GridField, rays: TrainingRays, config: TrainConfig) -> Gri
                           indexing="ij")
     d_cam = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u, dtype=torch.float32)], dim=-1).reshape(-1, 3)
     weight_sum = torch.zeros(field.density.numel(), device=field.device)
-    color_sum = torch.zeros(3, field.density.numel(), device=field.device)
+    color_weight = torch.zeros(field.color[0, 0].numel(), device=field.device)
+    color_sum = torch.zeros(3, field.color[0, 0].numel(), device=field.device)
     t_local = torch.as_tensor(rays.t_world_cam - field.grid_min, dtype=torch.float32, device=field.device)
     for k in range(rays.num_frames):
         z = rays.depth[k, v, u].reshape(-1)
@@ -252,11 +266,13 @@ def splat_init(field: GridField, rays: TrainingRays, config: TrainConfig) -> Gri
             continue
         points = (d_cam[ok] * z[ok, None]) @ rays.R_world_cam[k].T + t_local[k]
         idx, wts = trilinear_corners(points, field.shape_xyz, field.voxel_size)
-        rgb = rays.rgb[k, v, u].reshape(-1, 3)[ok].float() / 255.0
         weight_sum.index_add_(0, idx.reshape(-1), wts.reshape(-1))
+        idx, wts = trilinear_corners(points, field.color_shape_xyz, field.color_voxel_size)
+        rgb = rays.rgb[k, v, u].reshape(-1, 3)[ok].float() / 255.0
+        color_weight.index_add_(0, idx.reshape(-1), wts.reshape(-1))
         color_sum.index_add_(1, idx.reshape(-1), (rgb.T[:, :, None] * wts[None]).reshape(3, -1))
-    seen = weight_sum > 0
-    mean_rgb = (color_sum[:, seen] / weight_sum[seen]).clamp(0.02, 0.98)
+    seen = color_weight > 0
+    mean_rgb = (color_sum[:, seen] / color_weight[seen]).clamp(0.02, 0.98)
     field.density.view(-1)[weight_sum >= config.init_min_weight] = config.init_density_raw
     field.color.view(3, -1)[:, seen] = torch.log(mean_rgb / (1.0 - mean_rgb))
     field.mark_changed()
@@ -404,7 +420,7 @@ class _Trainer:
         # Colour only where a sample matters (most are free space or behind the surface); the
         # kept weights are rescaled to the ray's opacity so dropping the rest adds no bias.
         keep = (weights.detach() > cfg.color_weight_eps).reshape(-1).nonzero()[:, 0]
-        idx_c, w_c = idx[keep], w[keep]
+        idx_c, w_c = trilinear_corners(points[keep], fld.color_shape_xyz, fld.color_voxel_size)
         color_raw = torch.bmm(w_c[:, None, :], self.color_table[idx_c])[:, 0].requires_grad_(True)
         ray_of = keep // s
         kept_w = weights.reshape(-1)[keep]
@@ -565,7 +581,13 @@ def train_field(
     if not config.minutes > 0 and not config.max_steps:
         raise FieldError(f"the training budget must be positive, got {config.minutes} minutes")
     device = torch.device(config.device) if config.device else default_device()
-    torch.manual_seed(config.seed)
+    with torch_threads(config.threads if device.type == "cpu" else None):
+        return _train(sequence, config, device, progress, eval_sequence, eval_indices, oracle,
+                      snapshot_seconds, callback)
+
+
+def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_indices, oracle,
+           snapshot_seconds, callback) -> tuple[GridField, dict]:
     generator = torch.Generator(device=device).manual_seed(config.seed)
 
     train_idx, held_idx = split_frames(len(sequence), config.every, config.eval_frames)
@@ -586,7 +608,8 @@ def train_field(
     log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), rays.num_valid, bounds.round(2).tolist())
 
     stages = _stages(config)
-    field = GridField.empty(bounds, stages[0][0], device=device)
+    field = GridField.empty(bounds, stages[0][0], device=device,
+                            color_voxel_size=stages[0][0] / config.color_voxel_ratio)
     if config.init_from_depth:
         started_init = time.perf_counter()
         splat_init(field, rays, config)
@@ -614,7 +637,8 @@ def train_field(
             wanted = _stage_at(stages, fraction)
             if wanted != stage_index:
                 if stage_index >= 0:
-                    field = trainer.sync_field().resampled(stages[wanted][0])
+                    voxel = stages[wanted][0]
+                    field = trainer.sync_field().resampled(voxel, voxel / config.color_voxel_ratio)
                 stage_index = wanted
                 trainer = _Trainer(field, rays, config, generator)
             trainer.set_lr_scale(config.lr_final_ratio ** fraction)
@@ -654,9 +678,10 @@ def train_field(
     report = {
         "field": repr(field),
         "voxel_size_m": field.voxel_size,
+        "color_voxel_size_m": field.color_voxel_size,
         "bounds_m": field.bounds.tolist(),
         "device": str(device),
-        "torch_threads": torch.get_num_threads(),
+        "torch_threads": config.threads if config.threads is not None else torch.get_num_threads(),
         "train_frames": len(train_idx),
         "train_rays_with_depth": int(rays.num_valid),
         "steps": steps,
@@ -690,5 +715,5 @@ def _stage_at(stages, fraction: float) -> int:
 def _frozen(field: GridField) -> GridField:
     """A detached copy of the field for rendering (training keeps its own tensors)."""
     out = GridField(field.density[0, 0].detach().clone(), field.color[0].detach().clone(), field.grid_min,
-                    field.voxel_size, field.meta, field.render_config)
+                    field.voxel_size, field.meta, field.render_config, field.color_voxel_size)
     return out
