@@ -58,7 +58,7 @@ class PipelineConfig:
     keyframe_every: int = 5
     keyframe_distance_m: float = 0.0
     keyframe_angle_deg: float = 0.0
-    correction_iterations: int = 2
+    correction_iterations: int = 1
     render_width: int | None = 320
     render_height: int | None = 240
     robust: str | None = "huber"
