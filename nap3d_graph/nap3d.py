@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from .alignment import AlignConfig, align_views
+from .matching import detect_features
 from .camera import Intrinsics, RGBDFrame
 from .conventions import inv_T, log_se3
 from .results import Alignment, Correction
@@ -59,6 +60,14 @@ def correct_pose(
     T_current = T_est
     alignment = Alignment.failure("not run")
     rounds = 0
+    config = config or AlignConfig()
+    # The real frame is the same every round: resize it and detect its features once.
+    real = frame
+    if intrinsics.shape != frame.intrinsics.shape:
+        real = _resize_frame(frame, intrinsics.width, intrinsics.height)
+    t0 = time.perf_counter()
+    feats_real = detect_features(real.rgb, config.max_features)
+    timings["sift"] = time.perf_counter() - t0
     for rounds in range(1, max(1, iterations) + 1):
         t0 = time.perf_counter()
         view, reason = render_safely(field, T_current, intrinsics)
@@ -67,10 +76,7 @@ def correct_pose(
             alignment = Alignment.failure(reason)
             break
         t0 = time.perf_counter()
-        real = frame
-        if view.intrinsics.shape != frame.intrinsics.shape:
-            real = _resize_frame(frame, view.intrinsics.width, view.intrinsics.height)
-        step = align_views(real, view, config)
+        step = align_views(real, view, config, feats_real=feats_real)
         timings["align"] += time.perf_counter() - t0
         for key, value in step.timings_s.items():
             timings[key] = timings.get(key, 0.0) + value

@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .alignment import AlignConfig, Correspondences, _subset, prepare_correspondences, refine_pose
+from .alignment import AlignConfig, Correspondences, prepare_correspondences, refine_pose
+from .correspondences import subset
 from .camera import Intrinsics, RenderedView, RGBDFrame
 from .conventions import make_T
 from .results import Alignment
@@ -60,7 +61,7 @@ def pnp_from_correspondences(corr: Correspondences, intrinsics: Intrinsics, conf
     t = tvec.ravel()
     timings["pnp"] = time.perf_counter() - t0
     # Covariance from the reprojection residuals only (what PnP uses), same parameterisation.
-    refined = refine_pose(R, t, _subset(corr, mask), intrinsics, align_config, use_depth=False)
+    refined = refine_pose(R, t, subset(corr, mask), intrinsics, align_config, use_depth=False)
     cov = refined[2] if refined is not None else np.full((6, 6), np.inf)
     e = corr.x[mask] @ R.T + t - corr.y[mask]
     return Alignment(T_real_rendered=make_T(R, t), covariance=cov, num_matches=corr.num_matches,

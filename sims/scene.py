@@ -13,7 +13,7 @@ with exact z-depth and no GPU/OpenGL context; the geometry here is a few quadric
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
