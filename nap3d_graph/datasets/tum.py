@@ -20,14 +20,15 @@ import logging
 import math
 import operator
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Iterator
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
 from ..camera import CameraError, Intrinsics, RGBDFrame
 from ..conventions import T_to_tum, tum_to_T
+from .association import GT_MAX_GAP_S, ASSOCIATION_METHODS, associate, estimate_stream_offset, interpolate_poses
+from .errors import DatasetError
 
 __all__ = [
     "DatasetError",
@@ -47,8 +48,6 @@ logger = logging.getLogger(__name__)
 
 #: TUM depth PNGs store z-depth in units of 1/5000 m.
 TUM_DEPTH_SCALE = 5000.0
-#: Ground truth runs at 100 Hz; a larger hole than this between two poses is a gap.
-GT_MAX_GAP_S = 0.1
 
 # TUM's published colour-camera calibrations (https://cvg.cit.tum.de/data/datasets/rgbd-dataset
 # "file formats" page). Depth is registered to colour by the driver, so one camera serves both.
@@ -60,10 +59,6 @@ _TUM_CAMERAS = {
     "freiburg3": Intrinsics(535.4, 539.2, 320.1, 247.6, 640, 480),
 }
 _TUM_DEFAULT_CAMERA = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
-
-
-class DatasetError(ValueError):
-    """A sequence, list or trajectory file that cannot be read; the message names the file."""
 
 
 # --- text files ---------------------------------------------------------------------------
@@ -156,202 +151,6 @@ def write_tum_trajectory(
     np.savetxt(path, rows, fmt=["%.6f"] + ["%.9f"] * 7, delimiter=" ", header=header, comments="# ")
 
 
-# --- association and interpolation ----------------------------------------------------------
-
-
-ASSOCIATION_METHODS = ("optimal", "greedy")
-
-
-def _candidate_pairs(a: np.ndarray, b: np.ndarray, max_difference: float):
-    """All ``(i_a, i_b, |a - b|)`` with ``|a - b| < max_difference`` (b already offset).
-
-    Binary search per ``a`` (O((Na + Nb) log Nb + candidates), not Na x Nb); the window is
-    widened a little, then filtered with TUM's exact test so rounding cannot change pairs.
-    """
-    order_b = np.argsort(b, kind="stable")
-    b_sorted = b[order_b]
-    slack = max_difference * 1e-9 + 1e-12
-    lo = np.searchsorted(b_sorted, a - max_difference - slack, side="left")
-    hi = np.searchsorted(b_sorted, a + max_difference + slack, side="right")
-    counts = hi - lo
-    ia = np.repeat(np.arange(len(a)), counts)
-    starts = np.repeat(np.cumsum(counts) - counts, counts)
-    ib = order_b[np.repeat(lo, counts) + (np.arange(counts.sum()) - starts)]
-    diff = np.abs(a[ia] - b[ib])
-    keep = diff < max_difference
-    return ia[keep], ib[keep], diff[keep]
-
-
-def _greedy_pairs(a, b, ia, ib, diff) -> list[tuple[int, int]]:
-    """TUM's associate.py: candidates by increasing difference (ties by a, then b), each
-    stamp used once. Sequential, but over the few candidates only."""
-    order = np.lexsort((b[ib], a[ia], diff))  # sort by diff, then a, then b (TUM's tuple sort)
-    used_a = np.zeros(len(a), dtype=bool)
-    used_b = np.zeros(len(b), dtype=bool)
-    pairs = []
-    for i, j in zip(ia[order].tolist(), ib[order].tolist()):
-        if not used_a[i] and not used_b[j]:
-            used_a[i] = used_b[j] = True
-            pairs.append((i, j))
-    return pairs
-
-
-def _optimal_pairs(a, b, ia, ib, diff, max_difference: float) -> list[tuple[int, int]]:
-    """Most one-to-one pairs among the candidates and, among those, least total |a - b|.
-
-    Exact, in O(candidates), by dynamic programming over *order-preserving* matchings. On a
-    line, two crossing pairs ``(a1, b1), (a2, b2)`` with ``a1 <= a2``, ``b2 <= b1`` can be
-    swapped to ``(a1, b2), (a2, b1)``: both stay within ``max_difference`` and the total
-    ``|a - b|`` does not grow (``|x|`` is convex). So some optimum pairs the stamps in order,
-    and an LCS-like scan over ``a`` in time order, looking only at each stamp's candidate
-    band, finds it. This is the assignment problem ``linear_sum_assignment`` solves on the
-    dense Na x Nb cost matrix (infeasible pairs costing more than any feasible total), which
-    the tests use as the reference; the scan needs no dense matrix, no splitting into
-    components and no windows, so long sequences are neither slow nor approximated.
-    """
-    if len(ia) == 0:
-        return []
-    # Rank b in time order; each a's candidates are a contiguous run of b ranks.
-    order_b = np.argsort(b, kind="stable")
-    rank_b = np.empty(len(b), dtype=int)
-    rank_b[order_b] = np.arange(len(b))
-    rb = rank_b[ib]
-    # Process a in time order (ties in index order), its candidates by increasing b rank.
-    order = np.lexsort((rb, ia, a[ia]))
-    ia, rb, cost = ia[order], rb[order], diff[order] / max_difference  # cost in [0, 1)
-    # Score = pairs * big - total cost: with big above any total cost (< min(Na, Nb)),
-    # one more pair always wins, and among equally many pairs the cheaper total does.
-    big = float(min(len(a), len(b)) + 1)
-    # best[p]: score of the best matching so far whose last used b has rank p - 1 (p = 0:
-    # none used); node[p] its last pair. Pairs form a tree of (i_a, i_b, parent) nodes.
-    n_b = len(b)
-    best = [-math.inf] * (n_b + 1)
-    node = [-1] * (n_b + 1)
-    best[0] = 0.0
-    pair_a, pair_b, parent = [], [], []
-    done, done_best, done_node = 0, -math.inf, -1  # running max over best[:done], final
-    ia_l, rb_l, cost_l = ia.tolist(), rb.tolist(), cost.tolist()
-    start, n = 0, len(ia_l)
-    while start < n:
-        stop = start
-        while stop < n and ia_l[stop] == ia_l[start]:
-            stop += 1
-        i, lo = ia_l[start], rb_l[start]
-        # Later stamps only write at positions > lo, so best[:lo + 1] is final: fold it.
-        while done <= lo:
-            if best[done] > done_best:
-                done_best, done_node = best[done], node[done]
-            done += 1
-        # For each candidate rank k: the best matching using only b ranks < k (positions
-        # <= k, old values), plus the pair (i, k).
-        run_best, run_node, p = done_best, done_node, done
-        scored = []
-        for t in range(start, stop):
-            k = rb_l[t]
-            while p <= k:
-                if best[p] > run_best:
-                    run_best, run_node = best[p], node[p]
-                p += 1
-            scored.append((k, run_best + big - cost_l[t], run_node))
-        for k, score, parent_node in scored:
-            if score > best[k + 1]:
-                best[k + 1] = score
-                node[k + 1] = len(pair_a)
-                pair_a.append(i)
-                pair_b.append(int(order_b[k]))
-                parent.append(parent_node)
-        start = stop
-    top = max(range(n_b + 1), key=best.__getitem__)
-    pairs, m = [], node[top]
-    while m >= 0:
-        pairs.append((pair_a[m], pair_b[m]))
-        m = parent[m]
-    return pairs
-
-
-def associate(
-    stamps_a: Sequence[float],
-    stamps_b: Sequence[float],
-    max_difference: float = 0.02,
-    offset: float = 0.0,
-    association: str = "optimal",
-) -> np.ndarray:
-    """Pair two timestamp lists one-to-one; a pair needs ``|a - (b + offset)| < max_difference``.
-
-    ``association="optimal"`` (default) keeps the most pairs and, among those, the least
-    total time difference (exact; see ``_optimal_pairs``). ``"greedy"`` is TUM's
-    ``associate.py``: candidates taken in order of increasing difference (ties by ``a``
-    then ``b``), each stamp used once. Greedy can lose pairs: on fr1/xyz the depth frame
-    ~18 ms after a colour frame is sometimes taken, leaving the next colour frame with none
-    (of the first 37 frames greedy keeps 32, optimal 36: colour frame 31's own depth frame
-    is 20.2 ms before it; ``offset=0.015``, the Kinect's depth lead, pairs all 37).
-
-    Returns index pairs ``(K, 2)`` int ``[i_a, i_b]`` sorted by ``stamps_a[i_a]``.
-    """
-    if association not in ASSOCIATION_METHODS:
-        raise ValueError(f"association must be one of {ASSOCIATION_METHODS}, got {association!r}")
-    a = np.asarray(stamps_a, dtype=float).reshape(-1)
-    b = np.asarray(stamps_b, dtype=float).reshape(-1) + offset
-    if len(a) == 0 or len(b) == 0:
-        return np.zeros((0, 2), dtype=int)
-    ia, ib, diff = _candidate_pairs(a, b, max_difference)
-    if association == "greedy":
-        pairs = _greedy_pairs(a, b, ia, ib, diff)
-    else:
-        pairs = _optimal_pairs(a, b, ia, ib, diff, max_difference)
-    if not pairs:
-        return np.zeros((0, 2), dtype=int)
-    pairs = np.asarray(pairs, dtype=int)
-    return pairs[np.lexsort((pairs[:, 0], a[pairs[:, 0]]))]
-
-
-def interpolate_poses(
-    stamps_gt: np.ndarray,
-    T_gt: np.ndarray,
-    query_stamps: np.ndarray,
-    max_gap: float = GT_MAX_GAP_S,
-) -> np.ndarray:
-    """Interpolate poses at query times: linear in translation, SLERP in rotation.
-
-    stamps_gt: (N,) seconds, any order, no duplicates. T_gt: (N, 4, 4). query_stamps: (M,).
-    Returns (M, 4, 4); a query outside ``[stamps_gt.min(), stamps_gt.max()]`` or between two
-    poses more than ``max_gap`` seconds apart gets an all-NaN matrix.
-    """
-    stamps_gt = np.asarray(stamps_gt, dtype=float).reshape(-1)
-    T_gt = np.asarray(T_gt, dtype=float)
-    query = np.asarray(query_stamps, dtype=float).reshape(-1)
-    if T_gt.shape != (len(stamps_gt), 4, 4):
-        raise DatasetError(f"need stamps (N,) and poses (N, 4, 4), got {stamps_gt.shape} and {T_gt.shape}")
-    out = np.full((len(query), 4, 4), np.nan)
-    if len(stamps_gt) == 0 or len(query) == 0:
-        return out
-    order = np.argsort(stamps_gt, kind="stable")
-    stamps_gt, T_gt = stamps_gt[order], T_gt[order]
-    if np.any(np.diff(stamps_gt) <= 0):
-        raise DatasetError("ground-truth timestamps contain duplicates")
-    if len(stamps_gt) == 1:
-        exact = query == stamps_gt[0]
-        out[exact] = T_gt[0]
-        return out
-    # Bracket [k, k+1] of each query; a query exactly at the last stamp uses the last bracket.
-    k = np.clip(np.searchsorted(stamps_gt, query, side="right") - 1, 0, len(stamps_gt) - 2)
-    t0, t1 = stamps_gt[k], stamps_gt[k + 1]
-    # A query exactly on a ground-truth stamp is valid even when that pose borders a gap.
-    on_stamp = (query == t0) | (query == t1)
-    ok = (query >= stamps_gt[0]) & (query <= stamps_gt[-1]) & ((t1 - t0 <= max_gap) | on_stamp)
-    if not np.any(ok):
-        return out
-    alpha = ((query[ok] - t0[ok]) / (t1[ok] - t0[ok]))[:, None]
-    p0, p1 = T_gt[k[ok], :3, 3], T_gt[k[ok] + 1, :3, 3]
-    slerp = Slerp(stamps_gt, Rotation.from_matrix(T_gt[:, :3, :3]))
-    T = np.zeros((int(ok.sum()), 4, 4))
-    T[:, :3, :3] = slerp(query[ok]).as_matrix()
-    T[:, :3, 3] = (1.0 - alpha) * p0 + alpha * p1
-    T[:, 3, 3] = 1.0
-    out[ok] = T
-    return out
-
-
 # --- intrinsics -----------------------------------------------------------------------------
 
 
@@ -392,27 +191,6 @@ def _resolve_intrinsics(folder: Path, intrinsics) -> Intrinsics:
         "using TUM's default camera (fx=fy=525, cx=319.5, cy=239.5)", folder
     )
     return _TUM_DEFAULT_CAMERA
-
-
-def estimate_stream_offset(stamps_a, stamps_b, max_difference: float = 0.02) -> float:
-    """The typical lead of stream b over stream a, as ``associate``'s ``offset``.
-
-    The median of ``a - nearest(b)`` over the stamps of a that have a partner within
-    ``max_difference``: a Kinect stamps depth 12-20 ms before colour, and pairing with that
-    lead removed associates every frame of fr1/xyz (37 of 37) where a zero offset leaves
-    one without a partner inside TUM's 20 ms. 0.0 when nothing is near.
-    """
-    a = np.sort(np.asarray(stamps_a, dtype=float).reshape(-1))
-    b = np.sort(np.asarray(stamps_b, dtype=float).reshape(-1))
-    if a.size == 0 or b.size == 0:
-        return 0.0
-    j = np.clip(np.searchsorted(b, a), 1, max(b.size - 1, 1))
-    left = b[np.clip(j - 1, 0, b.size - 1)]
-    right = b[np.clip(j, 0, b.size - 1)]
-    nearest = np.where(np.abs(a - left) <= np.abs(a - right), left, right)
-    lead = a - nearest
-    lead = lead[np.abs(lead) < max_difference]
-    return float(np.median(lead)) if lead.size else 0.0
 
 
 # --- sequence -------------------------------------------------------------------------------
