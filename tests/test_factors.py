@@ -11,81 +11,22 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
-from gtsam.symbol_shorthand import B, M, V, X
+from gtsam.symbol_shorthand import M, X
 from gtsam.utils.numerical_derivative import numericalDerivative11, numericalDerivative21, numericalDerivative22
-from scipy.stats import chi2
 
 from nap3d_graph.conventions import exp_se3, inv_T, make_T, pose_error
 from nap3d_graph.factors import (
-    GateResult,
     anchor_prior_factor,
     base_gaussian,
-    chi2_gate,
-    chi2_gate_with_marginal,
-    factor_error_and_covariance,
-    imu_factor,
-    imu_params,
-    mahalanobis_sq,
     nap3d_anchor_factor,
     nap3d_prior_factor,
     noise_model,
     odometry_factor,
     pose_prior_factor,
-    preintegrate,
 )
 from nap3d_graph.results import Alignment, Correction
 
-G = 9.81
-
-
-# --- helpers ---------------------------------------------------------------------------
-
-
-def random_covariance(rng: np.random.Generator, rot_sigma: float = 0.005,
-                      trans_sigma: float = 0.01) -> np.ndarray:
-    """A correlated 6x6 SPD covariance, GTSAM order, ~rot_sigma rad / trans_sigma m."""
-    A = rng.normal(size=(6, 6))
-    corr = A @ A.T + 6 * np.eye(6)
-    d = 1.0 / np.sqrt(np.diag(corr))
-    corr = corr * d[:, None] * d[None, :]
-    s = np.array([rot_sigma] * 3 + [trans_sigma] * 3)
-    return corr * s[:, None] * s[None, :]
-
-
-def random_T(rng: np.random.Generator, rot_scale: float = 0.5, trans_scale: float = 2.0) -> np.ndarray:
-    return exp_se3(np.concatenate([rng.normal(scale=rot_scale, size=3),
-                                   rng.normal(scale=trans_scale, size=3)]))
-
-
-def vals(*items) -> gtsam.Values:
-    """``vals((key, Pose3), ...)`` -> Values."""
-    v = gtsam.Values()
-    for key, value in items:
-        v.insert(key, value)
-    return v
-
-
-def unwhitened_jacobian(factor, values: gtsam.Values) -> tuple[list[np.ndarray], np.ndarray]:
-    """Jacobians (per key) and error of ``factor`` from its linearisation, unwhitened.
-
-    ``linearize`` returns ``A = R H`` and ``b = -R e`` with ``R`` the square-root
-    information of the (Gaussian) noise; undo ``R`` to compare with numerical derivatives.
-    """
-    A, b = factor.linearize(values).jacobian()
-    R = base_gaussian(factor.noiseModel()).R()
-    H = np.linalg.solve(R, A)
-    e = -np.linalg.solve(R, b)
-    dims = [6] * factor.size()
-    return np.split(H, np.cumsum(dims)[:-1], axis=1), e
-
-
-def alignment_for(T_field_cam_est: np.ndarray, T_field_cam_true: np.ndarray,
-                  covariance: np.ndarray) -> Alignment:
-    """The Alignment NAP3D would return when the field renders at the estimate."""
-    # corrected = est @ inv(T_real_rendered) = true  =>  T_real_rendered = inv(true) @ est
-    return Alignment(T_real_rendered=inv_T(T_field_cam_true) @ T_field_cam_est,
-                     covariance=covariance, num_matches=200, num_inliers=150,
-                     inlier_rmse_m=0.01, success=True)
+from factor_helpers import alignment_for, random_T, random_covariance, unwhitened_jacobian, vals
 
 
 # --- noise models ----------------------------------------------------------------------
@@ -396,179 +337,3 @@ def test_odometry_factor_error_and_jacobians():
     np.testing.assert_allclose(by_sigmas.noiseModel().sigmas(), [0.01] * 3 + [0.05] * 3)
     with pytest.raises(ValueError):
         odometry_factor(X(0), X(1), T_i_j)  # neither covariance nor sigmas
-
-
-# --- IMU -------------------------------------------------------------------------------
-
-
-@pytest.fixture
-def params():
-    return imu_params(accel_noise_density=0.01, gyro_noise_density=0.001,
-                      accel_bias_rw=1e-4, gyro_bias_rw=1e-5, gravity=G)
-
-
-def uniform_samples(rate_hz: float, duration_s: float, accel, gyro):
-    stamps = np.arange(0.0, duration_s + 1e-9, 1.0 / rate_hz)
-    n = len(stamps)
-    return stamps, np.tile(np.asarray(accel, float), (n, 1)), np.tile(np.asarray(gyro, float), (n, 1))
-
-
-def test_imu_at_rest_predicts_no_motion(params):
-    stamps, acc, gyr = uniform_samples(200, 1.0, [0, 0, G], [0, 0, 0])
-    pim = preintegrate(params, None, stamps, acc, gyr, 0.0, 1.0)
-    assert pim.deltaTij() == pytest.approx(1.0, abs=1e-12)
-    state = pim.predict(gtsam.NavState(gtsam.Pose3(), np.zeros(3)), gtsam.imuBias.ConstantBias())
-    np.testing.assert_allclose(state.pose().matrix(), np.eye(4), atol=1e-9)
-    np.testing.assert_allclose(state.velocity(), np.zeros(3), atol=1e-9)
-
-
-def test_imu_constant_yaw_rate_gives_yaw(params):
-    w = 0.7
-    stamps, acc, gyr = uniform_samples(100, 1.0, [0, 0, G], [0, 0, w])
-    pim = preintegrate(params, None, stamps, acc, gyr, 0.0, 1.0)
-    np.testing.assert_allclose(pim.deltaRij().matrix(), gtsam.Rot3.Yaw(w).matrix(), atol=1e-12)
-    assert pim.deltaRij().yaw() == pytest.approx(w, abs=1e-12)
-
-
-def test_preintegrate_cuts_partial_first_and_last_intervals(params):
-    stamps = np.arange(11) * 0.1
-    gyro = np.zeros((11, 3))
-    gyro[:, 2] = np.arange(11)  # sample k reads k rad/s of yaw
-    acc = np.tile([0, 0, G], (11, 1))
-    pim = preintegrate(params, None, stamps, acc, gyro, 0.05, 0.35)
-    assert pim.deltaTij() == pytest.approx(0.30, abs=1e-12)
-    # [0.05, 0.1) sample 0, [0.1, 0.2) sample 1, [0.2, 0.3) sample 2, [0.3, 0.35) sample 3
-    assert pim.deltaRij().yaw() == pytest.approx(0.05 * 0 + 0.1 * 1 + 0.1 * 2 + 0.05 * 3, abs=1e-12)
-    # Consecutive keyframe intervals add up: no time lost or counted twice.
-    a = preintegrate(params, None, stamps, acc, gyro, 0.05, 0.23).deltaRij().yaw()
-    b = preintegrate(params, None, stamps, acc, gyro, 0.23, 0.35).deltaRij().yaw()
-    assert a + b == pytest.approx(0.45, abs=1e-12)
-    with pytest.raises(ValueError, match="t_end > t_start"):
-        preintegrate(params, None, stamps, acc, gyro, 0.3, 0.3)
-    with pytest.raises(ValueError, match="shape"):
-        preintegrate(params, None, stamps, acc[:, :2], gyro, 0.0, 0.3)
-    acc_nan = acc.copy()
-    acc_nan[2] = np.nan
-    with pytest.raises(ValueError, match="non-finite"):
-        preintegrate(params, None, stamps, acc_nan, gyro, 0.0, 0.3)
-    preintegrate(params, None, stamps, acc_nan, gyro, 0.5, 0.7)  # NaN outside the interval is fine
-
-
-def test_combined_imu_factor_zero_error_at_true_states(params):
-    # Constant world acceleration, constant tilted attitude, non-zero velocity and bias:
-    # the accelerometer reads R^T (a + g_up) + b_a, which is constant, so ZOH is exact.
-    R0 = gtsam.Rot3.Ypr(0.4, -0.1, 0.2)
-    p0, v0, a_world = np.array([1.0, 2.0, 0.5]), np.array([0.3, -0.2, 0.1]), np.array([0.5, -0.2, 0.1])
-    bias = gtsam.imuBias.ConstantBias(np.array([0.02, -0.01, 0.03]), np.array([0.001, 0.002, -0.001]))
-    T = 1.0
-    f_body = R0.matrix().T @ (a_world + np.array([0, 0, G])) + bias.accelerometer()
-    stamps, acc, gyr = uniform_samples(200, T, f_body, bias.gyroscope())
-    pim = preintegrate(params, bias, stamps, acc, gyr, 0.0, T)
-    factor = imu_factor(X(0), V(0), X(1), V(1), B(0), B(1), pim)
-    assert isinstance(factor, gtsam.CombinedImuFactor)
-    v = gtsam.Values()
-    v.insert(X(0), gtsam.Pose3(R0, p0))
-    v.insert(V(0), v0)
-    v.insert(X(1), gtsam.Pose3(R0, p0 + v0 * T + 0.5 * a_world * T ** 2))
-    v.insert(V(1), v0 + a_world * T)
-    v.insert(B(0), bias)
-    v.insert(B(1), bias)
-    error = factor.unwhitenedError(v)
-    assert error.shape == (15,)
-    np.testing.assert_allclose(error, np.zeros(15), atol=1e-9)
-    # A wrong end position is seen by the factor.
-    v.update(X(1), gtsam.Pose3(R0, p0 + v0 * T + 0.5 * a_world * T ** 2 + np.array([0.1, 0, 0])))
-    assert np.linalg.norm(factor.unwhitenedError(v)) > 0.05
-
-
-def test_imu_params_validate():
-    with pytest.raises(ValueError, match="gyro_noise_density"):
-        imu_params(0.01, -1.0, 1e-4, 1e-5)
-    p = imu_params(0.02, 0.003, 1e-4, 1e-5, gravity=9.8)
-    np.testing.assert_allclose(p.n_gravity, [0, 0, -9.8])
-    np.testing.assert_allclose(p.getAccelerometerCovariance(), 0.02 ** 2 * np.eye(3))
-    np.testing.assert_allclose(p.getGyroscopeCovariance(), 0.003 ** 2 * np.eye(3))
-
-
-# --- gate ------------------------------------------------------------------------------
-
-
-def prior_at_identity(C: np.ndarray, robust=None) -> gtsam.PriorFactorPose3:
-    return gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), noise_model(covariance=C, robust=robust))
-
-
-def test_gate_accepts_correct_and_rejects_wrong_factor():
-    C = np.diag([np.radians(0.5)] * 3 + [0.01] * 3) ** 2
-    factor = prior_at_identity(C, robust="huber")
-    ok = chi2_gate(factor, vals((X(0), gtsam.Pose3.Expmap(np.array([0.005, 0, 0, 0.01, -0.01, 0])))))
-    assert isinstance(ok, GateResult)
-    assert ok.accepted and ok.reason == ""
-    assert ok.threshold == pytest.approx(chi2.ppf(0.997, 6))
-    wrong = chi2_gate(factor, vals((X(0), gtsam.Pose3(gtsam.Rot3(), np.array([0.5, 0, 0])))))
-    assert not wrong.accepted
-    assert wrong.d2 == pytest.approx((0.5 / 0.01) ** 2, rel=1e-9)  # reported, not clipped
-    assert "d2=2500" in wrong.reason
-
-
-def test_gate_uses_base_gaussian_not_robust_error():
-    rng = np.random.default_rng(5)
-    C = random_covariance(rng)
-    x = gtsam.Pose3.Expmap(np.array([0.02, -0.01, 0.03, 0.2, -0.1, 0.3]))  # a gross outlier
-    v = vals((X(0), x))
-    robust, gauss = prior_at_identity(C, "cauchy"), prior_at_identity(C)
-    e = gtsam.Pose3.Logmap(x)
-    expected = e @ np.linalg.solve(C, e)
-    assert mahalanobis_sq(gauss, v) == pytest.approx(expected, rel=1e-9)
-    assert mahalanobis_sq(robust, v) == pytest.approx(expected, rel=1e-9)
-    assert 2 * robust.error(v) < 0.05 * expected  # what a naive gate would have used
-    assert chi2_gate(robust, v).d2 == pytest.approx(expected, rel=1e-9)
-    xi, cov = factor_error_and_covariance(robust, v)
-    np.testing.assert_allclose(xi, e, atol=1e-12)
-    np.testing.assert_allclose(cov, C, rtol=1e-9, atol=1e-18)
-
-
-def test_gate_rejection_rate_matches_chi2():
-    rng = np.random.default_rng(6)
-    C = random_covariance(rng)
-    factor = prior_at_identity(C, robust="huber")
-    draws = rng.multivariate_normal(np.zeros(6), C, size=2000)
-    rejected = np.mean([not chi2_gate(factor, vals((X(0), gtsam.Pose3.Expmap(xi))), p=0.95).accepted
-                        for xi in draws])
-    assert abs(rejected - 0.05) < 0.015, rejected
-    # The innovation gate with S = R + P has the same rate on errors drawn from R + P.
-    P = random_covariance(rng, 0.02, 0.1)
-    draws = rng.multivariate_normal(np.zeros(6), C + P, size=2000)
-    rejected = np.mean([not chi2_gate_with_marginal(xi, C, P, p=0.95).accepted for xi in draws])
-    assert abs(rejected - 0.05) < 0.015, rejected
-
-
-def test_gate_with_marginal_accepts_correction_of_drifted_estimate():
-    C = np.diag([np.radians(0.5)] * 3 + [0.01] * 3) ** 2
-    P = np.diag([np.radians(2.0)] * 3 + [0.3] * 3) ** 2  # drifted: 30 cm uncertain
-    factor = prior_at_identity(C)
-    v = vals((X(0), gtsam.Pose3(gtsam.Rot3(), np.array([0.4, 0.0, 0.0]))))
-    assert not chi2_gate(factor, v).accepted
-    xi, cov = factor_error_and_covariance(factor, v)
-    with_marginal = chi2_gate_with_marginal(xi, cov, P)
-    assert with_marginal.accepted, with_marginal
-    assert with_marginal.d2 == pytest.approx(0.4 ** 2 / (0.01 ** 2 + 0.3 ** 2), rel=1e-6)
-    # Without an estimate covariance it is the plain gate.
-    assert chi2_gate_with_marginal(xi, cov, None).d2 == pytest.approx(chi2_gate(factor, v).d2, rel=1e-9)
-    # An explicit Jacobian is used as J P J^T.
-    J = 2.0 * np.eye(6)
-    assert chi2_gate_with_marginal(xi, cov, P, jacobian=J).d2 == pytest.approx(
-        0.4 ** 2 / (0.01 ** 2 + 4 * 0.3 ** 2), rel=1e-6)
-
-
-def test_gate_never_raises_on_nan():
-    C = np.eye(6) * 1e-4
-    nan_prior = gtsam.PriorFactorPose3(X(0), gtsam.Pose3(gtsam.Rot3(), np.array([np.nan, 0, 0])),
-                                       noise_model(covariance=C, robust="huber"))
-    result = chi2_gate(nan_prior, vals((X(0), gtsam.Pose3())))
-    assert not result.accepted and np.isnan(result.d2) and "non-finite" in result.reason
-    result = chi2_gate_with_marginal(np.array([np.nan] + [0.0] * 5), C, C)
-    assert not result.accepted and "non-finite" in result.reason
-    result = chi2_gate_with_marginal(np.zeros(6), C, np.full((6, 6), np.nan))
-    assert not result.accepted and "non-finite" in result.reason
-    result = chi2_gate_with_marginal(np.ones(6), -C, None)
-    assert not result.accepted and "positive definite" in result.reason
