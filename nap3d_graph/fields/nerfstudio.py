@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RenderedView
-from nap3d_graph.conventions import OPENCV_FROM_OPENGL, inv_T
+from nap3d_graph.conventions import (T_opencv_to_opengl, T_opengl_to_opencv, inv_T, ray_length_to_z_depth,
+                                     z_depth_to_ray_length)
 
 from .base import FieldError
 
@@ -70,15 +71,10 @@ INSTALL_HINT = "pip install 'nap3d-graph[nerfstudio]'  (or: pip install nerfstud
 # --- pure conversions ---------------------------------------------------------------------------
 
 
-def opencv_to_opengl_pose(T_world_cam_cv: np.ndarray) -> np.ndarray:
-    """Camera-to-world pose(s) (..., 4, 4) with an OpenCV camera -> the same with an OpenGL
-    camera (x right, y up, z back), as ``transforms.json`` stores them."""
-    return np.asarray(T_world_cam_cv, dtype=np.float64) @ OPENCV_FROM_OPENGL
-
-
-def opengl_to_opencv_pose(T_world_cam_gl: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`opencv_to_opengl_pose` (the flip is its own inverse)."""
-    return np.asarray(T_world_cam_gl, dtype=np.float64) @ OPENCV_FROM_OPENGL
+# The camera-frame flip lives in conventions (the one place); these names are what a
+# nerfstudio user looks for: transforms.json stores OpenGL (x right, y up, z back) poses.
+opencv_to_opengl_pose = T_opencv_to_opengl
+opengl_to_opencv_pose = T_opengl_to_opencv
 
 
 def nerfstudio_intrinsics(intrinsics: Intrinsics) -> dict:
@@ -170,12 +166,12 @@ def model_depth_to_z_m(depth_model: np.ndarray, ray_norms: np.ndarray, scale: fl
 
     ``ray_norms``: per-pixel ``|((u-cx)/fx, (v-cy)/fy, 1)|`` (:meth:`Intrinsics.ray_norms`).
     """
-    return np.asarray(depth_model, dtype=np.float64) / np.asarray(ray_norms, dtype=np.float64) / float(scale)
+    return ray_length_to_z_depth(np.asarray(depth_model, dtype=np.float64), ray_norms) / float(scale)
 
 
 def z_m_to_model_depth(z_m: np.ndarray, ray_norms: np.ndarray, scale: float) -> np.ndarray:
     """Inverse of :func:`model_depth_to_z_m`."""
-    return np.asarray(z_m, dtype=np.float64) * np.asarray(ray_norms, dtype=np.float64) * float(scale)
+    return z_depth_to_ray_length(np.asarray(z_m, dtype=np.float64), ray_norms) * float(scale)
 
 
 def depth_to_png_mm(depth_m: np.ndarray) -> np.ndarray:
