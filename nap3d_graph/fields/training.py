@@ -40,10 +40,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from nap3d_graph.camera import Intrinsics, valid_depth_mask
+from nap3d_graph.camera import Intrinsics, backproject_depth, valid_depth_mask
+from nap3d_graph.conventions import transform_points
 
 from .base import FieldError
-from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, torch_threads, trilinear_corners
+from .grid import (CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, pixel_directions, torch_threads,
+                   trilinear_corners)
 
 __all__ = [
     "TrainConfig",
@@ -217,14 +219,10 @@ def scene_bounds_from_depth(depth_m: np.ndarray, T_world_cam: np.ndarray, intrin
     ``margin_m`` so windows behind the farthest surfaces still fit.
     """
     depth_m = np.asarray(depth_m)
-    v, u = np.mgrid[0 : depth_m.shape[1] : stride, 0 : depth_m.shape[2] : stride]
-    rays = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones_like(u, float)], -1)
     chunks = []
     for k in range(depth_m.shape[0]):
-        z = depth_m[k, v, u]
-        ok = z > 0
-        p_cam = rays[ok] * z[ok, None]
-        chunks.append(p_cam @ T_world_cam[k, :3, :3].T + T_world_cam[k, :3, 3])
+        p_cam, _ = backproject_depth(depth_m[k], intrinsics, stride)
+        chunks.append(transform_points(T_world_cam[k], p_cam))
     points = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     if len(points) < 10:
         raise FieldError("too few valid depth pixels to find the scene's bounds")
@@ -249,12 +247,11 @@ def splat_init(field: GridField, rays: TrainingRays, config: TrainConfig) -> Gri
     gets the weighted mean colour of its points. Training then refines instead of building
     surfaces from scratch, which is what a voxel grid on a CPU struggles with.
     """
-    fx, fy, cx, cy = (rays.intrinsics.fx, rays.intrinsics.fy, rays.intrinsics.cx, rays.intrinsics.cy)
     h, w = rays.intrinsics.height, rays.intrinsics.width
     stride = max(1, int(config.init_stride))
     v, u = torch.meshgrid(torch.arange(0, h, stride, device=field.device), torch.arange(0, w, stride, device=field.device),
                           indexing="ij")
-    d_cam = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u, dtype=torch.float32)], dim=-1).reshape(-1, 3)
+    d_cam = pixel_directions(rays.intrinsics, field.device)[::stride, ::stride].reshape(-1, 3)
     weight_sum = torch.zeros(field.density.numel(), device=field.device)
     color_weight = torch.zeros(field.color[0, 0].numel(), device=field.device)
     color_sum = torch.zeros(3, field.color[0, 0].numel(), device=field.device)
