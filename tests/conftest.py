@@ -1,17 +1,26 @@
-"""Shared fixtures: a small simulated room and the real TUM frames."""
+"""Shared fixtures: a small simulated room and the real TUM frames in tests/data.
+
+A test may skip only when an *optional extra* is missing (nerfstudio): its reason must
+start with ``OPTIONAL_EXTRA``. Any other skip fails the run, so a missing fixture file or a
+forgotten ``skipif`` cannot hide a test (a clone has everything the suite needs).
+"""
 
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-TUM_FR1_XYZ = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum" / "rgbd_dataset_freiburg1_xyz"
+DATA = Path(__file__).resolve().parent / "data"
+TUM_FR1_XYZ = DATA / "tum" / "rgbd_dataset_freiburg1_xyz"
+TUM_FR1_DESK = DATA / "tum" / "rgbd_dataset_freiburg1_desk"
+OPTIONAL_EXTRA = "optional extra not installed:"
+
+_forbidden_skips: list[str] = []
 
 
 @pytest.fixture(scope="session")
 def tum_path() -> Path:
-    if not (TUM_FR1_XYZ / "rgb.txt").exists():
-        pytest.skip(f"real TUM frames not found at {TUM_FR1_XYZ}")
+    """The first 12 frames of TUM fr1/xyz (tests/data/tum/README.md)."""
+    assert (TUM_FR1_XYZ / "rgb.txt").is_file(), f"test data missing: {TUM_FR1_XYZ}"
     return TUM_FR1_XYZ
 
 
@@ -22,3 +31,24 @@ def room():
 
     scene = make_scene(11)
     return scene, OracleField(scene)
+
+
+def pytest_runtest_logreport(report):
+    if report.skipped:
+        reason = str(report.longrepr[2]) if isinstance(report.longrepr, tuple) else str(report.longrepr)
+        if OPTIONAL_EXTRA not in reason:
+            _forbidden_skips.append(f"{report.nodeid}: {reason}")
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if _forbidden_skips and session.exitstatus == 0:
+        session.exitstatus = 1
+
+
+def pytest_terminal_summary(terminalreporter):
+    if _forbidden_skips:
+        terminalreporter.write_line("")
+        terminalreporter.write_line("tests skipped for a reason other than a missing optional extra (a failure):",
+                                    red=True)
+        for line in _forbidden_skips:
+            terminalreporter.write_line(f"  {line}", red=True)
