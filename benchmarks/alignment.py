@@ -46,7 +46,7 @@ def stage_timings(width: int, height: int, repeats: int) -> dict:
         fv = view_features(view, config)
         t["sift_both_ms"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        matches = match_features(fr, fv, ratio=config.ratio)
+        matches = match_features(fr, fv, ratio=config.ratio, matcher=config.matcher)
         t["flann_ms"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         corr = build_correspondences(frame, view, matches, config)
