@@ -9,6 +9,7 @@ to ``Exp(-delta) p ~ p + [p]x omega - v``, so ``dp/ddelta = [[p]x, -I]``: the co
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import chi2
 
 from .align_config import AlignConfig
 from .camera import Intrinsics
@@ -16,7 +17,7 @@ from .conventions import exp_se3, make_T
 from .correspondences import Correspondences
 from .ransac import skew
 
-__all__ = ["refine_pose", "plain_covariance"]
+__all__ = ["refine_pose", "plain_covariance", "consensus_cost"]
 
 
 # --- refinement and covariance -------------------------------------------------------------------
@@ -143,6 +144,38 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
         diagnostics = {"pixel_variance_factor": float(scale_px), "depth_variance_factor": float(scale_z)}
         return T[:3, :3], T[:3, 3], cov, np.sqrt(norm_sq), _with_intrinsics_delta(intrinsics, d_K), diagnostics
     return T[:3, :3], T[:3, 3], cov, np.sqrt(norm_sq)
+
+
+def consensus_cost(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics: Intrinsics,
+                   config: AlignConfig, scale_px: float = 1.0, scale_z: float = 1.0,
+                   use_depth: bool = True) -> tuple[float, int]:
+    """Truncated (MSAC) cost of a pose and camera model over *all* correspondences.
+
+    Each correspondence's whitened residual ``r^2`` (reprojection into the real image with
+    ``intrinsics``, plus the depth residual unless ``use_depth`` is False, under the same
+    noise model as :func:`refine_pose`, variances times ``scale_px`` / ``scale_z``) costs
+    ``min(r^2, config.inlier_chi2)``. Comparing two models on the same correspondences and
+    the same noise says which explains more of them better; returns ``(cost, inliers)``.
+    """
+    p = corr.x @ R.T + t
+    n = len(p)
+    if n == 0 or np.any(p[:, 2] <= 1e-6):
+        return float("inf"), 0
+    grad = np.zeros((n, 2)) if corr.depth_grad is None else corr.depth_grad
+    z_real = corr.y[:, 2]
+    var_z0 = (config.depth_sigma_floor_m + config.depth_sigma_z2_per_m * z_real**2) ** 2 + config.render_depth_sigma_m**2
+    edge = ~np.all(np.isfinite(grad), axis=1)
+    grad = np.where(edge[:, None], 0.0, grad)
+    var_z0 = np.where(edge, 1.0, var_z0)
+    r_px, J_px = _reprojection_terms(p, corr.uv_real, intrinsics)
+    r_z = p[:, 2] - z_real
+    J_z = _point_jacobian(p)[:, 2, :]
+    var_px = 2.0 * config.keypoint_sigma_px**2 * scale_px
+    r, _, W = _stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z0 * scale_z, True, use_depth)
+    r2 = np.einsum("ni,nij,nj->n", r, W, r)
+    # The same tail probability as the 3-row threshold, for 2 rows when the depth is left out.
+    threshold = config.inlier_chi2 if use_depth else float(chi2.ppf(chi2.cdf(config.inlier_chi2, 3), 2))
+    return float(np.sum(np.minimum(r2, threshold))), int(np.sum(r2 < threshold))
 
 
 def _stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use_depth):

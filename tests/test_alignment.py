@@ -159,6 +159,47 @@ def test_correct_pose_iterates_and_improves(room, scenarios):
     assert np.median(three) < 0.0015
 
 
+def _disturb_global_random_state():
+    """What other code in a process may do: reseed and advance OpenCV's RNG (PnP-RANSAC,
+    FLANN's randomised trees) and the C library's rand()."""
+    import ctypes
+
+    import cv2
+
+    cv2.setRNGSeed(12345)
+    rng = np.random.default_rng(0)
+    a, b = rng.random((300, 128), np.float32), rng.random((300, 128), np.float32)
+    cv2.FlannBasedMatcher({"algorithm": 1, "trees": 5}, {"checks": 32}).knnMatch(a, b, k=2)
+    cv2.randu(np.zeros((8, 8)), 0, 1)
+    ctypes.CDLL(None).srand(ctypes.c_uint(777))
+
+
+def test_alignment_does_not_depend_on_what_ran_before(room, scenarios):
+    """The same pairs aligned in two orders, with other code disturbing OpenCV's and the C
+    library's random state in between, give bit-identical results."""
+    _, field = room
+    pairs = [(frame, field.render(T_est, frame.intrinsics)) for frame, _, T_est in scenarios[:4]]
+
+    def run(order):
+        out = {}
+        for k in order:
+            _disturb_global_random_state()
+            frame, view = pairs[k]
+            for config in (AlignConfig(), AlignConfig(method="plain"), AlignConfig(matcher="flann")):
+                a = align_views(frame, view, config)
+                out[(k, config.method, config.matcher)] = (a.T_real_rendered, a.covariance, a.num_inliers)
+            p = pnp_align(frame, view)
+            out[(k, "pnp", "")] = (p.T_real_rendered, p.covariance, p.num_inliers)
+        return out
+
+    forward, backward = run([0, 1, 2, 3]), run([3, 2, 1, 0])
+    assert forward.keys() == backward.keys()
+    for key in forward:
+        np.testing.assert_array_equal(forward[key][0], backward[key][0], err_msg=str(key))
+        np.testing.assert_array_equal(forward[key][1], backward[key][1], err_msg=str(key))
+        assert forward[key][2] == backward[key][2]
+
+
 def test_covariance_is_honest_nees(room):
     """NEES of the iterated correction over 200 trials lies in chi2(6)'s 95% band of the mean."""
     scene, field = room
@@ -194,9 +235,16 @@ def test_bad_input_returns_reasons(room, scenarios):
     nan_depth = RGBDFrame(frame.rgb, np.full(K.shape, np.nan, np.float32), K)
     res = align_views(nan_depth, view)
     assert not res.success and "no valid depth" in res.reason
+    # A view the field is not sure of anywhere: features are only detected where it is opaque.
     dark = RenderedView(view.rgb, view.depth_m, np.full(K.shape, 0.1, np.float32), K)
-    assert "no keypoints in the rendered view" in align_views(frame, dark).reason or \
-        "low opacity" in align_views(frame, dark).reason
+    assert "no keypoints in the rendered view" in align_views(frame, dark).reason
+    # Matches whose rendered pixels the field is not sure of: low opacity, said so.
+    from nap3d_graph.correspondences import build_correspondences
+    from nap3d_graph.matching import Matches
+
+    uv = np.array([[40.0, 30.0], [100.0, 80.0], [200.0, 150.0]])
+    corr = build_correspondences(frame, dark, Matches(uv, uv, np.full(3, 0.5)), AlignConfig())
+    assert len(corr) == 0 and corr.reason == "low opacity at the matches"
     strict = align_views(frame, view, AlignConfig(min_matches=100000))
     assert not strict.success and "too few matches" in strict.reason
     assert np.all(np.isinf(strict.covariance)) and np.array_equal(strict.T_real_rendered, np.eye(4))
@@ -227,8 +275,8 @@ def test_real_tum_frames_align_to_mocap(tum_path):
 
     seq = TumSequence(tum_path)
     errors = []
-    for i in (0, 5, 10):
-        k = 10
+    for i in (0, 1, 2, 3):
+        k = 8
         a_frame, b_frame = seq[i + k], seq[i]
         view = RenderedView(b_frame.rgb, b_frame.depth_m, (b_frame.depth_m > 0).astype(np.float32), b_frame.intrinsics)
         a = align_views(a_frame, view)
@@ -245,7 +293,7 @@ def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
     from nap3d_graph.alignment import prepare_correspondences, refine_pose, align_correspondences
 
     _, field = room
-    errors, plain_errors = [], []
+    errors, plain_errors = [], []  # a failed fit scores the uncorrected error, as in Evaluation K
     for frame, T_gt, T_est in scenarios[:5]:
         K_true = frame.intrinsics
         given = frame.with_intrinsics(K_true.shifted(1.10, 10.0))
@@ -254,11 +302,10 @@ def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
         a = align_correspondences(corr, given.intrinsics, AlignConfig(estimate_intrinsics=True))
         b = align_correspondences(corr, given.intrinsics, AlignConfig(estimate_intrinsics=False))
         auto = align_correspondences(corr, given.intrinsics, AlignConfig())  # the default: "auto"
-        assert auto.diagnostics["intrinsics_ratio"] > 1.5 and "intrinsics" in auto.diagnostics
+        assert auto.diagnostics["intrinsics_model"] == "calibrated" and "intrinsics" in auto.diagnostics
         assert a.success
         errors.append(pose_error(a.corrected_pose(T_est), T_gt)[0])
-        if b.success:
-            plain_errors.append(pose_error(b.corrected_pose(T_est), T_gt)[0])
+        plain_errors.append(pose_error(b.corrected_pose(T_est) if b.success else T_est, T_gt)[0])
         # The focal length comes back (the principal point trades off against rotation and
         # is held by its prior: it is the pose that matters).
         sub = corr.__class__(corr.x[a.inlier_mask], corr.y[a.inlier_mask], corr.uv_real[a.inlier_mask],
@@ -268,4 +315,4 @@ def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
         assert abs(K_est.fx - K_true.fx) < 0.25 * abs(given.intrinsics.fx - K_true.fx)
     print("self-calibrated translation errors (m):", np.round(errors, 4), "without:", np.round(plain_errors, 4))
     assert np.median(errors) < 0.005
-    assert not plain_errors or np.median(plain_errors) > 5 * np.median(errors)
+    assert np.median(plain_errors) > 5 * np.median(errors)

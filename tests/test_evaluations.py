@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from nap3d_graph.evaluation.eval_j import EvalJConfig, run_eval_j
-from nap3d_graph.evaluation.eval_k import CSV_COLUMNS, EvalKConfig, rmse_3d, run_eval_k
+from nap3d_graph.evaluation.eval_k import CSV_COLUMNS, DEFAULT_METHODS, EvalKConfig, rmse_3d, run_eval_k
 from nap3d_graph.sims.scene import OracleField, Scene
 from nap3d_graph.sims.sequence import SimConfig, default_intrinsics, simulate_sequence
 
@@ -39,26 +39,41 @@ def test_eval_k_writes_files_and_reproduces(sim_room, tmp_path):
     seq, field = sim_room
     config = EvalKConfig(scenarios=2, seed=4)
     summary = run_eval_k(seq, field, tmp_path / "a", config)
-    for name in ("results.csv", "summary.json", "heatmap_rmse_3d_m.png", "heatmap_rot_err_deg.png",
-                 "heatmap_trans_err_m.png"):
+    for name in ("results.csv", "summary.json", "table.md", "fig4_paper_pnp_vs_nap3d-plain.png",
+                 "heatmap_refined_pnp_vs_nap3d-refined.png", "heatmap_selfcal_pnp-selfcal_vs_nap3d-selfcal.png"):
         assert (tmp_path / "a" / name).stat().st_size > 0
     with open(tmp_path / "a" / "results.csv") as fh:
         rows = list(csv.DictReader(fh))
     assert list(rows[0]) == CSV_COLUMNS
-    assert len(rows) == 2 * 16 * 4  # scenarios x cells x methods
+    assert len(rows) == 2 * 16 * 5  # scenarios x cells x methods
     assert {r["intrinsics"] for r in rows} == {"CLEAN", "MILD", "MEDIUM", "HARSH"}
     assert {float(r["blur_sigma"]) for r in rows} == {0.0, 1.0, 1.8, 2.2}
-    clean = [r for r in rows if r["intrinsics"] == "CLEAN" and float(r["blur_sigma"]) == 0 and r["method"] == "nap3d"]
-    assert all(r["success"] == "True" for r in clean)
-    assert max(float(r["trans_err_m"]) for r in clean) < 0.01  # from +-10 cm to millimetres
+    assert {r["method"] for r in rows} == set(DEFAULT_METHODS)
+    # Every row has errors, failures included (scored as the uncorrected pose).
+    assert all(r["trans_err_m"] != "" and r["rot_err_deg"] != "" for r in rows)
+    clean = [r for r in rows if r["intrinsics"] == "CLEAN" and float(r["blur_sigma"]) == 0]
+    for method in ("nap3d-plain", "nap3d-refined", "nap3d-selfcal", "pnp"):
+        mine = [r for r in clean if r["method"] == method]
+        assert all(r["success"] == "True" for r in mine), method
+        assert max(float(r["trans_err_m"]) for r in mine) < 0.01, method  # from +-10 cm to millimetres
+        assert all(float(r["nees"]) > 0 for r in mine)
     cell = summary["cells"]["blur0/CLEAN"]
-    assert set(cell["methods"]) == {"nap3d", "nap3d-fixed-k", "nap3d-plain", "pnp"}
-    assert cell["methods"]["nap3d"]["success_rate"] == 1.0
-    # Wrong intrinsics hurt: HARSH is worse than CLEAN for every method.
+    assert set(cell["methods"]) == set(DEFAULT_METHODS)
+    assert set(cell["pairs"]) == {"paper", "refined", "selfcal"}
+    assert (cell["pairs"]["paper"]["pnp_side"], cell["pairs"]["paper"]["nap3d_side"]) == ("pnp", "nap3d-plain")
+    for stats in cell["methods"]["nap3d-selfcal"]["trans_err_m"], cell["methods"]["pnp"]["rot_err_deg"]:
+        assert stats["median"] <= stats["p90"] <= stats["max"] and stats["mean"] <= stats["max"]
+    assert cell["methods"]["nap3d-selfcal"]["success_rate"] == 1.0
+    # Wrong intrinsics hurt the methods that trust them (HARSH: x1.10 focal, +10 px); the
+    # self-calibrating ones recognise the wrong calibration and estimate it.
     harsh = summary["cells"]["blur0/HARSH"]["methods"]
-    for method in ("nap3d-fixed-k", "pnp"):
-        if harsh[method]["trans_err_m"]["median"] is not None:
-            assert harsh[method]["trans_err_m"]["median"] > cell["methods"][method]["trans_err_m"]["median"]
+    for method in ("nap3d-refined", "nap3d-plain", "pnp"):
+        assert harsh[method]["trans_err_m"]["median"] > 3 * cell["methods"][method]["trans_err_m"]["median"], method
+    assert harsh["nap3d-selfcal"]["calibrated_share"] == 1.0 and cell["methods"]["nap3d-selfcal"]["calibrated_share"] == 0
+    assert harsh["nap3d-selfcal"]["trans_err_m"]["median"] < harsh["nap3d-refined"]["trans_err_m"]["median"]
+    # The table has a line per cell and method.
+    table = (tmp_path / "a" / "table.md").read_text()
+    assert table.count("| blur0/CLEAN |") == 5 and "nap3d-selfcal" in table
     # Same seed, same numbers.
     again = run_eval_k(seq, field, tmp_path / "b", config)
     assert json.dumps(again["cells"], sort_keys=True) == json.dumps(summary["cells"], sort_keys=True)
@@ -66,6 +81,43 @@ def test_eval_k_writes_files_and_reproduces(sim_room, tmp_path):
         rows_b = list(csv.DictReader(fh))
     assert [{k: v for k, v in r.items() if k != "time_s"} for r in rows] == \
         [{k: v for k, v in r.items() if k != "time_s"} for r in rows_b]
+
+
+def test_eval_k_failure_counts_as_uncorrected(sim_room, tmp_path):
+    """A field that renders nothing: every method fails, and every row scores the error of
+    the perturbed pose it could not correct (not a missing value that flatters the mean)."""
+    from nap3d_graph.camera import RenderedView
+
+    seq, field = sim_room
+
+    class Blank:
+        def render(self, T, K):
+            view = field.render(T, K)
+            return RenderedView(view.rgb, view.depth_m, np.zeros_like(view.opacity), K)
+
+    config = EvalKConfig(scenarios=2, seed=4, blur_sigmas=(0.0,), intrinsics_noise={"CLEAN": (1.0, 0.0)})
+    summary = run_eval_k(seq, Blank(), tmp_path, config)
+    with open(tmp_path / "results.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert all(r["success"] == "False" and "opacity" in r["reason"] for r in rows)
+    # The perturbations are up to 10 cm per axis and 5 deg: the scored errors are that size.
+    assert all(0.005 < float(r["trans_err_m"]) < 0.18 for r in rows)
+    stats = summary["cells"]["blur0/CLEAN"]["methods"]["nap3d-plain"]
+    assert stats["success_rate"] == 0.0 and stats["trans_err_m"]["median"] > 0.005
+    assert stats["nees"]["mean"] is None
+
+
+def test_eval_k_shift_on_both_cameras(sim_room, tmp_path):
+    seq, field = sim_room
+    config = EvalKConfig(scenarios=1, seed=4, blur_sigmas=(0.0,), shift="both",
+                         methods=("nap3d-plain", "pnp", "nap3d-selfcal"))
+    summary = run_eval_k(seq, field, tmp_path, config)
+    assert summary["config"]["shift"] == "both"
+    clean = summary["cells"]["blur0/CLEAN"]["methods"]["nap3d-selfcal"]["trans_err_m"]["median"]
+    harsh = summary["cells"]["blur0/HARSH"]["methods"]["nap3d-plain"]["trans_err_m"]["median"]
+    assert clean < 0.005 and harsh > clean  # both cameras told a wrong calibration: still hurts the plain fit
+    with pytest.raises(ValueError, match="shift"):
+        EvalKConfig(shift="left")
 
 
 def test_eval_k_needs_ground_truth(sim_room, tmp_path):
@@ -86,11 +138,13 @@ def test_eval_j_tables(sim_room, tmp_path):
     assert "A1" in text and "B3" in text and "PnP" in text
     with open(tmp_path / "results.csv") as fh:
         rows = list(csv.DictReader(fh))
-    assert len(rows) == 2 * 3 * 2
+    assert len(rows) == 2 * 3 * 3  # sublocations x trials x methods
     # The paper's offsets are the first trials.
     a1 = next(r for r in rows if r["trial"] == "A1" and r["method"] == "nap3d")
     assert (float(a1["true_x"]), float(a1["true_z"])) == (-0.12, 0.36)
+    assert "as in the paper" in text
     for sub in ("A", "B"):
+        assert summary[sub]["nap3d-plain"]["success_rate"] == 1.0 and summary[sub]["nap3d-plain"]["rmse_m"] < 0.03
         assert summary[sub]["nap3d"]["success_rate"] == 1.0
         # Offsets up to half a metre recovered to about a centimetre with the exact field.
         assert summary[sub]["nap3d"]["rmse_m"] < 0.02
