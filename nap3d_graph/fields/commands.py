@@ -34,6 +34,9 @@ def add_train_field(subparsers) -> None:
     p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses)")
     p.add_argument("--out", type=Path, required=True, help="checkpoint to write (FIELD.pt)")
     p.add_argument("--minutes", type=float, default=5.0, help="optimisation budget in minutes (default 5)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="optimisation budget in steps instead of minutes: the same field on any machine "
+                   "(--minutes is ignored when given)")
     p.add_argument("--every", type=int, default=1,
                    help="train on every K-th frame, hold out the rest for evaluation (default 1: every "
                    "tenth frame is held out)")
@@ -54,7 +57,9 @@ def run_train_field(args) -> int:
 
     from .training import TrainConfig, train_field
 
-    if not args.minutes > 0:
+    if args.steps is not None and args.steps < 1:
+        raise FieldError(f"--steps must be at least 1, got {args.steps}")
+    if args.steps is None and not args.minutes > 0:
         raise FieldError(f"--minutes must be positive, got {args.minutes}")
     if not args.voxel_size > 0:
         raise FieldError(f"--voxel-size must be positive, got {args.voxel_size}")
@@ -65,7 +70,7 @@ def run_train_field(args) -> int:
             raise FieldError(f"--threads must be at least 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     sequence = open_sequence(args.data)
-    config = TrainConfig(minutes=args.minutes, every=args.every, seed=args.seed, voxel_size_m=args.voxel_size,
+    config = TrainConfig(minutes=args.minutes, max_steps=args.steps, every=args.every, seed=args.seed, voxel_size_m=args.voxel_size,
                          coarse_voxel_size_m=args.coarse_voxel_size, eval_frames=args.eval_frames,
                          device=args.device)
     field, report = train_field(sequence, config, progress=not args.quiet)
