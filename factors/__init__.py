@@ -10,8 +10,10 @@ Keys follow ``gtsam.symbol_shorthand``: X poses, V velocities, B IMU biases, M m
 from .gate import (
     GateResult,
     chi2_gate,
+    chi2_gate_isam2,
     chi2_gate_with_marginal,
     chi2_threshold,
+    error_jacobian,
     factor_error_and_covariance,
     mahalanobis_sq,
 )
@@ -54,4 +56,6 @@ __all__ = [
     "chi2_threshold",
     "chi2_gate",
     "chi2_gate_with_marginal",
+    "chi2_gate_isam2",
+    "error_jacobian",
 ]

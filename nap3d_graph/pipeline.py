@@ -4,9 +4,12 @@ Graph: one ``Pose3`` node ``X(k)`` per keyframe (``T_world_cam``, OpenCV camera)
 ``X(0)``, odometry ``BetweenFactorPose3`` between consecutive keyframes (the frame-to-frame
 increments composed, covariance propagated), and at each keyframe the NAP3D correction as a
 robust ``PriorFactorPose3`` (or, with a map anchor, a between factor from ``M(0)``, the
-field's frame in the world). A correction enters only if it passes the chi-square gate
-against the predicted pose and its marginal covariance. Frames between keyframes are
-chained from the nearest keyframe with the odometry increments for the output trajectory.
+field's frame in the world). Each keyframe first enters iSAM2 with its odometry factor
+alone (the prediction); a correction then enters only if it passes the chi-square gate
+against that prediction: the joint marginal covariance of the factor's variables (the pose,
+and the anchor when there is one) carried through the factor's Jacobians, plus the
+correction's own covariance. Frames between keyframes are chained from the nearest keyframe
+with the odometry increments for the output trajectory.
 
 ``Pipeline.run()`` reads as its steps; no failed correction stops a run or reaches the graph.
 """
@@ -21,8 +24,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import M, X
 
-from nap3d_graph.factors import (anchor_prior_factor, chi2_gate_with_marginal, factor_error_and_covariance,
-                                 nap3d_anchor_factor, nap3d_prior_factor, odometry_factor, pose_prior_factor)
+from nap3d_graph.factors import (anchor_prior_factor, chi2_gate_isam2, nap3d_anchor_factor, nap3d_prior_factor,
+                                 odometry_factor, pose_prior_factor)
 
 from .alignment import AlignConfig
 from .camera import Intrinsics
@@ -49,10 +52,14 @@ class PipelineConfig:
     use_anchor: estimate the field's frame in the world (``M(0)``) instead of assuming it is
         the world frame.
     odom_drift_fraction, odom_drift_rad_per_m, odom_drift_rad_per_rad: odometry drift that
-        the per-frame sigmas cannot describe (biases: scale, heading), as sigmas growing with
+        the per-frame sigmas cannot describe (scale and heading biases), as sigmas growing with
         the distance travelled and the angle turned between keyframes (3% of the distance,
         1 deg per metre and 3% of the angle by default: a typical visual odometry). They
         keep the gate from rejecting exactly the corrections a biased odometry needs.
+    odom_drift_m_per_s, odom_drift_rad_per_s: drift that grows with *time*, moving or not
+        (a velocity or gyro bias integrates while the robot stands still), as sigmas per
+        second between keyframes (1 cm/s and 0.2 deg/s by default: the simulator's odometry
+        bias). Added to the distance terms.
     """
 
     keyframe_every: int = 5
@@ -72,6 +79,8 @@ class PipelineConfig:
     odom_drift_fraction: float = 0.03
     odom_drift_rad_per_m: float = 0.0175
     odom_drift_rad_per_rad: float = 0.03
+    odom_drift_m_per_s: float = 0.01
+    odom_drift_rad_per_s: float = 0.0035
     max_frames: int | None = None
     progress: bool = False
     align: AlignConfig = field(default_factory=AlignConfig)
@@ -166,7 +175,7 @@ class Pipeline:
             if self._is_keyframe(i):
                 self._add_keyframe(i)
                 self._correct_keyframe(i, frame if frame is not None else self._read_frame(i))
-                self._update_graph()
+                self._finish_keyframe()
         result = self._finish(n)
         result.wall_time_s = time.perf_counter() - t_start
         return result
@@ -188,12 +197,11 @@ class Pipeline:
         self.increments: list[np.ndarray] = [np.eye(4)]
         self.T_since_kf = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
+        self.dt_since_kf = 0.0
         self.keyframe_indices: list[int] = []
         self.records: list[KeyframeRecord] = []
         self.T_last_kf_est: np.ndarray | None = None
-        self.P_last_kf = np.zeros((6, 6))
         self.T_pred = self.T_odom[0]
-        self.P_pred = np.zeros((6, 6))
         self._pending_record: KeyframeRecord | None = None
         if self.config.use_anchor:
             self.new_factors.add(anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
@@ -223,6 +231,7 @@ class Pipeline:
         self.T_odom.append(self.T_odom[-1] @ inc.T_prev_cur)
         self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
         self.T_since_kf = self.T_since_kf @ inc.T_prev_cur
+        self.dt_since_kf += float(self.sequence.timestamps[i] - self.sequence.timestamps[i - 1])
 
     def _is_keyframe(self, i: int) -> bool:
         if not self.keyframe_indices:
@@ -236,6 +245,7 @@ class Pipeline:
         return self.config.keyframe_angle_deg > 0 and turned_deg >= self.config.keyframe_angle_deg
 
     def _add_keyframe(self, i: int) -> None:
+        """The keyframe's pose enters iSAM2 with its odometry factor: that is the prediction."""
         j = len(self.keyframe_indices)
         self.keyframe_indices.append(i)
         if j == 0:
@@ -244,16 +254,16 @@ class Pipeline:
                                                    trans_sigma_m=self.config.prior_trans_sigma_m))
             self.new_values.insert(X(0), T_to_pose3(T0))
             self.T_pred = T0
-            self.P_pred = np.diag([self.config.prior_rot_sigma_rad**2] * 3 + [self.config.prior_trans_sigma_m**2] * 3)
         else:
-            cov = self.cov_since_kf + self._drift_covariance(self.T_since_kf)
+            cov = self.cov_since_kf + self._drift_covariance(self.T_since_kf, self.dt_since_kf)
             self.new_factors.add(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
             self.T_pred = self.T_last_kf_est @ self.T_since_kf
-            self.P_pred = compose_covariance(self.P_last_kf, self.T_since_kf, cov)
             self.new_values.insert(X(j), T_to_pose3(self.T_pred))
         self.T_since_kf = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
+        self.dt_since_kf = 0.0
         self._pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j))
+        self._update_isam()
 
     def _correct_keyframe(self, i: int, frame) -> None:
         record = self._pending_record
@@ -286,9 +296,14 @@ class Pipeline:
             return
         self.new_factors.add(factor)
         record.accepted = True
+        # Two iSAM2 steps: a correction can move the pose a long way from its linearisation.
+        self._update_isam(extra_step=True)
 
     def _gated_factor(self, key: int, correction: Correction):
-        """The NAP3D factor and its gate result; ``(None, gate)`` when gated out."""
+        """The NAP3D factor and its gate result; ``(None, gate)`` when gated out.
+
+        The gate is the innovation test against iSAM2's prediction: the joint marginal of
+        the factor's variables through its Jacobians (``chi2_gate_isam2``)."""
         try:
             if self.config.use_anchor:
                 factor = nap3d_anchor_factor(key, M(0), None, correction, robust=self.config.robust)
@@ -297,31 +312,26 @@ class Pipeline:
         except ValueError as exc:  # a covariance GTSAM cannot use: skip, never corrupt the graph
             log.warning("correction at %s not usable: %s", gtsam.DefaultKeyFormatter(key), exc)
             return None, None
-        values = gtsam.Values()
-        values.insert(key, T_to_pose3(self.T_pred))
-        P = self.P_pred
-        if self.config.use_anchor:
-            values.insert(M(0), T_to_pose3(self._anchor_estimate()))
-            P = P + self._anchor_covariance()
-        xi, cov = factor_error_and_covariance(factor, values)
-        gate = chi2_gate_with_marginal(xi, cov, P, p=self.config.gate_p)
+        gate = chi2_gate_isam2(factor, self.isam, p=self.config.gate_p)
         return (factor if gate.accepted else None), gate
 
-    def _update_graph(self) -> None:
+    def _update_isam(self, extra_step: bool = False) -> None:
         t0 = time.perf_counter()
         self.isam.update(self.new_factors, self.new_values)
-        record = self._pending_record
-        if record is not None and record.accepted:
-            self.isam.update()  # one more relinearisation step after a correction moved the pose
+        if extra_step:
+            self.isam.update()
         # Fresh containers every update: iSAM2 keeps what it was given.
         self.new_factors = gtsam.NonlinearFactorGraph()
         self.new_values = gtsam.Values()
+        record = self._pending_record
+        if record is not None:
+            record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
+
+    def _finish_keyframe(self) -> None:
         key = X(len(self.keyframe_indices) - 1)
         self.T_last_kf_est = pose3_to_T(self.isam.calculateEstimatePose3(key))
-        self.P_last_kf = np.asarray(self.isam.marginalCovariance(key))
-        if record is not None:
-            record.timings_s["isam"] = round(time.perf_counter() - t0, 5)
-            self.records.append(record)
+        if self._pending_record is not None:
+            self.records.append(self._pending_record)
             self._pending_record = None
 
     def _finish(self, n: int) -> RunResult:
@@ -363,13 +373,16 @@ class Pipeline:
             T[i] = pose
         return T
 
-    def _drift_covariance(self, T_prev_cur: np.ndarray) -> np.ndarray:
-        """Diagonal covariance of the odometry's bias-like drift over one keyframe interval."""
+    def _drift_covariance(self, T_prev_cur: np.ndarray, dt_s: float) -> np.ndarray:
+        """Diagonal covariance of the odometry's bias-like drift over one keyframe interval:
+        sigmas growing with the distance, the angle and the time (``dt_s`` seconds)."""
         distance_m, angle_deg = pose_error(T_prev_cur, np.eye(4))
         c = self.config
         rot = c.odom_drift_rad_per_m * distance_m + c.odom_drift_rad_per_rad * np.radians(angle_deg)
         trans = c.odom_drift_fraction * distance_m
-        return np.diag([rot**2] * 3 + [trans**2] * 3)
+        rot_var = rot**2 + (c.odom_drift_rad_per_s * dt_s) ** 2
+        trans_var = trans**2 + (c.odom_drift_m_per_s * dt_s) ** 2
+        return np.diag([rot_var] * 3 + [trans_var] * 3)
 
     def _render_intrinsics(self, frame) -> Intrinsics:
         w, h = self.config.render_width, self.config.render_height
@@ -381,8 +394,3 @@ class Pipeline:
         if self.isam.valueExists(M(0)):
             return pose3_to_T(self.isam.calculateEstimatePose3(M(0)))
         return np.eye(4)
-
-    def _anchor_covariance(self) -> np.ndarray:
-        if self.isam.valueExists(M(0)):
-            return np.asarray(self.isam.marginalCovariance(M(0)))
-        return np.diag([self.config.anchor_rot_sigma_rad**2] * 3 + [self.config.anchor_trans_sigma_m**2] * 3)

@@ -33,7 +33,7 @@ def ate_odometry(result):
 def walk(tmp_path_factory):
     """A 48-frame traversal of a room with strongly drifting odometry."""
     path = tmp_path_factory.mktemp("pipe") / "walk"
-    drift = OdometryNoise(bias_init=(0.0, 0.0, 0.01, 0.015, 0.0, 0.005))
+    drift = OdometryNoise(bias_init=(0.0, 0.0, 0.01, 0.015, 0.0, 0.005), heading_bias_rad_s=0.01)
     simulate_sequence(path, SimConfig(frames=48, fps=6.0, width=192, height=144, scene_seed=11, seed=4,
                                       odometry=drift))
     return path
