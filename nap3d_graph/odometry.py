@@ -59,17 +59,18 @@ class RecordedOdometry:
 
 
 class NoisyGroundTruthOdometry(RecordedOdometry):
-    """Ground-truth increments with seeded noise (white per frame, plus a wandering bias)."""
+    """Ground-truth increments with seeded noise (white per frame, a wandering camera-frame
+    bias, and a heading bias about gravity; see :class:`~nap3d_graph.sims.sensors.OdometryNoise`)."""
 
     name = "noisy"
 
     def __init__(self, T_world_cam_gt: np.ndarray, stamps: np.ndarray, rot_sigma_rad: float = 2e-3,
                  trans_sigma_m: float = 2e-3, bias=(0.0, 0.0, 0.004, 0.01, 0.0, 0.0), bias_walk: float = 1e-3,
-                 seed: int = 0):
+                 heading_bias_rad_s: float = 0.004, seed: int = 0):
         from nap3d_graph.sims.sensors import OdometryNoise, drifting_odometry
 
         noise = OdometryNoise(rot_sigma_rad=rot_sigma_rad, trans_sigma_m=trans_sigma_m, bias_init=tuple(bias),
-                              bias_walk=bias_walk)
+                              bias_walk=bias_walk, heading_bias_rad_s=heading_bias_rad_s)
         T_odom, _ = drifting_odometry(np.asarray(T_world_cam_gt), np.asarray(stamps), noise,
                                       np.random.default_rng(seed))
         super().__init__(T_odom, rot_sigma_rad, trans_sigma_m)

@@ -72,16 +72,28 @@ class OdometryNoise:
     """Drift of frame-to-frame odometry.
 
     Each increment ``T_k_k+1`` is perturbed on the right by ``Exp(xi_k)`` with
-    ``xi_k = b_k * dt + w_k``: white noise ``w_k ~ N(0, diag(sigma^2))`` per frame (rotation
-    rad, translation m, GTSAM order) plus a slowly wandering bias ``b`` (rad/s, m/s) that
-    follows a random walk with ``bias_walk`` per sqrt(second), starting at ``bias_init``.
-    The bias makes the error grow like real odometry's (faster than a random walk).
+    ``xi_k = b_k * dt + h * dt + w_k``:
+
+    * white noise ``w_k ~ N(0, diag(sigma^2))`` per frame (rotation rad, translation m, GTSAM
+      order, camera frame);
+    * a slowly wandering bias ``b`` (rad/s, m/s) *in the camera frame* that follows a random
+      walk with ``bias_walk`` per sqrt(second), starting at ``bias_init``. Its rotation
+      components are about the camera's x (pitch), y (yaw of a level camera... only while it
+      is level) and z axes; z is the *optical* axis, so the third component is a roll, which
+      barely bends a forward path (it used to be called a heading bias: it is not);
+    * a heading bias ``h`` of ``heading_bias_rad_s`` about *gravity* (world +Z), expressed in
+      the camera frame at each step: what a visual odometry's or gyro's yaw drift does, and
+      what bends a path sideways.
+
+    The biases make the error grow like real odometry's (faster than a random walk), with the
+    time travelled as much as with the distance: they act while the camera stands still.
     """
 
     rot_sigma_rad: float = 2e-3
     trans_sigma_m: float = 2e-3
     bias_init: tuple[float, float, float, float, float, float] = (0.0, 0.0, 0.004, 0.01, 0.0, 0.0)
     bias_walk: float = 1e-3
+    heading_bias_rad_s: float = 0.004
 
     @property
     def sigmas(self) -> np.ndarray:
@@ -95,7 +107,7 @@ def drifting_odometry(
     T_world_cam_gt: np.ndarray, stamps: np.ndarray, noise: OdometryNoise, rng: np.random.Generator
 ) -> tuple[np.ndarray, np.ndarray]:
     """Drifting odometry poses (N, 4, 4) starting at the true first pose, and the
-    per-increment errors ``xi`` (N-1, 6) that were applied (GTSAM order)."""
+    per-increment errors ``xi`` (N-1, 6) that were applied (GTSAM order, camera frame)."""
     n = len(T_world_cam_gt)
     T_odom = np.empty_like(T_world_cam_gt)
     T_odom[0] = T_world_cam_gt[0]
@@ -105,6 +117,10 @@ def drifting_odometry(
         dt = float(stamps[k + 1] - stamps[k])
         increment = inv_T(T_world_cam_gt[k]) @ T_world_cam_gt[k + 1]
         xi = bias * dt + rng.normal(size=6) * noise.sigmas
+        # The heading bias turns about gravity (world +Z), whatever the camera's attitude:
+        # world +Z expressed in the frame the perturbation applies to (after the increment).
+        R_world_next = T_odom[k][:3, :3] @ increment[:3, :3]
+        xi[:3] += R_world_next.T @ np.array([0.0, 0.0, noise.heading_bias_rad_s * dt])
         errors[k] = xi
         T_odom[k + 1] = T_odom[k] @ increment @ exp_se3(xi)
         bias = bias + rng.normal(size=6) * noise.bias_walk * np.sqrt(dt)
