@@ -181,22 +181,26 @@ class _WallModel:
     """Stands in for a nerfstudio model: a wall at z = 2 m in front of every camera, reported
     the way nerfstudio does (ray length along the unit ray, in scaled model units)."""
 
-    def __init__(self, intrinsics, scale):
+    def __init__(self, intrinsics, scale, drop=()):
         self.norms = intrinsics.ray_norms()
         self.scale = scale
         self.cameras = []
+        self.drop = drop
 
     def get_outputs_for_camera(self, camera):
         import torch
 
         self.cameras.append(camera)
         h, w = self.norms.shape
-        ray = torch.as_tensor(z_m_to_model_depth(np.full((h, w), 2.0), self.norms, self.scale), dtype=torch.float32)
-        return {
+        expected = torch.as_tensor(z_m_to_model_depth(np.full((h, w), 2.0), self.norms, self.scale), dtype=torch.float32)
+        median = torch.as_tensor(z_m_to_model_depth(np.full((h, w), 2.1), self.norms, self.scale), dtype=torch.float32)
+        outputs = {
             "rgb": torch.full((h, w, 3), 0.5),
-            "depth": ray[..., None],
+            "expected_depth": expected[..., None],  # the wall at 2 m
+            "depth": median[..., None],  # nerfacto's median: 10 cm off here, to tell them apart
             "accumulation": torch.ones((h, w, 1)),
         }
+        return {k: v for k, v in outputs.items() if k not in self.drop}
 
 
 def test_adapter_converts_pose_intrinsics_and_depth(dataparser_file):
@@ -215,6 +219,15 @@ def test_adapter_converts_pose_intrinsics_and_depth(dataparser_file):
     camera = model.cameras[0]
     np.testing.assert_allclose(camera["c2w"][0], world_to_model_pose(T_world_cam, dp)[:3, :4], atol=1e-6)
     assert camera["cx"] == pytest.approx(small.cx + 0.5) and camera["w"] == 40
+    # The median depth on request; a missing output is an error, never a silent substitute.
+    median = NerfstudioField(model, dp, cameras_factory=factory, depth_key="depth").render(T_world_cam, small)
+    np.testing.assert_allclose(median.depth_m, 2.1, atol=1e-5)
+    no_expected = NerfstudioField(_WallModel(small, dp.scale, drop=("expected_depth",)), dp, cameras_factory=factory)
+    with pytest.raises(FieldError, match="no 'expected_depth'.*depth_key"):
+        no_expected.render(T_world_cam, small)
+    no_opacity = NerfstudioField(_WallModel(small, dp.scale, drop=("accumulation",)), dp, cameras_factory=factory)
+    with pytest.raises(FieldError, match="no 'accumulation'"):
+        no_opacity.render(T_world_cam, small)
 
 
 def test_load_field_on_config_without_nerfstudio_says_how_to_install(tmp_path, monkeypatch):
