@@ -48,6 +48,7 @@ __all__ = [
     "align_views",
     "align_correspondences",
     "choose_intrinsics_model",
+    "covariance_inflation",
     "prepare_correspondences",
     "view_features",
     "Correspondences",
@@ -93,7 +94,8 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
                                  corr.num_matches, method=method, timings_s=timings)
     s_xy, s_z = noise_sigmas(corr, intrinsics, config)
     t0 = time.perf_counter()
-    ransac = ransac_procrustes(corr.x, corr.y, corr.opacity, s_xy, s_z, config)
+    weights = corr.opacity if config.opacity_weighting else np.ones(n)
+    ransac = ransac_procrustes(corr.x, corr.y, weights, s_xy, s_z, config)
     timings["ransac"] = time.perf_counter() - t0
     if not ransac.success:
         return Alignment.failure(ransac.reason, corr.num_matches, method=method, timings_s=timings)
@@ -106,7 +108,8 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
     diagnostics: dict = {}
     K_refined = intrinsics
     if config.method == "plain":
-        cov = plain_covariance(R, t, corr.x[inliers], corr.y[inliers], corr.opacity[inliers])
+        cov = plain_covariance(R, t, corr.x[inliers], corr.y[inliers], weights[inliers], s_xy[inliers],
+                               s_z[inliers]) * config.plain_covariance_inflation
     else:
         refined = refine_pose(R, t, subset(corr, inliers), intrinsics, config, return_intrinsics=True)
         if refined is None:
@@ -125,7 +128,7 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
                 break
             inliers = new_inliers
             R, t, cov, _, K_refined, diagnostics = again
-        cov = cov * config.covariance_inflation
+        cov = cov * covariance_inflation(R, t, corr.y[inliers], config)
     timings["refine"] = time.perf_counter() - t0
     if not np.all(np.isfinite(cov)) or np.min(np.linalg.eigvalsh(cov)) <= 0:
         return Alignment.failure("degenerate geometry (covariance not positive definite)", corr.num_matches,
@@ -143,6 +146,15 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
         inlier_mask=inliers,
         diagnostics={**diagnostics, "intrinsics": K_refined.to_dict()} if config.estimate_intrinsics is True else diagnostics,
     )
+
+
+def covariance_inflation(R: np.ndarray, t: np.ndarray, y_inliers: np.ndarray, config: AlignConfig) -> float:
+    """The factor the refined covariance is multiplied by: it grows with the viewpoint change
+    ``v`` between the rendered and the real view (translation plus rotation angle times the
+    inliers' median depth), see :class:`AlignConfig` for the measurement behind it."""
+    angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+    v = float(np.linalg.norm(t)) + angle * float(np.median(y_inliers[:, 2]))
+    return config.covariance_inflation + config.covariance_inflation_per_log * np.log1p(v / config.viewpoint_scale_m)
 
 
 def choose_intrinsics_model(corr: Correspondences, intrinsics: Intrinsics, fixed: Alignment,

@@ -33,13 +33,15 @@ def ate_odometry(result):
 def walk(tmp_path_factory):
     """A 48-frame traversal of a room with strongly drifting odometry."""
     path = tmp_path_factory.mktemp("pipe") / "walk"
-    drift = OdometryNoise(bias_init=(0.0, 0.0, 0.01, 0.015, 0.0, 0.005), heading_bias_rad_s=0.01)
+    drift = OdometryNoise(bias_init=(0.0, 0.0, 0.01, 0.03, 0.0, 0.01), heading_bias_rad_s=0.02)
     simulate_sequence(path, SimConfig(frames=48, fps=6.0, width=192, height=144, scene_seed=11, seed=4,
                                       odometry=drift))
     return path
 
 
-CONFIG = PipelineConfig(keyframe_every=4, render_width=None, render_height=None, correction_iterations=2)
+# The drift model says what this odometry does: 3 cm/s and 0.02 rad/s of bias, moving or not.
+CONFIG = PipelineConfig(keyframe_every=4, render_width=None, render_height=None, correction_iterations=2,
+                        odom_drift_m_per_s=0.035, odom_drift_rad_per_s=0.025)
 
 
 @pytest.fixture(scope="module")
