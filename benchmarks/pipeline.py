@@ -23,7 +23,7 @@ import numpy as np
 
 def keyframe_latency(field_arg: str, frames: int, iterations: int) -> dict:
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.evaluation.commands import resolve_field
+    from nap3d_graph.fields import resolve_field
     from nap3d_graph.odometry import make_odometry
     from nap3d_graph.pipeline import Pipeline, PipelineConfig
     from nap3d_graph.run_output import keyframe_timing_summary

@@ -153,21 +153,12 @@ def test_corrupt_and_foreign_checkpoints_fail_clearly(trained, tmp_path):
         GridField.load(tmp_path / "missing.pt")
 
 
-def _parser():
-    from nap3d_graph.fields.commands import add_export_nerfstudio, add_train_field
-
-    parser = argparse.ArgumentParser(prog="nap3d-graph")
-    sub = parser.add_subparsers(dest="command")
-    add_train_field(sub)
-    add_export_nerfstudio(sub)
-    return parser
-
-
 def test_train_field_command_writes_checkpoint_and_report(survey, tmp_path, capsys):
+    from nap3d_graph.cli import main
+
     out = tmp_path / "run" / "field.pt"
-    args = _parser().parse_args(["train-field", str(survey.path), "--out", str(out), "--steps", "60",
-                                 "--voxel-size", "0.08", "--every", "2", "--eval-frames", "2", "--quiet"])
-    assert args.func(args) == 0
+    assert main(["train-field", str(survey.path), "--out", str(out), "--steps", "60", "--voxel-size", "0.08",
+                 "--every", "2", "--eval-frames", "2", "--quiet"]) == 0
     assert out.is_file()
     report = json.loads((out.parent / "field_report.json").read_text())
     held = report["held_out"]
@@ -179,26 +170,41 @@ def test_train_field_command_writes_checkpoint_and_report(survey, tmp_path, caps
     assert isinstance(load_field(out), GridField)
 
 
-def test_commands_reject_bad_input(survey, tmp_path):
-    from nap3d_graph.datasets import DatasetError
+@pytest.mark.parametrize(("extra", "message"), [
+    (["--minutes", "0"], "--minutes: must be a finite number > 0, got 0"),
+    (["--steps", "0"], "--steps: must be an integer >= 1, got 0"),
+    (["--out", "f.txt"], "must name a .pt checkpoint"),
+    (["--out", "under_a_file/f.pt"], "under_a_file is a file, not a folder"),
+    (["--out", "a_folder.pt"], "is a folder; name the file to write"),
+])
+def test_train_field_rejects_bad_arguments_at_once(survey, tmp_path, capsys, monkeypatch, extra, message):
+    """One line, exit code 2, and before any training (the checks come first)."""
+    from nap3d_graph.cli import main
 
-    parser = _parser()
-    args = parser.parse_args(["train-field", str(survey.path), "--out", str(tmp_path / "f.pt"), "--minutes", "0"])
-    with pytest.raises(FieldError, match="minutes"):
-        args.func(args)
-    args = parser.parse_args(["train-field", str(survey.path), "--out", str(tmp_path / "f.pt"), "--steps", "0"])
-    with pytest.raises(FieldError, match="steps"):
-        args.func(args)
-    args = parser.parse_args(["train-field", str(tmp_path / "nowhere"), "--out", str(tmp_path / "f.pt")])
-    with pytest.raises(DatasetError):
-        args.func(args)
-    args = parser.parse_args(["train-field", str(survey.path), "--out", str(tmp_path / "f.txt")])
-    with pytest.raises(FieldError, match=".pt"):
-        args.func(args)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "under_a_file").write_text("a file where a folder should be")
+    (tmp_path / "a_folder.pt").mkdir()
+    args = ["train-field", str(survey.path), "--out", "f.pt", *extra]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1, err
+
+
+def test_train_field_on_missing_data_is_one_line(tmp_path, capsys):
+    from nap3d_graph.cli import main
+
+    assert main(["train-field", str(tmp_path / "nowhere"), "--out", str(tmp_path / "f.pt")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "nowhere" in err and len(err.splitlines()) == 1
 
 
 def test_export_nerfstudio_command(survey, tmp_path, capsys):
-    args = _parser().parse_args(["export-nerfstudio", str(survey.path), str(tmp_path / "ns"), "--every", "8"])
-    assert args.func(args) == 0
+    from nap3d_graph.cli import main
+
+    assert main(["export-nerfstudio", str(survey.path), str(tmp_path / "ns"), "--every", "8"]) == 0
     meta = json.loads((tmp_path / "ns" / "transforms.json").read_text())
     assert len(meta["frames"]) == 13 and "ns-train" in capsys.readouterr().out
+    # A second export into the same (now non-empty) folder is refused without --force.
+    assert main(["export-nerfstudio", str(survey.path), str(tmp_path / "ns")]) == 2
+    assert "not empty" in capsys.readouterr().err
+    assert main(["export-nerfstudio", str(survey.path), str(tmp_path / "ns"), "--every", "8", "--force"]) == 0

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from .base import FieldError, RadianceField
 
-__all__ = ["RadianceField", "FieldError", "load_field"]
+__all__ = ["RadianceField", "FieldError", "load_field", "resolve_field"]
 
 
 def load_field(path: str | Path):
@@ -37,3 +37,17 @@ def load_field(path: str | Path):
 
         return load_nerfstudio_field(path)
     raise FieldError(f"{path}: not a field (expected a .pt checkpoint, a nerfstudio config.yml or a scene.json)")
+
+
+def resolve_field(field_arg: str, sequence=None):
+    """What a ``--field`` argument names: ``oracle`` (the exact simulated room ``sequence``
+    came from), ``none`` (no field: None), or a path for :func:`load_field`."""
+    if field_arg == "none":
+        return None
+    if field_arg == "oracle":
+        oracle = getattr(sequence, "oracle_field", None)
+        if oracle is None:
+            where = getattr(sequence, "path", "the data")
+            raise FieldError(f"--field oracle needs a simulated sequence (with scene.json); {where} is not one")
+        return oracle()
+    return load_field(field_arg)

@@ -3,83 +3,24 @@
 With no data given, the embedded default runs end to end with nothing downloaded: a
 simulated room, a mapping survey and a separate traversal that never revisits a place
 (both cached, keyed by their settings), a torch field trained on the survey (cached, keyed
-by the scene and the training settings), drifting odometry with NAP3D corrections through
+by the scene and the training budget), drifting odometry with NAP3D corrections through
 iSAM2, and a short table of the outcome.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
-import json
-import logging
-import os
 import time
 from pathlib import Path
 
-__all__ = ["add_run", "default_cache_dir", "embedded_default_inputs"]
+from .common import (UsageError, non_negative_float, positive_float, positive_int, probability, writable_dir)
 
-log = logging.getLogger(__name__)
-
-#: The embedded default: room, survey, traversal and training budget.
-DEFAULT_SCENE_SEED = 0
-DEFAULT_MAPPING = {"frames": 240, "seed": 1, "path": "mapping", "width": 320, "height": 240}
-DEFAULT_TRAVERSE = {"frames": 240, "seed": 2, "path": "traverse", "width": 320, "height": 240}
-DEFAULT_TRAIN_MINUTES = 2.0
+__all__ = ["add_parser", "run"]
 
 
-def default_cache_dir() -> Path:
-    """``$NAP3D_GRAPH_CACHE`` or ``~/.cache/nap3d-graph``."""
-    return Path(os.environ.get("NAP3D_GRAPH_CACHE", Path.home() / ".cache" / "nap3d-graph"))
+def add_parser(sub) -> None:
+    from nap3d_graph.default_run import DEFAULT_TRAIN_STEPS
 
-
-def _key(d: dict) -> str:
-    return hashlib.sha1(json.dumps(d, sort_keys=True).encode()).hexdigest()[:10]
-
-
-def _cached_sequence(cache: Path, settings: dict, progress: bool) -> Path:
-    """Simulate once per settings; a ``.complete`` marker guards against half-written data."""
-    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
-
-    folder = cache / "data" / f"room{settings['scene_seed']}_{settings['path']}_{_key(settings)}"
-    if (folder / ".complete").exists():
-        log.info("reusing simulated %s", folder)
-        return folder
-    print(f"simulating the {settings['path']} sequence ({settings['frames']} frames) into {folder}")
-    simulate_sequence(folder, SimConfig(**settings), progress=progress)
-    (folder / ".complete").write_text("ok\n")
-    return folder
-
-
-def _cached_field(cache: Path, mapping: Path, minutes: float, progress: bool, settings: dict):
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.grid import GridField
-    from nap3d_graph.fields.training import train_field
-
-    key = _key({"mapping": settings, "minutes": minutes})
-    path = cache / "fields" / f"room{settings['scene_seed']}_{key}.pt"
-    if path.exists():
-        log.info("reusing trained field %s", path)
-        return GridField.load(path), path, None
-    print(f"training the field on the survey for {minutes:g} min (cached for later runs as {path})")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    field, report = train_field(open_sequence(mapping), minutes=minutes, progress=progress)
-    field.save(path)
-    path.with_suffix(".report.json").write_text(json.dumps(report, indent=1, default=float))
-    return field, path, report
-
-
-def embedded_default_inputs(cache: Path, train_minutes: float = DEFAULT_TRAIN_MINUTES, progress: bool = True):
-    """Simulate (or reuse) the default room's survey and traversal and train (or reuse) its
-    field. Returns ``(traverse_folder, field, field_path, training_report or None)``."""
-    mapping = _cached_sequence(cache, {"scene_seed": DEFAULT_SCENE_SEED, **DEFAULT_MAPPING}, progress)
-    traverse = _cached_sequence(cache, {"scene_seed": DEFAULT_SCENE_SEED, **DEFAULT_TRAVERSE}, progress)
-    field, field_path, report = _cached_field(cache, mapping, train_minutes, progress,
-                                              {"scene_seed": DEFAULT_SCENE_SEED, **DEFAULT_MAPPING})
-    return traverse, field, field_path, report
-
-
-def add_run(sub) -> None:
     p = sub.add_parser(
         "run",
         help="drift correction: odometry + NAP3D factors in iSAM2 (no arguments: the embedded default)",
@@ -96,99 +37,106 @@ def add_run(sub) -> None:
     p.add_argument("--odom", choices=("recorded", "noisy", "vo"),
                    help="odometry: recorded (the sequence's odometry.txt; default for sim), noisy (noise injected "
                    "on ground-truth increments; default for tum) or vo (frame-to-frame RGB-D odometry)")
-    p.add_argument("--odom-rot-sigma", type=float, default=2e-3,
+    p.add_argument("--odom-rot-sigma", type=positive_float, default=2e-3,
                    help="per-frame rotation noise of the odometry, rad (injected with --odom noisy, and the "
                    "odometry factors' sigma); default 0.002")
-    p.add_argument("--odom-trans-sigma", type=float, default=2e-3,
+    p.add_argument("--odom-trans-sigma", type=positive_float, default=2e-3,
                    help="per-frame translation noise of the odometry, m; default 0.002")
-    p.add_argument("--keyframe-every", type=int, default=5, help="a keyframe (and a correction) every N frames "
-                   "(default 5)")
-    p.add_argument("--keyframe-distance", type=float, default=0.0,
+    p.add_argument("--keyframe-every", type=positive_int, default=5,
+                   help="a keyframe (and a correction) every N frames (default 5)")
+    p.add_argument("--keyframe-distance", type=non_negative_float, default=0.0,
                    help="also a keyframe after this many metres of odometry (0: off)")
-    p.add_argument("--keyframe-angle", type=float, default=0.0,
+    p.add_argument("--keyframe-angle", type=non_negative_float, default=0.0,
                    help="also a keyframe after this many degrees of rotation (0: off)")
-    p.add_argument("--iterations", type=int, default=1,
+    p.add_argument("--iterations", type=positive_int, default=1,
                    help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
                    "a little more accurate, twice the time)")
     p.add_argument("--render-size", default="320x240", help="WxH the field renders at (default 320x240)")
     p.add_argument("--anchor", action="store_true",
                    help="estimate the field's frame in the world (map anchor M(0)) instead of assuming it is the "
                    "odometry's world frame")
-    p.add_argument("--gate-p", type=float, default=0.997, help="chi-square gate probability (default 0.997)")
-    p.add_argument("--max-frames", type=int, help="stop after this many frames")
+    p.add_argument("--gate-p", type=probability, default=0.997,
+                   help="chi-square gate probability, in (0, 1) (default 0.997)")
+    p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
     p.add_argument("--seed", type=int, default=0, help="seed of injected odometry noise (default 0)")
     p.add_argument("--out", type=Path, default=Path("results"), help="results root (default ./results)")
     p.add_argument("--cache", type=Path, default=None,
                    help="cache of the embedded default's data and field (default $NAP3D_GRAPH_CACHE or "
                    "~/.cache/nap3d-graph)")
-    p.add_argument("--train-minutes", type=float, default=DEFAULT_TRAIN_MINUTES,
-                   help=f"field training budget of the embedded default (default {DEFAULT_TRAIN_MINUTES:g})")
-    p.set_defaults(func=_cmd_run)
-
-
-class RunError(ValueError):
-    """A run that cannot start (bad combination of arguments or inputs)."""
+    p.add_argument("--train-steps", type=positive_int, default=DEFAULT_TRAIN_STEPS,
+                   help=f"field training budget of the embedded default, in steps (default {DEFAULT_TRAIN_STEPS}, "
+                   "about two minutes on two cores)")
+    p.set_defaults(func=run)
 
 
 def _parse_size(text: str) -> tuple[int, int]:
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise RunError(f"--render-size must look like 320x240, got {text!r}") from None
+        raise UsageError(f"--render-size must look like 320x240, got {text!r}") from None
     if w <= 0 or h <= 0:
-        raise RunError(f"--render-size must be positive, got {text!r}")
+        raise UsageError(f"--render-size must be positive, got {text!r}")
     return w, h
 
 
-def _cmd_run(args) -> int:
+def _inputs(args):
+    """(sequence folder, field, field description, run name) from the arguments."""
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.evaluation.commands import resolve_field
+    from nap3d_graph.default_run import default_cache_dir, embedded_default_inputs
+    from nap3d_graph.fields import resolve_field
+
+    if args.data is None:
+        if args.traj != "sim":
+            raise UsageError(f"--traj {args.traj} needs --data PATH")
+        cache = args.cache or default_cache_dir()
+        data, field_obj, field_path, _ = embedded_default_inputs(cache, args.train_steps, progress=True, say=print)
+        if args.field not in (None, "default"):
+            field_obj = resolve_field(args.field, open_sequence(data))
+            field_path = args.field
+        return data, field_obj, str(field_path), "default"
+    if args.field is None:
+        raise UsageError("--data needs --field (a checkpoint, 'oracle' for simulated data, or 'none')")
+    return args.data, None, args.field, args.traj
+
+
+def run(args) -> int:
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.fields import resolve_field
     from nap3d_graph.odometry import make_odometry
     from nap3d_graph.pipeline import Pipeline, PipelineConfig
     from nap3d_graph.run_output import write_results
 
     t0 = time.perf_counter()
     if args.traj == "realsense":
-        raise RunError("--traj realsense: reading RealSense recordings is not supported in this version; "
-                       "record to a TUM-layout folder and use --traj tum")
+        raise UsageError("--traj realsense: reading RealSense recordings is not supported in this version; "
+                         "record to a TUM-layout folder and use --traj tum")
     width, height = _parse_size(args.render_size)
-    field_path = None
-    if args.data is None:
-        if args.traj != "sim":
-            raise RunError(f"--traj {args.traj} needs --data PATH")
-        cache = args.cache or default_cache_dir()
-        data, field_obj, field_path, _ = embedded_default_inputs(cache, args.train_minutes, progress=True)
-        if args.field not in (None, "default"):
-            field_obj = None if args.field == "none" else resolve_field(args.field, open_sequence(data))
-            field_path = args.field
-        name = "default"
-    else:
-        data = args.data
-        if args.field is None:
-            raise RunError("--data needs --field (a checkpoint, 'oracle' for simulated data, or 'none')")
-        name = args.traj
+    writable_dir(args.out)  # before the run, not after it
+    data, field_obj, field_desc, name = _inputs(args)
     sequence = open_sequence(data)
     if args.data is not None:
-        field_obj = None if args.field == "none" else resolve_field(args.field, sequence)
-        field_path = args.field
+        field_obj = resolve_field(args.field, sequence)
     odom_kind = args.odom or ("recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy")
-    odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma)
+    try:
+        odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma)
+    except ValueError as exc:  # the data cannot give that odometry: say which and what to use
+        raise UsageError(str(exc)) from None
     config = PipelineConfig(keyframe_every=args.keyframe_every, keyframe_distance_m=args.keyframe_distance,
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=args.anchor, gate_p=args.gate_p,
                             max_frames=args.max_frames, progress=True)
     result = Pipeline(sequence, field_obj, odometry, config).run()
-    record = {"traj": args.traj, "data": str(data), "field": str(field_path), "odometry": odom_kind,
+    record = {"traj": args.traj, "data": str(data), "field": field_desc, "odometry": odom_kind,
               "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
               "seed": args.seed, "pipeline": {k: v for k, v in vars(config).items() if k != "align"},
               "align": vars(config.align)}
     run_dir, metrics = write_results(result, args.out, record, name)
-    print(_summary_table(metrics, time.perf_counter() - t0))
+    print(summary_table(metrics, time.perf_counter() - t0))
     print(f"results: {run_dir}  (also {Path(args.out) / 'latest'})")
     return 0
 
 
-def _summary_table(metrics: dict, seconds: float) -> str:
+def summary_table(metrics: dict, seconds: float) -> str:
     lines = ["", f"{'':<22}{'ATE rmse':>12}{'ATE 1st half':>14}{'ATE 2nd half':>14}{'RPE rmse':>12}"]
     for name, label in (("odometry", "odometry only"), ("estimate", "with NAP3D")):
         m = metrics.get(name)

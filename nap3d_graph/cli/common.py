@@ -1,0 +1,105 @@
+"""What every subcommand shares: the one-line usage error, argument types that say their
+range, and checks of output paths made *before* any work starts."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+from pathlib import Path
+
+__all__ = ["UsageError", "Parser", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+           "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
+
+
+class UsageError(Exception):
+    """A bad argument or a bad combination the user can fix; the CLI prints it on one line."""
+
+
+class Parser(argparse.ArgumentParser):
+    """An ``ArgumentParser`` whose errors are one line (``nap3d-graph run: error: ...``) with
+    a pointer to ``--help``, instead of the usage block and the message."""
+
+    def error(self, message: str):  # noqa: D401 - argparse's hook
+        raise UsageError(f"{message} (see {self.prog} --help)")
+
+
+def _number(kind, text: str, what: str):
+    try:
+        return kind(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
+
+
+def positive_int(text: str) -> int:
+    value = _number(int, text, "an integer >= 1")
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
+    return value
+
+
+def non_negative_int(text: str) -> int:
+    value = _number(int, text, "an integer >= 0")
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    value = _number(float, text, "a number > 0")
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    value = _number(float, text, "a number >= 0")
+    if not value >= 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
+    return value
+
+
+def probability(text: str) -> float:
+    value = _number(float, text, "a probability in (0, 1)")
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be a probability in (0, 1), got {text}")
+    return value
+
+
+def writable_dir(path: Path, what: str = "--out") -> Path:
+    """Create ``path`` (and its parents) if needed and prove a file can be written in it.
+
+    Run before any computation, so a bad ``--out`` (a file, a folder under a file, a
+    read-only place) costs a one-line error, not a finished run lost at the end.
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"{what} {path} is a file, not a folder")
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=path)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise UsageError(f"{what} {path} is not writable ({exc.strerror or exc})") from None
+    return path
+
+
+def writable_file_parent(path: Path, what: str = "--out") -> Path:
+    """The folder a file will be written into exists (or is created) and is writable."""
+    path = Path(path)
+    if path.is_dir():
+        raise UsageError(f"{what} {path} is a folder; name the file to write")
+    writable_dir(path.parent if str(path.parent) else Path("."), what=f"{what} folder")
+    return path
+
+
+def empty_or_new_dir(path: Path, force: bool, what: str = "output folder") -> Path:
+    """Refuse to write into a non-empty folder unless ``force``: nothing is overwritten by
+    surprise (a simulated sequence written over a real one loses the real one)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UsageError(f"{what} {path} is a file, not a folder")
+    if path.is_dir() and any(path.iterdir()) and not force:
+        raise UsageError(f"{what} {path} is not empty; choose another, or add --force to write into it")
+    return writable_dir(path, what=what)

@@ -1,0 +1,35 @@
+"""``nap3d-graph export-nerfstudio``: a posed RGB-D sequence as a nerfstudio dataset."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from .common import empty_or_new_dir, positive_int
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "export-nerfstudio",
+        help="write a posed RGB-D sequence as a nerfstudio dataset (transforms.json + images + depth)",
+        description="Write transforms.json (OpenGL cameras, fl_x fl_y cx cy w h, transform_matrix and "
+        "depth_file_path per frame), images/ and depth/ (16-bit millimetre PNG) so the sequence can be "
+        "trained with `ns-train depth-nerfacto --data OUT`.",
+    )
+    p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses)")
+    p.add_argument("out", type=Path, help="output folder (created; must be empty unless --force)")
+    p.add_argument("--every", type=positive_int, default=1, help="keep every K-th frame (the paper kept every 2nd)")
+    p.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.fields.nerfstudio import export_nerfstudio
+
+    empty_or_new_dir(args.out, args.force)
+    sequence = open_sequence(args.data)
+    path = export_nerfstudio(sequence, args.out, every=args.every, progress=True)
+    count = len(json.loads(path.read_text())["frames"])
+    print(f"wrote {count} frames to {path}; train with: ns-train depth-nerfacto --data {args.out}")
+    return 0
