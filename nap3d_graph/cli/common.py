@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["UsageError", "Parser", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["UsageError", "Parser", "add_frames_argument", "warn_trained_frames", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
@@ -103,3 +103,24 @@ def empty_or_new_dir(path: Path, force: bool, what: str = "output folder") -> Pa
     if path.is_dir() and any(path.iterdir()) and not force:
         raise UsageError(f"{what} {path} is not empty; choose another, or add --force to write into it")
     return writable_dir(path, what=what)
+
+
+def add_frames_argument(parser, what: str) -> None:
+    parser.add_argument("--frames", metavar="START:STOP", default=None,
+                        help=f"use only these frames for {what}: indices (10:200, :-20) or fractions of the "
+                        "sequence (0:0.5 the first half, 0.5:1 the second); default all")
+
+
+def warn_trained_frames(field, timestamps, what: str) -> int:
+    """Print a warning when ``field`` was trained on some of these frames; returns how many."""
+    import sys
+
+    from nap3d_graph.fields import frames_seen_in_training
+
+    seen = frames_seen_in_training(field, timestamps)
+    count = int(seen.sum())
+    if count:
+        print(f"warning: {count} of {len(seen)} {what} are frames the field was trained on: there a correction "
+              "measures the field's memory of that image, not how it generalises (train on other frames, "
+              "e.g. train-field --frames 0:0.5 and run --frames 0.5:1)", file=sys.stderr)
+    return count

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import UsageError, positive_int, writable_dir
+from .common import UsageError, add_frames_argument, positive_int, warn_trained_frames, writable_dir
 
 
 def add_parser(sub) -> None:
@@ -25,6 +25,7 @@ def add_parser(sub) -> None:
     p.add_argument("data", type=Path, help="a sequence with ground truth (TUM folder or simulated)")
     p.add_argument("--field", required=True, help="'oracle' (the simulated room of DATA) or a field checkpoint / "
                    "nerfstudio config.yml")
+    add_frames_argument(p, "the scenarios (e.g. the part of a recording the field was not trained on)")
     p.add_argument("--scenarios", type=positive_int, default=40, help="number of scenarios (default 40)")
     p.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
     p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
@@ -51,8 +52,9 @@ def run(args) -> int:
     if args.iterate and "nap3d-iter" not in methods:
         methods += ("nap3d-iter",)
     config = EvalKConfig(scenarios=args.scenarios, seed=args.seed, methods=methods, shift=args.shift)
-    sequence = open_sequence(args.data)
+    sequence = open_sequence(args.data, frames=args.frames)
     field_obj = resolve_field(args.field, sequence)
+    warn_trained_frames(field_obj, sequence.timestamps, "frames the scenarios are drawn from")
     summary = run_eval_k(sequence, field_obj, args.out, config, progress=True)
     print(_format_k(summary))
     print(f"results in {args.out}/ (results.csv, summary.json, table.md, heatmaps)")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .common import empty_or_new_dir, positive_int
+from .common import add_frames_argument, empty_or_new_dir, positive_int
 
 
 def add_parser(sub) -> None:
@@ -19,6 +19,7 @@ def add_parser(sub) -> None:
     p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses)")
     p.add_argument("out", type=Path, help="output folder (created; must be empty unless --force)")
     p.add_argument("--every", type=positive_int, default=1, help="keep every K-th frame (the paper kept every 2nd)")
+    add_frames_argument(p, "the export")
     p.add_argument("--force", action="store_true", help="write into a non-empty folder")
     p.set_defaults(func=run)
 
@@ -28,7 +29,7 @@ def run(args) -> int:
     from nap3d_graph.fields.nerfstudio import export_nerfstudio
 
     empty_or_new_dir(args.out, args.force)
-    sequence = open_sequence(args.data)
+    sequence = open_sequence(args.data, frames=args.frames)
     path = export_nerfstudio(sequence, args.out, every=args.every, progress=True)
     count = len(json.loads(path.read_text())["frames"])
     print(f"wrote {count} frames to {path}; train with: ns-train depth-nerfacto --data {args.out}")

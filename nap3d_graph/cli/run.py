@@ -13,7 +13,8 @@ import argparse
 import time
 from pathlib import Path
 
-from .common import (UsageError, non_negative_float, positive_float, positive_int, probability, writable_dir)
+from .common import (UsageError, add_frames_argument, non_negative_float, positive_float, positive_int, probability,
+                     warn_trained_frames, writable_dir)
 
 __all__ = ["add_parser", "run"]
 
@@ -32,6 +33,7 @@ def add_parser(sub) -> None:
                    help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder) "
                    "or realsense (not supported yet); default sim")
     p.add_argument("--data", type=Path, help="the sequence folder; omit (with --traj sim) for the embedded default")
+    add_frames_argument(p, "the run (a field should not have been trained on them)")
     p.add_argument("--field", help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from "
                    "'nap3d-graph train-field'), a nerfstudio config.yml, or 'none' (odometry only)")
     p.add_argument("--odom", choices=("recorded", "noisy", "vo"),
@@ -113,9 +115,10 @@ def run(args) -> int:
     width, height = _parse_size(args.render_size)
     writable_dir(args.out)  # before the run, not after it
     data, field_obj, field_desc, name = _inputs(args)
-    sequence = open_sequence(data)
+    sequence = open_sequence(data, frames=args.frames)
     if args.data is not None:
         field_obj = resolve_field(args.field, sequence)
+    trained_on = warn_trained_frames(field_obj, sequence.timestamps, "frames of this run")
     odom_kind = args.odom or ("recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy")
     try:
         odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma)
@@ -126,7 +129,8 @@ def run(args) -> int:
                             render_width=width, render_height=height, use_anchor=args.anchor, gate_p=args.gate_p,
                             max_frames=args.max_frames, progress=True)
     result = Pipeline(sequence, field_obj, odometry, config).run()
-    record = {"traj": args.traj, "data": str(data), "field": field_desc, "odometry": odom_kind,
+    record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
+              "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
               "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
               "seed": args.seed, "pipeline": {k: v for k, v in vars(config).items() if k != "align"},
               "align": vars(config.align)}

@@ -5,7 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .common import UsageError, non_negative_int, positive_float, positive_int, writable_file_parent
+from .common import (UsageError, add_frames_argument, non_negative_int, positive_float, positive_int,
+                     writable_file_parent)
 
 
 def add_parser(sub) -> None:
@@ -22,6 +23,7 @@ def add_parser(sub) -> None:
     p.add_argument("--steps", type=positive_int, default=None,
                    help="optimisation budget in steps instead of minutes: the same field on any machine "
                    "(--minutes is ignored when given)")
+    add_frames_argument(p, "training and evaluation (the checkpoint records which were trained on)")
     p.add_argument("--every", type=positive_int, default=1,
                    help="train on every K-th frame, hold out the rest for evaluation (default 1: every "
                    "tenth frame is held out)")
@@ -48,12 +50,13 @@ def run(args) -> int:
     writable_file_parent(args.out)  # before minutes of training, not after
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    sequence = open_sequence(args.data)
+    sequence = open_sequence(args.data, frames=args.frames)
     config = TrainConfig(minutes=args.minutes, max_steps=args.steps, every=args.every, seed=args.seed,
                          voxel_size_m=args.voxel_size, coarse_voxel_size_m=args.coarse_voxel_size,
                          eval_frames=args.eval_frames, device=args.device)
     field, report = train_field(sequence, config, progress=not args.quiet)
     report["data"] = str(args.data)
+    report["frames"] = args.frames
     report["checkpoint"] = str(args.out)
     field.save(args.out)
     report_path = args.out.parent / "field_report.json"

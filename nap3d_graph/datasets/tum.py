@@ -29,6 +29,7 @@ from ..camera import CameraError, Intrinsics, RGBDFrame
 from ..conventions import T_to_tum, tum_to_T
 from .association import GT_MAX_GAP_S, ASSOCIATION_METHODS, associate, estimate_stream_offset, interpolate_poses
 from .errors import DatasetError
+from .frames import parse_frame_range
 
 __all__ = [
     "DatasetError",
@@ -219,7 +220,10 @@ class TumSequence:
     ``depth_paths`` (N Paths), ``intrinsics`` (of the delivered images: undistorted pinhole
     when ``undistort`` and the camera has distortion), ``raw_intrinsics`` (as resolved,
     possibly with distortion), ``path``, ``name``, ``num_dropped_no_gt``, ``undistort``,
-    ``undistort_depth``, ``association``, ``offset``.
+    ``undistort_depth``, ``association``, ``offset``, ``frame_range`` ``(start, stop)``.
+
+    ``frames``: ``START:STOP`` keeps part of the associated frames (indices, or fractions
+    such as ``0:0.5`` for the first half; see :func:`parse_frame_range`).
 
     On the Kinect, depth is stamped 12-20 ms before colour; for geometric checks with depth,
     interpolate the ground truth at ``depth_timestamps`` (:func:`interpolate_poses`): on
@@ -235,6 +239,7 @@ class TumSequence:
         undistort_depth: bool = False,
         association: str = "optimal",
         offset: float | str = "auto",
+        frames: str | None = None,
     ):
         self.path = Path(path)
         if not self.path.is_dir():
@@ -285,6 +290,8 @@ class TumSequence:
         self.T_world_cam_gt = None
         self.num_dropped_no_gt = 0
         self._attach_ground_truth(self.path / "groundtruth.txt")
+        self.frame_range = parse_frame_range(frames, len(self.timestamps))
+        self._select(*self.frame_range)
         # A listed image that is gone does not make the whole sequence unusable: say so now,
         # and raise (naming the file) only when that frame is read, so a run can skip it.
         self.missing_images = [p for p in (*self.rgb_paths, *self.depth_paths) if not p.is_file()]
@@ -309,6 +316,17 @@ class TumSequence:
         if len(plain) > len(with_lead):
             return 0.0, plain
         return estimated, with_lead
+
+    def _select(self, start: int, stop: int) -> None:
+        """Keep frames ``start:stop`` of the associated frames (``frames=`` of the constructor)."""
+        if (start, stop) == (0, len(self.timestamps)):
+            return
+        self.timestamps = self.timestamps[start:stop]
+        self.depth_timestamps = self.depth_timestamps[start:stop]
+        self.rgb_paths = self.rgb_paths[start:stop]
+        self.depth_paths = self.depth_paths[start:stop]
+        if self.T_world_cam_gt is not None:
+            self.T_world_cam_gt = self.T_world_cam_gt[start:stop]
 
     def _attach_ground_truth(self, gt_path: Path) -> None:
         if not gt_path.is_file():

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from .base import FieldError, RadianceField
 
-__all__ = ["RadianceField", "FieldError", "load_field", "resolve_field"]
+__all__ = ["RadianceField", "FieldError", "load_field", "resolve_field", "frames_seen_in_training"]
 
 
 def load_field(path: str | Path):
@@ -51,3 +53,17 @@ def resolve_field(field_arg: str, sequence=None):
             raise FieldError(f"--field oracle needs a simulated sequence (with scene.json); {where} is not one")
         return oracle()
     return load_field(field_arg)
+
+
+def frames_seen_in_training(field, timestamps, tolerance_s: float = 1e-3) -> np.ndarray:
+    """Which of ``timestamps`` (N,) the field was trained on (N,) bool: a correction there
+    measures the field's memory of that very image, not how it generalises. Fields that do
+    not record their training frames (the oracle, nerfstudio models) give all False."""
+    stamps = np.asarray(timestamps, dtype=float).reshape(-1)
+    trained = np.asarray((getattr(field, "meta", None) or {}).get("train_timestamps") or [], dtype=float)
+    if trained.size == 0 or stamps.size == 0:
+        return np.zeros(stamps.shape, dtype=bool)
+    trained = np.sort(trained)
+    j = np.clip(np.searchsorted(trained, stamps), 1, max(trained.size - 1, 1))
+    nearest = np.minimum(np.abs(stamps - trained[j - 1]), np.abs(stamps - trained[np.minimum(j, trained.size - 1)]))
+    return nearest <= tolerance_s

@@ -668,6 +668,9 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
         "train_config": config.to_dict(),
         "source": str(getattr(sequence, "path", type(sequence).__name__)),
         "train_frames": [int(i) for i in train_idx],
+        # Colour stamps of the frames trained on: runs and evaluations warn when they use one.
+        "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx]
+        if hasattr(sequence, "timestamps") else [],
         "steps": steps,
         "train_seconds": round(train_seconds, 2),
     }
