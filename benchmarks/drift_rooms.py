@@ -1,0 +1,100 @@
+"""Drift removal on simulated rooms that no test or calibration used: mean and spread.
+
+For each room (scene seeds 31-34 by default): the survey and a separate traversal are
+simulated exactly as the embedded default does for room 0 (240 + 240 frames at 320x240,
+15 Hz, the simulator's drifting odometry), a grid field is trained on the survey for the
+default step budget, and the pipeline runs along the traversal with its default settings,
+once with the trained field and once with the exact (oracle) field. Reported per room and
+pooled (mean, min, max): ATE of the odometry alone and with NAP3D (evo, no alignment), the
+ATE of each half, corrections accepted, and the median time per keyframe.
+
+    python benchmarks/drift_rooms.py [--rooms 31 32 33 34] [--out benchmarks/results/drift_rooms.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def run_room(room: int, workdir: Path, steps: int) -> dict:
+    from nap3d_graph.datasets import SimSequence
+    from nap3d_graph.default_run import DEFAULT_MAPPING, DEFAULT_TRAVERSE
+    from nap3d_graph.evaluation.metrics import trajectory_metrics
+    from nap3d_graph.fields.training import TrainConfig, train_field
+    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.pipeline import Pipeline, PipelineConfig
+    from nap3d_graph.run_output import keyframe_timing_summary
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    folders = {}
+    for name, settings in (("survey", DEFAULT_MAPPING), ("walk", DEFAULT_TRAVERSE)):
+        folders[name] = workdir / f"room{room}_{name}"
+        if not (folders[name] / "scene.json").exists():
+            simulate_sequence(folders[name], SimConfig(scene_seed=room, **settings), progress=True)
+    walk = SimSequence(folders["walk"])
+    field, report = train_field(SimSequence(folders["survey"]), TrainConfig(max_steps=steps), progress=True)
+    out = {"field_held_out": {k: report["held_out"][k] for k in ("psnr_db", "depth_abs_err_m", "opacity_on_surfaces")}}
+    for name, f in (("trained", field), ("oracle", walk.oracle_field())):
+        result = Pipeline(walk, f, make_odometry("recorded", walk), PipelineConfig(progress=True)).run()
+        metrics = trajectory_metrics(result.timestamps, result.T_world_cam_gt,
+                                     {"odometry": result.T_world_cam_odometry, "estimate": result.T_world_cam_estimate})
+        timing = keyframe_timing_summary(result)
+        out[name] = {
+            "ate_odometry_m": metrics["odometry"]["ate_m"]["rmse"],
+            "ate_estimate_m": metrics["estimate"]["ate_m"]["rmse"],
+            "ate_estimate_max_m": metrics["estimate"]["ate_m"]["max"],
+            "ate_first_half_m": metrics["estimate"]["ate_first_half_m"],
+            "ate_second_half_m": metrics["estimate"]["ate_second_half_m"],
+            "keyframes": len(result.keyframes),
+            "accepted": result.num_accepted,
+            "seconds_per_keyframe": timing.get("total_per_keyframe"),
+        }
+        print(f"room {room} {name:8s}: odometry {out[name]['ate_odometry_m'] * 100:.2f} cm -> NAP3D "
+              f"{out[name]['ate_estimate_m'] * 100:.2f} cm (max {out[name]['ate_estimate_max_m'] * 100:.2f}), "
+              f"{out[name]['accepted']}/{out[name]['keyframes']} accepted", flush=True)
+    return out
+
+
+def pooled(per_room: dict, field: str) -> dict:
+    keys = ("ate_odometry_m", "ate_estimate_m", "ate_estimate_max_m", "ate_first_half_m", "ate_second_half_m",
+            "seconds_per_keyframe")
+    out = {}
+    for key in keys:
+        values = np.array([r[field][key] for r in per_room.values()], dtype=float)
+        out[key] = {"mean": float(values.mean()), "min": float(values.min()), "max": float(values.max())}
+    out["accepted_fraction"] = float(sum(r[field]["accepted"] for r in per_room.values())
+                                     / sum(r[field]["keyframes"] for r in per_room.values()))
+    ratios = [r[field]["ate_odometry_m"] / r[field]["ate_estimate_m"] for r in per_room.values()]
+    out["reduction"] = {"mean": float(np.mean(ratios)), "min": float(np.min(ratios)), "max": float(np.max(ratios))}
+    return out
+
+
+def main(argv=None) -> None:
+    from nap3d_graph.default_run import DEFAULT_TRAIN_STEPS
+
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--rooms", type=int, nargs="+", default=[31, 32, 33, 34])
+    p.add_argument("--train-steps", type=int, default=DEFAULT_TRAIN_STEPS)
+    p.add_argument("--workdir", type=Path, default=None)
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results/drift_rooms.json"))
+    args = p.parse_args(argv)
+    workdir = args.workdir or Path(tempfile.mkdtemp(prefix="nap3d_drift_"))
+    per_room = {room: run_room(room, workdir, args.train_steps) for room in args.rooms}
+    result = {"rooms": args.rooms, "train_steps": args.train_steps, "per_room": per_room,
+              "pooled": {field: pooled(per_room, field) for field in ("trained", "oracle")}}
+    for field, s in result["pooled"].items():
+        print(f"{field:8s}: ATE with NAP3D {s['ate_estimate_m']['mean'] * 100:.2f} cm mean "
+              f"({s['ate_estimate_m']['min'] * 100:.2f}-{s['ate_estimate_m']['max'] * 100:.2f}), odometry "
+              f"{s['ate_odometry_m']['mean'] * 100:.2f} cm, {s['accepted_fraction'] * 100:.0f}% accepted")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
