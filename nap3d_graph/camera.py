@@ -21,6 +21,7 @@ __all__ = [
     "backproject_depth",
     "project",
     "valid_depth_mask",
+    "warp_depth",
 ]
 
 
@@ -170,13 +171,16 @@ class RGBDFrame:
     """A real (or simulated sensor) RGB-D frame.
 
     rgb: (H, W, 3) uint8, RGB order. depth_m: (H, W) float32 z-depth in metres, 0 or NaN
-    where missing. intrinsics: undistorted pinhole camera of both images.
+    where missing. intrinsics: undistorted pinhole camera of both images. timestamp: the
+    frame's (colour) stamp, seconds. depth_timestamp: the depth image's own stamp when the
+    sensor stamps it apart (a Kinect's is some 12-20 ms earlier), else None.
     """
 
     rgb: np.ndarray
     depth_m: np.ndarray
     intrinsics: Intrinsics
     timestamp: float = 0.0
+    depth_timestamp: float | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "rgb", _as_rgb(self.rgb))
@@ -186,7 +190,11 @@ class RGBDFrame:
 
     def with_intrinsics(self, intrinsics: Intrinsics) -> "RGBDFrame":
         """Same images described by other intrinsics (e.g. the paper's intrinsics noise)."""
-        return RGBDFrame(self.rgb, self.depth_m, intrinsics, self.timestamp)
+        return RGBDFrame(self.rgb, self.depth_m, intrinsics, self.timestamp, self.depth_timestamp)
+
+    def with_depth(self, depth_m: np.ndarray) -> "RGBDFrame":
+        """Same colour image with another depth image (e.g. moved to the colour's capture time)."""
+        return RGBDFrame(self.rgb, depth_m, self.intrinsics, self.timestamp, self.depth_timestamp)
 
 
 @dataclass(frozen=True)
@@ -256,3 +264,27 @@ def project(points_cam: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray,
         u = np.where(z > 0, intrinsics.fx * p[:, 0] / z + intrinsics.cx, np.nan)
         v = np.where(z > 0, intrinsics.fy * p[:, 1] / z + intrinsics.cy, np.nan)
     return np.stack([u, v], axis=1), z
+
+
+def warp_depth(depth_m: np.ndarray, intrinsics: Intrinsics, T_dst_src: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """A depth image (H, W) seen from another pose of the same camera (z-buffered forward warp).
+
+    ``T_dst_src`` (4, 4) maps points of the source camera into the destination camera (the
+    motion between the depth's and the colour's capture instants, say); ``scale`` multiplies
+    the depth first. Each valid source pixel lands on its nearest destination pixel, the
+    nearest surface wins, and pixels nothing landed on are 0 (missing), so no depth is
+    invented. float32 metres.
+    """
+    depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0) * scale
+    h, w = depth.shape
+    points, _ = backproject_depth(depth, intrinsics, 1)
+    moved = points @ np.asarray(T_dst_src)[:3, :3].T + np.asarray(T_dst_src)[:3, 3]
+    uv, z = project(moved, intrinsics)
+    with np.errstate(invalid="ignore"):
+        u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        ok = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    flat = (v[ok] * w + u[ok]).astype(np.int64)
+    out = np.full(h * w, np.inf)
+    np.minimum.at(out, flat, z[ok])
+    out[~np.isfinite(out)] = 0.0
+    return out.reshape(h, w).astype(np.float32)

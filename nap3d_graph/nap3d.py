@@ -103,4 +103,4 @@ def _resize_frame(frame: RGBDFrame, width: int, height: int) -> RGBDFrame:
 
     rgb = cv2.resize(frame.rgb, (width, height), interpolation=cv2.INTER_AREA)
     depth = cv2.resize(frame.depth_m, (width, height), interpolation=cv2.INTER_NEAREST)
-    return RGBDFrame(rgb, depth, frame.intrinsics.scaled(width, height), frame.timestamp)
+    return RGBDFrame(rgb, depth, frame.intrinsics.scaled(width, height), frame.timestamp, frame.depth_timestamp)

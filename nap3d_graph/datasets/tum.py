@@ -289,6 +289,7 @@ class TumSequence:
         self.depth_paths = [self.path / depth_names[j] for j in pairs[:, 1]]
         self.T_world_cam_gt = None
         self.num_dropped_no_gt = 0
+        self._gt_raw: tuple[np.ndarray, np.ndarray] | None = None
         self._attach_ground_truth(self.path / "groundtruth.txt")
         self.frame_range = parse_frame_range(frames, len(self.timestamps))
         self._select(*self.frame_range)
@@ -332,6 +333,7 @@ class TumSequence:
         if not gt_path.is_file():
             return
         stamps_gt, T_gt = read_tum_trajectory(gt_path)
+        self._gt_raw = (stamps_gt, T_gt)
         try:
             T = interpolate_poses(stamps_gt, T_gt, self.timestamps)
         except DatasetError as exc:
@@ -351,6 +353,13 @@ class TumSequence:
         self.depth_paths = [p for p, k in zip(self.depth_paths, keep) if k]
         self.T_world_cam_gt = T[keep]
 
+    def ground_truth_at(self, stamps) -> np.ndarray | None:
+        """Ground-truth poses (M, 4, 4) interpolated at any times (M,) (NaN outside or in a
+        gap of the ground truth), e.g. at the depth stamps; None without ground truth."""
+        if self._gt_raw is None:
+            return None
+        return interpolate_poses(*self._gt_raw, np.asarray(stamps, dtype=float))
+
     def __len__(self) -> int:
         return len(self.timestamps)
 
@@ -363,7 +372,7 @@ class TumSequence:
             raise IndexError(f"frame index {index} out of range for {n} frames of {self.name}")
         rgb = self._read_rgb(self.rgb_paths[i])
         depth_m = self._read_depth(self.depth_paths[i])
-        return RGBDFrame(rgb, depth_m, self.intrinsics, float(self.timestamps[i]))
+        return RGBDFrame(rgb, depth_m, self.intrinsics, float(self.timestamps[i]), float(self.depth_timestamps[i]))
 
     def __iter__(self) -> Iterator[RGBDFrame]:
         for i in range(len(self)):

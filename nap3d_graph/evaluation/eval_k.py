@@ -119,7 +119,7 @@ def _blur(frame: RGBDFrame, sigma: float) -> RGBDFrame:
     if sigma <= 0:
         return frame
     rgb = cv2.GaussianBlur(frame.rgb, (0, 0), sigmaX=sigma, sigmaY=sigma)
-    return RGBDFrame(rgb, frame.depth_m, frame.intrinsics, frame.timestamp)
+    return RGBDFrame(rgb, frame.depth_m, frame.intrinsics, frame.timestamp, frame.depth_timestamp)
 
 
 class _ToldShiftedIntrinsics:

@@ -1,0 +1,207 @@
+"""When was a depth image taken, and how long is its metre? Both from the data itself.
+
+A field trained with posed RGB-D frames inherits every error of those poses. On TUM's Kinect,
+depth is stamped some 12-20 ms before colour, and its capture time relative to the
+motion-capture clock is off by tens of milliseconds more; at 0.4 m/s, 20 ms is 8 mm of
+smeared geometry. The depth scale can be off by a few percent too (TUM publishes a 1.035
+correction for its freiburg1 camera). Both are estimated here by a multi-view criterion:
+the depth of frame i, back-projected and moved with the ground-truth poses into frame j,
+must agree with frame j's own depth. The median disagreement over pixel pairs (frames about
+0.3-0.8 s apart) is minimised over a time offset added to the depth stamps and a global
+depth scale.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+from ..camera import backproject_depth, project
+from ..conventions import inv_T, transform_points
+from .errors import DatasetError
+
+__all__ = ["DepthTiming", "depth_agreement_mm", "frame_pairs", "estimate_depth_timing"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DepthTiming:
+    """Depth capture offset and scale of a posed RGB-D sequence.
+
+    offset_s: add to the depth stamps to get the instant the depth was captured on the
+        ground truth's clock. scale: multiply the sensor's depth by it. agreement_mm: median
+        disagreement of depth between frame pairs at the estimate; at_depth_stamps_mm and
+        at_colour_stamps_mm: the same with poses at the depth stamps (scale 1) and at the
+        colour stamps (what a trainer that ignores the stamps uses).
+    """
+
+    offset_s: float = 0.0
+    scale: float = 1.0
+    agreement_mm: float = float("nan")
+    at_depth_stamps_mm: float = float("nan")
+    at_colour_stamps_mm: float = float("nan")
+    pairs: int = 0
+    search: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def depth_agreement_mm(depth_a: np.ndarray, depth_b: np.ndarray, intrinsics, T_world_a: np.ndarray,
+                       T_world_b: np.ndarray, stride: int = 4, scale: float = 1.0,
+                       max_diff_m: float = 0.05) -> tuple[float, int]:
+    """Median |z_b - z(a moved into b)| (mm) over pixels valid in both and within
+    ``max_diff_m`` (the same surface), and how many; depths multiplied by ``scale``."""
+    points_a, _ = backproject_depth(np.asarray(depth_a) * scale, intrinsics, stride)
+    points_b = transform_points(inv_T(T_world_b) @ T_world_a, points_a)
+    uv, z = project(points_b, intrinsics)
+    with np.errstate(invalid="ignore"):
+        u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+    measured = np.asarray(depth_b)[v[inside].astype(int), u[inside].astype(int)] * scale
+    diff = measured - z[inside]
+    same = (measured > 0) & (np.abs(diff) < max_diff_m)
+    if not same.any():
+        return float("nan"), 0
+    return 1000.0 * float(np.median(np.abs(diff[same]))), int(same.sum())
+
+
+def frame_pairs(timestamps: np.ndarray, count: int = 30, gap_s: tuple[float, float] = (0.33, 0.83)) -> list:
+    """``count`` frame pairs ``(i, j)`` spread over the sequence, ``j`` the first frame at least
+    a gap after ``i``, the gaps cycling through ``gap_s``: far enough apart that a time or
+    scale error shows, near enough that they see the same surfaces."""
+    t = np.asarray(timestamps, dtype=float)
+    gaps = np.linspace(gap_s[0], gap_s[1], 4)
+    pairs = []
+    starts = np.linspace(0, max(len(t) - 2, 0), count).round().astype(int)
+    for k, i in enumerate(starts):
+        j = int(np.searchsorted(t, t[i] + gaps[k % len(gaps)]))
+        if j < len(t) and (i, j) not in pairs:
+            pairs.append((int(i), j))
+    return pairs
+
+
+def estimate_depth_timing(sequence, pairs: int = 30, gap_s: tuple[float, float] = (0.33, 0.83),
+                          offsets_s: np.ndarray | None = None, scales: np.ndarray | None = None,
+                          stride: int = 4) -> DepthTiming:
+    """Estimate the depth capture offset and scale of ``sequence`` (needs ground truth,
+    ``depth_timestamps`` and ``ground_truth_at``; see the module docstring).
+
+    A coarse search over ``offsets_s`` (default -60 to +40 ms in 5 ms) at scale 1, then over
+    ``scales`` (default 0.95-1.05 in 0.5%) at the best offset, then a 1 ms refinement of the
+    offset at the best scale.
+    """
+    if getattr(sequence, "ground_truth_at", None) is None or sequence.T_world_cam_gt is None:
+        raise DatasetError("estimating the depth timing needs ground-truth poses")
+    chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
+    if len(chosen) < 3:
+        raise DatasetError(f"too few frames ({len(sequence)}) to estimate the depth timing")
+    needed = sorted({i for pair in chosen for i in pair})
+    depths = {i: np.nan_to_num(sequence[i].depth_m, nan=0.0) for i in needed}
+    K = sequence.intrinsics
+    search = []
+
+    def score(offset: float, scale: float, at_colour: bool = False) -> float:
+        stamps = sequence.timestamps if at_colour else sequence.depth_timestamps + offset
+        T = sequence.ground_truth_at(stamps[needed])
+        pose = dict(zip(needed, T))
+        values = [depth_agreement_mm(depths[i], depths[j], K, pose[i], pose[j], stride, scale)[0]
+                  for i, j in chosen if np.all(np.isfinite(pose[i])) and np.all(np.isfinite(pose[j]))]
+        values = [v for v in values if np.isfinite(v)]
+        result = float(np.median(values)) if values else float("inf")
+        search.append([round(offset, 4), round(scale, 4), result])
+        return result
+
+    offsets = np.arange(-0.06, 0.0401, 0.005) if offsets_s is None else np.asarray(offsets_s, dtype=float)
+    scales = np.arange(0.95, 1.0501, 0.005) if scales is None else np.asarray(scales, dtype=float)
+    at_depth = score(0.0, 1.0)
+    at_colour = score(0.0, 1.0, at_colour=True)
+    best_offset = min(offsets, key=lambda o: score(float(o), 1.0))
+    best_scale = min(scales, key=lambda s: score(float(best_offset), float(s)))
+    fine = np.arange(best_offset - 0.005, best_offset + 0.0051, 0.001)
+    best_offset = min(fine, key=lambda o: score(float(o), float(best_scale)))
+    agreement = score(float(best_offset), float(best_scale))
+    log.info("depth timing: offset %+.1f ms, scale %.4f: %.2f mm (depth stamps %.2f mm, colour stamps %.2f mm)",
+             1000 * best_offset, best_scale, agreement, at_depth, at_colour)
+    return DepthTiming(float(best_offset), float(best_scale), agreement, at_depth, at_colour, len(chosen), search)
+
+
+def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    h, w = image.shape
+    u = np.clip(uv[:, 0], 0, w - 1.001)
+    v = np.clip(uv[:, 1], 0, h - 1.001)
+    u0, v0 = np.floor(u).astype(int), np.floor(v).astype(int)
+    du, dv = u - u0, v - v0
+    return (image[v0, u0] * (1 - du) * (1 - dv) + image[v0, u0 + 1] * du * (1 - dv)
+            + image[v0 + 1, u0] * (1 - du) * dv + image[v0 + 1, u0 + 1] * du * dv)
+
+
+def _depth_along_rays(depth: np.ndarray, K, uv: np.ndarray, T_depth_colour: np.ndarray) -> np.ndarray:
+    """z-depth (colour camera) where the rays of colour pixels ``uv`` (N, 2) meet the surface a
+    depth image saw from another pose (``T_depth_colour`` maps colour-camera points into the
+    depth camera): a few fixed-point steps, looking the depth up where the current point
+    projects into the depth image. NaN where it leaves the image or hits a hole."""
+    z = _bilinear(depth, uv)
+    rays = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(uv))], axis=1)
+    for _ in range(3):
+        p_depth = (rays * z[:, None]) @ T_depth_colour[:3, :3].T + T_depth_colour[:3, 3]
+        uv_d, z_d = project(p_depth, K)
+        looked = _bilinear(depth, np.nan_to_num(uv_d))
+        ok = np.all(np.isfinite(uv_d), axis=1) & (looked > 0) & (z_d > 0)
+        # Move along the ray by the depth disagreement, measured along the depth camera's axis.
+        z = np.where(ok, z * looked / np.where(ok, z_d, 1.0), np.nan)
+    return z
+
+
+def estimate_colour_offset(sequence, timing: DepthTiming, pairs: int = 30, gap_s: tuple[float, float] = (0.2, 0.5),
+                           offsets_s: np.ndarray | None = None) -> tuple[float, list]:
+    """Time offset to add to the colour stamps, from the reprojection of matched keypoints.
+
+    For frame pairs, SIFT keypoints of colour image i are matched with image j; each is given
+    the depth its ray meets in depth image i (placed with the depth ``timing``), moved with
+    the poses at the two colour stamps plus the offset, and projected into image j. The
+    offset that brings them closest to their matches (median pixel distance) is returned,
+    with the search: ``(offset_s, [[offset, median px], ...])``.
+    """
+    from nap3d_graph.conventions import inv_T as _inv
+    from nap3d_graph.matching import detect_features, match_features
+
+    chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
+    needed = sorted({i for pair in chosen for i in pair})
+    frames = {i: sequence[i] for i in needed}
+    features = {i: detect_features(frames[i].rgb, 1500) for i in needed}
+    K = sequence.intrinsics
+    T_depth = dict(zip(needed, sequence.ground_truth_at(sequence.depth_timestamps[needed] + timing.offset_s)))
+    matched = {}
+    for i, j in chosen:
+        m = match_features(features[i], features[j], ratio=0.7)
+        if len(m) >= 20:
+            matched[(i, j)] = m
+    search = []
+
+    def score(offset: float) -> float:
+        T_colour = dict(zip(needed, sequence.ground_truth_at(sequence.timestamps[needed] + offset)))
+        errors = []
+        for (i, j), m in matched.items():
+            if not all(np.all(np.isfinite(T)) for T in (T_colour[i], T_colour[j], T_depth[i])):
+                continue
+            depth = np.nan_to_num(frames[i].depth_m, nan=0.0) * timing.scale
+            z = _depth_along_rays(depth, K, m.uv_a, _inv(T_depth[i]) @ T_colour[i])
+            ok = np.isfinite(z) & (z > 0)
+            rays = np.stack([(m.uv_a[ok, 0] - K.cx) / K.fx, (m.uv_a[ok, 1] - K.cy) / K.fy, np.ones(ok.sum())], 1)
+            world = transform_points(T_colour[i], rays * z[ok, None])
+            uv_j, _ = project(transform_points(_inv(T_colour[j]), world), K)
+            errors.append(np.linalg.norm(uv_j - m.uv_b[ok], axis=1))
+        values = np.concatenate(errors) if errors else np.zeros(0)
+        values = values[np.isfinite(values)]
+        result = float(np.median(values)) if values.size >= 50 else float("inf")
+        search.append([round(offset, 4), result])
+        return result
+
+    offsets = np.arange(-0.05, 0.0301, 0.005) if offsets_s is None else np.asarray(offsets_s, dtype=float)
+    best = min(offsets, key=lambda o: score(float(o)))
+    best = min(np.arange(best - 0.005, best + 0.0051, 0.001), key=lambda o: score(float(o)))
+    return float(best), search
