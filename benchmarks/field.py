@@ -150,7 +150,8 @@ def _verdict(key, value):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    from nap3d_graph.fields.training import TrainConfig, evaluate_field, train_field
+    from nap3d_graph.fields.evaluation import evaluate_field
+    from nap3d_graph.fields.training import TrainConfig, train_field
 
     tmp = None
     workdir = args.workdir

@@ -3,8 +3,9 @@
 ``nap3d-graph run`` with no data runs end to end with nothing downloaded: the default room's
 mapping survey and a separate traversal that never revisits a place (both simulated once and
 cached, keyed by their settings), and a torch field trained on the survey for a fixed number
-of steps (cached, keyed by the survey and the budget). A step budget, not minutes, so the
-field and every figure of the default run are the same on any machine.
+of steps (cached, keyed by the survey and the budget), with the camera's capture timing
+estimated from the survey as for any recording. A step budget, not minutes, so the field and
+every figure of the default run are the same on any machine.
 """
 
 from __future__ import annotations
@@ -52,17 +53,17 @@ def _cached_sequence(cache: Path, settings: dict, progress: bool, say) -> Path:
 
 def _cached_field(cache: Path, mapping: Path, steps: int, progress: bool, settings: dict, say):
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.grid import GridField
-    from nap3d_graph.fields.training import TrainConfig, train_field
+    from nap3d_graph.fields import load_field
+    from nap3d_graph.fields.build import build_field
 
     key = _key({"mapping": settings, "steps": steps})
     path = cache / "fields" / f"room{settings['scene_seed']}_{key}.pt"
     if path.exists():
         log.info("reusing trained field %s", path)
-        return GridField.load(path), path, None
+        return load_field(path), path, None
     say(f"training the field on the survey for {steps} steps (cached for later runs as {path})")
     path.parent.mkdir(parents=True, exist_ok=True)
-    field, report = train_field(open_sequence(mapping), TrainConfig(max_steps=steps), progress=progress)
+    field, report = build_field(open_sequence(mapping), "grid", steps=steps, progress=progress)
     field.save(path)
     path.with_suffix(".report.json").write_text(json.dumps(report, indent=1, default=float))
     return field, path, report

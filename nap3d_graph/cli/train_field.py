@@ -19,7 +19,14 @@ def add_parser(sub) -> None:
     )
     p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses)")
     p.add_argument("--out", type=Path, required=True, help="checkpoint to write (FIELD.pt)")
-    p.add_argument("--minutes", type=positive_float, default=5.0, help="optimisation budget in minutes (default 5)")
+    p.add_argument("--model", choices=("grid", "splat"), default="grid",
+                   help="grid (default, chosen by measurement: see the README): a voxel-grid radiance field trained "
+                   "with torch; splat: surface splats fused from the frames, no training (seconds, not minutes)")
+    p.add_argument("--timing", choices=("auto", "none"), default="auto",
+                   help="auto: estimate when depth and colour were captured relative to the poses, and the depth "
+                   "scale, from the data (for recordings with depth stamps and ground truth); none: use the stamps")
+    p.add_argument("--minutes", type=positive_float, default=5.0,
+                   help="grid: optimisation budget in minutes (default 5)")
     p.add_argument("--steps", type=positive_int, default=None,
                    help="optimisation budget in steps instead of minutes: the same field on any machine "
                    "(--minutes is ignored when given)")
@@ -28,10 +35,8 @@ def add_parser(sub) -> None:
                    help="train on every K-th frame, hold out the rest for evaluation (default 1: every "
                    "tenth frame is held out)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--voxel-size", type=positive_float, default=0.03, help="grid spacing in metres (default 0.03)")
-    p.add_argument("--coarse-voxel-size", type=positive_float, default=None,
-                   help="start on a coarser grid of this spacing for the first 20%% of the budget "
-                   "(default: off; the grid starts from the back-projected depth instead)")
+    p.add_argument("--voxel-size", type=positive_float, default=None,
+                   help="voxel in metres (default: 0.006 for splat, 0.03 for grid)")
     p.add_argument("--eval-frames", type=non_negative_int, default=8, help="held-out frames to evaluate (default 8)")
     p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
@@ -43,7 +48,7 @@ def run(args) -> int:
     import torch
 
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.training import TrainConfig, train_field
+    from nap3d_graph.fields.build import build_field
 
     if args.out.suffix != ".pt":
         raise UsageError(f"--out must name a .pt checkpoint, got {args.out}")
@@ -51,27 +56,37 @@ def run(args) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     sequence = open_sequence(args.data, frames=args.frames)
-    config = TrainConfig(minutes=args.minutes, max_steps=args.steps, every=args.every, seed=args.seed,
-                         voxel_size_m=args.voxel_size, coarse_voxel_size_m=args.coarse_voxel_size,
-                         eval_frames=args.eval_frames, device=args.device)
-    field, report = train_field(sequence, config, progress=not args.quiet)
+    field, report = build_field(sequence, args.model, steps=args.steps, minutes=args.minutes, every=args.every,
+                                eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
+                                timing="auto" if args.timing == "auto" else None, device=args.device,
+                                progress=not args.quiet)
     report["data"] = str(args.data)
     report["frames"] = args.frames
     report["checkpoint"] = str(args.out)
     field.save(args.out)
     report_path = args.out.parent / "field_report.json"
-    report_path.write_text(json.dumps(report, indent=1))
+    report_path.write_text(json.dumps(report, indent=1, default=float))
+    print(summary(field, report, args.out, report_path))
+    return 0
+
+
+def summary(field, report: dict, out, report_path) -> str:
     held = report.get("held_out") or {}
     depth = held.get("depth_abs_err_m") or {}
-    summary = f"wrote {args.out} ({field!r}) and {report_path}"
+    lines = [f"wrote {out} ({field!r}) and {report_path}"]
+    timing = report.get("timing")
+    if timing:
+        lines.append(f"timing: depth captured {timing['depth_offset_s'] * 1000:+.0f} ms from its stamp, colour "
+                     f"{timing['colour_offset_s'] * 1000:+.0f} ms, depth scale {timing['depth_scale']:.3f} (frames "
+                     f"agree to {timing['agreement_mm']:.1f} mm, {timing['agreement_at_colour_stamps_mm']:.1f} mm "
+                     "with the colour stamps)")
     if held:
-        summary += (
-            f"\nheld-out: PSNR {held['psnr_db']:.2f} dB, depth error median {_cm(depth.get('median'))} / "
-            f"p90 {_cm(depth.get('p90'))} ({held['depth_reference']}), opacity on surfaces "
-            f"{held['opacity_on_surfaces']:.3f}, unit check R^2 {_num(held['unit_check'].get('r2'))}"
-        )
-    print(summary)
-    return 0
+        lines.append(
+            f"held-out ({held['render_size'][0]}x{held['render_size'][1]}): PSNR {held['psnr_db']:.2f} dB "
+            f"({held['psnr_affine_db']:.2f} after an affine colour fit), depth error median "
+            f"{_cm(depth.get('median'))} / p90 {_cm(depth.get('p90'))} ({held['depth_reference']}), opaque on "
+            f"{held['opaque_fraction'] * 100:.0f}% of the surface, render {held['render_seconds']:.3f} s")
+    return "\n".join(lines)
 
 
 def _cm(value) -> str:

@@ -38,9 +38,7 @@ import contextlib
 import json
 import logging
 import math
-import pickle
 import time
-import zipfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -51,6 +49,7 @@ import torch.nn.functional as F
 from nap3d_graph.camera import Intrinsics, RenderedView
 
 from .base import FieldError
+from .checkpoint import load_state
 
 __all__ = [
     "GridField",
@@ -704,19 +703,7 @@ class GridField:
         and plain values only, never pickled code). Raises :class:`FieldError` on a missing,
         corrupt, foreign or wrong-version file."""
         path = Path(path)
-        if not path.is_file():
-            raise FieldError(f"{path}: no such field checkpoint")
-        if not zipfile.is_zipfile(path):
-            raise FieldError(f"{path}: not a readable grid field checkpoint (not a torch zip archive: "
-                             "corrupt, truncated or another format)")
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=True)
-        except pickle.UnpicklingError:
-            raise FieldError(f"{path}: not a readable grid field checkpoint (it holds pickled objects other "
-                             "than tensors and plain values, which are refused)") from None
-        except Exception as exc:  # torch raises many types for damaged files; all mean the same
-            detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise FieldError(f"{path}: not a readable grid field checkpoint ({detail[:200]})") from None
+        state = load_state(path)
         return cls.from_state_dict(state, device=device, source=str(path))
 
     def __repr__(self) -> str:

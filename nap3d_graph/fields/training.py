@@ -44,6 +44,7 @@ from nap3d_graph.camera import Intrinsics, backproject_depth, valid_depth_mask
 from nap3d_graph.conventions import transform_points
 
 from .base import FieldError
+from .evaluation import evaluate_field, oracle_for, psnr
 from .grid import (CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, pixel_directions, torch_threads,
                    trilinear_corners)
 
@@ -51,12 +52,9 @@ __all__ = [
     "TrainConfig",
     "TrainingRays",
     "train_field",
-    "evaluate_field",
     "split_frames",
     "splat_init",
     "scene_bounds_from_depth",
-    "oracle_for",
-    "psnr",
 ]
 
 log = logging.getLogger(__name__)
@@ -164,10 +162,25 @@ class TrainingRays:
 
     @classmethod
     def from_sequence(cls, sequence, indices: Sequence[int], config: TrainConfig, device,
-                      progress: bool = False) -> "TrainingRays":
+                      progress: bool = False, timing: dict | None = None) -> "TrainingRays":
+        """Frames ``indices`` as training rays. With ``timing`` (``depth_offset_s``,
+        ``colour_offset_s``, ``depth_scale``: see :mod:`nap3d_graph.datasets.depth_timing`)
+        each frame's depth is scaled and moved from the pose at its capture time to the pose
+        at the colour's, so both images of a ray see the same instant."""
         from tqdm import tqdm
 
+        from nap3d_graph.camera import warp_depth
+        from nap3d_graph.conventions import inv_T
+
         poses = _poses_of(sequence)
+        T_colour = T_depth = poses[np.asarray(indices, dtype=int)]
+        if timing is not None and getattr(sequence, "ground_truth_at", None) is not None:
+            idx = np.asarray(indices, dtype=int)
+            T_colour = sequence.ground_truth_at(np.asarray(sequence.timestamps)[idx] + timing["colour_offset_s"])
+            T_depth = sequence.ground_truth_at(np.asarray(sequence.depth_timestamps)[idx] + timing["depth_offset_s"])
+            bad = ~(np.all(np.isfinite(T_colour), axis=(1, 2)) & np.all(np.isfinite(T_depth), axis=(1, 2)))
+            T_colour = np.where(bad[:, None, None], poses[idx], T_colour)
+            T_depth = np.where(bad[:, None, None], poses[idx], T_depth)
         intrinsics = sequence.intrinsics.without_distortion()
         h, w = intrinsics.height, intrinsics.width
         rgb = np.empty((len(indices), h, w, 3), dtype=np.uint8)
@@ -179,9 +192,11 @@ class TrainingRays:
                                  f"the sequence's intrinsics say {w}x{h}")
             rgb[k] = frame.rgb
             d = np.nan_to_num(frame.depth_m, nan=0.0)
+            if timing is not None:
+                d = warp_depth(d, intrinsics, inv_T(T_colour[k]) @ T_depth[k], timing.get("depth_scale", 1.0))
             d[~valid_depth_mask(d, config.min_depth_m, config.max_depth_m)] = 0.0
             depth[k] = d
-        T = poses[np.asarray(indices, dtype=int)]
+        T = np.asarray(T_colour)
         num_valid = int(np.count_nonzero(depth))
         if num_valid == 0:
             raise FieldError("no training frame has a valid depth pixel")
@@ -197,6 +212,13 @@ class TrainingRays:
     @property
     def num_frames(self) -> int:
         return self.rgb.shape[0]
+
+
+def _ray_poses(rays: TrainingRays) -> np.ndarray:
+    T = np.tile(np.eye(4), (rays.num_frames, 1, 1))
+    T[:, :3, :3] = rays.R_world_cam.cpu().numpy()
+    T[:, :3, 3] = rays.t_world_cam
+    return T
 
 
 def _poses_of(sequence) -> np.ndarray:
@@ -448,100 +470,6 @@ class _Trainer:
         return float(rgb_loss.detach()), float(depth_err)
 
 
-def psnr(mse: float) -> float:
-    """Peak signal-to-noise ratio (dB) of a mean squared error on [0, 1] colours."""
-    return float(-10.0 * math.log10(max(mse, 1e-12)))
-
-
-# --- evaluation ------------------------------------------------------------------------------------
-
-
-def oracle_for(sequence):
-    """The noise-free oracle of a simulated sequence, or None for real data.
-
-    Uses ``sequence.oracle_field()`` when the sequence offers one (``SimSequence``), else a
-    ``scene.json`` in the sequence's folder.
-    """
-    if hasattr(sequence, "oracle_field"):
-        try:
-            return sequence.oracle_field()
-        except Exception as exc:  # a broken scene only costs the noise-free figures
-            log.warning("cannot build the oracle field: %s", exc)
-            return None
-    folder = getattr(sequence, "path", None)
-    if folder is not None and (Path(folder) / "scene.json").is_file():
-        from nap3d_graph.sims.scene import OracleField
-
-        try:
-            return OracleField.from_file(Path(folder) / "scene.json")
-        except ValueError as exc:
-            log.warning("cannot build the oracle field: %s", exc)
-    return None
-
-
-def evaluate_field(field, sequence, indices: Sequence[int], oracle=None) -> dict:
-    """Held-out metrics of any field on frames ``indices`` of ``sequence``.
-
-    Returns a dict: ``psnr_db`` (rendered vs sensor RGB, all pixels), ``depth_abs_err_m``
-    median / p90 / mean (against the oracle's noise-free depth when ``oracle`` is given,
-    otherwise against the sensor depth; ``depth_reference`` says which), ``opacity_on_surfaces``
-    (mean opacity where the reference sees a surface), ``unit_check`` (the paper's linear fit
-    of sensor depth Y against field depth X: slope ``a``, offset ``b``, ``r2``, pixel count),
-    ``render_seconds`` (mean per view) and the frame indices.
-    """
-    poses = _poses_of(sequence)
-    intrinsics = sequence.intrinsics.without_distortion()
-    sq_err, n_px = 0.0, 0
-    abs_errs, opac, xs, ys, secs, per_frame = [], [], [], [], [], []
-    for i in indices:
-        frame = sequence[int(i)]
-        started = time.perf_counter()
-        view = field.render(poses[int(i)], intrinsics)
-        secs.append(time.perf_counter() - started)
-        diff = view.rgb.astype(np.float64) - frame.rgb.astype(np.float64)
-        frame_mse = float(np.mean((diff / 255.0) ** 2))
-        sq_err += frame_mse * diff[..., 0].size
-        n_px += diff[..., 0].size
-        sensor = np.nan_to_num(frame.depth_m, nan=0.0)
-        reference = oracle.render(poses[int(i)], intrinsics).depth_m if oracle is not None else sensor
-        surface = reference > 0
-        err = np.abs(view.depth_m - reference)[surface]
-        abs_errs.append(err)
-        opac.append(view.opacity[surface])
-        fit = (sensor > 0) & (view.opacity > 0.5) & (view.depth_m > 0)
-        xs.append(view.depth_m[fit])
-        ys.append(sensor[fit])
-        per_frame.append({"index": int(i), "psnr_db": psnr(frame_mse),
-                          "depth_abs_err_median_m": float(np.median(err)) if err.size else None})
-    errs = np.concatenate(abs_errs) if abs_errs else np.zeros(0)
-    x, y = (np.concatenate(xs), np.concatenate(ys)) if xs else (np.zeros(0), np.zeros(0))
-    return {
-        "frames": [int(i) for i in indices],
-        "psnr_db": psnr(sq_err / max(n_px, 1)),
-        "depth_reference": "noise-free (simulator oracle)" if oracle is not None else "sensor depth",
-        "depth_abs_err_m": {
-            "median": float(np.median(errs)) if errs.size else None,
-            "p90": float(np.percentile(errs, 90)) if errs.size else None,
-            "mean": float(np.mean(errs)) if errs.size else None,
-        },
-        "opacity_on_surfaces": float(np.mean(np.concatenate(opac))) if opac else None,
-        "unit_check": _unit_check(x, y),
-        "render_seconds": float(np.mean(secs)) if secs else None,
-        "per_frame": per_frame,
-    }
-
-
-def _unit_check(x: np.ndarray, y: np.ndarray) -> dict:
-    """Least-squares ``y = a x + b`` and its R^2 (the paper's check that field depth is metric)."""
-    if len(x) < 10 or np.ptp(x) <= 0:
-        return {"a": None, "b": None, "r2": None, "pixels": int(len(x))}
-    a, b = np.polyfit(x, y, 1)
-    residual = y - (a * x + b)
-    total = np.sum((y - y.mean()) ** 2)
-    r2 = 1.0 - np.sum(residual**2) / total if total > 0 else None
-    return {"a": float(a), "b": float(b), "r2": None if r2 is None else float(r2), "pixels": int(len(x))}
-
-
 # --- the whole run -------------------------------------------------------------------------------
 
 
@@ -558,6 +486,7 @@ def train_field(
     oracle=None,
     snapshot_seconds: Sequence[float] = (),
     callback: Callable[[dict], None] | None = None,
+    timing: dict | None = None,
 ) -> tuple[GridField, dict]:
     """Train a grid field on a posed RGB-D ``sequence``; returns ``(field, report)``.
 
@@ -567,6 +496,8 @@ def train_field(
     measured against ``oracle`` (default: the sequence's simulator oracle if it has one). The
     report also holds an evaluation at each of ``snapshot_seconds`` of training (the clock
     pauses meanwhile). ``callback`` gets a small dict every few steps (progress hooks).
+    ``timing``: a real recording's depth / colour capture offsets and depth scale, applied to
+    the training frames and the evaluation (see :class:`TrainingRays`).
     """
     config = replace(config or TrainConfig())
     if minutes is not None:
@@ -580,11 +511,11 @@ def train_field(
     device = torch.device(config.device) if config.device else default_device()
     with torch_threads(config.threads if device.type == "cpu" else None):
         return _train(sequence, config, device, progress, eval_sequence, eval_indices, oracle,
-                      snapshot_seconds, callback)
+                      snapshot_seconds, callback, timing)
 
 
 def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_indices, oracle,
-           snapshot_seconds, callback) -> tuple[GridField, dict]:
+           snapshot_seconds, callback, timing=None) -> tuple[GridField, dict]:
     generator = torch.Generator(device=device).manual_seed(config.seed)
 
     train_idx, held_idx = split_frames(len(sequence), config.every, config.eval_frames)
@@ -598,8 +529,8 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
         oracle = oracle if oracle is not None else oracle_for(eval_sequence)
 
     started = time.perf_counter()
-    rays = TrainingRays.from_sequence(sequence, train_idx, config, device, progress=progress)
-    bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), _poses_of(sequence)[train_idx],
+    rays = TrainingRays.from_sequence(sequence, train_idx, config, device, progress=progress, timing=timing)
+    bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), _ray_poses(rays),
                                      rays.intrinsics, margin_m=config.bounds_margin_m)
     load_seconds = time.perf_counter() - started
     log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), rays.num_valid, bounds.round(2).tolist())
@@ -655,7 +586,7 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
             if snapshots and train_seconds >= snapshots[0]:
                 snapshots.pop(0)
                 view_field = _frozen(trainer.sync_field())
-                snap = evaluate_field(view_field, eval_sequence, eval_indices, oracle)
+                snap = evaluate_field(view_field, eval_sequence, eval_indices, oracle, timing=timing)
                 snap.pop("per_frame", None)
                 snapshot_reports.append({"train_seconds": round(train_seconds, 2), "steps": steps, **snap})
     finally:
@@ -674,7 +605,7 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
         "steps": steps,
         "train_seconds": round(train_seconds, 2),
     }
-    evaluation = evaluate_field(field, eval_sequence, eval_indices, oracle) if len(eval_indices) else None
+    evaluation = evaluate_field(field, eval_sequence, eval_indices, oracle, timing=timing) if len(eval_indices) else None
     report = {
         "field": repr(field),
         "voxel_size_m": field.voxel_size,

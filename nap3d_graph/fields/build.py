@@ -1,0 +1,116 @@
+"""One entry point for making a field from a posed RGB-D sequence, whatever its type.
+
+``build_field(sequence, model=...)`` estimates the recording's depth / colour capture
+timing and depth scale (when it has the stamps and ground truth to do so), builds or trains
+the field on the training frames with them, evaluates it on held-out frames at the size the
+pipeline renders at, and records in the field what it was made from (the timestamps it saw,
+the timing) so runs can warn about reuse and compensate real frames the same way.
+
+Models (``train-field --model``):
+
+* ``splat``: surface splats fused from the frames, no gradient training
+  (:mod:`nap3d_graph.fields.splat`);
+* ``grid``: the dense voxel-grid radiance field trained with torch
+  (:mod:`nap3d_graph.fields.training`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+from .base import FieldError
+from .evaluation import evaluate_field, oracle_for
+
+__all__ = ["MODELS", "DEFAULT_MODEL", "build_field", "estimate_timing"]
+
+log = logging.getLogger(__name__)
+
+MODELS = ("splat", "grid")
+DEFAULT_MODEL = "grid"
+
+
+def estimate_timing(sequence) -> dict | None:
+    """``{"depth_offset_s", "colour_offset_s", "depth_scale", ...}`` of a sequence with depth
+    stamps and ground truth (see :mod:`nap3d_graph.datasets.depth_timing`), or None when it
+    cannot be estimated (no ground truth, too few frames)."""
+    from nap3d_graph.datasets import DatasetError
+    from nap3d_graph.datasets.depth_timing import estimate_colour_offset, estimate_depth_timing
+
+    if getattr(sequence, "ground_truth_at", None) is None or getattr(sequence, "depth_timestamps", None) is None:
+        return None
+    try:
+        depth = estimate_depth_timing(sequence)
+        colour_offset, _ = estimate_colour_offset(sequence, depth)
+    except DatasetError as exc:
+        log.warning("depth timing not estimated (%s); using the stamps as they are", exc)
+        return None
+    return {"depth_offset_s": depth.offset_s, "colour_offset_s": colour_offset, "depth_scale": depth.scale,
+            "agreement_mm": depth.agreement_mm, "agreement_at_depth_stamps_mm": depth.at_depth_stamps_mm,
+            "agreement_at_colour_stamps_mm": depth.at_colour_stamps_mm, "pairs": depth.pairs}
+
+
+def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = None, minutes: float | None = None,
+                every: int = 1, eval_frames: int = 8, seed: int = 0, voxel_size_m: float | None = None,
+                timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
+                device: str | None = None, progress: bool = True):
+    """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
+
+    ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
+    ``eval_frames``: training frames and held-out frames (:func:`split_frames`).
+    ``voxel_size_m``: the model's voxel (default: the model's own). ``timing``: ``"auto"``
+    (estimate it), ``None`` (use the stamps as they are) or a dict. ``render_size``: the
+    held-out evaluation renders at this size (the pipeline's), ``None`` for the frames' own.
+    """
+    from .training import split_frames
+
+    if model not in MODELS:
+        raise FieldError(f"unknown field model {model!r}; choose from {', '.join(MODELS)}")
+    started = time.perf_counter()
+    train_idx, held_idx = split_frames(len(sequence), every, eval_frames)
+    if timing == "auto":
+        timing = estimate_timing(sequence)
+    timing_seconds = time.perf_counter() - started
+    oracle = oracle_for(sequence)
+    if model == "splat":
+        field, report = _build_splat(sequence, train_idx, voxel_size_m, timing, progress)
+    else:
+        field, report = _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device,
+                                    progress)
+    field.meta.update({"model": model, "timing": timing, "source": str(getattr(sequence, "path", "")),
+                       "frame_range": list(getattr(sequence, "frame_range", (0, len(sequence)))),
+                       "train_frames": [int(i) for i in train_idx],
+                       "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx]})
+    held = evaluate_field(field, sequence, held_idx, oracle, size=render_size, timing=timing) if len(held_idx) else None
+    report.update({"model": model, "timing": timing, "timing_seconds": round(timing_seconds, 2),
+                   "train_frames": int(len(train_idx)), "held_out": held,
+                   "total_seconds": round(time.perf_counter() - started, 2)})
+    return field, report
+
+
+def _build_splat(sequence, train_idx, voxel_size_m, timing, progress):
+    from .splat import SplatConfig, build_splat_field
+
+    config = SplatConfig() if voxel_size_m is None else SplatConfig(voxel_size_m=voxel_size_m)
+    timing = timing or {}
+    field, report = build_splat_field(sequence, train_idx, config, timing.get("depth_offset_s", 0.0),
+                                      timing.get("colour_offset_s", 0.0), timing.get("depth_scale", 1.0),
+                                      progress=progress)
+    report["config"] = config.to_dict()
+    report["train_seconds"] = report["build_seconds"]
+    return field, report
+
+
+def _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device, progress):
+    from .training import TrainConfig, train_field
+
+    config = TrainConfig(every=every, eval_frames=0, seed=seed, device=device)
+    if steps is not None:
+        config.max_steps = int(steps)
+    if minutes is not None:
+        config.minutes = float(minutes)
+    if voxel_size_m is not None:
+        config.voxel_size_m = float(voxel_size_m)
+    field, report = train_field(sequence, config, progress=progress, timing=timing)
+    report.pop("held_out", None)  # evaluated by build_field at the pipeline's render size
+    return field, report

@@ -1,0 +1,36 @@
+"""Reading field checkpoints safely: ``torch.load(weights_only=True)``, one-line errors."""
+
+from __future__ import annotations
+
+import pickle
+import zipfile
+from pathlib import Path
+
+from .base import FieldError
+
+__all__ = ["load_state"]
+
+
+def load_state(path: Path) -> dict:
+    """The state dict of a checkpoint written by a field's ``save``: tensors and plain values
+    only (never pickled code). Raises :class:`FieldError` on a missing, corrupt, truncated or
+    foreign file, with the path and the cause on one line."""
+    path = Path(path)
+    if not path.is_file():
+        raise FieldError(f"{path}: no such field checkpoint")
+    if not zipfile.is_zipfile(path):
+        raise FieldError(f"{path}: not a readable field checkpoint (not a torch zip archive: corrupt, truncated "
+                         "or another format)")
+    import torch
+
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise FieldError(f"{path}: not a readable field checkpoint (it holds pickled objects other than tensors "
+                         "and plain values, which are refused)") from None
+    except Exception as exc:  # torch raises many types for damaged files; all mean the same
+        detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise FieldError(f"{path}: not a readable field checkpoint ({detail[:200]})") from None
+    if not isinstance(state, dict):
+        raise FieldError(f"{path}: not a nap3d-graph field checkpoint")
+    return state

@@ -1,0 +1,447 @@
+"""A splat field: surface splats fused from the RGB-D frames themselves, rasterised on the CPU.
+
+The extension the NAP3D paper names, 3D Gaussians initialised from the RGB-D points, in its
+simplest form that runs on two CPU cores: isotropic Gaussian splats on a regular fusion grid,
+no gradient training. Building it:
+
+1. every training frame's depth (scaled by the estimated depth scale, pixels next to depth
+   jumps dropped: a Kinect's flying pixels) is back-projected with the pose *at the depth's
+   capture time*, and each point takes its colour from the colour image at the pose *at the
+   colour's capture time* (on a moving Kinect the two are ~30 ms apart: 1 cm at 0.4 m/s);
+2. points are fused per voxel (``voxel_size_m``): a weighted mean position (weights
+   ``1/sigma(z)^2`` of the sensor's depth noise) and colour; voxels seen by fewer than
+   ``min_views`` frames are dropped (noise, flying pixels, moving things);
+3. each frame's exposure and white balance are estimated as a per-channel affine map onto
+   the fused colours and removed, and the colours fused again (``exposure_rounds``); a
+   frame's colours count with the square of its sharpness (variance of the Laplacian,
+   relative to the median frame), so motion-blurred frames blur the texture less.
+
+Rendering (``render``): splats in front of the camera are projected; their footprints (a
+Gaussian of ``splat_radius_vox`` voxels) are z-buffered, and the splats within
+``blend_tolerance`` of the nearest one at a pixel are blended (colour and z-depth, weighted
+by footprint and confidence), so the depth of a surface is the mean of its splats, not the
+nearest noisy one. Opacity is ``1 - exp(-opacity_gain * sum of footprints)``: 1 on a covered
+surface, falling to 0 in holes and beyond what the survey saw.
+
+Why hand-written: gsplat and the reference Gaussian-splatting rasteriser need CUDA; Open3D
+(TSDF fusion and raycasting on the CPU) is a 200 MB dependency for what is here ~150 lines of
+numpy and torch.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nap3d_graph.camera import Intrinsics, RenderedView
+from nap3d_graph.conventions import inv_T
+
+from .base import FieldError
+from .checkpoint import load_state
+
+__all__ = ["SplatConfig", "SplatField", "build_splat_field", "SPLAT_FORMAT", "SPLAT_VERSION"]
+
+log = logging.getLogger(__name__)
+
+SPLAT_FORMAT = "nap3d-graph splat field"
+SPLAT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class SplatConfig:
+    """Settings of building and rendering a splat field (defaults for room-sized scenes seen
+    from 0.5-4 m by an RGB-D camera, rendered at 320x240).
+
+    ``voxel_size_m`` None: 1.5 times the spacing of the back-projected points at the frames'
+    median depth (6 mm for a 640x480 Kinect at 1.2 m, stride 2), at least 4 mm.
+    """
+
+    voxel_size_m: float | None = None
+    stride: int = 2
+    min_depth_m: float = 0.2
+    max_depth_m: float = 4.5
+    edge_rel_jump: float = 0.04
+    min_views: int = 2
+    depth_sigma_floor_m: float = 0.002
+    depth_sigma_z2_per_m: float = 1.4e-3
+    exposure_rounds: int = 2
+    splat_radius_vox: float = 1.3
+    max_footprint_px: float = 2.5
+    blend_tolerance_m: float = 0.02
+    blend_tolerance_rel: float = 0.015
+    opacity_gain: float = 2.0
+    near_m: float = 0.05
+    threads: int | None = 1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class SplatField:
+    """Fused surface splats behind the field protocol.
+
+    points: (N, 3) float32 world positions (m); colors: (N, 3) float32 in [0, 1]; weights:
+    (N,) float32 confidence (fused ``1/sigma^2``, normalised to mean 1); views: (N,) int32
+    number of frames that saw each splat. ``meta``: JSON-serialisable provenance.
+    """
+
+    name = "splat"
+
+    def __init__(self, points, colors, weights, views, voxel_size_m: float, config: SplatConfig | None = None,
+                 meta: dict | None = None):
+        self.points = torch.as_tensor(np.asarray(points, dtype=np.float32))
+        self.colors = torch.as_tensor(np.asarray(colors, dtype=np.float32))
+        self.weights = torch.as_tensor(np.asarray(weights, dtype=np.float32))
+        self.views = torch.as_tensor(np.asarray(views, dtype=np.int32))
+        n = self.points.shape[0]
+        if self.points.shape != (n, 3) or self.colors.shape != (n, 3) or self.weights.shape != (n,):
+            raise FieldError(f"splat field needs points (N, 3), colours (N, 3), weights (N,); got "
+                             f"{tuple(self.points.shape)}, {tuple(self.colors.shape)}, {tuple(self.weights.shape)}")
+        if n == 0:
+            raise FieldError("a splat field needs at least one splat")
+        self.voxel_size = float(voxel_size_m)
+        self.config = config or SplatConfig(voxel_size_m=voxel_size_m)
+        self.meta = dict(meta or {})
+
+    @property
+    def bounds(self) -> np.ndarray:
+        p = self.points.numpy()
+        return np.stack([p.min(axis=0), p.max(axis=0)]).astype(np.float64)
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    def __repr__(self) -> str:
+        return f"SplatField({len(self)} splats, voxel {self.voxel_size * 1000:.1f} mm)"
+
+    # --- rendering ----------------------------------------------------------------------------
+
+    def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
+        """RGB, z-depth (m, 0 where nothing is seen) and opacity at ``T_world_cam`` (4x4,
+        world <- OpenCV camera)."""
+        from .grid import torch_threads
+
+        T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
+        if T_world_cam.shape != (4, 4) or not np.all(np.isfinite(T_world_cam)):
+            raise FieldError(f"T_world_cam must be a finite 4x4 matrix, got shape {T_world_cam.shape}")
+        intrinsics = intrinsics.without_distortion()
+        with torch.no_grad(), torch_threads(self.config.threads):
+            rgb, depth, opacity = self._rasterise(T_world_cam, intrinsics)
+        return RenderedView(rgb=(rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).numpy(),
+                            depth_m=depth.numpy().astype(np.float32),
+                            opacity=opacity.clamp(0, 1).numpy().astype(np.float32), intrinsics=intrinsics)
+
+    def _visible(self, T_world_cam: np.ndarray, K: Intrinsics):
+        """Splats in front of the camera and near the image: camera points, pixel coords."""
+        T_cam_world = inv_T(T_world_cam)
+        R = torch.as_tensor(T_cam_world[:3, :3], dtype=torch.float32)
+        t = torch.as_tensor(T_cam_world[:3, 3], dtype=torch.float32)
+        p = self.points @ R.T + t
+        z = p[:, 2]
+        keep = z > self.config.near_m
+        p, idx = p[keep], keep.nonzero()[:, 0]
+        u = K.fx * p[:, 0] / p[:, 2] + K.cx
+        v = K.fy * p[:, 1] / p[:, 2] + K.cy
+        margin = int(np.ceil(self.config.max_footprint_px)) + 1
+        inside = (u > -margin) & (u < K.width + margin) & (v > -margin) & (v < K.height + margin)
+        return p[inside, 2], u[inside], v[inside], idx[inside]
+
+    def _rasterise(self, T_world_cam: np.ndarray, K: Intrinsics):
+        cfg = self.config
+        h, w = K.height, K.width
+        z, u, v, idx = self._visible(T_world_cam, K)
+        rgb = torch.zeros((h * w, 3))
+        depth = torch.zeros(h * w)
+        if z.numel() == 0:
+            return rgb.reshape(h, w, 3), depth.reshape(h, w), torch.zeros((h, w))
+        radius_px = (0.5 * (K.fx + K.fy) * cfg.splat_radius_vox * self.voxel_size / z).clamp(0.5, cfg.max_footprint_px)
+        inv_two_sigma2 = 2.0 / radius_px**2  # sigma = radius / 2
+        ui, vi = torch.round(u).long(), torch.round(v).long()
+        du, dv = u - ui, v - vi
+        conf = self.weights[idx]
+        # Splats grouped by how far their footprint reaches, so a far (small) splat is not
+        # tested against the offsets only a near (large) one needs.
+        reach_of = torch.ceil(radius_px).long()
+        zbuf = torch.full((h * w,), float("inf"))
+        parts = []
+        for reach in torch.unique(reach_of).tolist():
+            group = (reach_of == reach).nonzero()[:, 0]
+            g_u, g_v, g_du, g_dv, g_r2 = ui[group], vi[group], du[group], dv[group], radius_px[group] ** 2
+            for dy in range(-reach, reach + 1):
+                for dx in range(-reach, reach + 1):
+                    d2 = (dx - g_du) ** 2 + (dy - g_dv) ** 2
+                    px, py = g_u + dx, g_v + dy
+                    rows = ((d2 <= g_r2) & (px >= 0) & (px < w) & (py >= 0) & (py < h)).nonzero()[:, 0]
+                    pix = py[rows] * w + px[rows]
+                    sel = group[rows]
+                    # Pass 1: the nearest splat depth at each pixel (z-buffer over the footprints).
+                    zbuf.scatter_reduce_(0, pix, z[sel], reduce="amin")
+                    parts.append((sel, pix, torch.exp(-d2[rows] * inv_two_sigma2[sel])))
+        # Pass 2: blend the splats of the front surface at each pixel (colour and depth weighted
+        # by footprint and confidence), so a surface's depth is the mean of its splats.
+        weight = torch.zeros(h * w)
+        footprint = torch.zeros(h * w)
+        for sel, pix, g in parts:
+            zs = z[sel]
+            front = zs <= zbuf[pix] * (1.0 + cfg.blend_tolerance_rel) + cfg.blend_tolerance_m
+            sel, pix, g, zs = sel[front], pix[front], g[front], zs[front]
+            wgt = g * conf[sel]
+            weight.index_add_(0, pix, wgt)
+            footprint.index_add_(0, pix, g)
+            depth.index_add_(0, pix, wgt * zs)
+            rgb.index_add_(0, pix, wgt[:, None] * self.colors[idx[sel]])
+        seen = weight > 0
+        depth[seen] /= weight[seen]
+        rgb[seen] /= weight[seen][:, None]
+        opacity = 1.0 - torch.exp(-cfg.opacity_gain * footprint)
+        rgb = rgb * opacity[:, None]
+        return rgb.reshape(h, w, 3), depth.reshape(h, w), opacity.reshape(h, w)
+
+    # --- checkpoints --------------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        return {"format": SPLAT_FORMAT, "version": SPLAT_VERSION, "points": self.points.contiguous(),
+                "colors": self.colors.contiguous(), "weights": self.weights.contiguous(),
+                "views": self.views.contiguous(), "voxel_size_m": self.voxel_size,
+                "config": json.dumps(self.config.to_dict()),
+                "conventions": "units=metres; points in the world frame of the training poses (T_world_cam); "
+                               "colours linear in [0, 1] after exposure normalisation",
+                "meta": json.dumps(self.meta, default=_json_default)}
+
+    def save(self, path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.state_dict(), tmp)
+        tmp.replace(path)  # never a half-written checkpoint under the real name
+        return path
+
+    @classmethod
+    def from_state_dict(cls, state: dict, source: str = "checkpoint") -> "SplatField":
+        if not isinstance(state, dict) or state.get("format") != SPLAT_FORMAT:
+            raise FieldError(f"{source}: not a nap3d-graph splat field checkpoint")
+        if state.get("version") != SPLAT_VERSION:
+            raise FieldError(f"{source}: splat field checkpoint version {state.get('version')!r}, but this "
+                             f"nap3d-graph reads version {SPLAT_VERSION}; rebuild it with `nap3d-graph train-field`")
+        missing = [k for k in ("points", "colors", "weights", "views", "voxel_size_m") if k not in state]
+        if missing:
+            raise FieldError(f"{source}: checkpoint lacks {', '.join(missing)}")
+        if not all(torch.isfinite(state[k]).all() for k in ("points", "colors", "weights")):
+            raise FieldError(f"{source}: checkpoint holds non-finite splats")
+        try:
+            stored = json.loads(state.get("config", "{}"))
+            known = {f.name for f in fields(SplatConfig)}
+            config = SplatConfig(**{k: v for k, v in stored.items() if k in known})
+            meta = json.loads(state.get("meta", "{}"))
+        except (TypeError, ValueError) as exc:
+            raise FieldError(f"{source}: unreadable checkpoint metadata ({exc})") from None
+        return cls(state["points"].numpy(), state["colors"].numpy(), state["weights"].numpy(),
+                   state["views"].numpy(), float(state["voxel_size_m"]), config, meta)
+
+    @classmethod
+    def load(cls, path) -> "SplatField":
+        path = Path(path)
+        return cls.from_state_dict(load_state(path), source=str(path))
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot store {type(value).__name__} in checkpoint metadata")
+
+
+# --- building ------------------------------------------------------------------------------------
+
+
+def _edge_free(depth: np.ndarray, rel_jump: float) -> np.ndarray:
+    """True where no 4-neighbour's depth differs by more than ``rel_jump`` x depth."""
+    d = depth
+    ok = d > 0
+    jump = np.zeros_like(d, dtype=bool)
+    for shifted in (np.roll(d, 1, 0), np.roll(d, -1, 0), np.roll(d, 1, 1), np.roll(d, -1, 1)):
+        jump |= (shifted > 0) & (np.abs(shifted - d) > rel_jump * d)
+        jump |= shifted <= 0  # next to a hole: the sensor's edge pixels are the least reliable
+    ok &= ~jump
+    ok[0, :] = ok[-1, :] = ok[:, 0] = ok[:, -1] = False
+    return ok
+
+
+def _sample_colour(rgb01: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    h, w, _ = rgb01.shape
+    u = np.clip(uv[:, 0], 0, w - 1.001)
+    v = np.clip(uv[:, 1], 0, h - 1.001)
+    u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    du, dv = (u - u0)[:, None], (v - v0)[:, None]
+    return (rgb01[v0, u0] * (1 - du) * (1 - dv) + rgb01[v0, u0 + 1] * du * (1 - dv)
+            + rgb01[v0 + 1, u0] * (1 - du) * dv + rgb01[v0 + 1, u0 + 1] * du * dv)
+
+
+def _frame_points(frame, T_world_depth: np.ndarray, T_world_colour: np.ndarray, scale: float,
+                  config: SplatConfig):
+    """World points (M, 3), colours (M, 3) in [0, 1] and weights (M,) of one frame."""
+    K = frame.intrinsics
+    depth = np.nan_to_num(frame.depth_m.astype(np.float64), nan=0.0) * scale
+    depth[(depth < config.min_depth_m) | (depth > config.max_depth_m)] = 0.0
+    ok = _edge_free(depth, config.edge_rel_jump)
+    v, u = np.mgrid[0:depth.shape[0]:config.stride, 0:depth.shape[1]:config.stride]
+    keep = ok[v, u]
+    u, v, z = u[keep].astype(np.float64), v[keep].astype(np.float64), depth[v[keep], u[keep]]
+    p_depth = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], axis=1)
+    world = p_depth @ T_world_depth[:3, :3].T + T_world_depth[:3, 3]
+    # Colour from the colour image at *its* capture pose.
+    T_colour_world = inv_T(T_world_colour)
+    p_colour = world @ T_colour_world[:3, :3].T + T_colour_world[:3, 3]
+    zc = p_colour[:, 2]
+    uc = K.fx * p_colour[:, 0] / zc + K.cx
+    vc = K.fy * p_colour[:, 1] / zc + K.cy
+    inside = (zc > 0) & (uc >= 0) & (uc < K.width - 1) & (vc >= 0) & (vc < K.height - 1)
+    colours = _sample_colour(frame.rgb.astype(np.float32) / 255.0, np.stack([uc, vc], 1)[inside])
+    sigma = config.depth_sigma_floor_m + config.depth_sigma_z2_per_m * z[inside] ** 2
+    return world[inside].astype(np.float32), colours.astype(np.float32), (1.0 / sigma**2).astype(np.float32)
+
+
+def _fuse(keys, frame_of, points, colours, weights, colour_weights, gains, offsets):
+    """Weighted means per voxel key; returns (unique keys inverse, mean points, colours,
+    weight sums, view counts)."""
+    unique, inverse = np.unique(keys, return_inverse=True)
+    n = len(unique)
+    corrected = np.clip(colours * gains[frame_of] + offsets[frame_of], 0.0, 1.0)
+    wsum = np.bincount(inverse, weights=weights, minlength=n)
+    csum = np.maximum(np.bincount(inverse, weights=colour_weights, minlength=n), 1e-12)
+    mean_p = np.stack([np.bincount(inverse, weights=weights * points[:, k], minlength=n) for k in range(3)], 1)
+    mean_c = np.stack([np.bincount(inverse, weights=colour_weights * corrected[:, k], minlength=n) for k in range(3)],
+                      1) * (wsum / csum)[:, None]
+    views = np.bincount(np.unique(inverse.astype(np.int64) * (frame_of.max() + 1) + frame_of) // (frame_of.max() + 1),
+                        minlength=n)
+    return inverse, mean_p / wsum[:, None], mean_c / wsum[:, None], wsum, views
+
+
+def _exposure_fit(frame_of, colours, target, weights, frames: int):
+    """Per frame and channel, the affine map ``a c + b`` of its colours onto the fused ones."""
+    gains = np.ones((frames, 3), np.float64)
+    offsets = np.zeros((frames, 3), np.float64)
+    for f in range(frames):
+        mine = frame_of == f
+        if mine.sum() < 100:
+            continue
+        w = weights[mine]
+        for k in range(3):
+            x, y = colours[mine, k], target[mine, k]
+            A = np.stack([x, np.ones_like(x)], 1) * np.sqrt(w)[:, None]
+            (a, b), *_ = np.linalg.lstsq(A, y * np.sqrt(w), rcond=None)
+            gains[f, k], offsets[f, k] = a, b
+    # Keep the overall exposure where it was: the mean map is the identity.
+    gains /= gains.mean(axis=0, keepdims=True)
+    offsets -= offsets.mean(axis=0, keepdims=True)
+    return gains, offsets
+
+
+def build_splat_field(sequence, indices, config: SplatConfig | None = None, depth_offset_s: float = 0.0,
+                      colour_offset_s: float = 0.0, depth_scale: float = 1.0, progress: bool = False):
+    """Fuse frames ``indices`` of a posed ``sequence`` into a :class:`SplatField`.
+
+    Depth is placed with the ground truth at ``depth_timestamps + depth_offset_s`` and scaled
+    by ``depth_scale``; colour is looked up with the ground truth at ``timestamps +
+    colour_offset_s`` (see :mod:`nap3d_graph.datasets.depth_timing`). A sequence without
+    ``ground_truth_at`` (poses at the frame stamps only) uses its poses for both. Returns
+    ``(field, report)``.
+    """
+    from tqdm import tqdm
+
+    config = config or SplatConfig()
+    indices = np.asarray(indices, dtype=int)
+    if indices.size == 0:
+        raise FieldError("no frames to build a splat field from")
+    poses = getattr(sequence, "T_world_cam_gt", None)
+    if poses is None:
+        raise FieldError("building a splat field needs posed frames, but the sequence has no ground-truth poses")
+    started = time.perf_counter()
+    T_depth, T_colour = _capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
+    chunks, sharpness = [], np.ones(len(indices))
+    for k, i in enumerate(tqdm(indices, desc="fuse frames", unit="frame", disable=not progress, leave=False)):
+        if not (np.all(np.isfinite(T_depth[k])) and np.all(np.isfinite(T_colour[k]))):
+            continue
+        frame = sequence[int(i)]
+        sharpness[k] = _sharpness(frame.rgb)
+        points, colours, weights = _frame_points(frame, T_depth[k], T_colour[k], depth_scale, config)
+        chunks.append((np.full(len(points), k, np.int64), points, colours, weights))
+    if not chunks:
+        raise FieldError("no training frame has a usable depth pixel")
+    frame_of = np.concatenate([c[0] for c in chunks])
+    points = np.concatenate([c[1] for c in chunks])
+    colours = np.concatenate([c[2] for c in chunks])
+    weights = np.concatenate([c[3] for c in chunks]).astype(np.float64)
+    colour_weights = weights * (sharpness / np.median(sharpness))[frame_of] ** 2
+    voxel = config.voxel_size_m or _auto_voxel(sequence, config)
+    config = replace(config, voxel_size_m=voxel)
+    cell = np.floor(points / voxel).astype(np.int64)
+    cell -= cell.min(axis=0)
+    span = cell.max(axis=0) + 1
+    keys = (cell[:, 2] * span[1] + cell[:, 1]) * span[0] + cell[:, 0]
+    gains, offsets = np.ones((len(indices), 3)), np.zeros((len(indices), 3))
+    for _ in range(max(config.exposure_rounds, 0) + 1):
+        inverse, mean_p, mean_c, wsum, views = _fuse(keys, frame_of, points, colours, weights, colour_weights,
+                                                     gains, offsets)
+        if _ == config.exposure_rounds:
+            break
+        gains, offsets = _exposure_fit(frame_of, colours, mean_c[inverse], weights, len(indices))
+    keep = views >= config.min_views
+    if not keep.any():
+        raise FieldError(f"no voxel was seen by {config.min_views} frames; use more or overlapping frames")
+    confidence = wsum[keep] / wsum[keep].mean()
+    field = SplatField(mean_p[keep], np.clip(mean_c[keep], 0, 1), confidence, views[keep], voxel, config)
+    report = {"splats": int(keep.sum()), "voxel_size_m": voxel, "voxels_seen_once_or_too_few_views": int((~keep).sum()),
+              "points_fused": int(len(points)), "frames": int(len(chunks)),
+              "exposure_gain_range": [float(gains.min()), float(gains.max())],
+              "build_seconds": round(time.perf_counter() - started, 2)}
+    log.info("splat field: %d splats from %d points of %d frames in %.1f s", report["splats"], len(points),
+             len(chunks), report["build_seconds"])
+    return field, report
+
+
+def _auto_voxel(sequence, config: SplatConfig) -> float:
+    """1.5 x the spacing of neighbouring back-projected points at the median sensor depth."""
+    K = sequence.intrinsics
+    depth = float(np.median(_depth_sample(sequence)))
+    return max(0.004, 1.5 * depth * config.stride / (0.5 * (K.fx + K.fy)))
+
+
+def _depth_sample(sequence) -> np.ndarray:
+    values = []
+    for i in np.linspace(0, len(sequence) - 1, min(5, len(sequence))).round().astype(int):
+        d = np.nan_to_num(sequence[int(i)].depth_m, nan=0.0)
+        values.append(d[d > 0][::50])
+    values = np.concatenate(values) if values else np.zeros(0)
+    return values if values.size else np.array([1.0])
+
+
+def _sharpness(rgb: np.ndarray) -> float:
+    """Variance of the Laplacian of the grey image: falls with motion blur and defocus."""
+    import cv2
+
+    gray = cv2.cvtColor(np.asarray(rgb), cv2.COLOR_RGB2GRAY)
+    return float(cv2.Laplacian(gray, cv2.CV_64F).var()) + 1e-6
+
+
+def _capture_poses(sequence, indices, depth_offset_s: float, colour_offset_s: float):
+    """Poses of each frame's depth and colour at their capture times (N, 4, 4) each."""
+    at = getattr(sequence, "ground_truth_at", None)
+    if at is None or getattr(sequence, "depth_timestamps", None) is None:
+        poses = np.asarray(sequence.T_world_cam_gt)[indices]
+        return poses, poses
+    T_depth = at(np.asarray(sequence.depth_timestamps)[indices] + depth_offset_s)
+    T_colour = at(np.asarray(sequence.timestamps)[indices] + colour_offset_s)
+    if T_depth is None:
+        poses = np.asarray(sequence.T_world_cam_gt)[indices]
+        return poses, poses
+    return T_depth, T_colour
