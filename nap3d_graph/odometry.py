@@ -78,17 +78,27 @@ class NoisyGroundTruthOdometry(RecordedOdometry):
 
 class VisualOdometry:
     """Frame-to-frame RGB-D odometry: NAP3D's matcher and alignment between frame i-1 (as
-    the 'rendered' view, opaque where its depth is valid) and frame i."""
+    the 'rendered' view, opaque where its depth is valid) and frame i.
+
+    Its covariance says when a step is doubtful, so a graph trusts the corrections there
+    instead: the alignment's own covariance is inflated when it rests on few inliers
+    (``(min_good_inliers / inliers)^2``), and a step that disagrees with the constant-velocity
+    prediction from the previous one gets at least that disagreement as its sigma (a hand-held
+    camera does not change speed by a metre per second in one frame; a wrong match does).
+    A failed step falls back to constant velocity with a large covariance.
+    """
 
     name = "vo"
 
     def __init__(self, initial_pose: np.ndarray | None = None, config: AlignConfig | None = None,
-                 fallback_rot_sigma_rad: float = 0.05, fallback_trans_sigma_m: float = 0.05):
+                 fallback_rot_sigma_rad: float = 0.05, fallback_trans_sigma_m: float = 0.05,
+                 min_good_inliers: int = 60):
         self._initial = np.eye(4) if initial_pose is None else np.asarray(initial_pose, dtype=float)
         self.config = config or AlignConfig(min_opacity=0.5)
         self._previous: RGBDFrame | None = None
         self._last_good = np.eye(4)
         self._fallback_cov = _diag_cov(fallback_rot_sigma_rad, fallback_trans_sigma_m)
+        self.min_good_inliers = int(min_good_inliers)
 
     def initial_pose(self) -> np.ndarray:
         return self._initial.copy()
@@ -112,8 +122,16 @@ class VisualOdometry:
             return Increment(self._last_good.copy(), self._fallback_cov, False, a.reason)
         # T_real_rendered maps frame i-1's camera into frame i's: T_cur_prev.
         T_prev_cur = inv_T(a.T_real_rendered)
+        covariance = self._step_covariance(a, T_prev_cur)
         self._last_good = T_prev_cur
-        return Increment(T_prev_cur, a.covariance)
+        return Increment(T_prev_cur, covariance)
+
+    def _step_covariance(self, alignment, T_prev_cur: np.ndarray) -> np.ndarray:
+        from .conventions import log_se3
+
+        cov = alignment.covariance * max(1.0, (self.min_good_inliers / max(alignment.num_inliers, 1)) ** 2)
+        surprise = log_se3(inv_T(self._last_good) @ T_prev_cur)  # against constant velocity
+        return cov + np.diag(surprise**2)
 
 
 def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-3, trans_sigma_m: float = 2e-3):

@@ -60,6 +60,10 @@ class PipelineConfig:
         (a velocity or gyro bias integrates while the robot stands still), as sigmas per
         second between keyframes (1 cm/s and 0.2 deg/s by default: the simulator's odometry
         bias). Added to the distance terms.
+    compensate_timing: when the field records the sensor's capture timing (a real recording's
+        depth captured ~30 ms before its colour) and the frame has a depth stamp, move each
+        keyframe's depth to the colour's capture instant with the odometry's velocity, and
+        the corrected pose back to the frame's stamp, before it enters the graph.
     """
 
     keyframe_every: int = 5
@@ -76,6 +80,7 @@ class PipelineConfig:
     prior_rot_sigma_rad: float = 1e-3
     prior_trans_sigma_m: float = 1e-3
     relinearize_threshold: float = 1e-3
+    compensate_timing: bool = True
     odom_drift_fraction: float = 0.03
     odom_drift_rad_per_m: float = 0.0175
     odom_drift_rad_per_rad: float = 0.03
@@ -276,8 +281,11 @@ class Pipeline:
         T_render = self.T_pred
         if self.config.use_anchor:
             T_render = inv_T(self._anchor_estimate()) @ self.T_pred  # the field's frame
+        frame, twist = self._at_colour_time(i, frame)
         correction = correct_pose(frame, self.field, T_render, iterations=self.config.correction_iterations,
                                   config=self.config.align, render_intrinsics=self._render_intrinsics(frame))
+        if twist is not None and correction.success:
+            correction = self._to_frame_stamp(correction, twist)
         if self.correction_hook is not None:
             correction = self.correction_hook(i, correction)
         record.timings_s.update({k: round(v, 4) for k, v in correction.timings_s.items()})
@@ -298,6 +306,42 @@ class Pipeline:
         record.accepted = True
         # Two iSAM2 steps: a correction can move the pose a long way from its linearisation.
         self._update_isam(extra_step=True)
+
+    def _timing(self) -> dict | None:
+        meta = getattr(self.field, "meta", None) or {}
+        return meta.get("timing") if self.config.compensate_timing else None
+
+    def _velocity(self, i: int) -> np.ndarray | None:
+        """Body twist per second (GTSAM order) of the odometry's last step before frame i."""
+        from .conventions import log_se3
+
+        if i < 1:
+            return None
+        dt = float(self.sequence.timestamps[i] - self.sequence.timestamps[i - 1])
+        return log_se3(self.increments[i]) / dt if dt > 0 else None
+
+    def _at_colour_time(self, i: int, frame):
+        """The frame with its depth moved to the colour's capture instant (and the twist used),
+        or the frame as it is when the capture timing or the velocity is unknown."""
+        from .camera import warp_depth
+        from .conventions import exp_se3
+
+        timing, twist = self._timing(), self._velocity(i)
+        if timing is None or twist is None or frame.depth_timestamp is None:
+            return frame, None
+        dt = (frame.depth_timestamp + timing["depth_offset_s"]) - (frame.timestamp + timing["colour_offset_s"])
+        T_colour_depth = exp_se3(twist * dt)
+        depth = warp_depth(frame.depth_m, frame.intrinsics, T_colour_depth, timing.get("depth_scale", 1.0))
+        return frame.with_depth(depth), twist
+
+    def _to_frame_stamp(self, correction: Correction, twist: np.ndarray) -> Correction:
+        """A correction measured at the colour's capture instant, moved to the frame's stamp."""
+        import dataclasses
+
+        from .conventions import exp_se3
+
+        shift = exp_se3(-twist * self._timing()["colour_offset_s"])
+        return dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
 
     def _gated_factor(self, key: int, correction: Correction):
         """The NAP3D factor and its gate result; ``(None, gate)`` when gated out.
