@@ -1,0 +1,56 @@
+"""The one-command study on a tiny simulated recording: it runs end to end and its table is
+its files."""
+
+import json
+
+import numpy as np
+import pytest
+
+from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    path = tmp_path_factory.mktemp("study") / "rec"
+    # A survey that comes back over the same room: the first half maps, the second is corrected.
+    simulate_sequence(path, SimConfig(frames=60, path="mapping", width=160, height=120, scene_seed=11, seed=7))
+    return path
+
+
+def test_study_runs_and_its_table_is_its_files(recording, tmp_path, capsys):
+    from nap3d_graph.cli import main
+
+    out = tmp_path / "study"
+    assert main(["study", str(recording), "--out", str(out), "--scenarios", "3", "--odom", "vo,noisy",
+                 "--keyframe-every", "3", "--train-steps", "300"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    for name in ("field.pt", "field_report.json", "summary.md", "eval_k/results.csv"):
+        assert (out / name).is_file(), name
+    # The drift runs' figures are their own metrics.json, rounded into the table.
+    table = (out / "summary.md").read_text()
+    for odom in ("vo", "noisy"):
+        run = summary["runs"][odom]
+        metrics = json.loads((out / run["folder"] / "metrics.json").read_text())
+        assert run["ate_estimate_m"] == pytest.approx(metrics["estimate"]["ate_m"]["rmse"])
+        assert run["ate_odometry_m"] == pytest.approx(metrics["odometry"]["ate_m"]["rmse"])
+        assert f"| {odom} | {run['ate_odometry_m'] * 100:.2f} cm | {run['ate_estimate_m'] * 100:.2f} cm |" in table
+        # The field never saw these frames, and NAP3D still removes most of the drift.
+        assert run["ate_estimate_m"] < run["ate_odometry_m"]
+    eval_k = summary["eval_k"]["nap3d-selfcal"]
+    assert f"| nap3d-selfcal | {eval_k['success_rate'] * 100:.0f}% | {eval_k['trans_median_m'] * 1000:.1f} / " in table
+    with open(out / "eval_k" / "results.csv") as fh:
+        rows = [line for line in fh.read().splitlines()[1:] if ",nap3d-selfcal," in line]
+    assert len(rows) == 3
+    field = json.loads((out / "field_report.json").read_text())
+    assert summary["field"]["psnr_db"] == pytest.approx(field["held_out"]["psnr_db"])
+    assert "study in" in capsys.readouterr().out
+    # The field was built on the first half only; the runs used the second half.
+    trained = np.array(json.loads((out / "field_report.json").read_text())["train_frames"])
+    assert trained.max() < 30
+
+
+def test_study_refuses_a_bad_split(recording, tmp_path, capsys):
+    from nap3d_graph.cli import main
+
+    assert main(["study", str(recording), "--out", str(tmp_path / "s"), "--split", "1.5"]) == 2
+    assert "--split must be in" in capsys.readouterr().err
