@@ -243,11 +243,12 @@ class Scene:
 
     # --- ray casting ---------------------------------------------------------------
 
-    def cast(self, origin: np.ndarray, dirs: np.ndarray):
+    def cast(self, origin: np.ndarray, dirs: np.ndarray, shade: bool = True):
         """Cast rays ``origin + t * dirs`` (dirs (N, 3), not necessarily unit).
 
         Returns ``t`` (N,) in units of |dirs|, world hit points (N, 3), unit normals (N, 3)
-        and the albedo (N, 3) of the surface hit. Rays leaving the room get ``t = inf``.
+        and the albedo (N, 3) of the surface hit (zeros unless ``shade``). Rays leaving the room
+        get ``t = inf``.
         """
         origin = np.asarray(origin, dtype=float)
         t, normal, face = self.room.intersect(origin, dirs)
@@ -267,11 +268,24 @@ class Scene:
         valid = np.isfinite(t)
         points = origin + np.where(valid, t, 0.0)[:, None] * dirs
         albedo = np.zeros_like(points)
+        if not shade:
+            return t, points, normal, albedo
         textures = list(self.room.textures) + [o.texture for o in self.objects]
         for owner_id in np.unique(owner[valid]):
             sel = valid & (owner == owner_id)
             albedo[sel] = shade_texture(textures[owner_id], points[sel])
         return t, points, normal, albedo
+
+    def render_depth(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+        """Noise-free z-depth (H, W) metres only (0 where nothing is hit): no shading, cheaper."""
+        T_world_cam = np.asarray(T_world_cam, dtype=float)
+        h, w = intrinsics.height, intrinsics.width
+        v, u = np.mgrid[0:h, 0:w]
+        rays_cam = np.stack(
+            [(u.ravel() - intrinsics.cx) / intrinsics.fx, (v.ravel() - intrinsics.cy) / intrinsics.fy,
+             np.ones(h * w)], axis=1)
+        t = self.cast(T_world_cam[:3, 3], rays_cam @ T_world_cam[:3, :3].T, shade=False)[0]
+        return np.where(np.isfinite(t), t, 0.0).reshape(h, w)
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics):
         """Noise-free RGB (H, W, 3) float in [0, 1], z-depth (H, W) metres, hit mask (H, W).
@@ -344,8 +358,15 @@ def make_scene(seed: int = 0) -> Scene:
     camera paths (``scene.free_xy_m``).
     """
     rng = np.random.default_rng(seed)
+    # Which surfaces are plain or finely textured comes from its own stream, so the layout and
+    # palettes of a room do not depend on it.
+    kinds = np.random.default_rng([seed, 17])
+
+    def texture() -> TextureSpec:
+        return TextureSpec.random(rng).as_kind(str(kinds.choice(["standard", "plain", "fine"], p=[0.55, 0.2, 0.25])))
+
     size = (float(rng.uniform(5.5, 7.0)), float(rng.uniform(4.5, 5.8)), float(rng.uniform(2.6, 3.0)))
-    room = Room(size, tuple(TextureSpec.random(rng) for _ in range(6)))
+    room = Room(size, tuple(texture() for _ in range(6)))
     band = 1.0  # furniture stands within this distance of the walls
     # Cameras keep half a metre from the furniture band, so no view is a close-up of one object.
     free = ((band + 0.5, size[0] - band - 0.5), (band + 0.5, size[1] - band - 0.5))
@@ -375,17 +396,16 @@ def make_scene(seed: int = 0) -> Scene:
         half = (rng.uniform(0.15, 0.32), rng.uniform(0.15, 0.32), rng.uniform(0.2, 0.9))
         xy = place(float(np.hypot(half[0], half[1])))
         if xy is not None:
-            objects.append(Box((xy[0], xy[1], half[2]), half, float(rng.uniform(0, np.pi)),
-                               TextureSpec.random(rng)))
+            objects.append(Box((xy[0], xy[1], half[2]), half, float(rng.uniform(0, np.pi)), texture()))
     for _ in range(int(rng.integers(2, 5))):
         radius = float(rng.uniform(0.12, 0.35))
         xy = place(radius)
         if xy is not None:
-            objects.append(Cylinder(xy, radius, 0.0, float(rng.uniform(0.5, 1.9)), TextureSpec.random(rng)))
+            objects.append(Cylinder(xy, radius, 0.0, float(rng.uniform(0.5, 1.9)), texture()))
     for _ in range(int(rng.integers(1, 4))):
         radius = float(rng.uniform(0.15, 0.35))
         xy = place(radius)
         if xy is not None:
             z = radius + float(rng.uniform(0.0, 0.8))
-            objects.append(Sphere((xy[0], xy[1], z), radius, TextureSpec.random(rng)))
+            objects.append(Sphere((xy[0], xy[1], z), radius, texture()))
     return Scene(room=room, objects=tuple(objects), free_xy_m=free, seed=seed)

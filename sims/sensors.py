@@ -15,6 +15,10 @@ from .trajectories import Trajectory
 
 __all__ = [
     "DepthNoise",
+    "CameraTiming",
+    "ExposureNoise",
+    "exposure_gains",
+    "blur_poses",
     "add_depth_noise",
     "add_rgb_noise",
     "OdometryNoise",
@@ -32,13 +36,87 @@ GRAVITY_M_S2 = 9.81
 class DepthNoise:
     """Structured-light-like depth: ``sigma(z) = sigma_z2_per_m * z^2`` (Khoshelham's Kinect
     model is ~1.4e-3 z^2), random holes, no return beyond ``max_range_m`` or at grazing
-    angles."""
+    angles, and *flying pixels*: at a depth edge (a neighbour more than ``flying_jump_rel``
+    of the depth away) a ``flying_fraction`` of the pixels report a depth between the two
+    surfaces, as a Kinect's mixed pixels do."""
 
     sigma_z2_per_m: float = 1.4e-3
     hole_fraction: float = 0.01
     hole_radius_px: int = 4
     max_range_m: float = 6.0
     min_range_m: float = 0.3
+    flying_fraction: float = 0.3
+    flying_jump_rel: float = 0.05
+
+    def sigma_m(self, z_m: np.ndarray) -> np.ndarray:
+        return self.sigma_z2_per_m * np.asarray(z_m) ** 2
+
+
+@dataclass(frozen=True)
+class CameraTiming:
+    """When a simulated RGB-D camera captures, and how it stamps, its images.
+
+    Colour is captured at its stamp, over ``exposure_s`` (so a moving camera blurs it, with
+    up to ``max_blur_samples`` sub-frame renders). Depth is captured ``depth_capture_offset_s``
+    from the colour (a Kinect's is some 30 ms earlier) and stamped ``depth_stamp_lag_s``
+    after its capture, with ``stamp_jitter_s`` of uniform jitter: so its stamp is ~15 ms
+    before the colour's, as on TUM's Kinect, while its true capture is 30 ms before.
+    """
+
+    depth_capture_offset_s: float = -0.030
+    depth_stamp_lag_s: float = 0.015
+    stamp_jitter_s: float = 0.003
+    exposure_s: float = 0.015
+    max_blur_samples: int = 5
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class ExposureNoise:
+    """Auto-exposure and white balance: each frame's colours are multiplied per channel by
+    ``exp(g_f + w_c,f)``: a log gain ``g`` that random-walks by ``gain_walk`` per frame
+    (kept within ``gain_limit``) and a white balance ``w`` drawn once per sequence
+    (``white_balance_sigma`` per channel) that wanders by ``white_balance_walk``."""
+
+    gain_walk: float = 0.03
+    gain_limit: float = 0.3
+    white_balance_sigma: float = 0.03
+    white_balance_walk: float = 0.005
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def exposure_gains(frames: int, noise: ExposureNoise | None, rng: np.random.Generator) -> np.ndarray:
+    """Per-frame, per-channel colour gains (frames, 3); ones without ``noise``."""
+    if noise is None:
+        return np.ones((frames, 3))
+    gain = np.clip(np.cumsum(rng.normal(size=frames) * noise.gain_walk), -noise.gain_limit, noise.gain_limit)
+    balance = rng.normal(size=3) * noise.white_balance_sigma + np.cumsum(
+        rng.normal(size=(frames, 3)) * noise.white_balance_walk, axis=0)
+    return np.exp(gain[:, None] + balance)
+
+
+def blur_poses(trajectory, t_colour: float, timing: CameraTiming | None, intrinsics,
+               typical_depth_m: float = 2.5) -> tuple[list[np.ndarray], float]:
+    """Poses to average the colour image over during the exposure, one per pixel of apparent
+    motion at ``typical_depth_m`` (at least 1, at most ``max_blur_samples``), and the sigma
+    (px) of a Gaussian that fills the gaps between the samples when the motion is longer
+    than that (so the blur is a smear, not a few sharp copies)."""
+    if timing is None or timing.exposure_s <= 0:
+        return [trajectory.T_world_cam(t_colour)], 0.0
+    start, end = t_colour - timing.exposure_s / 2, t_colour + timing.exposure_s / 2
+    T0, T1 = trajectory.T_world_cam(start), trajectory.T_world_cam(end)
+    moved_m = float(np.linalg.norm(T1[:3, 3] - T0[:3, 3]))
+    turned = float(np.arccos(np.clip((np.trace(T0[:3, :3].T @ T1[:3, :3]) - 1) / 2, -1, 1)))
+    motion_px = 0.5 * (intrinsics.fx + intrinsics.fy) * (moved_m / typical_depth_m + turned)
+    samples = int(np.clip(np.ceil(motion_px), 1, timing.max_blur_samples))
+    gap_sigma = 0.5 * motion_px / samples if motion_px > samples else 0.0
+    if samples == 1:
+        return [trajectory.T_world_cam(t_colour)], gap_sigma
+    return [trajectory.T_world_cam(float(t)) for t in np.linspace(start, end, samples)], gap_sigma
 
     def sigma_m(self, z_m: np.ndarray) -> np.ndarray:
         return self.sigma_z2_per_m * np.asarray(z_m) ** 2
@@ -56,8 +134,24 @@ def add_depth_noise(depth_m: np.ndarray, noise: DepthNoise, rng: np.random.Gener
         seeds = (rng.random(depth.shape) < noise.hole_fraction / (np.pi * noise.hole_radius_px**2)).astype(np.uint8)
         kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * noise.hole_radius_px + 1,) * 2)
         missing |= cv2.dilate(seeds, kernel).astype(bool)
+    noisy = _flying_pixels(depth, noisy, noise, rng)
     noisy[missing] = 0.0
     return noisy.astype(np.float32)
+
+
+def _flying_pixels(depth: np.ndarray, noisy: np.ndarray, noise: DepthNoise, rng: np.random.Generator) -> np.ndarray:
+    """At depth edges, a fraction of pixels report a depth between the two surfaces."""
+    if noise.flying_fraction <= 0:
+        return noisy
+    out = noisy.copy()
+    finite = np.isfinite(depth) & (depth > 0)
+    for axis, step in ((0, 1), (0, -1), (1, 1), (1, -1)):
+        other = np.roll(depth, step, axis=axis)
+        edge = finite & np.isfinite(other) & (other > 0) & (np.abs(other - depth) > noise.flying_jump_rel * depth)
+        flying = edge & (rng.random(depth.shape) < noise.flying_fraction / 4)
+        alpha = rng.random(depth.shape)
+        out = np.where(flying, alpha * depth + (1 - alpha) * other, out)
+    return out
 
 
 def add_rgb_noise(rgb01: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:

@@ -3,8 +3,12 @@
 The folder reads back through :class:`nap3d_graph.datasets.TumSequence` with no special
 case: ``rgb.txt``, ``depth.txt``, ``rgb/``, ``depth/`` (uint16, 5000 per metre, 0 = missing),
 ``groundtruth.txt`` (100 Hz plus the frame instants, so interpolation at a frame is exact)
-and ``intrinsics.json``. Depth stamps are offset from colour stamps by a few milliseconds,
-as in the real dataset, so association is needed. Extra files: ``odometry.txt`` (TUM,
+and ``intrinsics.json``. The camera behaves like TUM's Kinect (:class:`CameraTiming`):
+depth is captured 30 ms before the colour and stamped 15 ms after its capture, so its stamp
+is ~15 ms before the colour's and association is needed; colour is blurred by the camera's
+own motion during its exposure and its exposure and white balance drift from frame to frame
+(:class:`ExposureNoise`); depth has flying pixels at edges. ``sim.json`` records all of it,
+so a compensation can be checked against the exact truth. Extra files: ``odometry.txt`` (TUM,
 drifting odometry at the colour stamps), ``imu.txt`` (``timestamp ax ay az gx gy gz``,
 camera frame), ``scene.json`` (rebuilds the oracle field) and ``sim.json`` (settings).
 """
@@ -22,7 +26,8 @@ from nap3d_graph.camera import Intrinsics
 from nap3d_graph.conventions import T_to_tum
 
 from .scene import make_scene
-from .sensors import DepthNoise, ImuNoise, OdometryNoise, add_depth_noise, add_rgb_noise, drifting_odometry, simulate_imu
+from .sensors import (CameraTiming, DepthNoise, ExposureNoise, ImuNoise, OdometryNoise, add_depth_noise, add_rgb_noise,
+                      blur_poses, drifting_odometry, exposure_gains, simulate_imu)
 from .trajectories import make_trajectory
 
 __all__ = ["SimConfig", "simulate_sequence", "default_intrinsics", "DEPTH_SCALE", "TIME_ORIGIN_S"]
@@ -45,18 +50,30 @@ class SimConfig:
     scene_seed: int = 0
     seed: int = 0
     path: str = "traverse"
-    fps: float = 15.0
+    fps: float | None = None
     width: int = 640
     height: int = 480
     rgb_noise_sigma: float = 0.01
     depth: DepthNoise = field(default_factory=DepthNoise)
+    timing: CameraTiming | None = field(default_factory=CameraTiming)
+    exposure: ExposureNoise | None = field(default_factory=ExposureNoise)
     odometry: OdometryNoise = field(default_factory=OdometryNoise)
     imu: ImuNoise = field(default_factory=ImuNoise)
+
+    def __post_init__(self) -> None:
+        if self.fps is None:
+            # A traversal is recorded at the camera's 15 Hz. A survey keeps every fourth frame of
+            # a 15 Hz recording: its path (two loops round the room, sweeping +-80 deg) then takes
+            # a realistic minute per 240 frames, turning ~50 deg/s, and the motion blur of its
+            # frames stays what a careful user gets, not the smear of a 200 deg/s sweep.
+            self.fps = 15.0 if self.path == "traverse" else 15.0 / 4
 
     def to_dict(self) -> dict:
         d = {k: getattr(self, k) for k in ("frames", "scene_seed", "seed", "path", "fps", "width",
                                              "height", "rgb_noise_sigma")}
         d["depth"] = self.depth.__dict__.copy()
+        d["timing"] = None if self.timing is None else self.timing.to_dict()
+        d["exposure"] = None if self.exposure is None else self.exposure.to_dict()
         d["odometry"] = self.odometry.to_dict()
         d["imu"] = self.imu.to_dict()
         return d
@@ -74,12 +91,19 @@ def _write_tum(path: Path, stamps: np.ndarray, T: np.ndarray, header: str) -> No
 
 
 def _render_and_write(job) -> None:
-    """Render one sensor frame and write its two PNGs (runs in a worker process)."""
+    """Render one sensor frame and write its two PNGs (runs in a worker process): colour
+    averaged over the exposure's poses and scaled by the frame's gains, depth at its own
+    capture pose."""
     import cv2
 
-    scene, T_world_cam, intrinsics, rgb_sigma, depth_noise, seed, rgb_path, depth_path = job
+    scene, (colour_poses, gap_sigma), T_world_depth, gains, intrinsics, rgb_sigma, depth_noise, seed, rgb_path, \
+        depth_path = job
     rng = np.random.default_rng(seed)
-    rgb01, depth_m, _ = scene.render(T_world_cam, intrinsics)
+    rgb01 = np.mean([scene.render(T, intrinsics)[0] for T in colour_poses], axis=0)
+    if gap_sigma > 0:
+        rgb01 = cv2.GaussianBlur(rgb01, (0, 0), gap_sigma)
+    rgb01 = np.clip(rgb01 * gains, 0.0, 1.0)
+    depth_m = scene.render_depth(T_world_depth, intrinsics)
     rgb = add_rgb_noise(rgb01, rgb_sigma, rng)
     depth_noisy = add_depth_noise(depth_m, depth_noise, rng)
     depth_u16 = np.clip(np.round(depth_noisy * DEPTH_SCALE), 0, 65535).astype(np.uint16)
@@ -131,21 +155,31 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     scene = make_scene(config.scene_seed)
     # Separate streams: the path, the image noise, the odometry and the IMU each get their
     # own generator, so changing one model does not reshuffle the others.
-    path_rng, image_rng, odom_rng, imu_rng, stamp_rng = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(5))
+    path_rng, image_rng, odom_rng, imu_rng, stamp_rng, exposure_rng = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(6))
     duration = (config.frames - 1) / config.fps
     trajectory = make_trajectory(config.path, scene, path_rng, duration)
     intrinsics = default_intrinsics(config.width, config.height)
 
     t_rel = np.arange(config.frames) / config.fps
     rgb_stamps = TIME_ORIGIN_S + t_rel
-    depth_stamps = rgb_stamps + stamp_rng.uniform(-0.008, 0.008, config.frames)
     T_gt = trajectory.poses(t_rel)
+    timing = config.timing
+    if timing is None:  # an ideal camera: both images at the frame instant, stamps a little apart
+        depth_capture_rel = t_rel
+        depth_stamps = rgb_stamps + stamp_rng.uniform(-0.008, 0.008, config.frames)
+    else:
+        depth_capture_rel = t_rel + timing.depth_capture_offset_s
+        depth_stamps = (TIME_ORIGIN_S + depth_capture_rel + timing.depth_stamp_lag_s
+                        + stamp_rng.uniform(-timing.stamp_jitter_s, timing.stamp_jitter_s, config.frames))
+    gains = exposure_gains(config.frames, config.exposure, exposure_rng)
 
     # One noise seed per frame, so the images do not depend on which worker renders them.
     frame_seeds = image_rng.integers(0, 2**63 - 1, config.frames)
-    jobs = [(scene, T_gt[k], intrinsics, config.rgb_noise_sigma, config.depth, int(frame_seeds[k]),
-             str(out / "rgb" / f"{rgb_stamps[k]:.6f}.png"), str(out / "depth" / f"{depth_stamps[k]:.6f}.png"))
+    jobs = [(scene, blur_poses(trajectory, float(t_rel[k]), timing, intrinsics),
+             trajectory.T_world_cam(float(depth_capture_rel[k])), gains[k], intrinsics, config.rgb_noise_sigma,
+             config.depth, int(frame_seeds[k]), str(out / "rgb" / f"{rgb_stamps[k]:.6f}.png"),
+             str(out / "depth" / f"{depth_stamps[k]:.6f}.png"))
             for k in range(config.frames)]
     with _pool(workers) as pool:
         for _ in tqdm(pool.map(_render_and_write, jobs, chunksize=4), total=len(jobs), desc="render",
@@ -155,9 +189,11 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     _write_list(out / "rgb.txt", "color images", rgb_stamps, "rgb")
     _write_list(out / "depth.txt", "depth maps", depth_stamps, "depth")
 
-    # Ground truth at 100 Hz on its own clock, plus the exact frame instants.
-    gt_rel = np.arange(-0.05, duration + 0.05, 1.0 / _GT_RATE_HZ) + 0.0037
-    gt_rel = np.clip(np.union1d(gt_rel, t_rel), 0.0, duration)
+    # Ground truth at 100 Hz on its own clock, plus the exact frame instants; it starts early
+    # enough to cover the depth captured before the first colour frame.
+    start = min(0.0, float(depth_capture_rel.min()))
+    gt_rel = np.arange(start - 0.05, duration + 0.05, 1.0 / _GT_RATE_HZ) + 0.0037
+    gt_rel = np.clip(np.union1d(gt_rel, t_rel), start, duration)
     gt_rel = np.unique(np.round(gt_rel, 6))
     _write_tum(out / "groundtruth.txt", TIME_ORIGIN_S + gt_rel, trajectory.poses(gt_rel),
                "ground truth trajectory (simulated), T_world_cam, OpenCV camera, world +Z up")

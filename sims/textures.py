@@ -3,8 +3,9 @@
 Textures are functions of the 3D world point (solid textures), so any primitive, flat or
 curved, is textured without a surface parameterisation. Multi-octave value noise gives
 blob-like structure at several scales and thresholded noise gives sharp-edged patches:
-together they give SIFT enough corners and blobs, and stay smooth enough at the finest
-scale (~4 cm) for a 3 cm radiance-field grid to represent.
+together they give SIFT enough corners and blobs. Real rooms also have plain surfaces (a
+painted wall gives SIFT next to nothing) and fine ones (printed paper, fabric: detail a
+centimetre across, finer than a 3 cm grid holds); rooms mix all three kinds.
 """
 
 from __future__ import annotations
@@ -70,6 +71,8 @@ class TextureSpec:
 
     palette: (3, 3) RGB colours in [0, 1] blended by the multi-scale noise.
     spot_rgb: (3,) colour of sharp-edged patches; spot_fraction: share of area they cover.
+    kind: "standard", "plain" (a painted wall: nearly one colour, no patches, little for
+    SIFT) or "fine" (detail down to ~1 cm, finer than a 3 cm grid can hold: paper, fabric).
     """
 
     seed: int
@@ -77,6 +80,7 @@ class TextureSpec:
     spot_rgb: tuple[float, float, float]
     spot_fraction: float = 0.3
     scales_m: tuple[float, float, float] = (0.45, 0.14, 0.05)
+    kind: str = "standard"
 
     def to_dict(self) -> dict:
         return {
@@ -85,6 +89,7 @@ class TextureSpec:
             "spot_rgb": list(self.spot_rgb),
             "spot_fraction": self.spot_fraction,
             "scales_m": list(self.scales_m),
+            "kind": self.kind,
         }
 
     @classmethod
@@ -95,6 +100,7 @@ class TextureSpec:
             spot_rgb=tuple(float(x) for x in d["spot_rgb"]),
             spot_fraction=float(d["spot_fraction"]),
             scales_m=tuple(float(x) for x in d["scales_m"]),
+            kind=str(d.get("kind", "standard")),
         )
 
     @classmethod
@@ -111,6 +117,20 @@ class TextureSpec:
             spot_rgb=spot,
             spot_fraction=float(0.2 + 0.2 * rng.random()),
         )
+
+
+    def as_kind(self, kind: str) -> "TextureSpec":
+        """This texture turned plain (its palette pulled to within 4% of its mean colour, no
+        patches) or fine (features from 20 cm down to 1.2 cm); "standard" leaves it."""
+        from dataclasses import replace
+
+        if kind == "plain":
+            mean = np.mean(np.asarray(self.palette), axis=0)
+            palette = tuple(tuple(float(m * (1.0 + 0.04 * (k - 1))) for m in mean) for k in range(3))
+            return replace(self, palette=palette, spot_fraction=0.0, kind="plain")
+        if kind == "fine":
+            return replace(self, scales_m=(0.2, 0.04, 0.012), kind="fine")
+        return self
 
 
 def _hsv_to_rgb(h: float, s: float, v: float) -> tuple[float, float, float]:
@@ -135,6 +155,8 @@ def shade_texture(spec: TextureSpec, points_world: np.ndarray) -> np.ndarray:
     hi = np.clip(n * 2.0 - 1.0, 0.0, 1.0)[:, None]
     albedo = np.where(n[:, None] < 0.5, palette[0] * (1 - lo) + palette[1] * lo,
                       palette[1] * (1 - hi) + palette[2] * hi)
+    if spec.spot_fraction <= 0:
+        return albedo  # a plain surface: no patches
     # Sharp-edged patches at two scales: corners and blobs SIFT can lock on to.
     threshold = 0.5 + (0.5 - spec.spot_fraction) * 0.9  # covers ~spot_fraction/2 of the area
     spot_rgb = np.asarray(spec.spot_rgb)

@@ -23,7 +23,9 @@ def add_parser(sub) -> None:
     p.add_argument("--path", choices=("traverse", "mapping"), default="traverse",
                    help="traverse: a walk that never revisits a place; mapping: a survey for "
                    "training a field (default traverse)")
-    p.add_argument("--fps", type=positive_float, default=15.0, help="frame rate in Hz (default 15)")
+    p.add_argument("--fps", type=positive_float, default=None,
+                   help="frame rate in Hz (default 15 for a traverse; 3.75 for a mapping survey: every fourth frame "
+                   "of a 15 Hz recording, so the survey's pace and motion blur are realistic)")
     p.add_argument("--width", type=positive_int, default=640, help="image width in pixels (default 640)")
     p.add_argument("--height", type=positive_int, default=480, help="image height in pixels (default 480)")
     p.add_argument("--force", action="store_true", help="write into a non-empty folder (files are replaced)")
