@@ -24,7 +24,7 @@ from typing import Optional, Union
 import gtsam
 import numpy as np
 
-from nap3d_graph.conventions import T_to_pose3
+from nap3d_graph.conventions import T_to_pose3, rigid_transform_problem
 from nap3d_graph.results import Alignment, Correction
 
 from .noise import noise_model, validate_covariance
@@ -52,8 +52,9 @@ def _as_T(pose: PoseLike, name: str) -> np.ndarray:
     if isinstance(pose, gtsam.Pose3):
         return np.asarray(pose.matrix(), dtype=float)
     T = np.asarray(pose, dtype=float)
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
-        raise ValueError(f"{name} must be a finite 4x4 transform or gtsam.Pose3, got shape {T.shape}")
+    problem = rigid_transform_problem(T, tolerance=1e-6)
+    if problem:
+        raise ValueError(f"{name} must be a rigid 4x4 transform or gtsam.Pose3: {problem}")
     return T
 
 

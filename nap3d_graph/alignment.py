@@ -38,8 +38,8 @@ from .conventions import make_T
 from .correspondences import (Correspondences, build_correspondences, depth_gradient, noise_sigmas, sample_depth,
                               subset)
 from .matching import Features, detect_features, match_features
-from .ransac import (RansacResult, anisotropic_residual_sq, kabsch_batch, ransac_procrustes, skew, triad_batch,
-                     weighted_umeyama)
+from .ransac import (RansacResult, anisotropic_residual_sq, kabsch_batch, ransac_procrustes, ransac_scale, skew,
+                     triad_batch, weighted_umeyama)
 from .refinement import consensus_cost, plain_covariance, refine_pose
 from .results import Alignment
 
@@ -49,6 +49,7 @@ __all__ = [
     "align_correspondences",
     "choose_intrinsics_model",
     "covariance_inflation",
+    "viewpoint_change_px",
     "prepare_correspondences",
     "view_features",
     "Correspondences",
@@ -94,6 +95,11 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
                                  corr.num_matches, method=method, timings_s=timings)
     s_xy, s_z = noise_sigmas(corr, intrinsics, config)
     t0 = time.perf_counter()
+    scale, scale_sigma = _depth_scale(corr, s_xy, s_z, config)
+    if config.rescale_depth and np.isfinite(scale) and abs(scale - 1.0) > config.scale_tolerance:
+        # The real depth's metre is not the field's: fit the pose to the rescaled points.
+        corr = replace(corr, y=corr.y / scale)
+        s_xy, s_z = noise_sigmas(corr, intrinsics, config)
     weights = corr.opacity if config.opacity_weighting else np.ones(n)
     ransac = ransac_procrustes(corr.x, corr.y, weights, s_xy, s_z, config)
     timings["ransac"] = time.perf_counter() - t0
@@ -109,7 +115,8 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
     K_refined = intrinsics
     if config.method == "plain":
         cov = plain_covariance(R, t, corr.x[inliers], corr.y[inliers], weights[inliers], s_xy[inliers],
-                               s_z[inliers]) * config.plain_covariance_inflation
+                               s_z[inliers]) * covariance_inflation(R, t, corr.y[inliers], intrinsics, config,
+                                                                    plain=True)
     else:
         refined = refine_pose(R, t, subset(corr, inliers), intrinsics, config, return_intrinsics=True)
         if refined is None:
@@ -128,12 +135,15 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
                 break
             inliers = new_inliers
             R, t, cov, _, K_refined, diagnostics = again
-        cov = cov * covariance_inflation(R, t, corr.y[inliers], config)
+        cov = cov * covariance_inflation(R, t, corr.y[inliers], intrinsics, config)
     timings["refine"] = time.perf_counter() - t0
     if not np.all(np.isfinite(cov)) or np.min(np.linalg.eigvalsh(cov)) <= 0:
         return Alignment.failure("degenerate geometry (covariance not positive definite)", corr.num_matches,
                                  int(inliers.sum()), method=method, timings_s=timings)
     e = corr.x[inliers] @ R.T + t - corr.y[inliers]
+    # The paper's Procrustes also gives a scale: the real depth's metre against the field's.
+    diagnostics = dict(diagnostics)
+    diagnostics["depth_scale"], diagnostics["depth_scale_sigma"] = scale, scale_sigma
     return Alignment(
         T_real_rendered=make_T(R, t),
         covariance=cov,
@@ -148,13 +158,32 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
     )
 
 
-def covariance_inflation(R: np.ndarray, t: np.ndarray, y_inliers: np.ndarray, config: AlignConfig) -> float:
-    """The factor the refined covariance is multiplied by: it grows with the viewpoint change
-    ``v`` between the rendered and the real view (translation plus rotation angle times the
-    inliers' median depth), see :class:`AlignConfig` for the measurement behind it."""
+def _depth_scale(corr: Correspondences, s_xy: np.ndarray, s_z: np.ndarray, config: AlignConfig) -> tuple[float, float]:
+    """The real depth's scale against the field's and its sigma (similarity RANSAC)."""
+    if not config.estimate_scale:
+        return float("nan"), float("inf")
+    return ransac_scale(corr.x, corr.y, s_xy, s_z, config)[:2]
+
+
+def viewpoint_change_px(R: np.ndarray, t: np.ndarray, y_inliers: np.ndarray, intrinsics: Intrinsics) -> float:
+    """Apparent motion (pixels) between the rendered and the real view: the correction's
+    translation over the inliers' median depth plus its rotation angle, times the focal length."""
     angle = float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-    v = float(np.linalg.norm(t)) + angle * float(np.median(y_inliers[:, 2]))
-    return config.covariance_inflation + config.covariance_inflation_per_log * np.log1p(v / config.viewpoint_scale_m)
+    depth = max(float(np.median(y_inliers[:, 2])), 1e-3)
+    return 0.5 * (intrinsics.fx + intrinsics.fy) * (float(np.linalg.norm(t)) / depth + angle)
+
+
+def covariance_inflation(R: np.ndarray, t: np.ndarray, y_inliers: np.ndarray, intrinsics: Intrinsics,
+                         config: AlignConfig, plain: bool = False) -> float:
+    """The factor a covariance is multiplied by: it grows with the viewpoint change between
+    the rendered and the real view, see :class:`AlignConfig` for the measurement behind it."""
+    v = viewpoint_change_px(R, t, y_inliers, intrinsics)
+    octaves = max(0.0, float(np.log2(intrinsics.width / 320.0)))
+    if plain:
+        return (config.plain_covariance_inflation + config.plain_covariance_inflation_per_px * v
+                + config.plain_covariance_inflation_per_octave * octaves)
+    return (config.covariance_inflation + config.covariance_inflation_per_px * v
+            + config.covariance_inflation_per_octave * octaves)
 
 
 def choose_intrinsics_model(corr: Correspondences, intrinsics: Intrinsics, fixed: Alignment,

@@ -56,6 +56,23 @@ def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def rigid_transform_problem(T, tolerance: float = 1e-6) -> str:
+    """Why ``T`` is not a rigid transform (4x4, finite, last row 0 0 0 1, rotation part
+    orthonormal with determinant +1 to ``tolerance``), or "" when it is one."""
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return "it has non-finite entries"
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=tolerance):
+        return f"its last row is {T[3].round(6).tolist()}, not [0, 0, 0, 1]"
+    R = T[:3, :3]
+    off = float(np.abs(R.T @ R - np.eye(3)).max())
+    if off > tolerance or np.linalg.det(R) <= 0:
+        return f"its rotation part is not a rotation (|R^T R - I| = {off:.3g}, det {np.linalg.det(R):.3g})"
+    return ""
+
+
 def inv_T(T_a_b: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform, ``T_b_a``; works on (4,4) or stacked (N,4,4)."""
     T_a_b = np.asarray(T_a_b, dtype=float)

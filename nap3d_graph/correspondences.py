@@ -96,10 +96,25 @@ def build_correspondences(real: RGBDFrame, view: RenderedView, matches: Matches,
     reason = ""
     if len(matches) and not keep.any():
         reason = "no valid depth at the matches" if not depth_ok.any() else "low opacity at the matches"
+        reason += _depth_unit_hint(z_real, config)
     x = backproject(matches.uv_b[keep], z_rend[keep], view.intrinsics)
     y = backproject(matches.uv_a[keep], z_real[keep], real.intrinsics)
     grad = depth_gradient(view.depth_m, matches.uv_b[keep])
     return Correspondences(x, y, matches.uv_a[keep], opacity[keep], len(matches), reason, grad)
+
+
+def _depth_unit_hint(z_real: np.ndarray, config: AlignConfig) -> str:
+    """A hint when the real depth is valid but far out of range: the unit looks wrong."""
+    z = z_real[np.isfinite(z_real) & (z_real > 0)]
+    if z.size < 3:
+        return ""
+    median = float(np.median(z))
+    if median > 50.0 * config.max_depth_m / 10.0 and median > 100:
+        return (f" (the real depth's median is {median:.0f}: it looks like millimetres; depth_m must be in metres, "
+                "e.g. divide by 1000)")
+    if median < config.min_depth_m:
+        return f" (the real depth's median is {median:.4f} m: is its unit or scale wrong?)"
+    return ""
 
 
 def depth_gradient(depth_m: np.ndarray, uv: np.ndarray, max_rel_jump: float = 0.02) -> np.ndarray:

@@ -15,7 +15,7 @@ import numpy as np
 from .alignment import AlignConfig, align_views
 from .matching import detect_features
 from .camera import Intrinsics, RGBDFrame
-from .conventions import inv_T, log_se3
+from .conventions import inv_T, log_se3, rigid_transform_problem
 from .results import Alignment, Correction
 
 __all__ = ["correct_pose", "render_safely"]
@@ -55,6 +55,11 @@ def correct_pose(
     Never raises on bad data: ``success=False`` and ``reason`` say why.
     """
     T_est = np.asarray(T_world_cam_est, dtype=float)
+    problem = rigid_transform_problem(T_est, tolerance=1e-5)
+    if problem:
+        failed = Alignment.failure(f"T_world_cam_est is not a rigid transform: {problem}")
+        T_keep = T_est if T_est.shape == (4, 4) else np.eye(4)
+        return Correction(T_keep, T_keep.copy(), np.full((6, 6), np.inf), failed, 0, False, failed.reason, {})
     intrinsics = render_intrinsics or frame.intrinsics
     timings = {"render": 0.0, "align": 0.0}
     T_current = T_est

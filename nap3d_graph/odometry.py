@@ -134,20 +134,38 @@ class VisualOdometry:
         return cov + np.diag(surprise**2)
 
 
-def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-3, trans_sigma_m: float = 2e-3):
+def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-3, trans_sigma_m: float = 2e-3,
+                  initial_pose: np.ndarray | None = None):
     """The odometry a run uses: ``recorded`` (the sequence's own drifting odometry, as the
-    simulator writes it), ``noisy`` (noise injected on ground-truth increments) or ``vo``."""
+    simulator writes it), ``noisy`` (noise injected on ground-truth increments) or ``vo``.
+
+    ``initial_pose`` (4, 4): where the camera starts in the field's frame, for ``vo`` (default
+    the ground truth's first pose; required without one). Raises ``ValueError`` (one line,
+    saying what to use instead) when the sequence cannot give that odometry."""
+    if kind != "vo" and initial_pose is not None:
+        raise ValueError(f"an initial pose is for --odom vo; --odom {kind} starts where its poses start")
     if kind == "recorded":
         T_odom = getattr(sequence, "T_world_cam_odom", None)
         if T_odom is None:
-            raise ValueError(f"{sequence.path}: no recorded odometry (odometry.txt); use --odom noisy or vo")
+            raise ValueError(f"{sequence.path}: no recorded odometry (odometry.txt) in a TUM folder; use --odom noisy "
+                             "or --odom vo")
         return RecordedOdometry(T_odom, rot_sigma_rad, trans_sigma_m)
     if kind == "noisy":
         if sequence.T_world_cam_gt is None:
-            raise ValueError(f"{sequence.path}: --odom noisy needs ground truth (groundtruth.txt)")
+            raise ValueError(f"{sequence.path}: --odom noisy needs ground truth (groundtruth.txt); use --odom vo")
+        missing = int((~np.all(np.isfinite(sequence.T_world_cam_gt), axis=(1, 2))).sum())
+        if missing:
+            raise ValueError(f"{sequence.path}: --odom noisy injects noise on ground-truth increments, but {missing} "
+                             f"frames have no ground truth; use --odom vo (or --frames to skip them)")
         return NoisyGroundTruthOdometry(sequence.T_world_cam_gt, sequence.timestamps, rot_sigma_rad, trans_sigma_m,
                                         seed=seed)
     if kind == "vo":
-        start = None if sequence.T_world_cam_gt is None else sequence.T_world_cam_gt[0]
+        start = initial_pose
+        if start is None and sequence.T_world_cam_gt is not None and np.all(np.isfinite(sequence.T_world_cam_gt[0])):
+            start = sequence.T_world_cam_gt[0]
+        if start is None:
+            raise ValueError(f"{sequence.path}: --odom vo needs to know where the camera starts in the field's frame: "
+                             "give --initial-pose 'tx ty tz qx qy qz qw' or --initial-pose-file (the sequence has no "
+                             "ground truth at its first frame)")
         return VisualOdometry(start)
     raise ValueError(f"unknown odometry {kind!r}; use recorded, noisy or vo")

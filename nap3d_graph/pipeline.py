@@ -64,6 +64,22 @@ class PipelineConfig:
         depth captured ~30 ms before its colour) and the frame has a depth stamp, move each
         keyframe's depth to the colour's capture instant with the odometry's velocity, and
         the corrected pose back to the frame's stamp, before it enters the graph.
+    timing: the sensor's capture timing (``depth_offset_s``, ``colour_offset_s``,
+        ``depth_scale``) when the field does not record it (the oracle of a simulated room,
+        a nerfstudio model): e.g. :func:`nap3d_graph.fields.build.estimate_timing` of any
+        recording of the same camera with ground truth.
+    final_gnc: the written trajectory is solved by GTSAM's graduated non-convexity (TLS) over
+        the NAP3D factors, with the odometry and the priors known inliers: a wrong
+        correction that passed the gate (the prediction was uncertain just then) is found
+        by its disagreement with the corrections and the odometry around it and weighed
+        out (``gnc_p``: each factor's chi-square inlier probability).
+    depth_scale_check, depth_scale_tolerance, depth_scale_sigmas, depth_scale_window: every
+        correction also measures the real depth's scale against the field's (a similarity
+        fit on its inliers). A running estimate (median of the last ``depth_scale_window``
+        frames' scales) is applied to each keyframe's depth, so a sensor whose every depth
+        is a few percent off is calibrated on the fly; a frame whose scale still differs
+        from it by more than ``depth_scale_tolerance`` and ``depth_scale_sigmas`` of its
+        sigma is a failed correction (its depth or its match is wrong).
     """
 
     keyframe_every: int = 5
@@ -81,6 +97,13 @@ class PipelineConfig:
     prior_trans_sigma_m: float = 1e-3
     relinearize_threshold: float = 1e-3
     compensate_timing: bool = True
+    timing: dict | None = None
+    final_gnc: bool = True
+    gnc_p: float = 0.997
+    depth_scale_check: bool = True
+    depth_scale_tolerance: float = 0.01
+    depth_scale_sigmas: float = 3.0
+    depth_scale_window: int = 15
     odom_drift_fraction: float = 0.03
     odom_drift_rad_per_m: float = 0.0175
     odom_drift_rad_per_rad: float = 0.03
@@ -111,11 +134,19 @@ class KeyframeRecord:
     correction_m: float = float("nan")
     correction_deg: float = float("nan")
     timings_s: dict = field(default_factory=dict)
+    trained_frame: bool = False
+    depth_scale: float = float("nan")
 
 
 @dataclass
 class RunResult:
-    """Per-frame trajectories (N, 4, 4) at ``timestamps`` (N,) and per-keyframe records."""
+    """Per-frame trajectories (N, 4, 4) at ``timestamps`` (N,) and per-keyframe records.
+
+    ``T_world_cam_estimate``: the smoothed trajectory (every correction, past and future,
+    used). ``T_world_cam_online``: the causal one, what a robot had at each frame: each
+    keyframe as iSAM2 knew it right after its own correction, the frames after it chained
+    with the odometry. ``partial``: the run was stopped before its last frame.
+    """
 
     timestamps: np.ndarray
     T_world_cam_estimate: np.ndarray
@@ -125,6 +156,11 @@ class RunResult:
     keyframe_indices: list[int]
     T_world_map: np.ndarray | None = None
     wall_time_s: float = 0.0
+    T_world_cam_online: np.ndarray | None = None
+    partial: bool = False
+    gnc_outliers: list = field(default_factory=list)
+    gnc_recovered: list = field(default_factory=list)
+    depth_scale: float = 1.0
 
     @property
     def num_accepted(self) -> int:
@@ -167,21 +203,31 @@ class Pipeline:
 
     # --- the run, as its steps ---------------------------------------------------------
 
-    def run(self) -> RunResult:
+    def run(self, on_keyframe=None, stop=None) -> RunResult:
+        """Run over the sequence. ``on_keyframe(record)`` hears about each keyframe as soon as
+        it is done (a results writer appends it); ``stop()`` is asked before each frame and,
+        when it says so, the run ends there with what it has (``RunResult.partial``)."""
         from tqdm import tqdm
 
         t_start = time.perf_counter()
         self._start()
         n = len(self.sequence) if self.config.max_frames is None else min(len(self.sequence), self.config.max_frames)
+        done, partial = n, False
         for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
+            if stop is not None and stop():
+                done, partial = i, True
+                break
             frame = self._read_frame(i) if self._odometry_needs_frames() else None
             if i > 0:
                 self._propagate_odometry(i, frame)
             if self._is_keyframe(i):
                 self._add_keyframe(i)
                 self._correct_keyframe(i, frame if frame is not None else self._read_frame(i))
-                self._finish_keyframe()
-        result = self._finish(n)
+                record = self._finish_keyframe()
+                if on_keyframe is not None and record is not None:
+                    on_keyframe(record)
+        result = self._finish(max(done, 1))
+        result.partial = partial
         result.wall_time_s = time.perf_counter() - t_start
         return result
 
@@ -206,11 +252,17 @@ class Pipeline:
         self.keyframe_indices: list[int] = []
         self.records: list[KeyframeRecord] = []
         self.T_last_kf_est: np.ndarray | None = None
+        self.T_online_kf: list[np.ndarray] = []  # each keyframe as known right after its correction
         self.T_pred = self.T_odom[0]
         self._pending_record: KeyframeRecord | None = None
+        self._trained = self._trained_timestamps()
+        self.factor_log: list[tuple[gtsam.NonlinearFactor, bool, int]] = []  # (factor, is NAP3D, keyframe)
+        timing = self._timing() or {}
+        self.depth_scale = float(timing.get("depth_scale", 1.0))
+        self.depth_scale_observations: list[float] = []
         if self.config.use_anchor:
-            self.new_factors.add(anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
-                                                     self.config.anchor_trans_sigma_m))
+            self._add_factor(anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
+                                                 self.config.anchor_trans_sigma_m))
             self.new_values.insert(M(0), gtsam.Pose3())
 
     def _odometry_needs_frames(self) -> bool:
@@ -255,19 +307,20 @@ class Pipeline:
         self.keyframe_indices.append(i)
         if j == 0:
             T0 = self.T_odom[0]
-            self.new_factors.add(pose_prior_factor(X(0), T0, rot_sigma_rad=self.config.prior_rot_sigma_rad,
-                                                   trans_sigma_m=self.config.prior_trans_sigma_m))
+            self._add_factor(pose_prior_factor(X(0), T0, rot_sigma_rad=self.config.prior_rot_sigma_rad,
+                                               trans_sigma_m=self.config.prior_trans_sigma_m))
             self.new_values.insert(X(0), T_to_pose3(T0))
             self.T_pred = T0
         else:
             cov = self.cov_since_kf + self._drift_covariance(self.T_since_kf, self.dt_since_kf)
-            self.new_factors.add(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
+            self._add_factor(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
             self.T_pred = self.T_last_kf_est @ self.T_since_kf
             self.new_values.insert(X(j), T_to_pose3(self.T_pred))
         self.T_since_kf = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
         self.dt_since_kf = 0.0
-        self._pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j))
+        self._pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j),
+                                              trained_frame=bool(self._trained[i]))
         self._update_isam()
 
     def _correct_keyframe(self, i: int, frame) -> None:
@@ -284,8 +337,20 @@ class Pipeline:
         frame, twist = self._at_colour_time(i, frame)
         correction = correct_pose(frame, self.field, T_render, iterations=self.config.correction_iterations,
                                   config=self.config.align, render_intrinsics=self._render_intrinsics(frame))
+        scale = correction.alignment.diagnostics.get("depth_scale", float("nan")) if correction.success else np.nan
+        if self.config.depth_scale_check and np.isfinite(scale) and abs(scale - 1.0) > self.config.align.scale_tolerance:
+            # The frame's depth is not in the field's metre: a rigid fit keeps only one depth
+            # band of it. Align again with the depth rescaled (the scale is kept for the check).
+            rescaled = frame.with_depth(frame.depth_m / np.float32(scale))
+            again = correct_pose(rescaled, self.field, T_render, iterations=self.config.correction_iterations,
+                                 config=self.config.align, render_intrinsics=self._render_intrinsics(frame))
+            if again.success:
+                again.alignment.diagnostics["depth_scale"] = scale * again.alignment.diagnostics.get("depth_scale", 1.0)
+                correction = again
         if twist is not None and correction.success:
             correction = self._to_frame_stamp(correction, twist)
+        if correction.success and self.config.depth_scale_check:
+            correction = self._check_depth_scale(correction, record)
         if self.correction_hook is not None:
             correction = self.correction_hook(i, correction)
         record.timings_s.update({k: round(v, 4) for k, v in correction.timings_s.items()})
@@ -301,15 +366,23 @@ class Pipeline:
         record.gate_d2 = gate.d2 if gate is not None else float("nan")
         if factor is None:
             record.reason = gate.reason if gate is not None else "invalid covariance"
+            if gate is not None:
+                # Gated out against a prediction that may itself be wrong: the final solve
+                # weighs it again with everything else (see _gnc_solve).
+                self.factor_log.append((self._gaussian_twin(record.key, correction), True, i))
             return
         self.new_factors.add(factor)
+        self.factor_log.append((self._gaussian_twin(record.key, correction), True, i))
         record.accepted = True
         # Two iSAM2 steps: a correction can move the pose a long way from its linearisation.
         self._update_isam(extra_step=True)
 
     def _timing(self) -> dict | None:
-        meta = getattr(self.field, "meta", None) or {}
-        return meta.get("timing") if self.config.compensate_timing else None
+        if not self.config.compensate_timing:
+            return None
+        if self.config.timing is not None:
+            return self.config.timing
+        return (getattr(self.field, "meta", None) or {}).get("timing")
 
     def _velocity(self, i: int) -> np.ndarray | None:
         """Body twist per second (GTSAM order) of the odometry's last step before frame i."""
@@ -328,10 +401,12 @@ class Pipeline:
 
         timing, twist = self._timing(), self._velocity(i)
         if timing is None or twist is None or frame.depth_timestamp is None:
+            if self.depth_scale != 1.0:
+                frame = frame.with_depth(frame.depth_m * np.float32(self.depth_scale))
             return frame, None
         dt = (frame.depth_timestamp + timing["depth_offset_s"]) - (frame.timestamp + timing["colour_offset_s"])
         T_colour_depth = exp_se3(twist * dt)
-        depth = warp_depth(frame.depth_m, frame.intrinsics, T_colour_depth, timing.get("depth_scale", 1.0))
+        depth = warp_depth(frame.depth_m, frame.intrinsics, T_colour_depth, self.depth_scale)
         return frame.with_depth(depth), twist
 
     def _to_frame_stamp(self, correction: Correction, twist: np.ndarray) -> Correction:
@@ -342,6 +417,42 @@ class Pipeline:
 
         shift = exp_se3(-twist * self._timing()["colour_offset_s"])
         return dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
+
+    def _add_factor(self, factor) -> None:
+        self.new_factors.add(factor)
+        self.factor_log.append((factor, False, -1))
+
+    def _gaussian_twin(self, key: int, correction: Correction):
+        """The NAP3D factor without its robust kernel, for the final GNC solve."""
+        if self.config.use_anchor:
+            return nap3d_anchor_factor(key, M(0), None, correction, robust=None)
+        return nap3d_prior_factor(key, None, correction, robust=None)
+
+    def _check_depth_scale(self, correction: Correction, record: KeyframeRecord) -> Correction:
+        """Update the running depth-scale estimate with this frame's; fail the correction when
+        its scale disagrees with the estimate (see ``PipelineConfig.depth_scale_check``)."""
+        import dataclasses
+
+        diagnostics = correction.alignment.diagnostics
+        scale, sigma = diagnostics.get("depth_scale"), diagnostics.get("depth_scale_sigma")
+        if scale is None or not np.isfinite(scale):
+            return correction
+        # ``depth_scale`` is the factor the sensor's depth is multiplied by; this frame's depth
+        # (already multiplied by ``applied``) measured ``scale`` times the field's metre, so
+        # the factor this frame asks for is applied / scale.
+        applied = self.depth_scale
+        wanted = float(applied / scale)
+        self.depth_scale_observations.append(wanted)
+        record.depth_scale = wanted
+        recent = self.depth_scale_observations[-self.config.depth_scale_window:]
+        self.depth_scale = float(np.exp(np.median(np.log(recent))))
+        allowed = max(self.config.depth_scale_tolerance, self.config.depth_scale_sigmas * (sigma or 0.0))
+        off = wanted / self.depth_scale - 1.0
+        if abs(off) > allowed:
+            reason = (f"depth scale: this frame's depth needs x{wanted:.4f}, the run's x{self.depth_scale:.4f} "
+                      f"({off * 100:+.1f}%): its depth or its matches disagree with the field")
+            return dataclasses.replace(correction, success=False, reason=reason)
+        return correction
 
     def _gated_factor(self, key: int, correction: Correction):
         """The NAP3D factor and its gate result; ``(None, gate)`` when gated out.
@@ -371,21 +482,35 @@ class Pipeline:
         if record is not None:
             record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
 
-    def _finish_keyframe(self) -> None:
+    def _finish_keyframe(self) -> KeyframeRecord | None:
         key = X(len(self.keyframe_indices) - 1)
         self.T_last_kf_est = pose3_to_T(self.isam.calculateEstimatePose3(key))
-        if self._pending_record is not None:
-            self.records.append(self._pending_record)
-            self._pending_record = None
+        self.T_online_kf.append(self.T_last_kf_est)
+        record, self._pending_record = self._pending_record, None
+        if record is not None:
+            self.records.append(record)
+        return record
+
+    def _trained_timestamps(self) -> np.ndarray:
+        from nap3d_graph.fields import frames_seen_in_training
+
+        return frames_seen_in_training(self.field, self.sequence.timestamps) if self.field is not None else \
+            np.zeros(len(self.sequence), dtype=bool)
 
     def _finish(self, n: int) -> RunResult:
+        T_gt = None if self.sequence.T_world_cam_gt is None else np.asarray(self.sequence.T_world_cam_gt[:n])
+        stamps = np.asarray(self.sequence.timestamps[:n], dtype=float)
+        if not self.keyframe_indices:  # stopped before the first keyframe: odometry is all there is
+            T_odom = np.stack(self.T_odom[:n])
+            return RunResult(stamps, T_odom, T_odom, T_gt, [], [], T_world_cam_online=T_odom)
         estimate = self._final_estimate()
         T_kf = {idx: pose3_to_T(estimate.atPose3(X(j))) for j, idx in enumerate(self.keyframe_indices)}
         T_est = self._chain_between_keyframes(T_kf, n)
-        T_gt = None if self.sequence.T_world_cam_gt is None else np.asarray(self.sequence.T_world_cam_gt[:n])
+        T_online = self._chain_forward(dict(zip(self.keyframe_indices, self.T_online_kf)), n)
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
-        return RunResult(np.asarray(self.sequence.timestamps[:n], dtype=float), T_est, np.stack(self.T_odom[:n]),
-                         T_gt, self.records, list(self.keyframe_indices), T_map)
+        return RunResult(stamps, T_est, np.stack(self.T_odom[:n]), T_gt, self.records, list(self.keyframe_indices), T_map,
+                         T_world_cam_online=T_online, gnc_outliers=list(getattr(self, "gnc_outliers", [])),
+                         gnc_recovered=list(getattr(self, "gnc_recovered", [])), depth_scale=self.depth_scale)
 
     # --- helpers -----------------------------------------------------------------------------
 
@@ -394,11 +519,41 @@ class Pipeline:
         relinearises lazily (every few updates, past a threshold), the written trajectory
         should be the converged optimum."""
         estimate = self.isam.calculateEstimate()
+        nap3d = [k for k, (_, is_nap3d, _) in enumerate(self.factor_log) if is_nap3d]
         try:
+            if self.config.final_gnc and nap3d:
+                return self._gnc_solve(estimate, nap3d)
             return gtsam.LevenbergMarquardtOptimizer(self.isam.getFactorsUnsafe(), estimate).optimize()
         except RuntimeError as exc:  # keep iSAM2's answer rather than lose the run
             log.warning("final batch optimisation failed (%s); writing the iSAM2 estimate", exc)
             return estimate
+
+    def _gnc_solve(self, estimate: gtsam.Values, nap3d: list[int]) -> gtsam.Values:
+        """Graduated non-convexity (TLS) over every NAP3D correction, those the gate accepted
+        and those it refused (the prediction it judged them by may have been wrong: after a
+        wrong correction slipped in, the good ones that follow disagree with it); the odometry
+        and the priors are known inliers. Accepted corrections it weighs out are recorded in
+        ``RunResult.gnc_outliers``, refused ones it takes back in ``gnc_recovered``."""
+        graph = gtsam.NonlinearFactorGraph()
+        for factor, _, _ in self.factor_log:
+            graph.add(factor)
+        params = gtsam.GncLMParams()
+        params.setLossType(gtsam.GncLossType.TLS)
+        params.setKnownInliers([k for k in range(graph.size()) if k not in set(nap3d)])
+        optimizer = gtsam.GncLMOptimizer(graph, estimate, params)
+        optimizer.setInlierCostThresholdsAtProbability(self.config.gnc_p)
+        result = optimizer.optimize()
+        weights = np.asarray(optimizer.getWeights())
+        accepted = {r.frame_index for r in self.records if r.accepted}
+        self.gnc_outliers = [self.factor_log[k][2] for k in nap3d if weights[k] < 0.5
+                             and self.factor_log[k][2] in accepted]
+        self.gnc_recovered = [self.factor_log[k][2] for k in nap3d if weights[k] >= 0.5
+                              and self.factor_log[k][2] not in accepted]
+        if self.gnc_outliers or self.gnc_recovered:
+            log.info("final solve: %d accepted corrections weighed out (frames %s), %d refused ones taken back "
+                     "(frames %s)", len(self.gnc_outliers), self.gnc_outliers[:10], len(self.gnc_recovered),
+                     self.gnc_recovered[:10])
+        return result
 
     def _chain_between_keyframes(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
         """Every frame's pose: keyframes from the graph, the others chained from the nearest
@@ -414,6 +569,20 @@ class Pipeline:
             elif i < k:
                 for m in range(k, i, -1):
                     pose = pose @ inv_T(self.increments[m])
+            T[i] = pose
+        return T
+
+    def _chain_forward(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
+        """Causal poses: each frame chained forward from the latest keyframe at or before it."""
+        T = np.empty((n, 4, 4))
+        latest = None
+        for i in range(n):
+            if i in T_kf:
+                latest, pose = i, T_kf[i]
+            elif latest is None:
+                pose = self.T_odom[i]
+            else:
+                pose = pose @ self.increments[i]
             T[i] = pose
         return T
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from .align_config import AlignConfig
 
-__all__ = ["skew", "weighted_umeyama", "kabsch_batch", "triad_batch", "anisotropic_residual_sq",
+__all__ = ["skew", "weighted_umeyama", "similarity_scale", "similarity_batch", "ransac_scale", "kabsch_batch", "triad_batch", "anisotropic_residual_sq",
            "RansacResult", "ransac_procrustes"]
 
 
@@ -47,6 +47,34 @@ def weighted_umeyama(x: np.ndarray, y: np.ndarray, weights: np.ndarray | None = 
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
     return R, cy - R @ cx
+
+
+def similarity_scale(x: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None) -> tuple[float, float]:
+    """Scale ``s`` of the weighted similarity ``y = s R x + t`` (Umeyama 1991) and its sigma.
+
+    The paper's Procrustes gives scale as well as rotation and translation: between rendered
+    points ``x`` and real points ``y`` (N, 3) it is the ratio of the real depth's metre to
+    the field's (a depth sensor a few percent off; a wrong match set). The sigma is the
+    residual's RMS per coordinate over the points' spread (``sqrt(sum w |x - x_bar|^2)``).
+    """
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    w = np.ones(len(x)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    cx, cy = w @ x, w @ y
+    xc, yc = x - cx, y - cy
+    var_x = float(w @ np.sum(xc**2, axis=1))
+    if var_x <= 0:
+        return float("nan"), float("inf")
+    H = xc.T @ (yc * w[:, None])
+    U, S, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    D = np.diag([1.0, 1.0, d])
+    scale = float(np.trace(np.diag(S) @ D) / var_x)
+    R = Vt.T @ D @ U.T
+    residual = yc - scale * xc @ R.T
+    rms = float(np.sqrt(w @ np.sum(residual**2, axis=1) / 3.0))
+    return scale, rms / np.sqrt(var_x * len(x))
 
 
 def kabsch_batch(x: np.ndarray, y: np.ndarray):
@@ -223,3 +251,75 @@ def _iterations_needed(inlier_ratio: float, confidence: float) -> int:
     if w3 >= 1:
         return 1
     return int(np.ceil(np.log(1 - confidence) / np.log(1 - w3)))
+
+
+def similarity_batch(x: np.ndarray, y: np.ndarray):
+    """Umeyama similarity for K point sets at once: x, y (K, M, 3) -> scale (K,), R (K, 3, 3),
+    t (K, 3) with ``y = s R x + t``."""
+    cx, cy = x.mean(axis=1), y.mean(axis=1)
+    xc, yc = x - cx[:, None], y - cy[:, None]
+    H = np.einsum("kni,knj->kij", xc, yc)
+    U, S, Vt = np.linalg.svd(H)
+    V = np.swapaxes(Vt, 1, 2)
+    d = np.sign(np.linalg.det(V @ np.swapaxes(U, 1, 2)))
+    d[d == 0] = 1.0
+    V[:, :, 2] *= d[:, None]
+    R = V @ np.swapaxes(U, 1, 2)
+    var_x = np.einsum("kni,kni->k", xc, xc)
+    scale = (S[:, 0] + S[:, 1] + d * S[:, 2]) / np.maximum(var_x, 1e-12)
+    t = cy - scale[:, None] * np.einsum("kij,kj->ki", R, cx)
+    return scale, R, t
+
+
+def ransac_scale(x: np.ndarray, y: np.ndarray, s_xy: np.ndarray, s_z: np.ndarray, config: AlignConfig | None = None,
+                 rng: np.random.Generator | None = None) -> tuple[float, float, np.ndarray]:
+    """The scale of the real points against the rendered ones, by RANSAC over similarity
+    hypotheses (``y = s R x + t``) with the paper's anisotropic residual.
+
+    A rigid RANSAC cannot see a depth scale error: it keeps the points of one depth band,
+    where the scale looks like a translation along the axis, and rejects the rest. Returns
+    ``(scale, sigma, inliers)``; ``(1.0, inf, none)`` when there is no consensus.
+    """
+    config = config or AlignConfig()
+    rng = rng if rng is not None else np.random.default_rng(config.seed + 1)
+    n = len(x)
+    if n < 4:
+        return 1.0, float("inf"), np.zeros(n, bool)
+    inv_sxy2, inv_sz2 = 1.0 / s_xy**2, 1.0 / s_z**2
+    thr = config.inlier_chi2
+    best_cost, best = np.inf, None
+    for _ in range(max(1, config.ransac_max_iterations // (4 * config.ransac_batch))):
+        idx = _three_distinct(rng, config.ransac_batch, n) if n >= 64 else \
+            np.argsort(rng.random((config.ransac_batch, n)), axis=1)[:, :3]
+        sx, sy = x[idx], y[idx]
+        ok = ~_degenerate(sx, config.min_sample_side_m, config.min_sample_sine)
+        if not ok.any():
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale, R, t = similarity_batch(sx[ok], sy[ok])
+        good = np.isfinite(scale) & (scale > 0.5) & (scale < 2.0)
+        if not good.any():
+            continue
+        r2 = anisotropic_residual_sq(R[good] * scale[good, None, None], t[good], x, y, inv_sxy2, inv_sz2)
+        cost = np.minimum(r2, thr).sum(axis=1)
+        j = int(np.argmin(cost))
+        if cost[j] < best_cost:
+            best_cost, best = cost[j], (scale[good][j], R[good][j], t[good][j])
+    if best is None:
+        return 1.0, float("inf"), np.zeros(n, bool)
+    scale, R, t = best
+    inliers = anisotropic_residual_sq(R * scale, t, x, y, inv_sxy2, inv_sz2) < thr
+    for _ in range(5):  # refit on the consensus until it settles
+        if inliers.sum() < 4:
+            break
+        scale, sigma = similarity_scale(x[inliers], y[inliers])
+        R, t = weighted_umeyama(x[inliers] * scale, y[inliers])
+        new = anisotropic_residual_sq(R * scale, t, x, y, inv_sxy2, inv_sz2) < thr
+        if np.array_equal(new, inliers):
+            break
+        inliers = new
+    if inliers.sum() < 4:
+        return 1.0, float("inf"), inliers
+    scale, sigma = similarity_scale(x[inliers], y[inliers])
+    return float(scale), float(sigma), inliers
+

@@ -1,9 +1,12 @@
-"""The results folder of a run (KISS-ICP style).
+"""The results folder of a run (KISS-ICP style), written as the run goes.
 
-``config.yaml``, TUM trajectories ``estimate.txt``, ``odometry.txt``, ``groundtruth.txt``
-(one pose per input frame at its timestamp; load with ``evo_ape tum``), ``corrections.csv``
-(one row per keyframe), ``metrics.json`` (evo ATE/RPE) and PNG plots; a ``latest`` link in
-the parent folder points at the newest run.
+``config.yaml`` (at once), ``corrections.csv`` (a row per keyframe, appended and flushed as
+each is corrected), then at the end (or when the run is interrupted) the TUM trajectories
+``estimate.txt``, ``estimate_online.txt`` (each keyframe as it was known when it was
+added), ``odometry.txt``, ``groundtruth.txt`` (frames with ground truth; every file loads
+with ``evo_ape tum``), ``metrics.json`` (evo ATE/RPE; ``"partial": true`` for an
+interrupted run) and PNG plots. A ``latest`` link in the parent folder is moved atomically
+to the newest run.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
+import os
 import time
 from pathlib import Path
 
@@ -20,33 +24,42 @@ from .datasets.tum import write_tum_trajectory
 from .evaluation.metrics import trajectory_metrics
 from .plots import plot_error_over_time, plot_top_view
 
-__all__ = ["write_results", "new_run_dir", "keyframe_timing_summary"]
+__all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary", "CORRECTION_COLUMNS"]
 
 log = logging.getLogger(__name__)
 
 TIMING_STAGES = ("render", "sift", "flann", "ransac", "refine", "gate", "isam")
+CORRECTION_COLUMNS = ["frame_index", "run_index", "timestamp", "key", "matches", "inliers", "iterations", "accepted",
+                      "reason", "gate_d2", "correction_m", "correction_deg", "trained_frame",
+                      *[f"t_{s}_s" for s in TIMING_STAGES]]
 
 
 def new_run_dir(root: str | Path, name: str = "") -> Path:
-    """``root/<date>_<time>[_name]``, unique, created."""
+    """``root/<date>_<time>[_name][_k]``, unique and created atomically (two processes
+    starting at the same second get different folders, never an error)."""
     root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
     stamp = time.strftime("%Y-%m-%d_%H-%M-%S")
-    run = root / (f"{stamp}_{name}" if name else stamp)
-    suffix = 1
-    while run.exists():
-        run = root / f"{stamp}_{name}_{suffix}" if name else root / f"{stamp}_{suffix}"
-        suffix += 1
-    run.mkdir(parents=True)
-    return run
+    base = f"{stamp}_{name}" if name else stamp
+    for suffix in range(10_000):
+        run = root / (base if suffix == 0 else f"{base}_{suffix}")
+        try:
+            run.mkdir()  # atomic: exactly one creator succeeds
+            return run
+        except FileExistsError:
+            continue
+    raise OSError(f"{root}: could not create a new run folder named {base}_*")
 
 
-def _link_latest(run: Path) -> None:
+def link_latest(run: Path) -> None:
+    """Point ``run.parent/latest`` at ``run``, replacing the old link atomically."""
     latest = run.parent / "latest"
+    temporary = run.parent / f".latest-{os.getpid()}-{time.monotonic_ns()}"
     try:
-        if latest.is_symlink() or latest.exists():
-            latest.unlink()
-        latest.symlink_to(run.name, target_is_directory=True)
+        temporary.symlink_to(run.name, target_is_directory=True)
+        os.replace(temporary, latest)
     except OSError as exc:  # e.g. a filesystem without symlinks: not worth failing a run
+        temporary.unlink(missing_ok=True)
         log.warning("could not update %s: %s", latest, exc)
 
 
@@ -63,44 +76,87 @@ def keyframe_timing_summary(result) -> dict:
     return out
 
 
-def _write_corrections(path: Path, result) -> None:
-    columns = ["frame_index", "timestamp", "key", "matches", "inliers", "iterations", "accepted", "reason",
-               "gate_d2", "correction_m", "correction_deg", *[f"t_{s}_s" for s in TIMING_STAGES]]
-    with open(path, "w", newline="") as fh:
-        writer = csv.writer(fh)
-        writer.writerow(columns)
-        for k in result.keyframes:
-            writer.writerow([k.frame_index, f"{k.timestamp:.6f}", k.key, k.matches, k.inliers, k.iterations,
-                             int(k.accepted), k.reason, f"{k.gate_d2:.4g}", f"{k.correction_m:.6f}",
-                             f"{k.correction_deg:.5f}", *[k.timings_s.get(s, "") for s in TIMING_STAGES]])
+def _correction_row(k, frame_index: int) -> list:
+    return [frame_index, k.frame_index, f"{k.timestamp:.6f}", k.key, k.matches, k.inliers, k.iterations, int(k.accepted),
+            k.reason, f"{k.gate_d2:.4g}", f"{k.correction_m:.6f}", f"{k.correction_deg:.5f}",
+            int(getattr(k, "trained_frame", False)), *[k.timings_s.get(s, "") for s in TIMING_STAGES]]
 
 
-def write_results(result, out_dir: str | Path, config: dict, name: str = "") -> tuple[Path, dict]:
-    """Write a run into a new folder under ``out_dir``; return the folder and metrics."""
-    import yaml
+class RunWriter:
+    """A run's folder, filled as the run goes.
 
-    run = new_run_dir(out_dir, name)
-    (run / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
-    write_tum_trajectory(run / "estimate.txt", result.timestamps, result.T_world_cam_estimate)
-    write_tum_trajectory(run / "odometry.txt", result.timestamps, result.T_world_cam_odometry)
-    metrics: dict = {
-        "frames": int(len(result.timestamps)),
-        "keyframes": len(result.keyframes),
-        "corrections_accepted": result.num_accepted,
-        "corrections_rejected_or_skipped": result.num_rejected,
-        "seconds_per_keyframe_median": keyframe_timing_summary(result),
-        "wall_time_s": result.wall_time_s,
-    }
-    if result.T_world_cam_gt is not None:
-        write_tum_trajectory(run / "groundtruth.txt", result.timestamps, result.T_world_cam_gt)
-        metrics.update(trajectory_metrics(result.timestamps, result.T_world_cam_gt,
-                                          {"odometry": result.T_world_cam_odometry,
-                                           "estimate": result.T_world_cam_estimate}))
-    if result.T_world_map is not None:
-        metrics["T_world_map"] = result.T_world_map.tolist()
-    _write_corrections(run / "corrections.csv", result)
-    (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
-    plot_top_view(run / "trajectory_top_view.png", result)
-    plot_error_over_time(run / "translation_error.png", result)
-    _link_latest(run)
-    return run, metrics
+    ``RunWriter(root, name, config)`` creates the folder and writes ``config.yaml`` at once;
+    :meth:`add_keyframe` appends a row to ``corrections.csv`` (flushed, so a crash or an
+    interruption loses nothing of what was corrected); :meth:`finish` writes the
+    trajectories, ``metrics.json`` and the plots and moves ``latest``. ``frame_index`` in
+    the rows is the frame's line among ``rgb.txt``'s data lines when the source says
+    (``rgb_line_index``), so it names the same image whatever association dropped.
+    """
+
+    def __init__(self, root: str | Path, name: str, config: dict, source_indices=None):
+        import yaml
+
+        self.dir = new_run_dir(root, name)
+        (self.dir / "config.yaml").write_text(yaml.safe_dump(config, sort_keys=False))
+        self.source_indices = None if source_indices is None else np.asarray(source_indices, dtype=int)
+        self._csv = open(self.dir / "corrections.csv", "w", newline="")
+        self._writer = csv.writer(self._csv)
+        self._writer.writerow(CORRECTION_COLUMNS)
+        self._csv.flush()
+
+    def add_keyframe(self, record) -> None:
+        index = record.frame_index if self.source_indices is None else int(self.source_indices[record.frame_index])
+        self._writer.writerow(_correction_row(record, index))
+        self._csv.flush()
+
+    def close(self) -> None:
+        if not self._csv.closed:
+            self._csv.close()
+
+    def finish(self, result, partial: bool = False) -> dict:
+        """Write everything the finished (or interrupted: ``partial``) run has; returns the
+        metrics and moves ``latest`` here."""
+        self.close()
+        run = self.dir
+        write_tum_trajectory(run / "estimate.txt", result.timestamps, result.T_world_cam_estimate)
+        write_tum_trajectory(run / "odometry.txt", result.timestamps, result.T_world_cam_odometry)
+        online = getattr(result, "T_world_cam_online", None)
+        if online is not None:
+            write_tum_trajectory(run / "estimate_online.txt", result.timestamps, online)
+        metrics: dict = {
+            "partial": bool(partial),
+            "frames": int(len(result.timestamps)),
+            "keyframes": len(result.keyframes),
+            "corrections_accepted": result.num_accepted,
+            "corrections_rejected_or_skipped": result.num_rejected,
+            "median_inliers": float(np.median([k.inliers for k in result.keyframes])) if result.keyframes else 0.0,
+            "seconds_per_keyframe_median": keyframe_timing_summary(result),
+            "wall_time_s": result.wall_time_s,
+        }
+        trajectories = {"odometry": result.T_world_cam_odometry, "estimate": result.T_world_cam_estimate}
+        if online is not None:
+            trajectories["estimate_online"] = online
+        if result.T_world_cam_gt is not None:
+            posed = np.all(np.isfinite(result.T_world_cam_gt), axis=(1, 2))
+            if posed.any():
+                write_tum_trajectory(run / "groundtruth.txt", result.timestamps[posed], result.T_world_cam_gt[posed])
+            if posed.sum() >= 2:
+                metrics.update(trajectory_metrics(result.timestamps, result.T_world_cam_gt, trajectories))
+            metrics["frames_without_ground_truth"] = int((~posed).sum())
+        else:
+            metrics["ground_truth"] = "none: no ATE/RPE; see the correction statistics"
+        if result.T_world_map is not None:
+            metrics["T_world_map"] = result.T_world_map.tolist()
+        (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
+        plot_top_view(run / "trajectory_top_view.png", result)
+        plot_error_over_time(run / "translation_error.png", result)
+        link_latest(run)
+        return metrics
+
+
+def write_results(result, out_dir: str | Path, config: dict, name: str = "", source_indices=None) -> tuple[Path, dict]:
+    """Write a finished run into a new folder under ``out_dir``; return the folder and metrics."""
+    writer = RunWriter(out_dir, name, config, source_indices)
+    for record in result.keyframes:
+        writer.add_keyframe(record)
+    return writer.dir, writer.finish(result)

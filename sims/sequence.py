@@ -122,6 +122,14 @@ class _SerialPool:
         return map(fn, jobs)
 
 
+def _ignore_sigint() -> None:
+    """Workers leave SIGINT to the parent, which stops the pool (a worker that dies of it
+    mid-task can leave the pool waiting for it forever)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 def _pool(workers: int):
     """A process pool of ``workers`` (fork, so nothing is re-imported), or a serial one."""
     if workers <= 1:
@@ -129,7 +137,20 @@ def _pool(workers: int):
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("fork"))
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("fork"),
+                               initializer=_ignore_sigint)
+
+
+def _stop_pool(pool) -> None:
+    """Cancel what has not started and end the workers now (an interruption must not hang)."""
+    if isinstance(pool, _SerialPool):
+        return
+    processes = list(getattr(pool, "_processes", {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
+    for process in processes:
+        process.terminate()
+    for process in processes:
+        process.join(timeout=5)
 
 
 def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, progress: bool = False,
@@ -181,10 +202,17 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
              config.depth, int(frame_seeds[k]), str(out / "rgb" / f"{rgb_stamps[k]:.6f}.png"),
              str(out / "depth" / f"{depth_stamps[k]:.6f}.png"))
             for k in range(config.frames)]
-    with _pool(workers) as pool:
+    pool = _pool(workers)
+    try:
         for _ in tqdm(pool.map(_render_and_write, jobs, chunksize=4), total=len(jobs), desc="render",
                       unit="frame", disable=not progress):
             pass
+    except BaseException:
+        _stop_pool(pool)
+        raise
+    else:
+        if not isinstance(pool, _SerialPool):
+            pool.shutdown(wait=True)
 
     _write_list(out / "rgb.txt", "color images", rgb_stamps, "rgb")
     _write_list(out / "depth.txt", "depth maps", depth_stamps, "depth")
@@ -210,6 +238,9 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     (out / "intrinsics.json").write_text(json.dumps(intrinsics.to_dict(), indent=1))
     scene.save(out / "scene.json")
     (out / "sim.json").write_text(json.dumps({"generator": "nap3d-graph simulate", **config.to_dict(),
-                                              "duration_s": duration}, indent=1))
+                                              "duration_s": duration,
+                                              # The truth a compensation is checked against.
+                                              "depth_capture_stamps": (TIME_ORIGIN_S + depth_capture_rel).tolist(),
+                                              "exposure_gains": np.round(gains, 6).tolist()}, indent=1))
     log.info("simulated %d frames of %s path into %s", config.frames, config.path, out)
     return out

@@ -32,8 +32,10 @@ def survey(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def trained(survey):
-    config = TrainConfig(voxel_size_m=0.05, max_steps=TRAIN_STEPS, eval_frames=4, seed=1)
-    return train_field(survey, config, progress=False)
+    """The grid trained as train-field does: capture timing estimated from the survey."""
+    from nap3d_graph.fields.build import build_field
+
+    return build_field(survey, "grid", steps=TRAIN_STEPS, voxel_size_m=0.05, eval_frames=4, seed=1, progress=False)
 
 
 def test_split_frames():
@@ -74,12 +76,14 @@ def test_short_training_beats_the_bars(survey, trained):
     held = report["held_out"]
     assert report["steps"] == TRAIN_STEPS
     assert held["depth_reference"].startswith("noise-free")
-    # Measured after 300 steps: 23.9 dB, 0.23 cm median, 0.94 cm p90, opacity 0.98, unit
-    # check a = 1.000, R^2 0.995 (the same on any machine: the budget is in steps).
-    assert held["psnr_db"] >= 22.0, held
+    # Measured after 300 steps on the Kinect-like survey (blur, exposure drift, depth captured
+    # 30 ms before colour): 22.4 dB raw, 24.2 after an affine colour fit, 0.31 cm median,
+    # 1.6 cm p90, opaque 99.5%, unit check a = 1.001, R^2 0.984 (the same on any machine: the
+    # budget is in steps).
+    assert held["psnr_affine_db"] >= 22.0 and held["psnr_db"] >= 20.0, held
     assert held["depth_abs_err_m"]["median"] <= 0.008, held
     assert held["depth_abs_err_m"]["p90"] <= 0.035, held
-    assert held["opacity_on_surfaces"] >= 0.95, held
+    assert held["opacity_on_surfaces"] >= 0.95 and held["opaque_fraction"] >= 0.95, held
     unit = held["unit_check"]
     assert unit["r2"] >= 0.97 and abs(unit["a"] - 1.0) < 0.05 and abs(unit["b"]) < 0.1, unit
     # ... and far above an untrained field on the same frames.
@@ -90,6 +94,24 @@ def test_short_training_beats_the_bars(survey, trained):
     assert untrained["opacity_on_surfaces"] < 0.05 and untrained["opaque_fraction"] == 0.0
 
 
+def test_capture_timing_is_recovered_and_fixes_the_field(survey, trained):
+    """The survey's depth is captured 30 ms before its colour and stamped 15 ms after its
+    capture: the estimate finds the depth 12-18 ms before its stamp and the colour at its
+    own, and a field trained without the compensation has several times the depth error."""
+    from nap3d_graph.fields.build import build_field
+
+    _, report = trained
+    truth = survey.config
+    lag = np.asarray(survey.depth_timestamps) - np.asarray(truth["depth_capture_stamps"])
+    timing = report["timing"]
+    assert abs(timing["depth_offset_s"] + np.median(lag)) <= 0.003, (timing, np.median(lag))
+    assert abs(timing["colour_offset_s"]) <= 0.003 and abs(timing["depth_scale"] - 1.0) <= 0.01
+    _, ignored = build_field(survey, "grid", steps=TRAIN_STEPS, voxel_size_m=0.05, eval_frames=4, seed=1,
+                             timing=None, progress=False)
+    with_timing = report["held_out"]["depth_abs_err_m"]["median"]
+    assert ignored["held_out"]["depth_abs_err_m"]["median"] > 2.5 * with_timing, (ignored["held_out"], with_timing)
+
+
 def test_fast_renderer_agrees_with_reference(survey, trained):
     field, report = trained
     i = report["held_out"]["frames"][0]
@@ -97,7 +119,8 @@ def test_fast_renderer_agrees_with_reference(survey, trained):
     fast = field.render(survey.T_world_cam_gt[i], K)
     ref = field.render_reference(survey.T_world_cam_gt[i], K, step_vox=0.1)
     both = (fast.opacity > 0.9) & (ref.opacity > 0.9)
-    assert both.mean() > 0.95
+    # (The two disagree near opacity 0.9 itself, where a semi-transparent edge crosses it.)
+    assert both.sum() > 0.9 * (ref.opacity > 0.9).sum()
     assert np.median(np.abs(fast.depth_m - ref.depth_m)[both]) < 0.002
     mse = np.mean(((fast.rgb.astype(float) - ref.rgb.astype(float)) / 255.0) ** 2)
     assert -10 * np.log10(mse) > 30.0
@@ -167,7 +190,7 @@ def test_train_field_command_writes_checkpoint_and_report(survey, tmp_path, caps
         assert key in held
     assert {"median", "p90"} <= set(held["depth_abs_err_m"]) and {"a", "b", "r2"} <= set(held["unit_check"])
     assert report["steps"] == 60 and report["train_frames"] == 50
-    assert "held-out (320x240): PSNR" in capsys.readouterr().out
+    assert "held-out (128x96): PSNR" in capsys.readouterr().out
     assert isinstance(load_field(out), GridField)
 
 
@@ -185,8 +208,10 @@ def test_train_field_builds_a_splat_field(survey, tmp_path, capsys):
     report = json.loads((tmp_path / "field_report.json").read_text())
     held = report["held_out"]
     assert held["depth_reference"].startswith("noise-free")
+    # Measured: depth 0.61 cm median against the exact room, opaque 91%, 18.2 dB after an affine
+    # colour fit (a 128x96 survey with motion blur: the splats average its blurred colours).
     assert held["depth_abs_err_m"]["median"] <= 0.01, held["depth_abs_err_m"]
-    assert held["opaque_fraction"] >= 0.9 and held["psnr_affine_db"] >= 20.0, held
+    assert held["opaque_fraction"] >= 0.85 and held["psnr_affine_db"] >= 16.0, held
     assert len(field.meta["train_timestamps"]) == report["train_frames"]
 
 

@@ -20,7 +20,18 @@ FRAMES, WIDTH, HEIGHT = 12, 160, 120
 
 @pytest.fixture(scope="module")
 def sim_dir(tmp_path_factory):
-    return simulate_sequence(tmp_path_factory.mktemp("sim") / "room", SimConfig(frames=FRAMES, width=WIDTH, height=HEIGHT))
+    """An ideal camera (both images at the frame instant, no blur, fixed exposure, no flying
+    pixels): what the exactness checks need."""
+    ideal = SimConfig(frames=FRAMES, width=WIDTH, height=HEIGHT, timing=None, exposure=None,
+                      depth=DepthNoise(flying_fraction=0.0))
+    return simulate_sequence(tmp_path_factory.mktemp("sim") / "room", ideal)
+
+
+@pytest.fixture(scope="module")
+def kinect_dir(tmp_path_factory):
+    """The default, Kinect-like camera."""
+    return simulate_sequence(tmp_path_factory.mktemp("sim") / "kinect", SimConfig(frames=FRAMES, width=WIDTH,
+                                                                                    height=HEIGHT, seed=2))
 
 
 @pytest.fixture(scope="module")
@@ -34,9 +45,10 @@ def sim(sim_dir) -> SimSequence:
 
 
 def test_reads_as_plain_tum_sequence(tum, sim_dir):
-    # Every frame associated, although the depth stamps are a few ms off the colour stamps.
+    # Every frame associated, although the depth stamps are a few ms off the colour stamps
+    # (the ideal camera; the Kinect-like one is checked below).
     rgb_stamps = np.loadtxt(sim_dir / "rgb.txt", usecols=0)
-    assert len(tum) == FRAMES and tum.num_dropped_no_gt == 0
+    assert len(tum) == FRAMES and tum.has_gt.all()
     assert np.array_equal(tum.timestamps, rgb_stamps)
     offsets = tum.depth_timestamps - tum.timestamps
     assert np.all(np.abs(offsets) < 0.0081) and np.all(offsets != 0)
@@ -87,6 +99,35 @@ def test_depth_is_noisy_quantised_render(tum, sim_dir):
     assert 0.8 < z.std() < 1.2  # the noise has the modelled size (measured ~1.0)
     assert np.abs(z).max() < 6.5
     assert 0.85 < np.mean(valid_fraction) < 1.0  # holes: about hole_fraction, plus range limits
+
+
+def test_kinect_like_camera_timing_exposure_and_blur(kinect_dir):
+    """Depth is captured 30 ms before the colour and stamped 15 ms after its capture; the
+    written depth is the render at its capture pose; colour carries the frame's exposure
+    gains and the motion blur of its exposure."""
+    seq = SimSequence(kinect_dir)
+    truth = seq.config
+    capture = np.asarray(truth["depth_capture_stamps"])
+    assert np.allclose(capture - seq.timestamps, -0.030, atol=1e-6)
+    lag = seq.depth_timestamps - capture
+    assert np.all(np.abs(lag - 0.015) <= 0.003 + 1e-6)
+    # The depth image is the scene at the depth's capture pose, not at the colour's.
+    for i in (2, 8):
+        depth = seq[i].depth_m
+        at_capture = seq.scene.render_depth(seq.ground_truth_at([capture[i]])[0], seq.intrinsics)
+        at_colour = seq.scene.render_depth(seq.T_world_cam_gt[i], seq.intrinsics)
+        both = (depth > 0) & (at_capture > 0) & (at_colour > 0)
+        err_capture = np.median(np.abs(depth - at_capture)[both])
+        err_colour = np.median(np.abs(depth - at_colour)[both])
+        assert err_capture < 0.5 * err_colour, (err_capture, err_colour)
+    # Exposure: the image's mean colour over a clean render's is the recorded per-channel gain
+    # (blur moves colour around but keeps its mean).
+    gains = np.asarray(truth["exposure_gains"])
+    assert gains.shape == (FRAMES, 3) and gains.std() > 0.005
+    for i in (3, 9):
+        rgb01, _, hit = seq.scene.render(seq.T_world_cam_gt[i], seq.intrinsics)
+        ratio = (seq[i].rgb[hit].astype(float) / 255.0).mean(axis=0) / rgb01[hit].mean(axis=0)
+        assert np.allclose(ratio, gains[i], rtol=0.03), (ratio, gains[i])
 
 
 def test_sim_sequence_extras(sim, tum, sim_dir):

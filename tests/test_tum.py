@@ -68,7 +68,7 @@ def test_real_sequence_association_and_intrinsics(seq):
     assert np.all(np.abs(seq.timestamps - seq.depth_timestamps - seq.offset) < 0.02)
     assert len(seq.rgb_paths) == len(seq.depth_paths) == 12
     assert len(set(seq.depth_paths)) == 12
-    assert seq.num_dropped_no_gt == 0  # the ground truth spans the whole excerpt
+    assert seq.has_gt.all()  # the ground truth spans the whole excerpt
     assert seq.name == "rgbd_dataset_freiburg1_xyz" and seq.path == TUM_DIR
     # fr1 calibration, reported without distortion because the images are undistorted.
     assert seq.intrinsics == FR1
@@ -245,7 +245,7 @@ def test_subsampled_desk_keeps_every_listed_pair():
     stamps_depth, _ = read_file_list(TUM_FR1_DESK / "depth.txt")
     assert len(desk) == 6 and np.array_equal(desk.timestamps, stamps_rgb)
     assert np.array_equal(desk.depth_timestamps, stamps_depth)
-    assert desk.num_dropped_no_gt == 0 and np.all(np.isfinite(desk.T_world_cam_gt))
+    assert desk.has_gt.all() and np.all(np.isfinite(desk.T_world_cam_gt))
     # The camera moves at about half a metre per second here.
     speed = np.linalg.norm(np.diff(desk.T_world_cam_gt[:, :3, 3], axis=0), axis=1) / np.diff(desk.timestamps)
     assert 0.3 < np.median(speed) < 0.8
@@ -441,16 +441,19 @@ def test_malformed_list_line(tmp_path):
 def test_ground_truth_outside_frames(tmp_path, caplog):
     folder = small_copy(tmp_path, frames=8)
     full = TumSequence(folder)
-    # Keep only ground truth up to the middle of the frames: later frames are dropped.
+    # Keep only ground truth up to the middle of the frames: the later frames stay in the
+    # sequence (a run still runs them), with no pose to compare with, and a warning says so.
     cut = full.timestamps[3] + 0.02  # past frame 3 (GT every 10 ms), before frame 4 (+33 ms)
     lines = (folder / "groundtruth.txt").read_text().splitlines()
     kept = [line for line in lines if line.startswith("#") or float(line.split()[0]) <= cut]
     (folder / "groundtruth.txt").write_text("\n".join(kept) + "\n")
-    with caplog.at_level(logging.INFO, logger="nap3d_graph.datasets.tum"):
+    with caplog.at_level(logging.WARNING, logger="nap3d_graph.datasets.tum"):
         partial = TumSequence(folder)
-    assert len(partial) == 4 and partial.num_dropped_no_gt == len(full) - 4
-    assert np.array_equal(partial.timestamps, full.timestamps[:4])
-    assert "dropped" in caplog.text
+    assert len(partial) == len(full) and np.array_equal(partial.timestamps, full.timestamps)
+    assert partial.has_gt.tolist() == [True] * 4 + [False] * (len(full) - 4)
+    assert np.all(np.isnan(partial.T_world_cam_gt[4:])) and np.allclose(partial.T_world_cam_gt[:4], full.T_world_cam_gt[:4])
+    assert "4 of 8 frames have no ground truth" in caplog.text and "frames 4, 5, 6, 7" in caplog.text
+    assert partial.rgb_line_index.tolist() == list(range(8))
     (folder / "groundtruth.txt").write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
     with pytest.raises(DatasetError, match=r"groundtruth\.txt: ground truth covers none"):
         TumSequence(folder)

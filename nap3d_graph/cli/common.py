@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["UsageError", "Parser", "add_frames_argument", "warn_trained_frames", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["UsageError", "Parser", "add_frames_argument", "warn_trained_frames", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
@@ -124,3 +124,73 @@ def warn_trained_frames(field, timestamps, what: str) -> int:
               "measures the field's memory of that image, not how it generalises (train on other frames, "
               "e.g. train-field --frames 0:0.5 and run --frames 0.5:1)", file=sys.stderr)
     return count
+
+
+class StopOnSignal:
+    """A stop flag raised by SIGINT or SIGTERM: the first signal asks the running loop to end
+    after its current frame (so it can write what it has); a second one stops at once.
+    Use as a context manager; call the object to ask whether to stop."""
+
+    def __init__(self):
+        self.requested = False
+        self._previous = {}
+
+    def __call__(self) -> bool:
+        return self.requested
+
+    def _handle(self, signum, frame):
+        import signal
+        import sys
+
+        if self.requested:  # the second signal: no more waiting
+            for sig, handler in self._previous.items():
+                signal.signal(sig, handler)
+            raise KeyboardInterrupt
+        self.requested = True
+        print(f"\n{signal.Signals(signum).name}: finishing the current frame and writing what the run has "
+              "(again to stop at once)", file=sys.stderr)
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def __exit__(self, *exc):
+        import signal
+
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        return False
+
+
+def parse_pose(text: str | None, file: Path | None):
+    """A 4x4 ``T_world_cam`` from ``"tx ty tz qx qy qz qw"`` or from the first pose line of a
+    TUM file (``timestamp tx ty tz qx qy qz qw``); None when neither is given."""
+    import numpy as np
+
+    if text is None and file is None:
+        return None
+    if text is not None and file is not None:
+        raise UsageError("give --initial-pose or --initial-pose-file, not both")
+    if file is not None:
+        from nap3d_graph.datasets import DatasetError, read_tum_trajectory
+
+        try:
+            _, T = read_tum_trajectory(file)
+        except DatasetError as exc:
+            raise UsageError(f"--initial-pose-file: {exc}") from None
+        return T[0]
+    from nap3d_graph.conventions import tum_to_T
+
+    try:
+        values = np.array([float(v) for v in text.replace(",", " ").split()])
+    except ValueError:
+        raise UsageError(f"--initial-pose must be 'tx ty tz qx qy qz qw' (7 numbers), got {text!r}") from None
+    if values.shape != (7,) or not np.all(np.isfinite(values)) or np.linalg.norm(values[3:]) < 1e-6:
+        raise UsageError(f"--initial-pose must be 'tx ty tz qx qy qz qw' (7 finite numbers, a non-zero quaternion), "
+                         f"got {text!r}")
+    return tum_to_T(values[None])[0]

@@ -13,8 +13,8 @@ import argparse
 import time
 from pathlib import Path
 
-from .common import (UsageError, add_frames_argument, non_negative_float, positive_float, positive_int, probability,
-                     warn_trained_frames, writable_dir)
+from .common import (StopOnSignal, UsageError, add_frames_argument, non_negative_float, parse_pose, positive_float,
+                     positive_int, probability, warn_trained_frames, writable_dir)
 
 __all__ = ["add_parser", "run"]
 
@@ -39,6 +39,11 @@ def add_parser(sub) -> None:
     p.add_argument("--odom", choices=("recorded", "noisy", "vo"),
                    help="odometry: recorded (the sequence's odometry.txt; default for sim), noisy (noise injected "
                    "on ground-truth increments; default for tum) or vo (frame-to-frame RGB-D odometry)")
+    p.add_argument("--initial-pose", metavar="'tx ty tz qx qy qz qw'",
+                   help="where the camera starts in the field's frame (for --odom vo on a recording without ground "
+                   "truth; default: the ground truth's first pose)")
+    p.add_argument("--initial-pose-file", type=Path, metavar="TUM_FILE",
+                   help="the same from the first line of a TUM trajectory file")
     p.add_argument("--odom-rot-sigma", type=positive_float, default=2e-3,
                    help="per-frame rotation noise of the odometry, rad (injected with --odom noisy, and the "
                    "odometry factors' sigma); default 0.002")
@@ -106,13 +111,14 @@ def run(args) -> int:
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.odometry import make_odometry
     from nap3d_graph.pipeline import Pipeline, PipelineConfig
-    from nap3d_graph.run_output import write_results
+    from nap3d_graph.run_output import RunWriter
 
     t0 = time.perf_counter()
     if args.traj == "realsense":
         raise UsageError("--traj realsense: reading RealSense recordings is not supported in this version; "
                          "record to a TUM-layout folder and use --traj tum")
     width, height = _parse_size(args.render_size)
+    initial_pose = parse_pose(args.initial_pose, args.initial_pose_file)
     writable_dir(args.out)  # before the run, not after it
     data, field_obj, field_desc, name = _inputs(args)
     sequence = open_sequence(data, frames=args.frames)
@@ -121,34 +127,48 @@ def run(args) -> int:
     trained_on = warn_trained_frames(field_obj, sequence.timestamps, "frames of this run")
     odom_kind = args.odom or ("recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy")
     try:
-        odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma)
+        odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma,
+                                 initial_pose=initial_pose)
     except ValueError as exc:  # the data cannot give that odometry: say which and what to use
         raise UsageError(str(exc)) from None
     config = PipelineConfig(keyframe_every=args.keyframe_every, keyframe_distance_m=args.keyframe_distance,
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=args.anchor, gate_p=args.gate_p,
                             max_frames=args.max_frames, progress=True)
-    result = Pipeline(sequence, field_obj, odometry, config).run()
     record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
               "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
+              "initial_pose": None if initial_pose is None else initial_pose.tolist(),
               "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
               "seed": args.seed, "pipeline": {k: v for k, v in vars(config).items() if k != "align"},
               "align": vars(config.align)}
-    run_dir, metrics = write_results(result, args.out, record, name)
+    writer = RunWriter(args.out, name, record, getattr(sequence, "rgb_line_index", None))
+    try:
+        with StopOnSignal() as stop:
+            result = Pipeline(sequence, field_obj, odometry, config).run(on_keyframe=writer.add_keyframe, stop=stop)
+    finally:
+        writer.close()
+    metrics = writer.finish(result, partial=result.partial)
     print(summary_table(metrics, time.perf_counter() - t0))
-    print(f"results: {run_dir}  (also {Path(args.out) / 'latest'})")
+    print(f"results: {writer.dir}  (also {Path(args.out) / 'latest'})")
+    if result.partial:
+        print(f"interrupted after {len(result.timestamps)} of {len(sequence)} frames: the results are partial "
+              "(metrics.json says so)", file=__import__("sys").stderr)
+        return 130
     return 0
 
 
 def summary_table(metrics: dict, seconds: float) -> str:
     lines = ["", f"{'':<22}{'ATE rmse':>12}{'ATE 1st half':>14}{'ATE 2nd half':>14}{'RPE rmse':>12}"]
-    for name, label in (("odometry", "odometry only"), ("estimate", "with NAP3D")):
+    for name, label in (("odometry", "odometry only"), ("estimate", "with NAP3D"),
+                        ("estimate_online", "with NAP3D, causal")):
         m = metrics.get(name)
         if m is None:
             continue
         rpe = m["rpe_m"].get("rmse")
         lines.append(f"{label:<22}{m['ate_m']['rmse'] * 100:10.2f}cm{(m['ate_first_half_m'] or 0) * 100:12.2f}cm"
                      f"{(m['ate_second_half_m'] or 0) * 100:12.2f}cm" + (f"{rpe * 100:10.2f}cm" if rpe else ""))
+    if "ground_truth" in metrics:
+        lines.append(f"no ground truth: no ATE/RPE (median inliers per keyframe {metrics['median_inliers']:.0f})")
     if "odometry" in metrics and "estimate" in metrics:
         ratio = metrics["odometry"]["ate_m"]["rmse"] / max(metrics["estimate"]["ate_m"]["rmse"], 1e-12)
         lines.append(f"ATE reduced {ratio:.1f}x")

@@ -205,7 +205,8 @@ class TumSequence:
     depth stream's typical lead with :func:`estimate_stream_offset`): ``association="optimal"`` (default) keeps
     the most pairs with the least total time difference, ``"greedy"`` is TUM's
     ``associate.py`` (see :func:`associate`). Ground truth, when ``groundtruth.txt`` exists,
-    is interpolated to each colour timestamp and frames it cannot cover are dropped.
+    is interpolated to each colour timestamp; frames it cannot cover keep a NaN pose
+    (``has_gt``).
 
     Images: with ``undistort`` (default) and a camera with distortion, colour is remapped to
     the pinhole camera ``intrinsics`` (same fx fy cx cy, no distortion). Depth is delivered
@@ -219,7 +220,8 @@ class TumSequence:
     ``T_world_cam_gt`` (N, 4, 4) at the colour stamps, or None, ``rgb_paths`` /
     ``depth_paths`` (N Paths), ``intrinsics`` (of the delivered images: undistorted pinhole
     when ``undistort`` and the camera has distortion), ``raw_intrinsics`` (as resolved,
-    possibly with distortion), ``path``, ``name``, ``num_dropped_no_gt``, ``undistort``,
+    possibly with distortion), ``path``, ``name``, ``has_gt`` (N,), ``rgb_line_index`` (N,)
+    (each frame's line among rgb.txt's data lines), ``undistort``,
     ``undistort_depth``, ``association``, ``offset``, ``frame_range`` ``(start, stop)``.
 
     ``frames``: ``START:STOP`` keeps part of the associated frames (indices, or fractions
@@ -285,10 +287,12 @@ class TumSequence:
         )
         self.timestamps = rgb_stamps[pairs[:, 0]]
         self.depth_timestamps = depth_stamps[pairs[:, 1]]
+        # Each frame's line among rgb.txt's data lines: what a run reports as its frame index,
+        # so a row of corrections.csv names the same image whatever association dropped.
+        self.rgb_line_index = pairs[:, 0].astype(int)
         self.rgb_paths = [self.path / rgb_names[i] for i in pairs[:, 0]]
         self.depth_paths = [self.path / depth_names[j] for j in pairs[:, 1]]
         self.T_world_cam_gt = None
-        self.num_dropped_no_gt = 0
         self._gt_raw: tuple[np.ndarray, np.ndarray] | None = None
         self._attach_ground_truth(self.path / "groundtruth.txt")
         self.frame_range = parse_frame_range(frames, len(self.timestamps))
@@ -324,12 +328,16 @@ class TumSequence:
             return
         self.timestamps = self.timestamps[start:stop]
         self.depth_timestamps = self.depth_timestamps[start:stop]
+        self.rgb_line_index = self.rgb_line_index[start:stop]
         self.rgb_paths = self.rgb_paths[start:stop]
         self.depth_paths = self.depth_paths[start:stop]
         if self.T_world_cam_gt is not None:
             self.T_world_cam_gt = self.T_world_cam_gt[start:stop]
 
     def _attach_ground_truth(self, gt_path: Path) -> None:
+        """Ground truth interpolated at the colour stamps. Frames it does not cover (before or
+        after it, or in a gap) stay in the sequence with a NaN pose: they have no error, not
+        no pose; ``has_gt`` says which, and a warning says how many."""
         if not gt_path.is_file():
             return
         stamps_gt, T_gt = read_tum_trajectory(gt_path)
@@ -341,17 +349,21 @@ class TumSequence:
         keep = np.all(np.isfinite(T), axis=(1, 2))
         if not np.any(keep):
             raise DatasetError(f"{gt_path}: ground truth covers none of the {len(keep)} frames")
-        self.num_dropped_no_gt = int((~keep).sum())
-        if self.num_dropped_no_gt:
-            logger.info(
-                "%s: dropped %d of %d frames outside the ground truth (or in its gaps > %.2f s)",
-                self.name, self.num_dropped_no_gt, len(keep), GT_MAX_GAP_S,
+        missing = np.flatnonzero(~keep)
+        if missing.size:
+            logger.warning(
+                "%s: %d of %d frames have no ground truth (outside it or in its gaps > %.2f s), e.g. frames %s; "
+                "they are still run, without an error figure",
+                self.name, missing.size, len(keep), GT_MAX_GAP_S, ", ".join(str(int(i)) for i in missing[:5]),
             )
-        self.timestamps = self.timestamps[keep]
-        self.depth_timestamps = self.depth_timestamps[keep]
-        self.rgb_paths = [p for p, k in zip(self.rgb_paths, keep) if k]
-        self.depth_paths = [p for p, k in zip(self.depth_paths, keep) if k]
-        self.T_world_cam_gt = T[keep]
+        self.T_world_cam_gt = T
+
+    @property
+    def has_gt(self) -> np.ndarray:
+        """(N,) bool: frames with a ground-truth pose (all False without ground truth)."""
+        if self.T_world_cam_gt is None:
+            return np.zeros(len(self), dtype=bool)
+        return np.all(np.isfinite(self.T_world_cam_gt), axis=(1, 2))
 
     def ground_truth_at(self, stamps) -> np.ndarray | None:
         """Ground-truth poses (M, 4, 4) interpolated at any times (M,) (NaN outside or in a

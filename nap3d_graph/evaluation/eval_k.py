@@ -194,8 +194,11 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
     rows: list[dict] = []
     cells = len(config.blur_sigmas) * len(config.intrinsics_noise)
     bar = tqdm(total=config.scenarios * cells, desc="eval-k", unit="cell", disable=not progress)
+    posed = np.flatnonzero(np.all(np.isfinite(np.asarray(sequence.T_world_cam_gt)), axis=(1, 2)))
+    if posed.size == 0:
+        raise ValueError(f"{sequence.path}: no frame has a ground-truth pose")
     for scenario in range(config.scenarios):
-        index = int(rng.integers(len(sequence)))
+        index = int(posed[rng.integers(len(posed))])
         T_gt = sequence.T_world_cam_gt[index]
         T_est = T_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)
         frame = sequence[index]

@@ -44,7 +44,15 @@ def rpe(timestamps, T_ref, T_est, delta_m: float = 0.5) -> dict:
 
 def trajectory_metrics(timestamps, T_gt, trajectories: dict[str, np.ndarray], rpe_delta_m: float = 0.5) -> dict:
     """ATE and RPE of each named trajectory against the ground truth, plus the ATE of the
-    first and the second half of the frames (is the error flat as the path grows?)."""
+    first and the second half of the frames (is the error flat as the path grows?).
+
+    Frames without ground truth (NaN poses) have no error and are left out of every figure;
+    ``frames_with_ground_truth`` says how many counted."""
+    T_gt = np.asarray(T_gt, dtype=float)
+    posed = np.all(np.isfinite(T_gt), axis=(1, 2))
+    timestamps = np.asarray(timestamps)[posed]
+    T_gt = T_gt[posed]
+    trajectories = {name: np.asarray(T)[posed] for name, T in trajectories.items()}
     n = len(timestamps)
     half = n // 2
     out = {}
@@ -54,5 +62,6 @@ def trajectory_metrics(timestamps, T_gt, trajectories: dict[str, np.ndarray], rp
             "rpe_m": rpe(timestamps, T_gt, T, rpe_delta_m),
             "ate_first_half_m": ate(timestamps[:half], T_gt[:half], T[:half])["rmse"] if half >= 2 else None,
             "ate_second_half_m": ate(timestamps[half:], T_gt[half:], T[half:])["rmse"] if n - half >= 2 else None,
+            "frames_with_ground_truth": int(n),
         }
     return out

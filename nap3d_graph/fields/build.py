@@ -57,17 +57,18 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
-    ``eval_frames``: training frames and held-out frames (:func:`split_frames`).
+    ``eval_frames``: training frames and held-out frames (:func:`~nap3d_graph.fields.training.split_posed_frames`).
     ``voxel_size_m``: the model's voxel (default: the model's own). ``timing``: ``"auto"``
     (estimate it), ``None`` (use the stamps as they are) or a dict. ``render_size``: the
-    held-out evaluation renders at this size (the pipeline's), ``None`` for the frames' own.
+    held-out evaluation renders at this size (the pipeline's; the frames' own when they are
+    smaller, or with ``None``).
     """
-    from .training import split_frames
+    from .training import split_posed_frames
 
     if model not in MODELS:
         raise FieldError(f"unknown field model {model!r}; choose from {', '.join(MODELS)}")
     started = time.perf_counter()
-    train_idx, held_idx = split_frames(len(sequence), every, eval_frames)
+    train_idx, held_idx = split_posed_frames(sequence, every, eval_frames)
     if timing == "auto":
         timing = estimate_timing(sequence)
     timing_seconds = time.perf_counter() - started
@@ -81,6 +82,9 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                        "frame_range": list(getattr(sequence, "frame_range", (0, len(sequence)))),
                        "train_frames": [int(i) for i in train_idx],
                        "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx]})
+    K = sequence.intrinsics
+    if render_size is not None and (render_size[0] > K.width or render_size[1] > K.height):
+        render_size = None  # never evaluate above the frames' own resolution
     held = evaluate_field(field, sequence, held_idx, oracle, size=render_size, timing=timing) if len(held_idx) else None
     report.update({"model": model, "timing": timing, "timing_seconds": round(timing_seconds, 2),
                    "train_frames": int(len(train_idx)), "held_out": held,

@@ -53,6 +53,7 @@ __all__ = [
     "TrainingRays",
     "train_field",
     "split_frames",
+    "split_posed_frames",
     "splat_init",
     "scene_bounds_from_depth",
 ]
@@ -214,6 +215,19 @@ class TrainingRays:
         return self.rgb.shape[0]
 
 
+def split_posed_frames(sequence, every: int = 1, eval_frames: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`split_frames` over the frames that have a ground-truth pose (the others cannot
+    train or evaluate a field); indices into ``sequence``."""
+    poses = getattr(sequence, "T_world_cam_gt", None)
+    if poses is None:
+        raise FieldError("training a field needs posed frames, but the sequence has no ground-truth poses")
+    posed = np.flatnonzero(np.all(np.isfinite(np.asarray(poses)), axis=(1, 2)))
+    if posed.size < 2:
+        raise FieldError(f"need at least 2 frames with a ground-truth pose, got {posed.size}")
+    train, held = split_frames(len(posed), every, eval_frames)
+    return posed[train], posed[held]
+
+
 def _ray_poses(rays: TrainingRays) -> np.ndarray:
     T = np.tile(np.eye(4), (rays.num_frames, 1, 1))
     T[:, :3, :3] = rays.R_world_cam.cpu().numpy()
@@ -226,8 +240,8 @@ def _poses_of(sequence) -> np.ndarray:
     if poses is None:
         raise FieldError("training a field needs posed frames, but the sequence has no ground-truth poses")
     poses = np.asarray(poses, dtype=np.float64)
-    if poses.shape != (len(sequence), 4, 4) or not np.all(np.isfinite(poses)):
-        raise FieldError(f"sequence poses must be finite (N, 4, 4) with N = {len(sequence)}, got {poses.shape}")
+    if poses.shape != (len(sequence), 4, 4):
+        raise FieldError(f"sequence poses must be (N, 4, 4) with N = {len(sequence)}, got {poses.shape}")
     return poses
 
 
@@ -518,7 +532,7 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
            snapshot_seconds, callback, timing=None) -> tuple[GridField, dict]:
     generator = torch.Generator(device=device).manual_seed(config.seed)
 
-    train_idx, held_idx = split_frames(len(sequence), config.every, config.eval_frames)
+    train_idx, held_idx = split_posed_frames(sequence, config.every, config.eval_frames)
     if eval_sequence is None:
         eval_sequence, eval_indices = sequence, (held_idx if eval_indices is None else eval_indices)
         oracle = oracle if oracle is not None else oracle_for(sequence)
