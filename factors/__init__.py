@@ -17,7 +17,7 @@ from .gate import (
     factor_error_and_covariance,
     mahalanobis_sq,
 )
-from .imu import imu_factor, imu_params, preintegrate
+from .imu import imu_factor, imu_params, imu_pieces, integrate_pieces, preintegrate
 from .nap3d import (
     anchor_prior_factor,
     corrected_pose_and_covariance,
@@ -48,6 +48,8 @@ __all__ = [
     "odometry_factor",
     "pose_prior_factor",
     "imu_params",
+    "imu_pieces",
+    "integrate_pieces",
     "imu_factor",
     "preintegrate",
     "GateResult",

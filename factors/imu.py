@@ -22,7 +22,7 @@ from typing import Optional
 import gtsam
 import numpy as np
 
-__all__ = ["imu_params", "preintegrate", "imu_factor"]
+__all__ = ["imu_params", "imu_pieces", "integrate_pieces", "preintegrate", "imu_factor"]
 
 logger = logging.getLogger(__name__)
 
@@ -66,30 +66,23 @@ def imu_params(accel_noise_density: float, gyro_noise_density: float,
     return params
 
 
-def preintegrate(params: gtsam.PreintegrationCombinedParams,
-                 bias: Optional[gtsam.imuBias.ConstantBias],
-                 stamps: np.ndarray, accel: np.ndarray, gyro: np.ndarray,
-                 t_start: float, t_end: float) -> gtsam.PreintegratedCombinedMeasurements:
-    """Preintegrate IMU samples over exactly ``[t_start, t_end)``.
+def imu_pieces(stamps: np.ndarray, accel: np.ndarray, gyro: np.ndarray, t_start: float,
+               t_end: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The zero-order-hold pieces of ``[t_start, t_end)``: ``(accel (K, 3), gyro (K, 3), dt (K,))``.
 
-    Samples are held constant until the next sample (zero-order hold, as GTSAM's
-    ``integrateMeasurement`` assumes). The interval is cut at ``t_start``, every sample
-    time inside it, and ``t_end``; each piece is integrated with the sample active at its
-    start, so the partial first piece uses the last sample *before* ``t_start`` and the
-    partial last piece is cut at ``t_end``. The pieces add up to ``t_end - t_start``
-    exactly, so consecutive keyframe intervals neither lose nor double-count time. Before
-    the first sample, the first sample is held backwards (logged).
+    Samples are held constant until the next sample (as GTSAM's ``integrateMeasurement``
+    assumes). The interval is cut at ``t_start``, every sample time inside it, and
+    ``t_end``; each piece carries the sample active at its start, so the partial first
+    piece uses the last sample *before* ``t_start`` and the partial last piece is cut at
+    ``t_end``. The pieces add up to ``t_end - t_start`` exactly, so consecutive intervals
+    neither lose nor double-count time. Before the first sample, the first sample is held
+    backwards (logged). Empty pieces (duplicate stamps) are dropped.
 
     Args:
-        params: from :func:`imu_params`.
-        bias: bias estimate to preintegrate with (``None``: zero bias).
         stamps: (N,) sample times, seconds, non-decreasing.
         accel: (N, 3) specific force in the IMU body frame, m/s^2.
         gyro: (N, 3) angular rate in the IMU body frame, rad/s.
         t_start, t_end: interval, seconds, ``t_end > t_start``.
-
-    Returns:
-        ``PreintegratedCombinedMeasurements`` with ``deltaTij() == t_end - t_start``.
 
     Raises:
         ValueError: bad shapes, non-finite samples in the interval, unsorted stamps,
@@ -110,22 +103,47 @@ def preintegrate(params: gtsam.PreintegrationCombinedParams,
 
     if t_start < stamps[0]:
         logger.debug("IMU: holding the first sample back from %.6f to t_start %.6f", stamps[0], t_start)
-    inner = stamps[(stamps > t_start) & (stamps < t_end)]
-    cuts = np.concatenate([[t_start], inner, [t_end]])
+    first = np.searchsorted(stamps, t_start, side="right")
+    last = np.searchsorted(stamps, t_end, side="left")
+    cuts = np.concatenate([[t_start], stamps[first:last], [t_end]])
     # The sample active at time t is the last one with stamp <= t (clamped to the first).
     active = np.clip(np.searchsorted(stamps, cuts[:-1], side="right") - 1, 0, n - 1)
     dts = np.diff(cuts)
-
-    used = np.unique(active)
-    if not (np.all(np.isfinite(accel[used])) and np.all(np.isfinite(gyro[used]))):
+    keep = dts > 0.0
+    active, dts = active[keep], dts[keep]
+    if not (np.all(np.isfinite(accel[active])) and np.all(np.isfinite(gyro[active]))):
         raise ValueError(f"non-finite IMU samples in [{t_start}, {t_end})")
+    return accel[active], gyro[active], dts
 
+
+def integrate_pieces(pim, accel: np.ndarray, gyro: np.ndarray, dts: np.ndarray):
+    """Feed :func:`imu_pieces` into a preintegration ``pim`` (in place; returned)."""
+    for a, w, dt in zip(accel, gyro, dts):
+        pim.integrateMeasurement(a, w, float(dt))
+    return pim
+
+
+def preintegrate(params: gtsam.PreintegrationCombinedParams,
+                 bias: Optional[gtsam.imuBias.ConstantBias],
+                 stamps: np.ndarray, accel: np.ndarray, gyro: np.ndarray,
+                 t_start: float, t_end: float) -> gtsam.PreintegratedCombinedMeasurements:
+    """Preintegrate IMU samples over exactly ``[t_start, t_end)`` (pieces as :func:`imu_pieces`).
+
+    Args:
+        params: from :func:`imu_params`.
+        bias: bias estimate to preintegrate with (``None``: zero bias).
+        stamps, accel, gyro, t_start, t_end: as in :func:`imu_pieces`.
+
+    Returns:
+        ``PreintegratedCombinedMeasurements`` with ``deltaTij() == t_end - t_start``.
+
+    Raises:
+        ValueError: as :func:`imu_pieces`.
+    """
+    pieces = imu_pieces(stamps, accel, gyro, t_start, t_end)
     pim = gtsam.PreintegratedCombinedMeasurements(
         params, gtsam.imuBias.ConstantBias() if bias is None else bias)
-    for k, dt in zip(active, dts):
-        if dt > 0.0:  # duplicate stamps give empty pieces
-            pim.integrateMeasurement(accel[k], gyro[k], float(dt))
-    return pim
+    return integrate_pieces(pim, *pieces)
 
 
 def imu_factor(pose_i: int, vel_i: int, pose_j: int, vel_j: int, bias_i: int, bias_j: int,

@@ -101,8 +101,8 @@ class PipelineConfig:
     final_gnc: bool = True
     gnc_p: float = 0.997
     depth_scale_check: bool = True
-    depth_scale_tolerance: float = 0.01
-    depth_scale_sigmas: float = 3.0
+    depth_scale_tolerance: float = 0.02
+    depth_scale_sigmas: float = 4.0
     depth_scale_window: int = 15
     odom_drift_fraction: float = 0.03
     odom_drift_rad_per_m: float = 0.0175
@@ -161,6 +161,12 @@ class RunResult:
     gnc_outliers: list = field(default_factory=list)
     gnc_recovered: list = field(default_factory=list)
     depth_scale: float = 1.0
+    interval_odometry: dict = field(default_factory=dict)
+    corrections: dict = field(default_factory=dict)
+    increments: list = field(default_factory=list)
+    imu_biases: np.ndarray | None = None
+    imu_bias_sigmas: np.ndarray | None = None
+    imu_skipped: list = field(default_factory=list)
 
     @property
     def num_accepted(self) -> int:
@@ -260,6 +266,11 @@ class Pipeline:
         timing = self._timing() or {}
         self.depth_scale = float(timing.get("depth_scale", 1.0))
         self.depth_scale_observations: list[float] = []
+        # The measurement stream, for estimators compared on the same inputs
+        # (nap3d_graph.estimators): each keyframe interval's odometry as its factor has it,
+        # and every successful correction (gated out or not) with its covariance.
+        self.interval_odometry: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.measured_corrections: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         if self.config.use_anchor:
             self._add_factor(anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
                                                  self.config.anchor_trans_sigma_m))
@@ -314,6 +325,7 @@ class Pipeline:
         else:
             cov = self.cov_since_kf + self._drift_covariance(self.T_since_kf, self.dt_since_kf)
             self._add_factor(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
+            self.interval_odometry[i] = (self.T_since_kf.copy(), cov.copy())
             self.T_pred = self.T_last_kf_est @ self.T_since_kf
             self.new_values.insert(X(j), T_to_pose3(self.T_pred))
         self.T_since_kf = np.eye(4)
@@ -351,6 +363,8 @@ class Pipeline:
             correction = self._to_frame_stamp(correction, twist)
         if correction.success and self.config.depth_scale_check:
             correction = self._check_depth_scale(correction, record)
+        if correction.success:
+            self.measured_corrections[i] = (np.array(correction.T_world_cam_corrected), np.array(correction.covariance))
         if self.correction_hook is not None:
             correction = self.correction_hook(i, correction)
         record.timings_s.update({k: round(v, 4) for k, v in correction.timings_s.items()})
@@ -510,7 +524,9 @@ class Pipeline:
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
         return RunResult(stamps, T_est, np.stack(self.T_odom[:n]), T_gt, self.records, list(self.keyframe_indices), T_map,
                          T_world_cam_online=T_online, gnc_outliers=list(getattr(self, "gnc_outliers", [])),
-                         gnc_recovered=list(getattr(self, "gnc_recovered", [])), depth_scale=self.depth_scale)
+                         gnc_recovered=list(getattr(self, "gnc_recovered", [])), depth_scale=self.depth_scale,
+                         interval_odometry=dict(self.interval_odometry), corrections=dict(self.measured_corrections),
+                         increments=list(self.increments[:n]))
 
     # --- helpers -----------------------------------------------------------------------------
 

@@ -113,6 +113,11 @@ class RunWriter:
         if not self._csv.closed:
             self._csv.close()
 
+    def _write_biases(self, result) -> None:
+        np.savetxt(self.dir / "biases.txt", _bias_rows(result), fmt="%.9f",
+                   header="IMU bias estimate at each keyframe (final solve) and its sigma\n"
+                          "timestamp bax bay baz bgx bgy bgz sigma_bax sigma_bay sigma_baz sigma_bgx sigma_bgy sigma_bgz")
+
     def finish(self, result, partial: bool = False) -> dict:
         """Write everything the finished (or interrupted: ``partial``) run has; returns the
         metrics and moves ``latest`` here."""
@@ -147,11 +152,24 @@ class RunWriter:
             metrics["ground_truth"] = "none: no ATE/RPE; see the correction statistics"
         if result.T_world_map is not None:
             metrics["T_world_map"] = result.T_world_map.tolist()
+        if getattr(result, "imu_biases", None) is not None:
+            self._write_biases(result)
+            metrics["imu_bias_final"] = {"accel_m_s2": result.imu_biases[-1, :3].tolist(),
+                                         "gyro_rad_s": result.imu_biases[-1, 3:].tolist()}
+            if result.imu_bias_sigmas is not None:
+                metrics["imu_bias_final"]["sigma"] = result.imu_bias_sigmas[-1].tolist()
+            metrics["imu_samples_skipped_or_gaps"] = [{"t": t, "reason": r} for t, r in result.imu_skipped]
         (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
         plot_top_view(run / "trajectory_top_view.png", result)
         plot_error_over_time(run / "translation_error.png", result)
         link_latest(run)
         return metrics
+
+
+def _bias_rows(result) -> np.ndarray:
+    stamps = np.asarray(result.timestamps)[np.asarray(result.keyframe_indices, dtype=int)]
+    sigmas = result.imu_bias_sigmas if result.imu_bias_sigmas is not None else np.full_like(result.imu_biases, np.nan)
+    return np.column_stack([stamps, result.imu_biases, sigmas])
 
 
 def write_results(result, out_dir: str | Path, config: dict, name: str = "", source_indices=None) -> tuple[Path, dict]:

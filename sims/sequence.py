@@ -10,7 +10,8 @@ own motion during its exposure and its exposure and white balance drift from fra
 (:class:`ExposureNoise`); depth has flying pixels at edges. ``sim.json`` records all of it,
 so a compensation can be checked against the exact truth. Extra files: ``odometry.txt`` (TUM,
 drifting odometry at the colour stamps), ``imu.txt`` (``timestamp ax ay az gx gy gz``,
-camera frame), ``scene.json`` (rebuilds the oracle field) and ``sim.json`` (settings).
+camera frame), ``imu_bias.txt`` (the biases those samples carry), ``scene.json`` (rebuilds the oracle
+field) and ``sim.json`` (settings).
 """
 
 from __future__ import annotations
@@ -234,6 +235,11 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     np.savetxt(out / "imu.txt", imu_rows, fmt=["%.6f"] + ["%.9f"] * 6,
                header="IMU in the camera frame (OpenCV axes), specific force m/s^2 and rate rad/s\n"
                       "timestamp ax ay az gx gy gz")
+    # The biases the samples carry, so an estimate of them can be checked.
+    bias_rows = np.column_stack([TIME_ORIGIN_S + imu["stamps"], imu["accel_bias"], imu["gyro_bias"]])[::20]
+    np.savetxt(out / "imu_bias.txt", bias_rows, fmt=["%.6f"] + ["%.9f"] * 6,
+               header="true IMU biases (simulated, every 20th sample), m/s^2 and rad/s\n"
+                      "timestamp bax bay baz bgx bgy bgz")
 
     (out / "intrinsics.json").write_text(json.dumps(intrinsics.to_dict(), indent=1))
     scene.save(out / "scene.json")

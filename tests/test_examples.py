@@ -13,3 +13,12 @@ def test_nap3d_factor_in_your_graph(capsys):
     last = max(out["optimised_error_m"])
     assert out["optimised_error_m"][last] < 0.005
     assert "NAP3D:" in capsys.readouterr().out
+
+
+def test_own_estimator_runs_next_to_the_library_ones(capsys):
+    rows = runpy.run_path(str(EXAMPLES / "own_estimator.py"))["main"]()
+    by_name = {r["estimator"]: r for r in rows}
+    assert set(by_name) == {"odometry", "complementary", "eskf", "isam2-causal", "isam2-final"}
+    for name in ("complementary", "eskf", "isam2-final"):
+        assert by_name[name]["ate_rmse_m"] < 0.3 * by_name["odometry"]["ate_rmse_m"]
+    assert "complementary" in capsys.readouterr().out

@@ -192,6 +192,26 @@ def test_robust_prior_differs_from_gaussian_only_beyond_threshold():
         np.testing.assert_allclose(huber.unwhitenedError(v), gauss.unwhitenedError(v), atol=1e-15)
 
 
+def test_default_huber_keeps_gaussian_inliers_of_a_pose_at_full_weight():
+    """GTSAM weighs the whole 6-dof whitened error by its norm: the default threshold sits at
+    the 95% quantile of that norm for Gaussian inliers, not at the scalar 1.345."""
+    from scipy.stats import chi2
+
+    sigma = 0.01
+    alignment = Alignment(T_real_rendered=np.eye(4), covariance=np.eye(6) * sigma ** 2, success=True)
+    huber = nap3d_prior_factor(X(0), np.eye(4), alignment)  # the default kernel and threshold
+    gauss = nap3d_prior_factor(X(0), np.eye(4), alignment, robust=None)
+    rng = np.random.default_rng(0)
+    full = 0
+    for _ in range(400):
+        xi = rng.normal(size=6) * sigma
+        v = vals((X(0), gtsam.Pose3.Expmap(xi)))
+        full += huber.error(v) == pytest.approx(gauss.error(v), rel=1e-9)
+    assert full / 400 == pytest.approx(chi2.cdf(3.548 ** 2, 6), abs=0.04)  # ~95 %, not ~10 %
+    far = vals((X(0), gtsam.Pose3.Expmap(np.r_[0, 0, 0, 10 * sigma, 0, 0])))
+    assert huber.error(far) < 0.75 * gauss.error(far)
+
+
 def test_prior_factor_rejects_failed_or_bad_results(nap3d_case):
     T_est, T_true, C, alignment = nap3d_case
     with pytest.raises(ValueError, match="too few matches"):

@@ -50,7 +50,7 @@ def test_gate_uses_base_gaussian_not_robust_error():
     expected = e @ np.linalg.solve(C, e)
     assert mahalanobis_sq(gauss, v) == pytest.approx(expected, rel=1e-9)
     assert mahalanobis_sq(robust, v) == pytest.approx(expected, rel=1e-9)
-    assert 2 * robust.error(v) < 0.05 * expected  # what a naive gate would have used
+    assert 2 * robust.error(v) < 0.15 * expected  # what a naive gate would have used
     assert chi2_gate(robust, v).d2 == pytest.approx(expected, rel=1e-9)
     xi, cov = factor_error_and_covariance(robust, v)
     np.testing.assert_allclose(xi, e, atol=1e-12)

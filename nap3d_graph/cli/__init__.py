@@ -18,7 +18,7 @@ __all__ = ["main", "build_parser", "UsageError", "SUBCOMMANDS"]
 log = logging.getLogger("nap3d_graph")
 
 #: Subcommand modules of this package, in the order ``--help`` lists them.
-SUBCOMMANDS = ("run", "study", "simulate", "train_field", "export_nerfstudio", "eval_k", "eval_j")
+SUBCOMMANDS = ("run", "compare", "study", "simulate", "train_field", "export_nerfstudio", "eval_k", "eval_j")
 
 EPILOG = """examples:
   nap3d-graph run                                  # the embedded default, end to end
@@ -27,6 +27,7 @@ EPILOG = """examples:
   nap3d-graph train-field data/room_map --out room.pt --minutes 5
   nap3d-graph run --traj sim --data data/room_walk --field room.pt
   nap3d-graph run --traj tum --data rgbd_dataset_freiburg1_desk --field desk.pt --odom vo
+  nap3d-graph compare --traj sim --data data/room_walk --field room.pt --odom imu --out cmp
   nap3d-graph eval-k data/room_walk --field oracle --scenarios 40 --out evalk
 """
 

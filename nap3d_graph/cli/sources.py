@@ -1,0 +1,199 @@
+"""What ``run`` and ``compare`` share: the data source, field, odometry and keyframe options,
+and turning them into a ready :class:`~nap3d_graph.pipeline.Pipeline` (or its IMU variant)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from .common import (UsageError, add_frames_argument, non_negative_float, parse_pose, positive_float, positive_int,
+                     probability, warn_trained_frames)
+
+__all__ = ["add_source_arguments", "prepare", "Prepared"]
+
+
+def add_source_arguments(p) -> None:
+    """The source, field, odometry and keyframe options of a drift-correction run."""
+    from nap3d_graph.default_run import DEFAULT_TRAIN_STEPS
+
+    p.add_argument("--traj", choices=("sim", "tum", "realsense"), default="sim",
+                   help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder) "
+                   "or realsense (not supported yet); default sim")
+    p.add_argument("--data", type=Path, help="the sequence folder; omit (with --traj sim) for the embedded default")
+    add_frames_argument(p, "the run (a field should not have been trained on them)")
+    p.add_argument("--field", help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from "
+                   "'nap3d-graph train-field'), a nerfstudio config.yml, or 'none' (odometry only)")
+    p.add_argument("--odom", choices=("recorded", "noisy", "vo", "imu"),
+                   help="motion between keyframes: recorded (the sequence's odometry.txt; default for sim), noisy "
+                   "(noise injected on ground-truth increments; default for tum), vo (frame-to-frame RGB-D odometry) "
+                   "or imu (the sequence's IMU preintegrated into CombinedImuFactors; biases estimated)")
+    p.add_argument("--imu-noise", metavar="'AN GN AW GW'", default=None,
+                   help="IMU noise densities: accel m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), accel bias walk m/s^3/sqrt(Hz), "
+                   "gyro bias walk rad/s^2/sqrt(Hz) (default: the simulator's, 2e-3 2.4e-4 1e-4 2e-6)")
+    p.add_argument("--imu-extrinsics", metavar="'tx ty tz qx qy qz qw'", default=None,
+                   help="T_cam_imu: the IMU frame in the camera frame (default identity, as simulated)")
+    p.add_argument("--gravity", type=positive_float, default=9.81, help="gravity, m/s^2 (default 9.81)")
+    p.add_argument("--timing", choices=("auto", "none"), default="auto",
+                   help="auto: move each keyframe's depth to its colour's capture instant with the capture timing the "
+                   "field records, or, for a field that records none (the oracle, nerfstudio), the timing estimated "
+                   "from this sequence's ground truth; none: take the stamps as they are")
+    p.add_argument("--initial-pose", metavar="'tx ty tz qx qy qz qw'",
+                   help="where the camera starts in the field's frame (for --odom vo on a recording without ground "
+                   "truth; default: the ground truth's first pose)")
+    p.add_argument("--initial-pose-file", type=Path, metavar="TUM_FILE",
+                   help="the same from the first line of a TUM trajectory file")
+    p.add_argument("--odom-rot-sigma", type=positive_float, default=2e-3,
+                   help="per-frame rotation noise of the odometry, rad (injected with --odom noisy, and the "
+                   "odometry factors' sigma); default 0.002")
+    p.add_argument("--odom-trans-sigma", type=positive_float, default=2e-3,
+                   help="per-frame translation noise of the odometry, m; default 0.002")
+    p.add_argument("--keyframe-every", type=positive_int, default=5,
+                   help="a keyframe (and a correction) every N frames (default 5)")
+    p.add_argument("--keyframe-distance", type=non_negative_float, default=0.0,
+                   help="also a keyframe after this many metres of odometry (0: off)")
+    p.add_argument("--keyframe-angle", type=non_negative_float, default=0.0,
+                   help="also a keyframe after this many degrees of rotation (0: off)")
+    p.add_argument("--iterations", type=positive_int, default=1,
+                   help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
+                   "a little more accurate, twice the time)")
+    p.add_argument("--render-size", default="320x240", help="WxH the field renders at (default 320x240)")
+    p.add_argument("--gate-p", type=probability, default=0.997,
+                   help="chi-square gate probability, in (0, 1) (default 0.997)")
+    p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
+    p.add_argument("--seed", type=int, default=0, help="seed of injected odometry noise (default 0)")
+    p.add_argument("--cache", type=Path, default=None,
+                   help="cache of the embedded default's data and field (default $NAP3D_GRAPH_CACHE or "
+                   "~/.cache/nap3d-graph)")
+    p.add_argument("--train-steps", type=positive_int, default=DEFAULT_TRAIN_STEPS,
+                   help=f"field training budget of the embedded default, in steps (default {DEFAULT_TRAIN_STEPS}, "
+                   "about two minutes on two cores)")
+
+
+@dataclass
+class Prepared:
+    """A run ready to go: ``pipeline()`` builds it; ``record`` is its config.yaml."""
+
+    sequence: object
+    field: object
+    odometry: object
+    pipeline_class: type
+    config: object
+    record: dict
+    name: str
+
+    def pipeline(self):
+        return self.pipeline_class(self.sequence, self.field, self.odometry, self.config)
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"--render-size must look like 320x240, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise UsageError(f"--render-size must be positive, got {text!r}")
+    return w, h
+
+
+def _timing(args, field_obj, sequence) -> dict | None:
+    """The capture timing to compensate with: the field's, else estimated from the sequence."""
+    if args.timing == "none" or field_obj is None:
+        return None
+    if (getattr(field_obj, "meta", None) or {}).get("timing"):
+        return None  # the pipeline takes the field's
+    from nap3d_graph.fields.build import estimate_timing
+
+    timing = estimate_timing(sequence)
+    if timing is not None:
+        print(f"capture timing estimated from this sequence's ground truth (the field records none): depth "
+              f"{timing['depth_offset_s'] * 1000:+.0f} ms from its stamp, colour {timing['colour_offset_s'] * 1000:+.0f} ms")
+    return timing
+
+
+def imu_config(args):
+    """The IMU's noise, gravity and extrinsics from the options (defaults: the simulator's)."""
+    from nap3d_graph.imu import ImuConfig
+
+    config = ImuConfig(gravity=args.gravity)
+    if args.imu_noise is not None:
+        try:
+            values = [float(v) for v in args.imu_noise.replace(",", " ").split()]
+        except ValueError:
+            values = []
+        if len(values) != 4 or not all(v > 0 for v in values):
+            raise UsageError(f"--imu-noise needs 4 positive numbers (accel, gyro, accel walk, gyro walk), "
+                             f"got {args.imu_noise!r}")
+        config.accel_noise_density, config.gyro_noise_density, config.accel_bias_rw, config.gyro_bias_rw = values
+    if args.imu_extrinsics is not None:
+        config.T_cam_imu = parse_pose(args.imu_extrinsics, None)
+    return config
+
+
+def _inputs(args):
+    """(sequence folder, field, field description, run name) from the arguments."""
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.default_run import default_cache_dir, embedded_default_inputs
+    from nap3d_graph.fields import resolve_field
+
+    if args.data is None:
+        if args.traj != "sim":
+            raise UsageError(f"--traj {args.traj} needs --data PATH")
+        cache = args.cache or default_cache_dir()
+        data, field_obj, field_path, _ = embedded_default_inputs(cache, args.train_steps, progress=True, say=print)
+        if args.field not in (None, "default"):
+            field_obj = resolve_field(args.field, open_sequence(data))
+            field_path = args.field
+        return data, field_obj, str(field_path), "default"
+    if args.field is None:
+        raise UsageError("--data needs --field (a checkpoint, 'oracle' for simulated data, or 'none')")
+    return args.data, None, args.field, args.traj
+
+
+def _odometry(args, sequence, initial_pose):
+    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.pipeline import Pipeline
+
+    odom_kind = args.odom or ("recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy")
+    try:
+        if odom_kind == "imu":
+            from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
+
+            return odom_kind, ImuOdometry.from_sequence(sequence, imu_config(args), initial_pose), ImuPipeline
+        odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma,
+                                 initial_pose=initial_pose)
+        return odom_kind, odometry, Pipeline
+    except ValueError as exc:  # the data cannot give that odometry: say which and what to use
+        raise UsageError(str(exc)) from None
+
+
+def prepare(args, use_anchor: bool = False) -> Prepared:
+    """Open the sequence and the field, make the odometry and the pipeline's config."""
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.pipeline import PipelineConfig
+
+    if args.traj == "realsense":
+        raise UsageError("--traj realsense: reading RealSense recordings is not supported in this version; "
+                         "record to a TUM-layout folder and use --traj tum")
+    width, height = _parse_size(args.render_size)
+    initial_pose = parse_pose(args.initial_pose, args.initial_pose_file)
+    data, field_obj, field_desc, name = _inputs(args)
+    sequence = open_sequence(data, frames=args.frames)
+    if args.data is not None:
+        field_obj = resolve_field(args.field, sequence)
+    trained_on = warn_trained_frames(field_obj, sequence.timestamps, "frames of this run")
+    odom_kind, odometry, pipeline_class = _odometry(args, sequence, initial_pose)
+    config = PipelineConfig(keyframe_every=args.keyframe_every, keyframe_distance_m=args.keyframe_distance,
+                            keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
+                            render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
+                            max_frames=args.max_frames, progress=True, compensate_timing=args.timing == "auto",
+                            timing=_timing(args, field_obj, sequence))
+    record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
+              "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
+              "initial_pose": None if initial_pose is None else initial_pose.tolist(),
+              "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
+              "seed": args.seed, "pipeline": {k: v for k, v in vars(config).items() if k != "align"},
+              "align": vars(config.align)}
+    if odom_kind == "imu":
+        record["imu"] = odometry.stream.config.to_dict()
+    return Prepared(sequence, field_obj, odometry, pipeline_class, config, record, name)

@@ -1,0 +1,206 @@
+"""The drift-correction run with an IMU between keyframes (``run --odom imu``).
+
+The graph of :class:`~nap3d_graph.pipeline.Pipeline`, with the odometry between keyframes
+replaced by IMU preintegration: each keyframe has a pose ``X(k)``, a world-frame velocity
+``V(k)`` and an IMU bias ``B(k)``; consecutive keyframes are tied by a ``CombinedImuFactor``
+(GTSAM's preintegration, bias random walk inside); priors hold the first pose, velocity and
+bias; the NAP3D corrections are gated and added exactly as on the odometry path. Frames
+between keyframes are predicted from the nearest earlier keyframe's state with the IMU (the
+causal trajectory from each keyframe as it was known then). The biases are estimated and
+written out (``RunResult.imu_biases``).
+
+The "odometry alone" trajectory of an IMU run is the IMU dead-reckoned from the first
+state with the prior bias (zero): what the robot would have without NAP3D.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import B, V, X
+
+from nap3d_graph.factors import imu_factor, pose_prior_factor
+
+from .conventions import T_to_pose3, pose3_to_T
+from .imu import ImuConfig, ImuStream
+from .pipeline import KeyframeRecord, Pipeline
+
+__all__ = ["ImuOdometry", "ImuPipeline"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ImuOdometry:
+    """The IMU as a run's motion source: its stream and the state it starts from."""
+
+    stream: ImuStream
+    T_world_cam0: np.ndarray
+    velocity0: np.ndarray
+    name: str = "imu"
+
+    def initial_pose(self) -> np.ndarray:
+        return np.asarray(self.T_world_cam0, dtype=float).copy()
+
+    @classmethod
+    def from_sequence(cls, sequence, config: ImuConfig | None = None, initial_pose=None) -> "ImuOdometry":
+        """The sequence's IMU, starting at its ground truth's first pose and velocity (or
+        ``initial_pose`` at rest)."""
+        stream = ImuStream.from_sequence(sequence, config)
+        T_gt = getattr(sequence, "T_world_cam_gt", None)
+        if initial_pose is not None:
+            return cls(stream, np.asarray(initial_pose, float), np.zeros(3))
+        if T_gt is None or not np.all(np.isfinite(T_gt[:2])):
+            raise ValueError(f"{sequence.path}: --odom imu needs the starting pose: give --initial-pose")
+        dt = float(sequence.timestamps[1] - sequence.timestamps[0])
+        velocity = (T_gt[1][:3, 3] - T_gt[0][:3, 3]) / dt
+        return cls(stream, T_gt[0], velocity)
+
+
+class ImuPipeline(Pipeline):
+    """:class:`Pipeline` with IMU preintegration between keyframes (see the module docstring)."""
+
+    def _start(self) -> None:
+        super()._start()
+        self.imu: ImuStream = self.odometry.stream
+        t0 = float(self.sequence.timestamps[0])
+        self.nav_kf = gtsam.NavState(T_to_pose3(self.odometry.initial_pose()).rotation(),
+                                     T_to_pose3(self.odometry.initial_pose()).translation(),
+                                     np.asarray(self.odometry.velocity0, float))
+        self.bias_kf = gtsam.imuBias.ConstantBias()
+        self.t_kf = t0
+        self.kf_states: list[tuple[float, gtsam.NavState, gtsam.imuBias.ConstantBias]] = []  # online
+        self._dead_start = (t0, self.nav_kf)
+        self._notes: list[str] = []
+
+    def _odometry_needs_frames(self) -> bool:
+        return False
+
+    def _predict(self, t_from: float, nav: gtsam.NavState, bias, t_to: float) -> gtsam.NavState:
+        if t_to <= t_from:
+            return nav
+        return self.imu.preintegrate(t_from, t_to, bias).predict(nav, bias)
+
+    def _propagate_odometry(self, i: int, frame) -> None:
+        t = float(self.sequence.timestamps[i])
+        # Dead reckoning from the start with the prior bias: the IMU alone, for comparison.
+        dead = self._predict(self._dead_start[0], self._dead_start[1], gtsam.imuBias.ConstantBias(), t)
+        self.T_odom.append(pose3_to_T(dead.pose()))
+        self.increments.append(np.linalg.inv(self.T_odom[-2]) @ self.T_odom[-1])
+        self.dt_since_kf += float(self.sequence.timestamps[i] - self.sequence.timestamps[i - 1])
+
+    def _add_keyframe(self, i: int) -> None:
+        j = len(self.keyframe_indices)
+        self.keyframe_indices.append(i)
+        t = float(self.sequence.timestamps[i])
+        cfg = self.imu.config
+        if j == 0:
+            T0 = self.T_odom[0]
+            self._add_factor(pose_prior_factor(X(0), T0, rot_sigma_rad=self.config.prior_rot_sigma_rad,
+                                               trans_sigma_m=self.config.prior_trans_sigma_m))
+            self._add_factor(gtsam.PriorFactorVector(V(0), np.asarray(self.odometry.velocity0, float),
+                                                     gtsam.noiseModel.Isotropic.Sigma(3, cfg.velocity_prior_sigma)))
+            bias_sigmas = np.r_[[cfg.accel_bias_prior_sigma] * 3, [cfg.gyro_bias_prior_sigma] * 3]
+            self._add_factor(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(),
+                                                           gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
+            self.new_values.insert(X(0), T_to_pose3(T0))
+            self.new_values.insert(V(0), np.asarray(self.odometry.velocity0, float))
+            self.new_values.insert(B(0), gtsam.imuBias.ConstantBias())
+            self.T_pred = T0
+        else:
+            pim = self.imu.preintegrate(self.t_kf, t, self.bias_kf)
+            self._notes = self.imu.notes_between(self.t_kf, t)
+            self._add_factor(imu_factor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim))
+            predicted = pim.predict(self.nav_kf, self.bias_kf)
+            self.T_pred = pose3_to_T(predicted.pose())
+            self.new_values.insert(X(j), predicted.pose())
+            self.new_values.insert(V(j), predicted.velocity())
+            self.new_values.insert(B(j), self.bias_kf)
+        self.dt_since_kf = 0.0
+        self._pending_record = KeyframeRecord(i, t, X(j), trained_frame=bool(self._trained[i]),
+                                              reason="; ".join(self._notes))
+        self._update_isam()
+
+    def _correct_keyframe(self, i: int, frame) -> None:
+        notes = self._pending_record.reason
+        self._pending_record.reason = ""
+        super()._correct_keyframe(i, frame)
+        if notes:  # the IMU notes of this interval stay with the keyframe's row
+            record = self._pending_record
+            record.reason = f"{record.reason}; {notes}" if record.reason else notes
+
+    def _finish_keyframe(self):
+        j = len(self.keyframe_indices) - 1
+        estimate = self.isam.calculateEstimate()
+        self.nav_kf = gtsam.NavState(estimate.atPose3(X(j)), estimate.atVector(V(j)))
+        self.bias_kf = estimate.atConstantBias(B(j))
+        self.t_kf = float(self.sequence.timestamps[self.keyframe_indices[-1]])
+        self.kf_states.append((self.t_kf, self.nav_kf, self.bias_kf))
+        return super()._finish_keyframe()
+
+    def _velocity(self, i: int) -> np.ndarray | None:
+        """Body twist (GTSAM order) at frame i: the gyro's rate and the velocity in the body."""
+        if not self.kf_states:
+            return None
+        t = float(self.sequence.timestamps[i])
+        k = int(np.clip(np.searchsorted(self.imu.stamps, t) - 1, 0, len(self.imu.stamps) - 1))
+        nav = self._predict(self.t_kf, self.nav_kf, self.bias_kf, t)
+        v_body = nav.pose().rotation().matrix().T @ nav.velocity()
+        return np.r_[self.imu.gyro[k] - self.bias_kf.gyroscope(), v_body]
+
+    # --- per-frame trajectories: predicted from keyframe states -----------------------------
+
+    def _frames_from_states(self, states: list[tuple[float, gtsam.NavState, object]], n: int) -> np.ndarray:
+        stamps = np.asarray(self.sequence.timestamps[:n], dtype=float)
+        T = np.empty((n, 4, 4))
+        kf_times = np.array([s[0] for s in states])
+        for i, t in enumerate(stamps):
+            k = int(np.searchsorted(kf_times, t + 1e-9) - 1)
+            if k < 0:
+                T[i] = self.T_odom[i]
+                continue
+            t_k, nav, bias = states[k]
+            T[i] = pose3_to_T(self._predict(t_k, nav, bias, float(t)).pose())
+        return T
+
+    def _chain_between_keyframes(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
+        estimate = self._final_values
+        states = []
+        for j, idx in enumerate(self.keyframe_indices):
+            nav = gtsam.NavState(estimate.atPose3(X(j)), estimate.atVector(V(j)))
+            states.append((float(self.sequence.timestamps[idx]), nav, estimate.atConstantBias(B(j))))
+        return self._frames_from_states(states, n)
+
+    def _chain_forward(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
+        return self._frames_from_states(self.kf_states, n)
+
+    def _final_estimate(self) -> gtsam.Values:
+        self._final_values = super()._final_estimate()
+        return self._final_values
+
+    def _finish(self, n: int):
+        result = super()._finish(n)
+        if self.keyframe_indices:
+            values = self._final_values
+            result.imu_biases = np.array([np.r_[values.atConstantBias(B(j)).accelerometer(),
+                                                values.atConstantBias(B(j)).gyroscope()]
+                                          for j in range(len(self.keyframe_indices))])
+            try:
+                marginals = gtsam.Marginals(self._final_graph(), values)
+                result.imu_bias_sigmas = np.array([np.sqrt(np.diag(marginals.marginalCovariance(B(j))))
+                                                   for j in range(len(self.keyframe_indices))])
+            except RuntimeError as exc:  # an ill-posed graph still has its estimate
+                log.warning("bias marginals not computed: %s", exc)
+            result.imu_skipped = list(self.imu.skipped)
+        return result
+
+    def _final_graph(self) -> gtsam.NonlinearFactorGraph:
+        graph = gtsam.NonlinearFactorGraph()
+        accepted = {r.frame_index for r in self.records if r.accepted}
+        for factor, is_nap3d, frame in self.factor_log:
+            if not is_nap3d or frame in accepted:
+                graph.add(factor)
+        return graph

@@ -1,0 +1,268 @@
+"""EKF vs graph: the estimators, the IMU path and the comparison command."""
+
+import re
+
+import gtsam
+import numpy as np
+import pytest
+from filterpy.kalman import KalmanFilter
+
+from nap3d_graph.conventions import exp_se3, inv_T, log_se3, pose3_to_T
+from nap3d_graph.datasets.sim import SimSequence
+from nap3d_graph.estimators import (BatchLM, ErrorStateEKF, ImuErrorStateEKF, Isam2Estimator, NavStateEKF,
+                                    OdometryOnly, default_estimators, run_estimator, stream_from_run)
+from nap3d_graph.estimators.synthetic import synthetic_stream
+from nap3d_graph.evaluation.compare import compare, comparison_rows
+from nap3d_graph.imu import ImuConfig, ImuStream
+from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
+from nap3d_graph.odometry import make_odometry
+from nap3d_graph.pipeline import Pipeline, PipelineConfig
+from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+CONFIG = PipelineConfig(keyframe_every=5, render_width=None, render_height=None, progress=False)
+
+
+@pytest.fixture(scope="module")
+def walk(tmp_path_factory):
+    """A 60-frame traversal at 10 Hz with drifting odometry and a 200 Hz IMU."""
+    path = tmp_path_factory.mktemp("est") / "walk"
+    simulate_sequence(path, SimConfig(frames=60, fps=10.0, width=192, height=144, scene_seed=11, seed=4, timing=None))
+    return path
+
+
+@pytest.fixture(scope="module")
+def odometry_run(walk):
+    seq = SimSequence(walk)
+    result = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq), CONFIG).run()
+    return seq, result, stream_from_run(result, seq, CONFIG)
+
+
+@pytest.fixture(scope="module")
+def imu_run(walk):
+    seq = SimSequence(walk)
+    odometry = ImuOdometry.from_sequence(seq)
+    result = ImuPipeline(seq, seq.oracle_field(), odometry, CONFIG).run()
+    return seq, result, stream_from_run(result, seq, CONFIG, imu=odometry.stream, velocity0=odometry.velocity0)
+
+
+# --- the error-state EKF is a Kalman filter -------------------------------------------------
+
+def test_eskf_matches_a_plain_kalman_filter_on_a_linear_gaussian_case():
+    # Pure translations (the camera's attitude is constant): the SE(3) error-state filter is
+    # then exactly a linear KF on the world position (body-frame quantities rotated by R0).
+    stream = synthetic_stream(120, keyframe_every=4, seed=5, rotate=False, gate_p=1 - 1e-12)
+    R0 = stream.T_world_cam0[:3, :3]
+    eskf = ErrorStateEKF()
+    result = run_estimator(eskf, stream)
+    kf = KalmanFilter(dim_x=3, dim_z=3)
+    kf.x = stream.T_world_cam0[:3, 3].reshape(3, 1).copy()
+    kf.P = stream.P0[3:, 3:].copy()
+    kf.F, kf.H = np.eye(3), np.eye(3)
+    for k in stream.keyframes[1:]:
+        T_int, Q = stream.interval_odometry[k]
+        kf.predict(u=(R0 @ T_int[:3, 3]).reshape(3, 1), B=np.eye(3), Q=R0 @ Q[3:, 3:] @ R0.T)
+        Z, R = stream.corrections[k]
+        kf.update(Z[:3, 3].reshape(3, 1), R=R0 @ R[3:, 3:] @ R0.T)
+        np.testing.assert_allclose(result.T_causal[k][:3, 3], kf.x.ravel(), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(result.T_causal[k][:3, :3], R0, atol=1e-12)
+        np.testing.assert_allclose(R0 @ result.P_causal[k][3:, 3:] @ R0.T, kf.P, rtol=1e-9, atol=1e-18)
+    assert len(eskf.accepted) == len(stream.keyframes) - 1
+
+
+def test_estimators_are_consistent_on_known_noise():
+    """On a stream drawn from exactly the stated noise, filters and smoothers agree with
+    theory: NEES near 6, the smoother no worse than the filter, causal EKF ~ causal iSAM2."""
+    stream = synthetic_stream(600, seed=2)
+    rows = {r["estimator"]: r for r in comparison_rows(stream, compare(stream))}
+    for name in ("eskf", "isam2-causal", "isam2-final", "batch-lm"):
+        assert 4.5 < rows[name]["nees_mean"] < 7.5, (name, rows[name]["nees_mean"])
+    assert rows["isam2-final"]["ate_rmse_m"] < rows["eskf"]["ate_rmse_m"]
+    assert rows["batch-lm"]["ate_rmse_m"] < rows["eskf"]["ate_rmse_m"]
+    assert rows["isam2-causal"]["ate_rmse_m"] == pytest.approx(rows["eskf"]["ate_rmse_m"], rel=0.1)
+
+
+# --- the simulator: every estimator beats odometry alone -----------------------------------
+
+def test_every_estimator_beats_odometry_on_the_simulator(odometry_run, imu_run):
+    for _, _, stream in (odometry_run, imu_run):
+        rows = {r["estimator"]: r for r in comparison_rows(stream, compare(stream))}
+        odometry = rows.pop("odometry")["ate_rmse_m"]
+        assert len(rows) == (6 if stream.imu is not None else 4) - 1 + (1 if stream.imu is None else 0)
+        for name, row in rows.items():
+            assert row["ate_rmse_m"] < 0.5 * odometry, (name, row["ate_rmse_m"], odometry)
+            assert row["ate_rmse_m"] < 0.02, name
+        assert rows["isam2-final"]["ate_rmse_m"] <= 1.1 * rows["eskf"]["ate_rmse_m"]
+
+
+def test_isam2_estimator_reproduces_the_run(odometry_run):
+    """The graph estimator on the stream is the run's own graph: its causal trajectory is the
+    run's estimate_online, to well under a millimetre."""
+    seq, result, stream = odometry_run
+    est = run_estimator(Isam2Estimator(), stream)
+    diff = np.linalg.norm(est.T_causal[:, :3, 3] - result.T_world_cam_online[:, :3, 3], axis=1)
+    assert diff.max() < 2e-4
+
+
+# --- causality ------------------------------------------------------------------------------
+
+def _perturbed(stream, frame: int, shift_m: float):
+    import copy
+
+    other = copy.deepcopy(stream)
+    Z, R = other.corrections[frame]
+    other.corrections[frame] = (Z @ exp_se3(np.r_[0, 0, 0, shift_m, 0, 0]), R)
+    return other
+
+
+@pytest.mark.parametrize("imu", [False, True])
+def test_causal_trajectories_never_use_a_later_measurement(imu):
+    stream = synthetic_stream(150, seed=4, imu=imu)
+    late = stream.keyframes[-5]
+    moved = _perturbed(stream, late, 0.006)  # 1.5 sigma: inside every gate
+    for a, b in zip(default_estimators(stream), default_estimators(moved)):
+        ra, rb = run_estimator(a, stream), run_estimator(b, moved)
+        np.testing.assert_array_equal(ra.T_causal[:late], rb.T_causal[:late], err_msg=a.name)
+        if a.name not in ("odometry", "batch-lm"):  # batch LM has no causal estimate of its own
+            assert np.abs(ra.T_causal[late:] - rb.T_causal[late:]).max() > 1e-4, a.name
+        if "final" in ra.reports:  # a smoother's final trajectory does move before it
+            assert np.abs(ra.T_final[:late] - rb.T_final[:late]).max() > 1e-5, a.name
+
+
+def test_the_runs_causal_trajectory_never_uses_a_later_correction(walk, odometry_run):
+    import dataclasses
+
+    seq, result, _ = odometry_run
+    late = result.keyframe_indices[-3]
+
+    def hook(i, correction):
+        if i != late or not correction.success:
+            return correction
+        T = correction.T_world_cam_corrected @ exp_se3(np.r_[0, 0, 0, 0.004, 0, 0])
+        return dataclasses.replace(correction, T_world_cam_corrected=T)
+
+    moved = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq), CONFIG, correction_hook=hook).run()
+    np.testing.assert_allclose(moved.T_world_cam_online[:late], result.T_world_cam_online[:late], atol=1e-12)
+    assert np.abs(moved.T_world_cam_estimate[:late] - result.T_world_cam_estimate[:late]).max() > 1e-5
+
+
+# --- the IMU path ---------------------------------------------------------------------------
+
+def test_imu_factors_reproduce_ground_truth_motion_between_keyframes():
+    from nap3d_graph.sims.sensors import simulate_imu
+
+    stream = synthetic_stream(60, seed=1)
+    from nap3d_graph.estimators.synthetic import _trajectory
+
+    trajectory = _trajectory(5.0, rotate=True)
+    exact = simulate_imu(trajectory, -0.05, 4.5, None, np.random.default_rng(0))
+    imu = ImuStream(exact["stamps"], exact["accel"], exact["gyro"])
+    for a, b in zip(stream.keyframes[:-1], stream.keyframes[1:]):
+        ta, tb = stream.timestamps[a], stream.timestamps[b]
+        Ta = trajectory.T_world_cam(ta)
+        nav = gtsam.NavState(gtsam.Rot3(Ta[:3, :3]), Ta[:3, 3], trajectory.velocity_world(ta))
+        predicted = pose3_to_T(imu.preintegrate(ta, tb).predict(nav, gtsam.imuBias.ConstantBias()).pose())
+        error = log_se3(inv_T(trajectory.T_world_cam(tb)) @ predicted)
+        assert np.linalg.norm(error[3:]) < 2e-4 and np.linalg.norm(error[:3]) < 1e-4
+
+
+def test_imu_run_removes_drift_and_estimates_the_biases(walk, imu_run):
+    seq, result, _ = imu_run
+    from nap3d_graph.evaluation.metrics import ate
+
+    drift = ate(result.timestamps, result.T_world_cam_gt, result.T_world_cam_odometry)["rmse"]
+    fixed = ate(result.timestamps, result.T_world_cam_gt, result.T_world_cam_estimate)["rmse"]
+    assert drift > 0.05 and fixed < 0.01
+    truth = np.loadtxt(walk / "imu_bias.txt")
+    kf_stamps = result.timestamps[result.keyframe_indices]
+    true_at_kf = np.array([truth[np.argmin(np.abs(truth[:, 0] - t)), 1:] for t in kf_stamps])
+    z = (result.imu_biases - true_at_kf) / result.imu_bias_sigmas
+    assert np.all(np.abs(z[-1]) < 3.0), z[-1]
+    assert np.all(result.imu_bias_sigmas[-1] < [0.05] * 3 + [0.005] * 3)  # learnt something
+
+
+def test_imu_gaps_and_nan_samples_are_recorded_skips(walk):
+    seq = SimSequence(walk)
+    imu = {k: np.array(v, dtype=float, copy=True) for k, v in seq.imu.items()}
+    imu["accel"][300] = np.nan  # one bad sample
+    t_gap = float(seq.timestamps[33])
+    keep = (imu["stamps"] < t_gap - 0.1) | (imu["stamps"] > t_gap + 0.05)  # 150 ms lost
+    seq.imu = {k: v[keep] if len(v) == len(keep) else v for k, v in imu.items()}
+    odometry = ImuOdometry.from_sequence(seq)
+    reasons = [r for _, r in odometry.stream.skipped]
+    assert any("non-finite" in r for r in reasons) and any(re.search(r"IMU gap of 0\.1[56]\d s", r) for r in reasons)
+    result = ImuPipeline(seq, seq.oracle_field(), odometry, CONFIG).run()
+    noted = [k for k in result.keyframes if "IMU gap" in k.reason or "non-finite" in k.reason]
+    assert noted and result.imu_skipped
+    assert np.all(np.isfinite(result.T_world_cam_estimate))
+
+
+def test_navstate_ekf_refuses_the_odometry_path_and_a_lever_arm():
+    stream = synthetic_stream(30, seed=1)
+    with pytest.raises(ValueError, match="IMU path"):
+        NavStateEKF().start(stream)
+    stream = synthetic_stream(30, seed=1, imu=True)
+    stream.imu.config = ImuConfig(T_cam_imu=exp_se3(np.r_[0, 0, 0, 0.02, 0, 0]))
+    with pytest.raises(ValueError, match="identity extrinsics"):
+        NavStateEKF().start(stream)
+    assert not any(isinstance(e, NavStateEKF) for e in default_estimators(stream))
+    assert any(isinstance(e, ImuErrorStateEKF) for e in default_estimators(stream))
+
+
+# --- the command ----------------------------------------------------------------------------
+
+def test_compare_command_writes_what_evo_loads_and_prints_the_same_numbers(walk, tmp_path, capsys):
+    import csv
+
+    from evo.core import metrics, sync
+    from evo.tools import file_interface
+
+    from nap3d_graph.cli import main
+
+    out = tmp_path / "cmp"
+    assert main(["compare", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "imu",
+                 "--render-size", "192x144", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    with open(out / "comparison.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["estimator"] for r in rows] == ["odometry", "eskf", "navstate-ekf", "isam2-causal", "isam2-final",
+                                              "batch-lm"]
+    gt = file_interface.read_tum_trajectory_file(str(out / "groundtruth.txt"))
+    for row in rows:
+        line = next(l for l in printed.splitlines() if l.startswith(row["estimator"] + " "))
+        values = re.split(r"\s+", line.strip())
+        assert float(values[1]) == pytest.approx(float(row["ate_rmse_m"]) * 100, abs=6e-4)
+        assert float(values[3]) == pytest.approx(float(row["ate_max_m"]) * 100, abs=6e-4)
+        if row["nees_mean"] not in ("", "nan"):
+            assert float(values[5]) == pytest.approx(float(row["nees_mean"]), abs=6e-3)
+        est = file_interface.read_tum_trajectory_file(str(out / "trajectories" / f"{row['estimator']}.txt"))
+        ref, est = sync.associate_trajectories(gt, est, max_diff=1e-3)
+        ape = metrics.APE(metrics.PoseRelation.translation_part)
+        ape.process_data((ref, est))
+        assert ape.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(float(row["ate_rmse_m"]), abs=2e-6)
+    assert (out / "trajectories.png").stat().st_size > 10_000 and (out / "errors.png").stat().st_size > 10_000
+
+
+def test_batch_lm_takes_every_correction_and_odometry_none():
+    stream = synthetic_stream(60, seed=3)
+    assert len(run_estimator(BatchLM(), stream).accepted) == len(stream.corrections)
+    assert run_estimator(OdometryOnly(), stream).accepted == []
+
+
+def test_run_command_with_the_imu_writes_the_biases(walk, tmp_path, capsys):
+    import json
+
+    from nap3d_graph.cli import main
+
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "imu",
+                 "--render-size", "192x144", "--imu-noise", "2e-3 2.4e-4 1e-4 2e-6", "--out", str(tmp_path)]) == 0
+    run = tmp_path / "latest"
+    biases = np.loadtxt(run / "biases.txt")
+    assert biases.shape[1] == 13 and np.all(np.isfinite(biases))
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["estimate"]["ate_m"]["rmse"] < 0.01
+    assert metrics["estimate_online"]["ate_m"]["rmse"] < 0.02  # the causal trajectory is written too
+    assert metrics["odometry"]["ate_m"]["rmse"] > 0.05
+    assert "with NAP3D, causal" in capsys.readouterr().out
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "imu",
+                 "--imu-noise", "1 2 3", "--out", str(tmp_path)]) == 2
+    assert "--imu-noise needs 4 positive numbers" in capsys.readouterr().err
