@@ -45,6 +45,8 @@ def main(argv=None) -> None:
         "ate_odometry_m": metrics["odometry"]["ate_m"]["rmse"],
         "ate_estimate_m": metrics["estimate"]["ate_m"]["rmse"],
         "ate_estimate_max_m": metrics["estimate"]["ate_m"]["max"],
+        "ate_causal_m": metrics["estimate_online"]["ate_m"]["rmse"],
+        "ate_causal_max_m": metrics["estimate_online"]["ate_m"]["max"],
         "ate_first_half_m": metrics["estimate"]["ate_first_half_m"],
         "ate_second_half_m": metrics["estimate"]["ate_second_half_m"],
         "odometry_first_half_m": metrics["odometry"]["ate_first_half_m"],
