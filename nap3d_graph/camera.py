@@ -266,25 +266,71 @@ def project(points_cam: np.ndarray, intrinsics: Intrinsics) -> tuple[np.ndarray,
     return np.stack([u, v], axis=1), z
 
 
-def warp_depth(depth_m: np.ndarray, intrinsics: Intrinsics, T_dst_src: np.ndarray, scale: float = 1.0) -> np.ndarray:
-    """A depth image (H, W) seen from another pose of the same camera (z-buffered forward warp).
+def warp_depth(depth_m: np.ndarray, intrinsics: Intrinsics, T_dst_src: np.ndarray, scale: float = 1.0,
+               dst_intrinsics: Intrinsics | None = None, iterations: int = 0) -> np.ndarray:
+    """A depth image (H, W) seen from another camera pose (and camera): float32 metres.
 
-    ``T_dst_src`` (4, 4) maps points of the source camera into the destination camera (the
-    motion between the depth's and the colour's capture instants, say); ``scale`` multiplies
-    the depth first. Each valid source pixel lands on its nearest destination pixel, the
-    nearest surface wins, and pixels nothing landed on are 0 (missing), so no depth is
-    invented. float32 metres.
+    ``T_dst_src`` (4, 4) maps source-camera points into the destination camera (the motion
+    between the depth's and the colour's capture instants, or a depth camera's extrinsics to
+    the colour camera); ``scale`` multiplies the depth first; ``dst_intrinsics`` is the
+    destination camera (default: the source's).
+
+    Visibility comes from a z-buffered forward splat (each source pixel on its nearest
+    destination pixel, the nearest surface wins; pixels nothing lands on stay 0, so no depth
+    is invented). Rounding to a pixel alone would leave every depth up to half a pixel off
+    where it belongs (millimetres on a slanted floor, and biased where the z-buffer picks the
+    nearer of two), so each destination pixel's source location is then refined to sub-pixel
+    accuracy: ``s <- s + H^-1 (u - pi(T X(s)))`` with bilinear depth, ``H`` the homography
+    at infinity. Where the four source neighbours straddle a depth edge the splat's value
+    stays.
+
+    ``iterations`` of that refinement: 3 for a static extrinsic registration (a RealSense
+    depth camera to its colour camera: 0.18 mm median error against 1-4 mm for the plain
+    splat). The default 0 keeps the plain splat for the capture-timing warp, where the motion
+    is itself an estimate: on a simulated room with recorded odometry and estimated timing the
+    refined warp gave larger correction errors (median 3.3 vs 2.5 mm) and a larger ATE.
     """
+    K_dst = dst_intrinsics or intrinsics
     depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0) * scale
     h, w = depth.shape
-    points, _ = backproject_depth(depth, intrinsics, 1)
-    moved = points @ np.asarray(T_dst_src)[:3, :3].T + np.asarray(T_dst_src)[:3, 3]
-    uv, z = project(moved, intrinsics)
+    T = np.asarray(T_dst_src, dtype=float)
+    points, uv_src = backproject_depth(depth, intrinsics, 1)
+    uv, z = project(points @ T[:3, :3].T + T[:3, 3], K_dst)
     with np.errstate(invalid="ignore"):
         u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
-        ok = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    flat = (v[ok] * w + u[ok]).astype(np.int64)
-    out = np.full(h * w, np.inf)
-    np.minimum.at(out, flat, z[ok])
-    out[~np.isfinite(out)] = 0.0
-    return out.reshape(h, w).astype(np.float32)
+        ok = (z > 0) & (u >= 0) & (u < K_dst.width) & (v >= 0) & (v < K_dst.height)
+    flat = (v[ok] * K_dst.width + u[ok]).astype(np.int64)
+    zbuf = np.full(K_dst.width * K_dst.height, np.inf)
+    np.minimum.at(zbuf, flat, z[ok])
+    winner = z[ok] <= zbuf[flat]  # the splat's surviving source pixel of each destination pixel
+    dst = flat[winner]
+    s_uv = uv_src[ok][winner].copy()
+    out = np.zeros(K_dst.width * K_dst.height)
+    out[dst] = zbuf[dst]
+    target = np.stack([dst % K_dst.width, dst // K_dst.width], axis=1).astype(float)
+    H_inv = np.linalg.inv((K_dst.K @ T[:3, :3] @ np.linalg.inv(intrinsics.K))[:2, :2])
+    smooth = np.zeros(len(dst), dtype=bool)
+    for _ in range(iterations):
+        z_s, smooth = _bilinear_depth(depth, s_uv)
+        moved = backproject(s_uv, z_s, intrinsics) @ T[:3, :3].T + T[:3, 3]
+        uv_now, z_dst = project(moved, K_dst)
+        step = (target - uv_now) @ H_inv.T
+        s_uv = np.clip(s_uv + np.nan_to_num(step), 0.0, [w - 1.0, h - 1.0])
+    z_s, smooth_end = _bilinear_depth(depth, s_uv)
+    z_dst = (backproject(s_uv, z_s, intrinsics) @ T[:3, :3].T + T[:3, 3])[:, 2]
+    keep = smooth & smooth_end & (z_dst > 0)
+    out[dst[keep]] = z_dst[keep]
+    return out.reshape(K_dst.height, K_dst.width).astype(np.float32)
+
+
+def _bilinear_depth(depth: np.ndarray, uv: np.ndarray, edge_rel: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear depth (N,) at sub-pixel ``uv`` (N, 2) and whether its four neighbours are all
+    valid and within ``edge_rel`` of each other (not straddling a depth edge)."""
+    h, w = depth.shape
+    u0 = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 2)
+    v0 = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 2)
+    a, b = uv[:, 0] - u0, uv[:, 1] - v0
+    n = np.stack([depth[v0, u0], depth[v0, u0 + 1], depth[v0 + 1, u0], depth[v0 + 1, u0 + 1]])
+    z = (1 - a) * (1 - b) * n[0] + a * (1 - b) * n[1] + (1 - a) * b * n[2] + a * b * n[3]
+    smooth = (n.min(axis=0) > 0) & (n.max(axis=0) - n.min(axis=0) < edge_rel * n.max(axis=0))
+    return z, smooth

@@ -16,7 +16,10 @@ def add_parser(sub) -> None:
         "depth_file_path per frame), images/ and depth/ (16-bit millimetre PNG) so the sequence can be "
         "trained with `ns-train depth-nerfacto --data OUT`.",
     )
-    p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses)")
+    p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses), or a RealSense "
+                   "recording (.bag/.db3) with --poses")
+    p.add_argument("--poses", type=Path, metavar="TUM_FILE",
+                   help="for a RealSense recording: the camera poses of its frames (TUM file)")
     p.add_argument("out", type=Path, help="output folder (created; must be empty unless --force)")
     p.add_argument("--every", type=positive_int, default=1, help="keep every K-th frame (the paper kept every 2nd)")
     add_frames_argument(p, "the export")
@@ -29,7 +32,7 @@ def run(args) -> int:
     from nap3d_graph.fields.nerfstudio import export_nerfstudio
 
     empty_or_new_dir(args.out, args.force)
-    sequence = open_sequence(args.data, frames=args.frames)
+    sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses)
     path = export_nerfstudio(sequence, args.out, every=args.every, progress=True)
     count = len(json.loads(path.read_text())["frames"])
     print(f"wrote {count} frames to {path}; train with: ns-train depth-nerfacto --data {args.out}")

@@ -60,7 +60,9 @@ def run(args) -> int:
 
 
 def summary_table(metrics: dict, seconds: float) -> str:
-    lines = ["", f"{'':<22}{'ATE rmse':>12}{'ATE 1st half':>14}{'ATE 2nd half':>14}{'RPE rmse':>12}"]
+    lines = [""]
+    if "estimate" in metrics:
+        lines.append(f"{'':<22}{'ATE rmse':>12}{'ATE 1st half':>14}{'ATE 2nd half':>14}{'RPE rmse':>12}")
     for name, label in (("odometry", "odometry only"), ("estimate", "with NAP3D"),
                         ("estimate_online", "with NAP3D, causal")):
         m = metrics.get(name)

@@ -28,6 +28,10 @@ def add_parser(sub) -> None:
                    "of a 15 Hz recording, so the survey's pace and motion blur are realistic)")
     p.add_argument("--width", type=positive_int, default=640, help="image width in pixels (default 640)")
     p.add_argument("--height", type=positive_int, default=480, help="image height in pixels (default 480)")
+    p.add_argument("--realsense", type=Path, metavar="FILE.db3",
+                   help="also write the traversal as a RealSense recording (depth z16 from a depth camera 15 mm to the "
+                   "side, colour rgb8, accel and gyro; FILE.yaml beside it holds the IMU extrinsics and noise): run it "
+                   "with --traj realsense --data FILE.db3 --groundtruth OUT/groundtruth.txt --field OUT")
     p.add_argument("--force", action="store_true", help="write into a non-empty folder (files are replaced)")
     p.set_defaults(func=run)
 
@@ -39,9 +43,23 @@ def run(args) -> int:
 
     if args.frames < 2:
         raise UsageError(f"--frames must be at least 2, got {args.frames}")
+    if args.realsense is not None:
+        if args.realsense.suffix.lower() != ".db3":
+            raise UsageError(f"--realsense must name a .db3 file (what pyrealsense2 writes), got {args.realsense}")
+        if args.realsense.exists() and not args.force:
+            raise UsageError(f"{args.realsense} exists; choose another name, or add --force to replace it")
+        from nap3d_graph.datasets.realsense_io import import_pyrealsense2
+
+        import_pyrealsense2()  # a missing libusb is said now, not after the rendering
     empty_or_new_dir(args.out, args.force)
     config = SimConfig(frames=args.frames, scene_seed=args.scene_seed, seed=args.seed, path=args.path,
                        fps=args.fps, width=args.width, height=args.height)
     out = simulate_sequence(args.out, config, progress=True)
     print(f"wrote {args.frames} frames ({args.path}, room {args.scene_seed}, seed {args.seed}) to {out}")
+    if args.realsense is not None:
+        from nap3d_graph.sims.realsense import write_realsense_recording
+
+        recording = write_realsense_recording(out, args.realsense, seed=args.seed, progress=True)
+        print(f"wrote the RealSense recording {recording} and {recording.with_suffix('.yaml')}; run it with: "
+              f"nap3d-graph run --traj realsense --data {recording} --groundtruth {out}/groundtruth.txt --field {out}")
     return 0

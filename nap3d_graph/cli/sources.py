@@ -18,15 +18,27 @@ def add_source_arguments(p) -> None:
 
     p.add_argument("--traj", choices=("sim", "tum", "realsense"), default="sim",
                    help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder) "
-                   "or realsense (not supported yet); default sim")
-    p.add_argument("--data", type=Path, help="the sequence folder; omit (with --traj sim) for the embedded default")
+                   "or realsense (a .bag/.db3 recording, or 'live': a connected camera); default sim")
+    p.add_argument("--data", type=Path, help="the sequence folder, or for realsense a recording or 'live'; omit "
+                   "(with --traj sim) for the embedded default")
+    p.add_argument("--groundtruth", type=Path, metavar="TUM_FILE",
+                   help="realsense: camera poses of the recording's frames, for ATE/RPE (without it the results "
+                   "report correction statistics)")
+    p.add_argument("--realsense-config", type=Path, metavar="YAML",
+                   help="realsense: IMU extrinsics (T_depth_imu) and noise, which recordings do not store (default: "
+                   "RECORDING.yaml beside the file if there is one, else D435i values)")
+    p.add_argument("--record", type=Path, metavar="FILE.bag",
+                   help="realsense live: keep what the camera streamed in this file (default: a temporary file)")
+    p.add_argument("--seconds", type=positive_float, default=30.0,
+                   help="realsense live: how long to capture before correcting (default 30)")
     add_frames_argument(p, "the run (a field should not have been trained on them)")
     p.add_argument("--field", help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from "
                    "'nap3d-graph train-field'), a nerfstudio config.yml, or 'none' (odometry only)")
     p.add_argument("--odom", choices=("recorded", "noisy", "vo", "imu"),
                    help="motion between keyframes: recorded (the sequence's odometry.txt; default for sim), noisy "
                    "(noise injected on ground-truth increments; default for tum), vo (frame-to-frame RGB-D odometry) "
-                   "or imu (the sequence's IMU preintegrated into CombinedImuFactors; biases estimated)")
+                   "or imu (the sequence's IMU preintegrated into CombinedImuFactors; biases estimated; default for "
+                   "a realsense recording with an IMU)")
     p.add_argument("--imu-noise", metavar="'AN GN AW GW'", default=None,
                    help="IMU noise densities: accel m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), accel bias walk m/s^3/sqrt(Hz), "
                    "gyro bias walk rad/s^2/sqrt(Hz) (default: the simulator's, 2e-3 2.4e-4 1e-4 2e-6)")
@@ -110,11 +122,14 @@ def _timing(args, field_obj, sequence) -> dict | None:
     return timing
 
 
-def imu_config(args):
-    """The IMU's noise, gravity and extrinsics from the options (defaults: the simulator's)."""
+def imu_config(args, base=None):
+    """The IMU's noise, gravity and extrinsics from the options, over ``base`` (a recording's
+    own :class:`~nap3d_graph.imu.ImuConfig`; default: the simulator's)."""
+    import dataclasses
+
     from nap3d_graph.imu import ImuConfig
 
-    config = ImuConfig(gravity=args.gravity)
+    config = dataclasses.replace(base, gravity=args.gravity) if base is not None else ImuConfig(gravity=args.gravity)
     if args.imu_noise is not None:
         try:
             values = [float(v) for v in args.imu_noise.replace(",", " ").split()]
@@ -137,7 +152,8 @@ def _inputs(args):
 
     if args.data is None:
         if args.traj != "sim":
-            raise UsageError(f"--traj {args.traj} needs --data PATH")
+            raise UsageError(f"--traj {args.traj} needs --data PATH" + (" (a .bag/.db3 recording, or live)"
+                                                                       if args.traj == "realsense" else ""))
         cache = args.cache or default_cache_dir()
         data, field_obj, field_path, _ = embedded_default_inputs(cache, args.train_steps, progress=True, say=print)
         if args.field not in (None, "default"):
@@ -146,19 +162,44 @@ def _inputs(args):
         return data, field_obj, str(field_path), "default"
     if args.field is None:
         raise UsageError("--data needs --field (a checkpoint, 'oracle' for simulated data, or 'none')")
+    if args.traj == "realsense":
+        return _realsense_data(args), None, args.field, args.traj
+    if args.data.suffix.lower() in (".bag", ".db3"):
+        raise UsageError(f"{args.data} is a RealSense recording: use --traj realsense")
     return args.data, None, args.field, args.traj
+
+
+def _realsense_data(args) -> Path:
+    """The recording to read: the file given, or a capture of the connected camera."""
+    if str(args.data) != "live":
+        if args.data.suffix.lower() not in (".bag", ".db3"):
+            raise UsageError(f"--traj realsense needs a .bag or .db3 recording (or 'live'), got {args.data}")
+        return args.data
+    import tempfile
+
+    from nap3d_graph.datasets.realsense import capture_live
+
+    out = args.record or Path(tempfile.mkdtemp(prefix="nap3d_live_")) / "live.bag"
+    print(f"capturing {args.seconds:.0f} s from the RealSense camera into {out} ...")
+    return capture_live(out, args.seconds)
 
 
 def _odometry(args, sequence, initial_pose):
     from nap3d_graph.odometry import make_odometry
     from nap3d_graph.pipeline import Pipeline
 
-    odom_kind = args.odom or ("recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy")
+    if args.odom:
+        odom_kind = args.odom
+    elif args.traj == "realsense":  # a recording's own motion source: its IMU, else its frames
+        odom_kind = "imu" if getattr(sequence, "imu", None) is not None else "vo"
+    else:
+        odom_kind = "recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy"
     try:
         if odom_kind == "imu":
             from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
 
-            return odom_kind, ImuOdometry.from_sequence(sequence, imu_config(args), initial_pose), ImuPipeline
+            config = imu_config(args, getattr(sequence, "imu_config", None))
+            return odom_kind, ImuOdometry.from_sequence(sequence, config, initial_pose), ImuPipeline
         odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma,
                                  initial_pose=initial_pose)
         return odom_kind, odometry, Pipeline
@@ -172,13 +213,14 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.pipeline import PipelineConfig
 
-    if args.traj == "realsense":
-        raise UsageError("--traj realsense: reading RealSense recordings is not supported in this version; "
-                         "record to a TUM-layout folder and use --traj tum")
+    if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
+        raise UsageError("--groundtruth, --realsense-config and --record are for --traj realsense")
     width, height = _parse_size(args.render_size)
     initial_pose = parse_pose(args.initial_pose, args.initial_pose_file)
     data, field_obj, field_desc, name = _inputs(args)
-    sequence = open_sequence(data, frames=args.frames)
+    extra = {"groundtruth": args.groundtruth, "realsense_config": args.realsense_config} if args.traj == "realsense" \
+        else {}
+    sequence = open_sequence(data, frames=args.frames, **extra)
     if args.data is not None:
         field_obj = resolve_field(args.field, sequence)
     trained_on = warn_trained_frames(field_obj, sequence.timestamps, "frames of this run")

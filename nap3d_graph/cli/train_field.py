@@ -17,7 +17,10 @@ def add_parser(sub) -> None:
         "RGB-D sequence (TUM folder or simulated room) and write the checkpoint plus "
         "field_report.json (held-out PSNR, depth errors, opacity, unit check) beside it.",
     )
-    p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses)")
+    p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses), or a RealSense "
+                   "recording (.bag/.db3) with --poses")
+    p.add_argument("--poses", type=Path, metavar="TUM_FILE",
+                   help="for a RealSense recording: the camera poses of its frames (TUM file)")
     p.add_argument("--out", type=Path, required=True, help="checkpoint to write (FIELD.pt)")
     p.add_argument("--model", choices=("grid", "splat"), default="grid",
                    help="grid (default, chosen by measurement: see the README): a voxel-grid radiance field trained "
@@ -55,7 +58,7 @@ def run(args) -> int:
     writable_file_parent(args.out)  # before minutes of training, not after
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    sequence = open_sequence(args.data, frames=args.frames)
+    sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses)
     field, report = build_field(sequence, args.model, steps=args.steps, minutes=args.minutes, every=args.every,
                                 eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
                                 timing="auto" if args.timing == "auto" else None, device=args.device,

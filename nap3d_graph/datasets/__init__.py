@@ -1,11 +1,14 @@
 """Data sources: one module per format, each giving sequences of ``RGBDFrame``.
 
 ``SOURCES`` maps a source name (as the CLI's ``--traj`` uses it) to its sequence class:
-``"tum"`` any TUM RGB-D folder, ``"sim"`` a folder written by ``nap3d-graph simulate``.
+``"tum"`` any TUM RGB-D folder, ``"sim"`` a folder written by ``nap3d-graph simulate``,
+``"realsense"`` a RealSense ``.bag`` / ``.db3`` recording (pyrealsense2 is imported only when
+one is read).
 """
 
 from __future__ import annotations
 
+from .realsense import RealSenseConfig, RealSenseRecording
 from .sim import SimSequence
 from .tum import DatasetError, TumSequence, read_tum_trajectory, write_tum_trajectory
 
@@ -15,17 +18,30 @@ __all__ = [
     "DatasetError",
     "TumSequence",
     "SimSequence",
+    "RealSenseRecording",
+    "RealSenseConfig",
     "read_tum_trajectory",
     "write_tum_trajectory",
 ]
 
-SOURCES: dict[str, type] = {"tum": TumSequence, "sim": SimSequence}
+SOURCES: dict[str, type] = {"tum": TumSequence, "sim": SimSequence, "realsense": RealSenseRecording}
+
+RECORDING_SUFFIXES = (".bag", ".db3")
 
 
-def open_sequence(path, **kwargs):
-    """A sequence folder as the right class: :class:`SimSequence` when the folder holds a
-    simulator's ``scene.json``, :class:`TumSequence` otherwise."""
+def open_sequence(path, groundtruth=None, realsense_config=None, **kwargs):
+    """A sequence as the right class: :class:`RealSenseRecording` for a ``.bag`` / ``.db3``
+    file (``groundtruth``: a TUM file of its poses; ``realsense_config``: a YAML of what the
+    file does not store), :class:`SimSequence` for a folder with a simulator's
+    ``scene.json``, :class:`TumSequence` for any other folder (its own groundtruth.txt)."""
     from pathlib import Path
 
-    cls = SimSequence if (Path(path) / "scene.json").exists() else TumSequence
+    path = Path(path)
+    if path.suffix.lower() in RECORDING_SUFFIXES:
+        config = None if realsense_config is None else RealSenseConfig.load(realsense_config)
+        return RealSenseRecording(path, groundtruth=groundtruth, frames=kwargs.get("frames"), config=config)
+    if groundtruth is not None or realsense_config is not None:
+        raise DatasetError(f"{path}: --groundtruth / --realsense-config are for RealSense recordings (.bag, .db3); "
+                           "a TUM folder's own groundtruth.txt is read")
+    cls = SimSequence if (path / "scene.json").exists() else TumSequence
     return cls(path, **kwargs)
