@@ -35,13 +35,19 @@ def add_parser(sub) -> None:
                    "(the rendered view's too; the renders themselves always use the true intrinsics)")
     p.add_argument("--iterate", action="store_true",
                    help="also run correct_pose (re-render at the corrected pose, 3 rounds) as 'nap3d-iter'")
+    p.add_argument("--timing", choices=("auto", "none"), default="auto",
+                   help="auto (default): move each scenario's depth to its colour's capture instant with the "
+                   "ground-truth motion, at the capture timing the field records or, for a field that records "
+                   "none, the timing estimated from DATA's ground truth (a real or Kinect-like camera takes depth "
+                   "tens of ms before colour: uncompensated, a 3D-3D method measures that asynchrony); none: the "
+                   "frames as stamped")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.evaluation.eval_k import METHODS, EvalKConfig, run_eval_k
+    from nap3d_graph.evaluation.eval_k import METHODS, EvalKConfig, capture_timing, run_eval_k
     from nap3d_graph.fields import resolve_field
 
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
@@ -51,9 +57,10 @@ def run(args) -> int:
     writable_dir(args.out)
     if args.iterate and "nap3d-iter" not in methods:
         methods += ("nap3d-iter",)
-    config = EvalKConfig(scenarios=args.scenarios, seed=args.seed, methods=methods, shift=args.shift)
     sequence = open_sequence(args.data, frames=args.frames)
     field_obj = resolve_field(args.field, sequence)
+    config = EvalKConfig(scenarios=args.scenarios, seed=args.seed, methods=methods, shift=args.shift,
+                         timing=capture_timing(field_obj, sequence) if args.timing == "auto" else None)
     warn_trained_frames(field_obj, sequence.timestamps, "frames the scenarios are drawn from")
     summary = run_eval_k(sequence, field_obj, args.out, config, progress=True)
     print(_format_k(summary))

@@ -91,6 +91,11 @@ class EvalKConfig:
     grid_stride: int = 8
     iterations: int = 3  # for nap3d-iter
     align: AlignConfig = field(default_factory=AlignConfig)
+    #: Capture timing ``{"depth_offset_s", "colour_offset_s", "depth_scale"}`` (as
+    #: :func:`~nap3d_graph.fields.build.estimate_timing` gives): each scenario's depth is moved
+    #: to its colour's capture instant with the ground-truth motion, so that the scenario
+    #: measures the correction and not the sensor's colour/depth asynchrony. None: as stamped.
+    timing: dict | None = None
 
     def __post_init__(self) -> None:
         unknown = set(self.methods) - set(METHODS)
@@ -201,7 +206,7 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
         index = int(posed[rng.integers(len(posed))])
         T_gt = sequence.T_world_cam_gt[index]
         T_est = T_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)
-        frame = sequence[index]
+        frame = at_colour_instant(sequence, index, config.timing)
         uncorrected = _errors(frame, T_est, T_gt, config)
         view, render_reason = render_safely(field_obj, T_est, frame.intrinsics)
         # Features depend on the image only: once per view and per blur level, reused by
@@ -242,6 +247,34 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
     write_table(summary, out / "table.md")
     plot_heatmaps(summary, out, config)
     return summary
+
+
+def capture_timing(field_obj, sequence) -> dict | None:
+    """The capture timing the field records, else the one estimated from ``sequence``'s
+    ground truth (None when neither is known)."""
+    from nap3d_graph.fields.build import estimate_timing
+
+    recorded = (getattr(field_obj, "meta", None) or {}).get("timing")
+    return recorded or estimate_timing(sequence)
+
+
+def at_colour_instant(sequence, index: int, timing: dict | None) -> RGBDFrame:
+    """Frame ``index`` with its depth warped (and scaled) to its colour's capture instant by
+    the ground-truth motion between the two instants; as it is without ``timing``, without a
+    depth stamp, or where the ground truth does not cover both instants."""
+    from nap3d_graph.camera import warp_depth
+
+    frame = sequence[index]
+    if not timing or frame.depth_timestamp is None or getattr(sequence, "ground_truth_at", None) is None:
+        return frame
+    t_depth = frame.depth_timestamp + timing.get("depth_offset_s", 0.0)
+    t_colour = frame.timestamp + timing.get("colour_offset_s", 0.0)
+    T_world_colour, T_world_depth = sequence.ground_truth_at(np.array([t_colour, t_depth]))
+    if not (np.all(np.isfinite(T_world_colour)) and np.all(np.isfinite(T_world_depth))):
+        return frame
+    T_colour_depth = np.linalg.inv(T_world_colour) @ T_world_depth
+    depth = warp_depth(frame.depth_m, frame.intrinsics, T_colour_depth, timing.get("depth_scale", 1.0))
+    return frame.with_depth(depth)
 
 
 def _errors(frame: RGBDFrame, T_corr: np.ndarray, T_gt: np.ndarray, config: EvalKConfig) -> dict:
@@ -296,7 +329,10 @@ def summarise(rows: list[dict], config: EvalKConfig) -> dict:
                        "max_trans_m": config.max_trans_m, "max_rot_deg": config.max_rot_deg,
                        "blur_sigmas": list(config.blur_sigmas), "intrinsics_noise": config.intrinsics_noise,
                        "shift": config.shift, "grid_stride": config.grid_stride,
-                       "failures": "scored as the uncorrected pose's error"},
+                       "failures": "scored as the uncorrected pose's error",
+                       "capture_timing": None if config.timing is None else {
+                           k: config.timing[k] for k in ("depth_offset_s", "colour_offset_s", "depth_scale")
+                           if k in config.timing}},
             "methods": {m: METHODS[m] for m in config.methods},
             "pairs": {p: {"pnp_side": a, "nap3d_side": b} for p, a, b in PAIRS
                       if a in config.methods and b in config.methods},

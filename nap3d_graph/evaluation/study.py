@@ -120,10 +120,11 @@ def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) ->
 
 
 def _eval_k(sequence, field, folder: Path, config: StudyConfig) -> dict:
-    from .eval_k import EvalKConfig, run_eval_k
+    from .eval_k import EvalKConfig, capture_timing, run_eval_k
 
     cells = {} if config.eval_k_full else {"blur_sigmas": (0.0,), "intrinsics_noise": {"CLEAN": (1.0, 0.0)}}
-    k_config = EvalKConfig(scenarios=config.eval_k_scenarios, seed=config.seed, **cells)
+    k_config = EvalKConfig(scenarios=config.eval_k_scenarios, seed=config.seed, timing=capture_timing(field, sequence),
+                           **cells)
     summary = run_eval_k(sequence, field, folder, k_config, progress=config.progress)
     cell = summary["cells"]["blur0/CLEAN"]["methods"]
     return {m: {"success_rate": s["success_rate"], "trans_median_m": s["trans_err_m"]["median"],
