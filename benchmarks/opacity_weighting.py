@@ -64,9 +64,10 @@ class PartialOpacityField:
         return RenderedView(view.rgb, depth.astype(np.float32), opacity.astype(np.float32), intrinsics)
 
 
-def scenarios(sequence, field, config_base, n: int, seed: int):
+def scenarios(sequence, field, config_base, n: int, seed: int, timing: dict | None = None):
     from nap3d_graph.alignment import AlignConfig, align_correspondences, prepare_correspondences
     from nap3d_graph.conventions import pose_error
+    from nap3d_graph.evaluation.eval_k import at_colour_instant
     from nap3d_graph.evaluation.perturb import random_perturbation
     from nap3d_graph.nap3d import render_safely
 
@@ -80,7 +81,7 @@ def scenarios(sequence, field, config_base, n: int, seed: int):
         i = int(rng.integers(len(sequence)))
         T_gt = sequence.T_world_cam_gt[i]
         T_est = T_gt @ random_perturbation(rng)
-        frame = sequence[i]
+        frame = at_colour_instant(sequence, i, timing)  # depth at its colour's instant, as Evaluation K does
         view, _ = render_safely(field, T_est, frame.intrinsics)
         corr = None if view is None else prepare_correspondences(frame, view, config_base)[0]
         for name, config in variants.items():
@@ -104,7 +105,7 @@ def stats(rows) -> dict:
 def main(argv=None) -> None:
     from nap3d_graph.alignment import AlignConfig
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.fields.training import TrainConfig, train_field
+    from nap3d_graph.fields.build import build_field, estimate_timing
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -126,12 +127,14 @@ def main(argv=None) -> None:
             simulate_sequence(walk, SimConfig(frames=60, path="traverse", scene_seed=room, seed=2, width=320,
                                               height=240), progress=True)
         walk_seq = SimSequence(walk)
-        trained, report = train_field(SimSequence(survey), TrainConfig(max_steps=args.train_steps), progress=True)
+        # As train-field builds it: the survey's capture timing estimated and compensated.
+        trained, report = build_field(SimSequence(survey), "grid", steps=args.train_steps, progress=True)
+        timing = estimate_timing(walk_seq)
         fields = {"partial": PartialOpacityField(walk_seq.oracle_field(), seed=room), "trained": trained}
         result["per_room"][room] = {"trained_field_held_out": {k: report["held_out"][k] for k in
                                                                ("psnr_db", "depth_abs_err_m", "opacity_on_surfaces")}}
         for field_name, field in fields.items():
-            rows = scenarios(walk_seq, field, AlignConfig(), args.scenarios, seed=room)
+            rows = scenarios(walk_seq, field, AlignConfig(), args.scenarios, seed=room, timing=timing)
             result["per_room"][room][field_name] = {name: stats(r) for name, r in rows.items()}
             for name, r in rows.items():
                 pooled.setdefault(field_name, {}).setdefault(name, []).extend(r)

@@ -26,8 +26,13 @@ EPILOG = """examples:
   nap3d-graph simulate data/room_walk --frames 150 --path traverse --scene-seed 3 --seed 2
   nap3d-graph train-field data/room_map --out room.pt --minutes 5
   nap3d-graph run --traj sim --data data/room_walk --field room.pt
-  nap3d-graph run --traj tum --data rgbd_dataset_freiburg1_desk --field desk.pt --odom vo
+  nap3d-graph train-field rgbd_dataset_freiburg1_desk --frames 0:0.5 --out desk.pt
+  nap3d-graph run --traj tum --data rgbd_dataset_freiburg1_desk --frames 0.5:1 --field desk.pt --odom vo
+  nap3d-graph study rgbd_dataset_freiburg1_desk --out desk_study   # the three lines above, and Evaluation K
   nap3d-graph compare --traj sim --data data/room_walk --field room.pt --odom imu --out cmp
+  nap3d-graph simulate data/rs_walk --frames 90 --realsense data/rs_walk.db3
+  nap3d-graph run --traj realsense --data data/rs_walk.db3 --groundtruth data/rs_walk/groundtruth.txt --field data/rs_walk
+  nap3d-graph run --traj realsense --data live --seconds 30 --record walk.bag --field room.pt --initial-pose-file start.txt
   nap3d-graph eval-k data/room_walk --field oracle --scenarios 40 --out evalk
 """
 
