@@ -277,7 +277,7 @@ class Pipeline:
             self.new_values.insert(M(0), gtsam.Pose3())
 
     def _odometry_needs_frames(self) -> bool:
-        return getattr(self.odometry, "name", "") == "vo"
+        return bool(getattr(self.odometry, "needs_frames", False))
 
     def _read_frame(self, i: int):
         """Frame i, or None when it cannot be read (the reason is logged and recorded)."""

@@ -34,10 +34,11 @@ def add_source_arguments(p) -> None:
     add_frames_argument(p, "the run (a field should not have been trained on them)")
     p.add_argument("--field", help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from "
                    "'nap3d-graph train-field'), a nerfstudio config.yml, or 'none' (odometry only)")
-    p.add_argument("--odom", choices=("recorded", "noisy", "vo", "imu"),
+    p.add_argument("--odom", choices=("recorded", "noisy", "vo", "dense", "imu"),
                    help="motion between keyframes: recorded (the sequence's odometry.txt; default for sim), noisy "
-                   "(noise injected on ground-truth increments; default for tum), vo (frame-to-frame RGB-D odometry) "
-                   "or imu (the sequence's IMU preintegrated into CombinedImuFactors; biases estimated; default for "
+                   "(noise injected on ground-truth increments; default for tum), vo (frame-to-frame RGB-D odometry with "
+                   "NAP3D's matcher), dense (OpenCV's dense RGB-D odometry at 320 px wide: camera rate, less drift "
+                   "on fr1/desk) or imu (the sequence's IMU preintegrated into CombinedImuFactors; biases estimated; default for "
                    "a realsense recording with an IMU)")
     p.add_argument("--imu-noise", metavar="'AN GN AW GW'", default=None,
                    help="IMU noise densities: accel m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), accel bias walk m/s^3/sqrt(Hz), "

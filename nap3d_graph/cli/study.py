@@ -37,9 +37,9 @@ def run(args) -> int:
     if not 0.05 <= args.split <= 0.95:
         raise UsageError(f"--split must be in [0.05, 0.95], got {args.split}")
     odometries = tuple(o.strip() for o in args.odom.split(",") if o.strip())
-    unknown = [o for o in odometries if o not in ("vo", "noisy", "recorded")]
+    unknown = [o for o in odometries if o not in ("vo", "dense", "noisy", "recorded")]
     if unknown or not odometries:
-        raise UsageError(f"--odom: unknown {unknown or 'empty list'}; choose from vo, noisy, recorded")
+        raise UsageError(f"--odom: unknown {unknown or 'empty list'}; choose from vo, dense, noisy, recorded")
     empty_or_new_dir(args.out, args.force)
     config = StudyConfig(split=args.split, model=args.model, train_steps=args.train_steps,
                          keyframe_every=args.keyframe_every, odometries=odometries, eval_k_scenarios=args.scenarios,
