@@ -81,6 +81,15 @@ def main(argv: list[str] | None = None) -> int:
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         print(f"nap3d-graph {args.command}: error: {message}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        import errno
+
+        # A full, read-only or failing disk mid-run: one line (what was written so far stays).
+        if exc.errno not in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO):
+            raise
+        where = f" writing {exc.filename}" if exc.filename else ""
+        print(f"nap3d-graph {args.command}: error: cannot go on{where}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
