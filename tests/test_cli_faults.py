@@ -190,3 +190,24 @@ def test_an_interrupted_run_leaves_its_config_corrections_and_partial_trajectori
     trajectory = file_interface.read_tum_trajectory_file(str(run / "estimate.txt"))
     assert trajectory.num_poses == metrics["frames"] and np.all(np.isfinite(trajectory.positions_xyz))
     assert len(corrections.read_text().splitlines()) - 1 >= 3
+
+
+def test_simulate_stops_at_once_on_sigint(tmp_path):
+    """Its worker pool shuts down with it: no hang after 'interrupted'."""
+    env = dict(os.environ, MPLBACKEND="Agg")
+    for trial in range(3):
+        out = tmp_path / f"sim{trial}"
+        proc = subprocess.Popen([sys.executable, "-m", "nap3d_graph.cli", "simulate", str(out), "--frames", "400",
+                                 "--width", "320", "--height", "240"], stdout=subprocess.PIPE,
+                                stderr=subprocess.PIPE, env=env)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None and not list(out.glob("rgb/*.png")):
+            time.sleep(0.1)  # until the workers are rendering
+        assert proc.poll() is None, "simulate ended before it could be interrupted"
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            pytest.fail(f"simulate still running 60 s after SIGINT (trial {trial})")
+        assert proc.returncode == 130
