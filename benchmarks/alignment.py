@@ -20,10 +20,11 @@ import numpy as np
 
 
 def stage_timings(width: int, height: int, repeats: int) -> dict:
-    from nap3d_graph.alignment import (AlignConfig, align_correspondences, build_correspondences,
-                                       view_features)
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.nap3d.align import align_correspondences, view_features
+    from nap3d_graph.nap3d.correspondences import build_correspondences
     from nap3d_graph.evaluation.perturb import random_perturbation
-    from nap3d_graph.matching import detect_features, match_features
+    from nap3d_graph.nap3d.matching import detect_features, match_features
     from nap3d_graph.sims.scene import OracleField, make_scene
     from nap3d_graph.sims.sensors import sensor_frame
     from nap3d_graph.sims.sequence import default_intrinsics
@@ -64,7 +65,8 @@ def stage_timings(width: int, height: int, repeats: int) -> dict:
 def ransac_only(n: int = 1000, hypotheses: int = 500, repeats: int = 20) -> dict:
     from scipy.spatial.transform import Rotation
 
-    from nap3d_graph.alignment import AlignConfig, ransac_procrustes
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.nap3d.ransac import ransac_procrustes
 
     rng = np.random.default_rng(0)
     x = rng.uniform([-1.5, -1, 1], [1.5, 1, 4], size=(n, 3))

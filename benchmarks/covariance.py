@@ -35,7 +35,7 @@ CONFIGS = {
 
 def nees_trials(room: int, settings: dict, method: str, trials: int, seed: int) -> dict:
     from nap3d_graph import correct_pose
-    from nap3d_graph.alignment import AlignConfig
+    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.conventions import inv_T, log_se3
     from nap3d_graph.evaluation.perturb import random_perturbation
     from nap3d_graph.sims.scene import OracleField, make_scene

@@ -14,8 +14,9 @@ from .results import Alignment, Correction
 __version__ = "0.1.0"
 
 _LAZY = {
-    "align_views": ("nap3d_graph.alignment", "align_views"),
+    "align_views": ("nap3d_graph.nap3d", "align_views"),
     "correct_pose": ("nap3d_graph.nap3d", "correct_pose"),
+    "AlignConfig": ("nap3d_graph.nap3d", "AlignConfig"),
     "load_field": ("nap3d_graph.fields", "load_field"),
 }
 

@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 __all__ = [
+    "skew",
     "make_T",
     "inv_T",
     "compose",
@@ -46,6 +47,16 @@ __all__ = [
 
 #: Flips y and z: maps an OpenGL camera point to the OpenCV camera frame (its own inverse).
 OPENCV_FROM_OPENGL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def skew(p: np.ndarray) -> np.ndarray:
+    """Skew-symmetric matrices (..., 3, 3) of vectors (..., 3): ``skew(a) @ b = a x b``."""
+    p = np.asarray(p, dtype=float)
+    S = np.zeros(p.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2] = -p[..., 2], p[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = p[..., 2], -p[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -p[..., 1], p[..., 0]
+    return S
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:

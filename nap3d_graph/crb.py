@@ -1,6 +1,6 @@
 """The physical limit of one correction: the Cramer-Rao bound of its 6-DoF pose.
 
-Under the refinement's noise model (:func:`~nap3d_graph.refinement.refine_pose`: each
+Under the refinement's noise model (:func:`~nap3d_graph.nap3d.refine.refine_pose`: each
 correspondence measures the real keypoint's pixel with variance ``2 s_px^2`` per axis and
 its depth with the sensor's ``(s0 + k z^2)^2`` plus the rendered depth's, correlated through
 the rendered depth's gradient), the Fisher information of the correction is
@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .alignment import AlignConfig
+from .nap3d.config import AlignConfig
 from .camera import Intrinsics
-from .correspondences import Correspondences
-from .refinement import _point_jacobian, _reprojection_terms, _stack_rows, _variance_factors
+from .nap3d.correspondences import Correspondences
+from .nap3d.refine import _point_jacobian, _reprojection_terms, _stack_rows, _variance_factors
 
 __all__ = ["cramer_rao_bound", "bound_sigmas"]
 

@@ -19,7 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .alignment import AlignConfig, align_views
+from .nap3d.config import AlignConfig
+from .nap3d.align import align_views
 from .camera import RenderedView, RGBDFrame
 from .conventions import inv_T
 

@@ -27,10 +27,10 @@ from gtsam.symbol_shorthand import M, X
 from nap3d_graph.factors import (anchor_prior_factor, chi2_gate_isam2, nap3d_anchor_factor, nap3d_prior_factor,
                                  odometry_factor, pose_prior_factor)
 
-from .alignment import AlignConfig
+from .nap3d.config import AlignConfig
 from .camera import Intrinsics
 from .conventions import inv_T, pose3_to_T, pose_error, T_to_pose3
-from .nap3d import correct_pose
+from .nap3d.correct import correct_pose
 from .results import Correction
 
 __all__ = ["PipelineConfig", "Pipeline", "KeyframeRecord", "RunResult", "compose_covariance"]

@@ -5,12 +5,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from nap3d_graph import Alignment, Intrinsics, RenderedView, RGBDFrame, align_views, correct_pose
-from nap3d_graph.alignment import (AlignConfig, anisotropic_residual_sq, kabsch_batch, ransac_procrustes,
-                                   sample_depth, weighted_umeyama)
-from nap3d_graph.conventions import exp_se3, inv_T, log_se3, make_T, pose_error
+from nap3d_graph import RenderedView, RGBDFrame, align_views, correct_pose
+from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.ransac import anisotropic_residual_sq, kabsch_batch, ransac_procrustes, weighted_umeyama
+from nap3d_graph.nap3d.correspondences import sample_depth
+from nap3d_graph.conventions import inv_T, log_se3, pose_error
 from nap3d_graph.evaluation.perturb import random_perturbation
-from nap3d_graph.pnp import pnp_align
+from nap3d_graph.baselines.pnp import pnp_align
 from nap3d_graph.sims.sensors import sensor_frame
 from nap3d_graph.sims.sequence import default_intrinsics
 from nap3d_graph.sims.trajectories import make_trajectory
@@ -261,8 +262,8 @@ def test_bad_input_returns_reasons(room, scenarios):
     dark = RenderedView(view.rgb, view.depth_m, np.full(K.shape, 0.1, np.float32), K)
     assert "no keypoints in the rendered view" in align_views(frame, dark).reason
     # Matches whose rendered pixels the field is not sure of: low opacity, said so.
-    from nap3d_graph.correspondences import build_correspondences
-    from nap3d_graph.matching import Matches
+    from nap3d_graph.nap3d.correspondences import build_correspondences
+    from nap3d_graph.nap3d.matching import Matches
 
     uv = np.array([[40.0, 30.0], [100.0, 80.0], [200.0, 150.0]])
     corr = build_correspondences(frame, dark, Matches(uv, uv, np.full(3, 0.5)), AlignConfig())
@@ -312,7 +313,8 @@ def test_real_tum_frames_align_to_mocap(tum_path):
 def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
     """With the camera's intrinsics off by the paper's HARSH shift (x1.10 focal, +10 px), the
     refinement that also estimates them recovers the pose and the true intrinsics."""
-    from nap3d_graph.alignment import prepare_correspondences, refine_pose, align_correspondences
+    from nap3d_graph.nap3d.align import prepare_correspondences, align_correspondences
+    from nap3d_graph.nap3d.refine import refine_pose
 
     _, field = room
     errors, plain_errors = [], []  # a failed fit scores the uncorrected error, as in Evaluation K

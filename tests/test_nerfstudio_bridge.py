@@ -22,7 +22,6 @@ from nap3d_graph.fields.nerfstudio import (
     model_depth_to_z_m,
     model_to_world_pose,
     nerfstudio_intrinsics,
-    opencv_to_opengl_pose,
     png_mm_to_depth,
     read_dataparser_transforms,
     read_transforms_poses,

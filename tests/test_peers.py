@@ -6,13 +6,13 @@ import json
 import numpy as np
 import pytest
 
-from nap3d_graph.alignment import AlignConfig
+from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.baselines import PEERS, run_peers
 from nap3d_graph.camera import Intrinsics, backproject, project
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3, pose_error
-from nap3d_graph.correspondences import Correspondences
+from nap3d_graph.nap3d.correspondences import Correspondences
 from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
-from nap3d_graph.refinement import refine_pose
+from nap3d_graph.nap3d.refine import refine_pose
 
 
 @pytest.fixture(scope="module")
@@ -117,3 +117,18 @@ def test_bench_peers_command_writes_its_files(tmp_path, capsys):
     assert summary["methods"]["nap3d-refined"]["trans_mm"]["median"] == pytest.approx(np.median(refined))
     assert summary["methods"]["nap3d-refined"]["trans_mm"]["median"] < 10.0
     assert main(["bench-peers", str(data), "--field", "oracle", "--methods", "nap3d,sift", "--out", str(out)]) == 2
+
+
+def test_the_public_names_import_from_the_package_and_its_parts():
+    import nap3d_graph
+    import nap3d_graph.nap3d as nap3d
+    from nap3d_graph.baselines.pnp import pnp_align
+    from nap3d_graph.conventions import skew
+
+    for name in ("align_views", "correct_pose", "AlignConfig", "load_field", "Alignment", "RGBDFrame"):
+        assert getattr(nap3d_graph, name) is not None
+    assert nap3d_graph.align_views is nap3d.align_views and nap3d_graph.correct_pose is nap3d.correct_pose
+    assert set(nap3d.__all__) >= {"AlignConfig", "align_views", "correct_pose", "prepare_correspondences"}
+    assert callable(pnp_align)
+    np.testing.assert_allclose(skew(np.array([1.0, 2.0, 3.0])) @ np.array([4.0, 5.0, 6.0]),
+                               np.cross([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]))

@@ -7,12 +7,11 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from nap3d_graph.align_config import AlignConfig
+from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.camera import Intrinsics, backproject, project
 from nap3d_graph.conventions import T_to_pose3, exp_se3, inv_T, log_se3, make_T, pose3_to_T
-from nap3d_graph.correspondences import Correspondences
-from nap3d_graph.refinement import (_intrinsics_jacobian, _point_jacobian, _reprojection_terms, _stack_rows,
-                                    _with_intrinsics_delta, consensus_cost, refine_pose)
+from nap3d_graph.nap3d.correspondences import Correspondences
+from nap3d_graph.nap3d.refine import (_intrinsics_jacobian, _point_jacobian, _reprojection_terms, _stack_rows, _with_intrinsics_delta, consensus_cost, refine_pose)
 
 K = Intrinsics(262.5, 260.0, 159.5, 121.0, 320, 240)
 
@@ -151,9 +150,9 @@ def test_consensus_cost_prefers_the_true_model():
 def test_plain_procrustes_covariance_matches_monte_carlo_scatter():
     """The paper's estimator (weighted Procrustes, every coordinate weighed alike) under the
     anisotropic noise: its sandwich covariance is honest for the pose and per block."""
-    from nap3d_graph.correspondences import noise_sigmas
-    from nap3d_graph.ransac import weighted_umeyama
-    from nap3d_graph.refinement import plain_covariance
+    from nap3d_graph.nap3d.correspondences import noise_sigmas
+    from nap3d_graph.nap3d.ransac import weighted_umeyama
+    from nap3d_graph.nap3d.refine import plain_covariance
 
     rng = np.random.default_rng(5)
     config = AlignConfig(method="plain")

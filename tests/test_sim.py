@@ -1,12 +1,11 @@
 """The simulator: exact geometry, deterministic output, sensor statistics, IMU, TUM layout."""
 
-import json
 
 import gtsam
 import numpy as np
 import pytest
 
-from nap3d_graph.conventions import exp_se3, inv_T, log_se3, pose_error
+from nap3d_graph.conventions import inv_T, log_se3, pose_error
 from nap3d_graph.sims.scene import Cylinder, OracleField, Scene, Sphere, make_scene
 from nap3d_graph.sims.sensors import (DepthNoise, ImuNoise, OdometryNoise, add_depth_noise, drifting_odometry,
                                       simulate_imu)

@@ -13,8 +13,8 @@ import time
 
 import numpy as np
 
-from nap3d_graph.camera import RenderedView, RGBDFrame
-from nap3d_graph.results import Alignment
+from ..camera import RenderedView, RGBDFrame
+from ..results import Alignment
 
 from .dense_rgbd import DenseRgbdConfig, dense_rgbd_align
 from .gicp import GicpConfig, gicp_align
@@ -37,8 +37,9 @@ def run_peers(real: RGBDFrame, view: RenderedView, methods=tuple(PEERS), field=N
     """Every method of ``methods`` on one frame: ``({name: Alignment}, correspondences)``
     (the shared SIFT correspondences, or None when matching failed). ``nap3d-iter`` needs
     ``field`` and ``T_world_cam_est`` (it re-renders)."""
-    from nap3d_graph.alignment import AlignConfig, align_correspondences, prepare_correspondences
-    from nap3d_graph.pnp import pnp_from_correspondences
+    from ..nap3d.config import AlignConfig
+    from ..nap3d.align import align_correspondences, prepare_correspondences
+    from .pnp import pnp_from_correspondences
 
     unknown = set(methods) - set(PEERS)
     if unknown:
@@ -83,7 +84,7 @@ def _safe(fn, name: str) -> Alignment:
 def _iterated(real, field, T_world_cam_est, align_config) -> Alignment:
     """``correct_pose`` as an alignment against the view at ``T_world_cam_est``."""
     from nap3d_graph import correct_pose
-    from nap3d_graph.conventions import inv_T
+    from ..conventions import inv_T
 
     if field is None or T_world_cam_est is None:
         return Alignment.failure("nap3d-iter needs the field and the believed pose", method="nap3d-iter")

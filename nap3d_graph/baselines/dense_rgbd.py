@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nap3d_graph.camera import RenderedView, RGBDFrame
-from nap3d_graph.results import Alignment
+from ..camera import RenderedView, RGBDFrame
+from ..results import Alignment
 
 __all__ = ["DenseRgbdConfig", "dense_rgbd_align"]
 
@@ -43,7 +43,7 @@ def dense_rgbd_align(real: RGBDFrame, view: RenderedView, config: DenseRgbdConfi
     solve fails or diverges."""
     import cv2
 
-    from nap3d_graph.conventions import pose_error
+    from ..conventions import pose_error
 
     config = config or DenseRgbdConfig()
     t0 = time.perf_counter()

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nap3d_graph.camera import RenderedView, RGBDFrame, backproject_depth
-from nap3d_graph.results import Alignment
+from ..camera import RenderedView, RGBDFrame, backproject_depth
+from ..results import Alignment
 
 __all__ = ["GicpConfig", "gicp_align"]
 

@@ -167,7 +167,7 @@ def estimate_colour_offset(sequence, timing: DepthTiming, pairs: int = 30, gap_s
     with the search: ``(offset_s, [[offset, median px], ...])``.
     """
     from nap3d_graph.conventions import inv_T as _inv
-    from nap3d_graph.matching import detect_features, match_features
+    from nap3d_graph.nap3d.matching import detect_features, match_features
 
     chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
     needed = sorted({i for pair in chosen for i in pair})

@@ -27,7 +27,7 @@ import logging
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from nap3d_graph.conventions import T_to_pose3, exp_se3, exp_so3, inv_T, log_se3, make_T
+from nap3d_graph.conventions import T_to_pose3, exp_se3, exp_so3, inv_T, log_se3, make_T, skew
 from nap3d_graph.factors.gate import chi2_gate_with_marginal
 
 __all__ = ["ErrorStateEKF", "ImuErrorStateEKF"]
@@ -35,16 +35,12 @@ __all__ = ["ErrorStateEKF", "ImuErrorStateEKF"]
 log = logging.getLogger(__name__)
 
 
-def _hat(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
 def _ad_se3(xi: np.ndarray) -> np.ndarray:
     """Small adjoint ``ad(xi)`` (6, 6) of a twist in GTSAM order ``[w, v]``."""
     ad = np.zeros((6, 6))
-    ad[:3, :3] = _hat(xi[:3])
-    ad[3:, :3] = _hat(xi[3:])
-    ad[3:, 3:] = _hat(xi[:3])
+    ad[:3, :3] = skew(xi[:3])
+    ad[3:, :3] = skew(xi[3:])
+    ad[3:, 3:] = skew(xi[:3])
     return ad
 
 
@@ -177,7 +173,7 @@ class ImuErrorStateEKF(_PoseCorrections):
             F[:3, :3] = dR.T
             F[:3, 12:] = -I3 * dt
             F[3:6, 6:9] = I3 * dt
-            F[6:9, :3] = -self.R @ _hat(f) * dt
+            F[6:9, :3] = -self.R @ skew(f) * dt
             F[6:9, 9:12] = -self.R * dt
             Q = np.zeros((15, 15))
             Q[:3, :3], Q[6:9, 6:9] = I3 * q_g * dt, I3 * q_a * dt
@@ -200,7 +196,7 @@ class ImuErrorStateEKF(_PoseCorrections):
         self.p, self.v = self.p + dx[3:6], self.v + dx[6:9]
         self.ba, self.bg = self.ba + dx[9:12], self.bg + dx[12:]
         G = np.eye(15)
-        G[:3, :3] -= 0.5 * _hat(dx[:3])
+        G[:3, :3] -= 0.5 * skew(dx[:3])
         self.kf.P = G @ self.kf.P @ G.T
 
     def pose_covariance(self) -> np.ndarray:

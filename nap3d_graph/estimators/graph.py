@@ -25,7 +25,7 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T
-from nap3d_graph.factors import chi2_gate_isam2, imu_factor, noise_model, odometry_factor, pose_prior_factor
+from nap3d_graph.factors import chi2_gate_isam2, imu_factor, noise_model, odometry_factor
 
 __all__ = ["GraphModel", "Isam2Estimator", "BatchLM"]
 

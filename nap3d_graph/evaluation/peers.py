@@ -46,7 +46,7 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
     from nap3d_graph.baselines import run_peers
     from nap3d_graph.conventions import inv_T, pose_error
     from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
-    from nap3d_graph.nap3d import _resize_frame, render_safely
+    from nap3d_graph.nap3d.correct import _resize_frame, render_safely
 
     from .eval_k import at_colour_instant
     from .perturb import random_perturbation
@@ -79,7 +79,7 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
         bound_r = bound_t = float("nan")
         refined = results.get("nap3d-refined")
         if corr is not None and refined is not None and refined.success and refined.inlier_mask is not None:
-            from nap3d_graph.correspondences import subset
+            from nap3d_graph.nap3d.correspondences import subset
 
             # The bound for the noise these inliers carry (their residuals at the true pose).
             bound = cramer_rao_bound(inv_T(T_gt) @ T_est, subset(corr, refined.inlier_mask), frame.intrinsics,

@@ -30,10 +30,8 @@ What makes a grid converge in minutes on a CPU (a prototype's findings, then our
 from __future__ import annotations
 
 import logging
-import math
 import time
 from dataclasses import asdict, dataclass, replace
-from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np

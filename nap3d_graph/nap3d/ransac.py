@@ -12,23 +12,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .align_config import AlignConfig
+from .config import AlignConfig
 
-__all__ = ["skew", "weighted_umeyama", "similarity_scale", "similarity_batch", "ransac_scale", "kabsch_batch", "triad_batch", "anisotropic_residual_sq",
+__all__ = ["weighted_umeyama", "similarity_scale", "similarity_batch", "ransac_scale", "kabsch_batch", "triad_batch", "anisotropic_residual_sq",
            "RansacResult", "ransac_procrustes"]
 
 
 # --- geometry helpers ----------------------------------------------------------------------
-
-
-def skew(p: np.ndarray) -> np.ndarray:
-    """Skew-symmetric matrices (..., 3, 3) of vectors (..., 3): ``skew(a) @ b = a x b``."""
-    p = np.asarray(p, dtype=float)
-    S = np.zeros(p.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2] = -p[..., 2], p[..., 1]
-    S[..., 1, 0], S[..., 1, 2] = p[..., 2], -p[..., 0]
-    S[..., 2, 0], S[..., 2, 1] = -p[..., 1], p[..., 0]
-    return S
 
 
 def weighted_umeyama(x: np.ndarray, y: np.ndarray, weights: np.ndarray | None = None):

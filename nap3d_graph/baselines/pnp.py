@@ -7,7 +7,7 @@ an :class:`Alignment` like NAP3D's, with the covariance from the reprojection He
 ``estimate_intrinsics`` gives PnP the same help the self-calibrating NAP3D has: after the LM
 step, the pose *and* the real camera's fx, fy, cx, cy are refined on the reprojection
 residuals under the same prior (``"auto"``: kept only when the data support it, by the same
-test as NAP3D's, :func:`~nap3d_graph.alignment.choose_intrinsics_model`, on pixels only).
+test as NAP3D's, :func:`~nap3d_graph.nap3d.align.choose_intrinsics_model`, on pixels only).
 Evaluation K compares each NAP3D variant with the PnP that had the same help.
 """
 
@@ -21,12 +21,15 @@ import numpy as np
 
 from dataclasses import replace
 
-from .alignment import AlignConfig, Correspondences, prepare_correspondences, refine_pose
-from .correspondences import subset
-from .refinement import consensus_cost
-from .camera import Intrinsics, RenderedView, RGBDFrame
-from .conventions import make_T
-from .results import Alignment
+from ..nap3d.config import AlignConfig
+from ..nap3d.correspondences import Correspondences
+from ..nap3d.align import prepare_correspondences
+from ..nap3d.refine import refine_pose
+from ..nap3d.correspondences import subset
+from ..nap3d.refine import consensus_cost
+from ..camera import Intrinsics, RenderedView, RGBDFrame
+from ..conventions import make_T
+from ..results import Alignment
 
 __all__ = ["PnPConfig", "pnp_align", "pnp_from_correspondences"]
 

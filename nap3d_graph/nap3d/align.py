@@ -19,9 +19,10 @@ Pipeline for one (real frame, rendered view) pair:
 5. The 6x6 covariance of ``T_world_cam_true`` comes from the Gauss-Newton Hessian at the
    solution, scaled by the residual variance.
 
-The stages live in their own modules: ``align_config`` (settings), ``correspondences``
-(back-projection, noise sigmas), ``ransac`` (rigid fits, RANSAC) and ``refinement``
-(least squares and covariance); this module runs them and is the public entry point.
+The stages live beside this module in ``nap3d_graph.nap3d``: ``config`` (settings),
+``matching``, ``correspondences`` (back-projection, noise sigmas), ``ransac`` (rigid fits,
+RANSAC) and ``refine`` (least squares and covariance); this module runs them for one pair
+(``align_views``) and ``correct`` re-renders and iterates (``correct_pose``).
 """
 
 from __future__ import annotations
@@ -32,39 +33,17 @@ from dataclasses import replace
 
 import numpy as np
 
-from .align_config import AlignConfig
-from .camera import Intrinsics, RenderedView, RGBDFrame, backproject
-from .conventions import make_T
-from .correspondences import (Correspondences, build_correspondences, depth_gradient, noise_sigmas, sample_depth,
-                              subset)
+from .config import AlignConfig
+from ..camera import Intrinsics, RenderedView, RGBDFrame, backproject
+from ..conventions import make_T
+from .correspondences import (Correspondences, build_correspondences, noise_sigmas, subset)
 from .matching import Features, detect_features, match_features
-from .ransac import (RansacResult, anisotropic_residual_sq, kabsch_batch, ransac_procrustes, ransac_scale, skew,
-                     triad_batch, weighted_umeyama)
-from .refinement import consensus_cost, plain_covariance, refine_pose
-from .results import Alignment
+from .ransac import (anisotropic_residual_sq, ransac_procrustes, ransac_scale)
+from .refine import consensus_cost, plain_covariance, refine_pose
+from ..results import Alignment
 
-__all__ = [
-    "AlignConfig",
-    "align_views",
-    "align_correspondences",
-    "choose_intrinsics_model",
-    "covariance_inflation",
-    "viewpoint_change_px",
-    "prepare_correspondences",
-    "view_features",
-    "Correspondences",
-    "build_correspondences",
-    "sample_depth",
-    "depth_gradient",
-    "weighted_umeyama",
-    "kabsch_batch",
-    "triad_batch",
-    "anisotropic_residual_sq",
-    "ransac_procrustes",
-    "RansacResult",
-    "refine_pose",
-    "skew",
-]
+__all__ = ["align_views", "align_correspondences", "prepare_correspondences", "view_features",
+           "choose_intrinsics_model", "covariance_inflation", "viewpoint_change_px"]
 
 log = logging.getLogger(__name__)
 
@@ -194,7 +173,7 @@ def choose_intrinsics_model(corr: Correspondences, intrinsics: Intrinsics, fixed
     wrong calibration RANSAC under the given intrinsics finds only a handful of consistent
     points, and a fit to those few looks as good as any (comparing each model's residuals on
     its own inliers picked it, and a 7-deg error, in Evaluation K's HARSH cells). The cost is
-    the truncated whitened residual (:func:`~nap3d_graph.refinement.consensus_cost`) under
+    the truncated whitened residual (:func:`~nap3d_graph.nap3d.refine.consensus_cost`) under
     one noise model, the self-calibrated fit's estimated variance factors (at least the
     nominal noise), so the comparison is a likelihood-ratio test: four extra parameters
     must lower the cost by ``config.auto_intrinsics_min_gain``; and they must explain

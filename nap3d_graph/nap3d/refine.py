@@ -11,11 +11,11 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
-from .align_config import AlignConfig
-from .camera import Intrinsics
-from .conventions import exp_se3, make_T
+from .config import AlignConfig
+from ..camera import Intrinsics
+from ..conventions import exp_se3, make_T
 from .correspondences import Correspondences
-from .ransac import skew
+from ..conventions import skew
 
 __all__ = ["refine_pose", "plain_covariance", "consensus_cost"]
 
