@@ -21,6 +21,8 @@ from scipy.spatial.transform import Rotation
 
 __all__ = [
     "skew",
+    "adjoint",
+    "compose_covariance",
     "make_T",
     "inv_T",
     "compose",
@@ -240,3 +242,16 @@ def z_depth_to_ray_length(depth_m: np.ndarray, ray_norms: np.ndarray) -> np.ndar
 def ray_length_to_z_depth(ray_m: np.ndarray, ray_norms: np.ndarray) -> np.ndarray:
     """Distance along each pixel's ray (H, W) to z-depth (H, W)."""
     return np.asarray(ray_m) / ray_norms
+
+
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """GTSAM's 6x6 adjoint of a pose (tangent order [rotation, translation])."""
+    return np.asarray(T_to_pose3(T).AdjointMap())
+
+
+def compose_covariance(cov_a: np.ndarray, T_b: np.ndarray, cov_b: np.ndarray) -> np.ndarray:
+    """Covariance of ``T_a @ T_b`` (right perturbations) from those of ``T_a`` and ``T_b``:
+    ``Ad(T_b^-1) cov_a Ad(T_b^-1)^T + cov_b``."""
+    A = adjoint(inv_T(T_b))
+    out = A @ cov_a @ A.T + cov_b
+    return 0.5 * (out + out.T)

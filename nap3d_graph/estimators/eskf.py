@@ -27,7 +27,7 @@ import logging
 import numpy as np
 from filterpy.kalman import KalmanFilter
 
-from nap3d_graph.conventions import T_to_pose3, exp_se3, exp_so3, inv_T, log_se3, make_T, skew
+from nap3d_graph.conventions import adjoint, exp_se3, exp_so3, inv_T, log_se3, make_T, skew
 from nap3d_graph.factors.gate import chi2_gate_with_marginal
 
 __all__ = ["ErrorStateEKF", "ImuErrorStateEKF"]
@@ -42,10 +42,6 @@ def _ad_se3(xi: np.ndarray) -> np.ndarray:
     ad[3:, :3] = skew(xi[3:])
     ad[3:, 3:] = skew(xi[:3])
     return ad
-
-
-def _adjoint(T: np.ndarray) -> np.ndarray:
-    return np.asarray(T_to_pose3(T).AdjointMap())
 
 
 class _PoseCorrections:
@@ -99,7 +95,7 @@ class ErrorStateEKF(_PoseCorrections):
             self.at_keyframe = False
             return
         T_int, Q = s.interval_odometry[i]
-        self.kf.predict(F=_adjoint(inv_T(T_int)), Q=np.asarray(Q, float))
+        self.kf.predict(F=adjoint(inv_T(T_int)), Q=np.asarray(Q, float))
         self.T_kf = self.T_kf @ T_int
         dx = self._correct(i, self.T_kf, np.eye(6))
         if dx is not None:
@@ -133,7 +129,7 @@ class ImuErrorStateEKF(_PoseCorrections):
         cfg = stream.imu.config
         self.T_cam_imu = np.asarray(cfg.T_cam_imu, float)
         self.T_imu_cam = inv_T(self.T_cam_imu)
-        self.Ad_cam_imu = _adjoint(self.T_cam_imu)
+        self.Ad_cam_imu = adjoint(self.T_cam_imu)
         T_world_imu = np.asarray(stream.T_world_cam0, float) @ self.T_cam_imu
         self.R, self.p = T_world_imu[:3, :3].copy(), T_world_imu[:3, 3].copy()
         self.v = np.asarray(stream.velocity0, float).copy()

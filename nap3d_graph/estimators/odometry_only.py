@@ -14,7 +14,7 @@ import gtsam
 import numpy as np
 
 from nap3d_graph.conventions import T_to_pose3, inv_T, log_se3, pose3_to_T
-from nap3d_graph.pipeline import compose_covariance
+from nap3d_graph.conventions import compose_covariance
 
 __all__ = ["OdometryOnly"]
 

@@ -63,7 +63,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     held-out evaluation renders at this size (the pipeline's; the frames' own when they are
     smaller, or with ``None``).
     """
-    from .training import split_posed_frames
+    from .training_data import split_posed_frames
 
     if model not in MODELS:
         raise FieldError(f"unknown field model {model!r}; choose from {', '.join(MODELS)}")

@@ -1,0 +1,149 @@
+"""What a drift-correction run is told and what it gives back: :class:`PipelineConfig`,
+one :class:`KeyframeRecord` per keyframe, and the :class:`RunResult`
+(:class:`~nap3d_graph.pipeline.Pipeline` runs it)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .nap3d.config import AlignConfig
+
+__all__ = ["PipelineConfig", "KeyframeRecord", "RunResult"]
+
+@dataclass
+class PipelineConfig:
+    """Settings of one run.
+
+    keyframe_every: a keyframe every N frames; keyframe_distance_m / keyframe_angle_deg
+        (when > 0) also make one once the odometry moved that far since the last.
+    correction_iterations: render-align rounds per correction (see ``correct_pose``).
+    render_width, render_height: the field renders at this size (None: the frame's).
+    gate_p: chi-square gate probability (6 dof) of a correction against the prediction.
+    use_anchor: estimate the field's frame in the world (``M(0)``) instead of assuming it is
+        the world frame.
+    odom_drift_fraction, odom_drift_rad_per_m, odom_drift_rad_per_rad: odometry drift that
+        the per-frame sigmas cannot describe (scale and heading biases), as sigmas growing with
+        the distance travelled and the angle turned between keyframes (3% of the distance,
+        1 deg per metre and 3% of the angle by default: a typical visual odometry). They
+        keep the gate from rejecting exactly the corrections a biased odometry needs.
+    odom_drift_m_per_s, odom_drift_rad_per_s: drift that grows with *time*, moving or not
+        (a velocity or gyro bias integrates while the robot stands still), as sigmas per
+        second between keyframes (1 cm/s and 0.2 deg/s by default: the simulator's odometry
+        bias). Added to the distance terms.
+    compensate_timing: when the field records the sensor's capture timing (a real recording's
+        depth captured ~30 ms before its colour) and the frame has a depth stamp, move each
+        keyframe's depth to the colour's capture instant with the odometry's velocity, and
+        the corrected pose back to the frame's stamp, before it enters the graph.
+    timing: the sensor's capture timing (``depth_offset_s``, ``colour_offset_s``,
+        ``depth_scale``) when the field does not record it (the oracle of a simulated room,
+        a nerfstudio model): e.g. :func:`nap3d_graph.fields.build.estimate_timing` of any
+        recording of the same camera with ground truth.
+    final_gnc: the written trajectory is solved by GTSAM's graduated non-convexity (TLS) over
+        the NAP3D factors, with the odometry and the priors known inliers: a wrong
+        correction that passed the gate (the prediction was uncertain just then) is found
+        by its disagreement with the corrections and the odometry around it and weighed
+        out (``gnc_p``: each factor's chi-square inlier probability).
+    depth_scale_check, depth_scale_tolerance, depth_scale_sigmas, depth_scale_window: every
+        correction also measures the real depth's scale against the field's (a similarity
+        fit on its inliers). A running estimate (median of the last ``depth_scale_window``
+        frames' scales) is applied to each keyframe's depth, so a sensor whose every depth
+        is a few percent off is calibrated on the fly; a frame whose scale still differs
+        from it by more than ``depth_scale_tolerance`` and ``depth_scale_sigmas`` of its
+        sigma is a failed correction (its depth or its match is wrong).
+    """
+
+    keyframe_every: int = 5
+    keyframe_distance_m: float = 0.0
+    keyframe_angle_deg: float = 0.0
+    correction_iterations: int = 1
+    render_width: int | None = 320
+    render_height: int | None = 240
+    robust: str | None = "huber"
+    gate_p: float = 0.997
+    use_anchor: bool = False
+    anchor_rot_sigma_rad: float = 0.1
+    anchor_trans_sigma_m: float = 0.5
+    prior_rot_sigma_rad: float = 1e-3
+    prior_trans_sigma_m: float = 1e-3
+    relinearize_threshold: float = 1e-3
+    compensate_timing: bool = True
+    timing: dict | None = None
+    final_gnc: bool = True
+    gnc_p: float = 0.997
+    depth_scale_check: bool = True
+    depth_scale_tolerance: float = 0.02
+    depth_scale_sigmas: float = 4.0
+    depth_scale_window: int = 15
+    odom_drift_fraction: float = 0.03
+    odom_drift_rad_per_m: float = 0.0175
+    odom_drift_rad_per_rad: float = 0.03
+    odom_drift_m_per_s: float = 0.01
+    odom_drift_rad_per_s: float = 0.0035
+    max_frames: int | None = None
+    progress: bool = False
+    align: AlignConfig = field(default_factory=AlignConfig)
+
+    def __post_init__(self) -> None:
+        if self.keyframe_every < 1:
+            raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
+
+
+@dataclass
+class KeyframeRecord:
+    """What happened at one keyframe (one row of corrections.csv)."""
+
+    frame_index: int
+    timestamp: float
+    key: int
+    matches: int = 0
+    inliers: int = 0
+    iterations: int = 0
+    accepted: bool = False
+    reason: str = ""
+    gate_d2: float = float("nan")
+    correction_m: float = float("nan")
+    correction_deg: float = float("nan")
+    timings_s: dict = field(default_factory=dict)
+    trained_frame: bool = False
+    depth_scale: float = float("nan")
+
+
+@dataclass
+class RunResult:
+    """Per-frame trajectories (N, 4, 4) at ``timestamps`` (N,) and per-keyframe records.
+
+    ``T_world_cam_estimate``: the smoothed trajectory (every correction, past and future,
+    used). ``T_world_cam_online``: the causal one, what a robot had at each frame: each
+    keyframe as iSAM2 knew it right after its own correction, the frames after it chained
+    with the odometry. ``partial``: the run was stopped before its last frame.
+    """
+
+    timestamps: np.ndarray
+    T_world_cam_estimate: np.ndarray
+    T_world_cam_odometry: np.ndarray
+    T_world_cam_gt: np.ndarray | None
+    keyframes: list[KeyframeRecord]
+    keyframe_indices: list[int]
+    T_world_map: np.ndarray | None = None
+    wall_time_s: float = 0.0
+    T_world_cam_online: np.ndarray | None = None
+    partial: bool = False
+    gnc_outliers: list = field(default_factory=list)
+    gnc_recovered: list = field(default_factory=list)
+    depth_scale: float = 1.0
+    interval_odometry: dict = field(default_factory=dict)
+    corrections: dict = field(default_factory=dict)
+    increments: list = field(default_factory=list)
+    imu_biases: np.ndarray | None = None
+    imu_bias_sigmas: np.ndarray | None = None
+    imu_skipped: list = field(default_factory=list)
+
+    @property
+    def num_accepted(self) -> int:
+        return sum(k.accepted for k in self.keyframes)
+
+    @property
+    def num_rejected(self) -> int:
+        return len(self.keyframes) - self.num_accepted
