@@ -307,30 +307,46 @@ def warp_depth(depth_m: np.ndarray, intrinsics: Intrinsics, T_dst_src: np.ndarra
     s_uv = uv_src[ok][winner].copy()
     out = np.zeros(K_dst.width * K_dst.height)
     out[dst] = zbuf[dst]
+    if iterations <= 0:
+        return out.reshape(K_dst.height, K_dst.width).astype(np.float32)
     target = np.stack([dst % K_dst.width, dst // K_dst.width], axis=1).astype(float)
     H_inv = np.linalg.inv((K_dst.K @ T[:3, :3] @ np.linalg.inv(intrinsics.K))[:2, :2])
     smooth = np.zeros(len(dst), dtype=bool)
+    lookup = _BilinearDepth(depth)
     for _ in range(iterations):
-        z_s, smooth = _bilinear_depth(depth, s_uv)
+        z_s, smooth = lookup.at(s_uv)
         moved = backproject(s_uv, z_s, intrinsics) @ T[:3, :3].T + T[:3, 3]
         uv_now, z_dst = project(moved, K_dst)
         step = (target - uv_now) @ H_inv.T
         s_uv = np.clip(s_uv + np.nan_to_num(step), 0.0, [w - 1.0, h - 1.0])
-    z_s, smooth_end = _bilinear_depth(depth, s_uv)
+    z_s, smooth_end = lookup.at(s_uv)
     z_dst = (backproject(s_uv, z_s, intrinsics) @ T[:3, :3].T + T[:3, 3])[:, 2]
     keep = smooth & smooth_end & (z_dst > 0)
     out[dst[keep]] = z_dst[keep]
     return out.reshape(K_dst.height, K_dst.width).astype(np.float32)
 
 
-def _bilinear_depth(depth: np.ndarray, uv: np.ndarray, edge_rel: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear depth (N,) at sub-pixel ``uv`` (N, 2) and whether its four neighbours are all
-    valid and within ``edge_rel`` of each other (not straddling a depth edge)."""
-    h, w = depth.shape
-    u0 = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 2)
-    v0 = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 2)
-    a, b = uv[:, 0] - u0, uv[:, 1] - v0
-    n = np.stack([depth[v0, u0], depth[v0, u0 + 1], depth[v0 + 1, u0], depth[v0 + 1, u0 + 1]])
-    z = (1 - a) * (1 - b) * n[0] + a * (1 - b) * n[1] + (1 - a) * b * n[2] + a * b * n[3]
-    smooth = (n.min(axis=0) > 0) & (n.max(axis=0) - n.min(axis=0) < edge_rel * n.max(axis=0))
-    return z, smooth
+class _BilinearDepth:
+    """Bilinear lookups into one depth image (H, W): ``at(uv)`` gives the depth (N,) at
+    sub-pixel ``uv`` (N, 2) and whether its four neighbours are all valid and within
+    ``edge_rel`` of each other (not straddling a depth edge). The edge test is computed once
+    per image, so repeated lookups (the sub-pixel refinement's iterations) cost only gathers."""
+
+    def __init__(self, depth: np.ndarray, edge_rel: float = 0.03):
+        self.h, self.w = depth.shape
+        self.flat = np.ascontiguousarray(depth, dtype=np.float64).ravel()
+        d = self.flat.reshape(self.h, self.w)
+        lo = np.minimum(np.minimum(d[:-1, :-1], d[:-1, 1:]), np.minimum(d[1:, :-1], d[1:, 1:]))
+        hi = np.maximum(np.maximum(d[:-1, :-1], d[:-1, 1:]), np.maximum(d[1:, :-1], d[1:, 1:]))
+        self.smooth = ((lo > 0) & (hi - lo < edge_rel * hi)).ravel()  # per 2x2 cell, (H-1)*(W-1)
+
+    def at(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        w = self.w
+        u0 = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, w - 2)
+        v0 = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, self.h - 2)
+        a, b = uv[:, 0] - u0, uv[:, 1] - v0
+        i = v0 * w + u0
+        f = self.flat
+        top = f[i] + a * (f[i + 1] - f[i])
+        bottom = f[i + w] + a * (f[i + w + 1] - f[i + w])
+        return top + b * (bottom - top), self.smooth[v0 * (w - 1) + u0]
