@@ -132,3 +132,13 @@ def test_the_public_names_import_from_the_package_and_its_parts():
     assert callable(pnp_align)
     np.testing.assert_allclose(skew(np.array([1.0, 2.0, 3.0])) @ np.array([4.0, 5.0, 6.0]),
                                np.cross([1.0, 2.0, 3.0], [4.0, 5.0, 6.0]))
+
+
+def test_depth_in_millimetres_is_named_as_such(perturbed_frames):
+    from nap3d_graph import align_views
+
+    field, frames = perturbed_frames
+    frame, _, T_est = frames[0]
+    in_mm = frame.with_depth(frame.depth_m * np.float32(1000.0))
+    a = align_views(in_mm, field.render(T_est, frame.intrinsics))
+    assert not a.success and "looks like millimetres" in a.reason, a.reason
