@@ -90,16 +90,12 @@ class Pipeline:
     # --- steps -----------------------------------------------------------------------------
 
     def _start(self) -> None:
-        params = gtsam.ISAM2Params()
-        # Millimetre corrections: a coarser threshold (GTSAM examples use 0.01) would leave
-        # poses linearised a centimetre away from where the corrections put them. Checking
-        # every 10th update (GTSAM's default skip) keeps an update near a millisecond at
-        # thousands of poses; the run relinearises fully at its end (_finish).
-        params.setRelinearizeThreshold(self.config.relinearize_threshold)
-        params.relinearizeSkip = _RELINEARIZE_SKIP
-        self.isam = gtsam.ISAM2(params)
+        self.isam = gtsam.ISAM2(self._isam_params())
         self.new_factors = gtsam.NonlinearFactorGraph()
         self.new_values = gtsam.Values()
+        # Everything iSAM2 was given, so that it can be rebuilt (see _update_isam).
+        self._graph_all = gtsam.NonlinearFactorGraph()
+        self._values_all = gtsam.Values()
         self.T_odom = [self.odometry.initial_pose()]
         self.increments: list[np.ndarray] = [np.eye(4)]
         self.T_since_kf = np.eye(4)
@@ -336,15 +332,49 @@ class Pipeline:
 
     def _update_isam(self, extra_step: bool = False) -> None:
         t0 = time.perf_counter()
-        self.isam.update(self.new_factors, self.new_values)
-        if extra_step:
-            self.isam.update()
+        self._graph_all.push_back(self.new_factors)
+        self._values_all.insert(self.new_values)
+        try:
+            self.isam.update(self.new_factors, self.new_values)
+            if extra_step:
+                self.isam.update()
+        except RuntimeError as exc:  # gtsam's IndeterminateSystemException, thrown mid-update
+            self._rebuild_isam(str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__)
         # Fresh containers every update: iSAM2 keeps what it was given.
         self.new_factors = gtsam.NonlinearFactorGraph()
         self.new_values = gtsam.Values()
         record = self._pending_record
         if record is not None:
             record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
+
+    def _isam_params(self) -> gtsam.ISAM2Params:
+        params = gtsam.ISAM2Params()
+        # Millimetre corrections: a coarser threshold (GTSAM examples use 0.01) would leave
+        # poses linearised a centimetre away from where the corrections put them. Checking
+        # every 10th update (GTSAM's default skip) keeps an update near a millisecond at
+        # thousands of poses; the run relinearises fully at its end (_finish).
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        params.relinearizeSkip = _RELINEARIZE_SKIP
+        params.setFactorization(getattr(self, "_factorization", "CHOLESKY"))
+        return params
+
+    def _rebuild_isam(self, why: str) -> None:
+        """iSAM2's incremental elimination can fail on a system that is well posed as a whole
+        (seen on the IMU path when a loosely weighted correction at the first keyframe meets
+        the first IMU factor). Its state is then undefined: solve everything it was given in
+        one batch (Levenberg-Marquardt, which damps what is nearly indeterminate) and start a
+        fresh iSAM2 from that solution."""
+        log.warning("iSAM2 update failed (%s); rebuilding it from the %d factors so far", why, self._graph_all.size())
+        initial = gtsam.Values(self._values_all)
+        try:
+            initial.update(self.isam.calculateEstimate())  # the estimate so far, where it has one
+        except RuntimeError:
+            pass  # the failed iSAM2 cannot even give its estimate: start from the initial values
+        solution = gtsam.LevenbergMarquardtOptimizer(self._graph_all, initial).optimize()
+        self._factorization = "QR"  # slower than Cholesky, but stable on ill-conditioned systems
+        self.isam = gtsam.ISAM2(self._isam_params())
+        self.isam.update(self._graph_all, solution)
+        self.isam_rebuilds = getattr(self, "isam_rebuilds", 0) + 1
 
     def _finish_keyframe(self) -> KeyframeRecord | None:
         key = X(len(self.keyframe_indices) - 1)
