@@ -141,9 +141,9 @@ class DenseVisualOdometry:
     (``OdometryType_RGB_DEPTH``, photometric + ICP terms over an image pyramid, as DVO) on the
     frames resized to at most ``max_width`` pixels wide.
 
-    On fr1/desk's second half it drifted 8.1 cm (ATE of the odometry alone) at 20 ms per pair
-    on 320x240, where the SIFT odometry (:class:`VisualOdometry`) drifted 10.3 cm at about
-    200 ms (``benchmarks/results/`` ``vo_fr1_desk.json``). It reports no covariance of its
+    On fr1/desk's second half it drifted about as much as the SIFT odometry
+    (:class:`VisualOdometry`): 8.1 against 7.9 cm ATE of the odometry alone, at 22 ms per
+    pair on 320x240 against 204 ms (``benchmarks/results/vo_fr1_desk.json``). It reports no covariance of its
     own: each step gets ``rot_sigma_rad`` / ``trans_sigma_m``, plus, as the SIFT odometry, its
     disagreement with the constant-velocity prediction. A dense solve can land in a wrong
     minimum without saying so (in the simulator about one step in a hundred moved 10-20 cm

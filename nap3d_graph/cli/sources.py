@@ -37,8 +37,8 @@ def add_source_arguments(p) -> None:
     p.add_argument("--odom", choices=("recorded", "noisy", "vo", "dense", "imu"),
                    help="motion between keyframes: recorded (the sequence's odometry.txt; default for sim), noisy "
                    "(noise injected on ground-truth increments; default for tum), vo (frame-to-frame RGB-D odometry with "
-                   "NAP3D's matcher), dense (OpenCV's dense RGB-D odometry at 320 px wide: camera rate, less drift "
-                   "on fr1/desk) or imu (the sequence's IMU preintegrated into CombinedImuFactors; biases estimated; default for "
+                   "NAP3D's matcher), dense (OpenCV's dense RGB-D odometry at 320 px wide: the camera's rate, about "
+                   "the same drift on fr1/desk) or imu (the sequence's IMU preintegrated into CombinedImuFactors; biases estimated; default for "
                    "a realsense recording with an IMU)")
     p.add_argument("--imu-noise", metavar="'AN GN AW GW'", default=None,
                    help="IMU noise densities: accel m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), accel bias walk m/s^3/sqrt(Hz), "
