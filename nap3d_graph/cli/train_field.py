@@ -26,8 +26,9 @@ def add_parser(sub) -> None:
                    help="grid (default, chosen by measurement: see the README): a voxel-grid radiance field trained "
                    "with torch; splat: surface splats fused from the frames, no training (seconds, not minutes)")
     p.add_argument("--timing", choices=("auto", "none"), default="auto",
-                   help="auto: estimate when depth and colour were captured relative to the poses, and the depth "
-                   "scale, from the data (for recordings with depth stamps and ground truth); none: use the stamps")
+                   help="auto: estimate when depth and colour were captured relative to the poses, from the data "
+                   "(for recordings with depth stamps and ground truth; the depth scale is left to the run's "
+                   "calibration); none: use the stamps")
     p.add_argument("--minutes", type=positive_float, default=5.0,
                    help="grid: optimisation budget in minutes (default 5)")
     p.add_argument("--steps", type=positive_int, default=None,

@@ -1,7 +1,8 @@
 """One entry point for making a field from a posed RGB-D sequence, whatever its type.
 
 ``build_field(sequence, model=...)`` estimates the recording's depth / colour capture
-timing and depth scale (when it has the stamps and ground truth to do so), builds or trains
+timing (when it has the stamps and ground truth to do so; the depth scale stays 1, see
+:mod:`nap3d_graph.datasets.depth_timing`), builds or trains
 the field on the training frames with them, evaluates it on held-out frames at the size the
 pipeline renders at, and records in the field what it was made from (the timestamps it saw,
 the timing) so runs can warn about reuse and compensate real frames the same way.
