@@ -28,6 +28,7 @@ from nap3d_graph.factors import (anchor_prior_factor, chi2_gate_isam2, nap3d_anc
 
 from .camera import Intrinsics
 from .conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T, pose_error
+from .graph_solve import gnc_solve, isam2_params, rebuilt_isam2
 from .nap3d.correct import correct_pose
 from .results import Correction
 
@@ -37,7 +38,6 @@ __all__ = ["PipelineConfig", "Pipeline", "KeyframeRecord", "RunResult", "compose
 
 log = logging.getLogger(__name__)
 
-_RELINEARIZE_SKIP = 10
 
 
 class Pipeline:
@@ -90,7 +90,7 @@ class Pipeline:
     # --- steps -----------------------------------------------------------------------------
 
     def _start(self) -> None:
-        self.isam = gtsam.ISAM2(self._isam_params())
+        self.isam = gtsam.ISAM2(isam2_params(self.config.relinearize_threshold))
         self.new_factors = gtsam.NonlinearFactorGraph()
         self.new_values = gtsam.Values()
         # Everything iSAM2 was given, so that it can be rebuilt (see _update_isam).
@@ -347,33 +347,11 @@ class Pipeline:
         if record is not None:
             record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
 
-    def _isam_params(self) -> gtsam.ISAM2Params:
-        params = gtsam.ISAM2Params()
-        # Millimetre corrections: a coarser threshold (GTSAM examples use 0.01) would leave
-        # poses linearised a centimetre away from where the corrections put them. Checking
-        # every 10th update (GTSAM's default skip) keeps an update near a millisecond at
-        # thousands of poses; the run relinearises fully at its end (_finish).
-        params.setRelinearizeThreshold(self.config.relinearize_threshold)
-        params.relinearizeSkip = _RELINEARIZE_SKIP
-        params.setFactorization(getattr(self, "_factorization", "CHOLESKY"))
-        return params
-
     def _rebuild_isam(self, why: str) -> None:
-        """iSAM2's incremental elimination can fail on a system that is well posed as a whole
-        (seen on the IMU path when a loosely weighted correction at the first keyframe meets
-        the first IMU factor). Its state is then undefined: solve everything it was given in
-        one batch (Levenberg-Marquardt, which damps what is nearly indeterminate) and start a
-        fresh iSAM2 from that solution."""
+        """After a failed iSAM2 update (its state is then undefined): a fresh iSAM2 from
+        everything it was given (:func:`~nap3d_graph.graph_solve.rebuilt_isam2`)."""
         log.warning("iSAM2 update failed (%s); rebuilding it from the %d factors so far", why, self._graph_all.size())
-        initial = gtsam.Values(self._values_all)
-        try:
-            initial.update(self.isam.calculateEstimate())  # the estimate so far, where it has one
-        except RuntimeError:
-            pass  # the failed iSAM2 cannot even give its estimate: start from the initial values
-        solution = gtsam.LevenbergMarquardtOptimizer(self._graph_all, initial).optimize()
-        self._factorization = "QR"  # slower than Cholesky, but stable on ill-conditioned systems
-        self.isam = gtsam.ISAM2(self._isam_params())
-        self.isam.update(self._graph_all, solution)
+        self.isam = rebuilt_isam2(self.isam, self._graph_all, self._values_all, self.config.relinearize_threshold)
         self.isam_rebuilds = getattr(self, "isam_rebuilds", 0) + 1
 
     def _finish_keyframe(self) -> KeyframeRecord | None:
@@ -430,16 +408,7 @@ class Pipeline:
         wrong correction slipped in, the good ones that follow disagree with it); the odometry
         and the priors are known inliers. Accepted corrections it weighs out are recorded in
         ``RunResult.gnc_outliers``, refused ones it takes back in ``gnc_recovered``."""
-        graph = gtsam.NonlinearFactorGraph()
-        for factor, _, _ in self.factor_log:
-            graph.add(factor)
-        params = gtsam.GncLMParams()
-        params.setLossType(gtsam.GncLossType.TLS)
-        params.setKnownInliers([k for k in range(graph.size()) if k not in set(nap3d)])
-        optimizer = gtsam.GncLMOptimizer(graph, estimate, params)
-        optimizer.setInlierCostThresholdsAtProbability(self.config.gnc_p)
-        result = optimizer.optimize()
-        weights = np.asarray(optimizer.getWeights())
+        result, weights = gnc_solve([f for f, _, _ in self.factor_log], estimate, nap3d, self.config.gnc_p)
         accepted = {r.frame_index for r in self.records if r.accepted}
         self.gnc_outliers = [self.factor_log[k][2] for k in nap3d if weights[k] < 0.5
                              and self.factor_log[k][2] in accepted]
