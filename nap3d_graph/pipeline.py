@@ -207,6 +207,8 @@ class Pipeline:
                 correction = again
         if twist is not None and correction.success:
             correction = self._to_frame_stamp(correction, twist)
+        if correction.success and self.config.field_sigma_m > 0:
+            correction = self._with_field_error(correction)
         if correction.success and self.config.depth_scale_check:
             correction = self._check_depth_scale(correction, record)
         if correction.success:
@@ -277,6 +279,14 @@ class Pipeline:
 
         shift = exp_se3(-twist * self._timing()["colour_offset_s"])
         return dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
+
+    def _with_field_error(self, correction: Correction) -> Correction:
+        """The correction with the field's geometric error added to its covariance."""
+        import dataclasses
+
+        s = self.config.field_sigma_m
+        field_cov = np.diag([(s / self.config.field_sigma_depth_m) ** 2] * 3 + [s**2] * 3)
+        return dataclasses.replace(correction, covariance=correction.covariance + field_cov)
 
     def _add_factor(self, factor) -> None:
         self.new_factors.add(factor)

@@ -45,6 +45,13 @@ class PipelineConfig:
         correction that passed the gate (the prediction was uncertain just then) is found
         by its disagreement with the corrections and the odometry around it and weighed
         out (``gnc_p``: each factor's chi-square inlier probability).
+    field_sigma_m, field_sigma_depth_m: the field's own geometric error, added to every
+        correction's covariance (translation ``field_sigma_m`` per axis, rotation
+        ``field_sigma_m / field_sigma_depth_m`` rad): a correction measures the pose in the
+        field's geometry, and a trained field's is centimetres off where the alignment's
+        covariance, which knows only the matches, says millimetres. 0 (the default) adds
+        nothing, as for an exact field. Measured on a simulated room with a trained field:
+        keyframe NEES 112 -> 11 (1 cm) and 6.5 (2 cm), final ATE 1.91 -> 1.80 / 1.77 cm.
     depth_scale_check, depth_scale_tolerance, depth_scale_sigmas, depth_scale_window: every
         correction also measures the real depth's scale against the field's (a similarity
         fit on its inliers). A running estimate (median of the last ``depth_scale_window``
@@ -81,6 +88,8 @@ class PipelineConfig:
     odom_drift_rad_per_rad: float = 0.03
     odom_drift_m_per_s: float = 0.01
     odom_drift_rad_per_s: float = 0.0035
+    field_sigma_m: float = 0.0
+    field_sigma_depth_m: float = 2.0
     max_frames: int | None = None
     progress: bool = False
     align: AlignConfig = field(default_factory=AlignConfig)
@@ -88,6 +97,9 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
+        if not (self.field_sigma_m >= 0 and self.field_sigma_depth_m > 0):
+            raise ValueError(f"field_sigma_m must be >= 0 and field_sigma_depth_m > 0, got {self.field_sigma_m}, "
+                             f"{self.field_sigma_depth_m}")
 
 
 @dataclass
