@@ -1,14 +1,16 @@
-"""Reading field checkpoints safely: ``torch.load(weights_only=True)``, one-line errors."""
+"""Field checkpoints: reading them safely (``torch.load(weights_only=True)``, one-line errors)
+and storing their metadata as JSON."""
 
 from __future__ import annotations
 
+import json
 import pickle
 import zipfile
 from pathlib import Path
 
 from .base import FieldError
 
-__all__ = ["load_state"]
+__all__ = ["load_state", "meta_json"]
 
 
 def load_state(path: Path) -> dict:
@@ -34,3 +36,21 @@ def load_state(path: Path) -> dict:
     if not isinstance(state, dict):
         raise FieldError(f"{path}: not a nap3d-graph field checkpoint")
     return state
+
+
+def meta_json(meta: dict) -> str:
+    """A field's metadata as JSON (numpy scalars and arrays, paths as plain values), as
+    checkpoints store it."""
+    return json.dumps(meta, default=_json_default)
+
+
+def _json_default(value):
+    import numpy as np
+
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot store {type(value).__name__} in checkpoint metadata")

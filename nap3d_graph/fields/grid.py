@@ -45,7 +45,7 @@ import torch.nn.functional as F
 
 
 from .base import FieldError
-from .checkpoint import load_state
+from .checkpoint import load_state, meta_json
 from .grid_render import GridRenderer, RenderConfig, pixel_directions, torch_threads
 
 __all__ = [
@@ -297,7 +297,7 @@ class GridField(GridRenderer):
                            "poses=T_world_cam; grid tensors indexed [z, y, x]; "
                            "sigma_per_m=softplus(raw-shift)/voxel; rgb=sigmoid(raw)",
             "render_config": json.dumps(asdict(self.render_config)),
-            "meta": json.dumps(self.meta, default=_json_default),
+            "meta": meta_json(self.meta),
         }
 
     def save(self, path) -> Path:
@@ -354,13 +354,3 @@ class GridField(GridRenderer):
         nx, ny, nz = self.shape_xyz
         return (f"GridField({nx}x{ny}x{nz} vertices, voxel {self.voxel_size * 100:.1f} cm, colour voxel "
                 f"{self.color_voxel_size * 100:.1f} cm, device={self.device})")
-
-
-def _json_default(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"cannot store {type(value).__name__} in checkpoint metadata")

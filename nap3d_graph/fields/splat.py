@@ -43,7 +43,7 @@ from nap3d_graph.camera import Intrinsics, RenderedView
 from nap3d_graph.conventions import inv_T
 
 from .base import FieldError
-from .checkpoint import load_state
+from .checkpoint import load_state, meta_json
 
 __all__ = ["SplatConfig", "SplatField", "build_splat_field", "SPLAT_FORMAT", "SPLAT_VERSION"]
 
@@ -212,7 +212,7 @@ class SplatField:
                 "config": json.dumps(self.config.to_dict()),
                 "conventions": "units=metres; points in the world frame of the training poses (T_world_cam); "
                                "colours linear in [0, 1] after exposure normalisation",
-                "meta": json.dumps(self.meta, default=_json_default)}
+                "meta": meta_json(self.meta)}
 
     def save(self, path) -> Path:
         path = Path(path)
@@ -249,15 +249,6 @@ class SplatField:
         path = Path(path)
         return cls.from_state_dict(load_state(path), source=str(path))
 
-
-def _json_default(value):
-    if isinstance(value, (np.floating, np.integer)):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"cannot store {type(value).__name__} in checkpoint metadata")
 
 
 # --- building ------------------------------------------------------------------------------------
