@@ -17,7 +17,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from .errors import DatasetError
 
-__all__ = ["ASSOCIATION_METHODS", "GT_MAX_GAP_S", "associate", "estimate_stream_offset", "interpolate_poses"]
+__all__ = ["ASSOCIATION_METHODS", "GT_MAX_GAP_S", "associate", "estimate_stream_offset", "interpolate_poses",
+           "GroundTruthLookup"]
 
 #: Ground truth runs at 100 Hz; a larger hole than this between two poses is a gap.
 GT_MAX_GAP_S = 0.1
@@ -238,3 +239,26 @@ def estimate_stream_offset(stamps_a, stamps_b, max_difference: float = 0.02) -> 
     lead = a - nearest
     lead = lead[np.abs(lead) < max_difference]
     return float(np.median(lead)) if lead.size else 0.0
+
+
+class GroundTruthLookup:
+    """Ground-truth queries shared by the sequence classes. A sequence sets ``T_world_cam_gt``
+    ((N, 4, 4) at its frames, NaN where none; or None) and ``_gt_raw`` (the raw ``(stamps,
+    poses)`` or None)."""
+
+    T_world_cam_gt: np.ndarray | None
+    _gt_raw: tuple[np.ndarray, np.ndarray] | None
+
+    @property
+    def has_gt(self) -> np.ndarray:
+        """(N,) bool: frames with a ground-truth pose (all False without ground truth)."""
+        if self.T_world_cam_gt is None:
+            return np.zeros(len(self), dtype=bool)
+        return np.all(np.isfinite(self.T_world_cam_gt), axis=(1, 2))
+
+    def ground_truth_at(self, stamps) -> np.ndarray | None:
+        """Ground-truth poses (M, 4, 4) interpolated at any times (M,) (NaN outside or in a
+        gap of the ground truth), e.g. at the depth stamps; None without ground truth."""
+        if self._gt_raw is None:
+            return None
+        return interpolate_poses(*self._gt_raw, np.asarray(stamps, dtype=float))

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .association import GroundTruthLookup
 from .errors import DatasetError
 from .frames import parse_frame_range
 
@@ -93,7 +94,7 @@ class RealSenseConfig:
                          self.gravity, T_cam_imu=np.asarray(T_colour_depth) @ self.T_depth_imu)
 
 
-class RealSenseRecording:
+class RealSenseRecording(GroundTruthLookup):
     """A RealSense recording as a sequence (see the module docstring).
 
     path: ``.bag`` / ``.db3``. groundtruth: a TUM file of camera poses (colour camera,
@@ -188,17 +189,6 @@ class RealSenseRecording:
         self._depth_index = self._depth_index[start:stop]
         if self.T_world_cam_gt is not None:
             self.T_world_cam_gt = self.T_world_cam_gt[start:stop]
-
-    @property
-    def has_gt(self) -> np.ndarray:
-        if self.T_world_cam_gt is None:
-            return np.zeros(len(self), dtype=bool)
-        return np.all(np.isfinite(self.T_world_cam_gt), axis=(1, 2))
-
-    def ground_truth_at(self, stamps) -> np.ndarray | None:
-        from .association import interpolate_poses
-
-        return None if self._gt_raw is None else interpolate_poses(*self._gt_raw, np.asarray(stamps, dtype=float))
 
     def __len__(self) -> int:
         return len(self.timestamps)

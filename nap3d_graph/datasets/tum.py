@@ -27,7 +27,8 @@ import numpy as np
 
 from ..camera import CameraError, Intrinsics, RGBDFrame
 from ..conventions import T_to_tum, tum_to_T
-from .association import GT_MAX_GAP_S, ASSOCIATION_METHODS, associate, estimate_stream_offset, interpolate_poses
+from .association import (GT_MAX_GAP_S, ASSOCIATION_METHODS, GroundTruthLookup, associate, estimate_stream_offset,
+                          interpolate_poses)
 from .errors import DatasetError
 from .frames import parse_frame_range
 
@@ -197,7 +198,7 @@ def _resolve_intrinsics(folder: Path, intrinsics) -> Intrinsics:
 # --- sequence -------------------------------------------------------------------------------
 
 
-class TumSequence:
+class TumSequence(GroundTruthLookup):
     """A TUM RGB-D sequence folder, frames loaded lazily.
 
     Colour frames are paired one-to-one with depth frames within ``max_difference`` seconds
@@ -357,20 +358,6 @@ class TumSequence:
                 self.name, missing.size, len(keep), GT_MAX_GAP_S, ", ".join(str(int(i)) for i in missing[:5]),
             )
         self.T_world_cam_gt = T
-
-    @property
-    def has_gt(self) -> np.ndarray:
-        """(N,) bool: frames with a ground-truth pose (all False without ground truth)."""
-        if self.T_world_cam_gt is None:
-            return np.zeros(len(self), dtype=bool)
-        return np.all(np.isfinite(self.T_world_cam_gt), axis=(1, 2))
-
-    def ground_truth_at(self, stamps) -> np.ndarray | None:
-        """Ground-truth poses (M, 4, 4) interpolated at any times (M,) (NaN outside or in a
-        gap of the ground truth), e.g. at the depth stamps; None without ground truth."""
-        if self._gt_raw is None:
-            return None
-        return interpolate_poses(*self._gt_raw, np.asarray(stamps, dtype=float))
 
     def __len__(self) -> int:
         return len(self.timestamps)
