@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import UsageError, add_frames_argument, positive_float, positive_int, warn_trained_frames, writable_dir
+from .common import (add_frames_argument, parse_methods, parse_size, positive_float, positive_int,
+                     warn_trained_frames, writable_dir)
 
 
 def add_parser(sub) -> None:
@@ -40,15 +41,8 @@ def run(args) -> int:
     from nap3d_graph.evaluation.peers import PeersConfig, run_bench_peers
     from nap3d_graph.fields import resolve_field
 
-    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    unknown = [m for m in methods if m not in PEERS]
-    if unknown or not methods:
-        raise UsageError(f"--methods: unknown {unknown or 'empty list'}; choose from {', '.join(PEERS)}")
-    try:
-        size = tuple(int(v) for v in args.render_size.lower().split("x"))
-        assert len(size) == 2 and min(size) > 0
-    except (ValueError, AssertionError):
-        raise UsageError(f"--render-size must be WxH, e.g. 320x240, got {args.render_size!r}") from None
+    methods = parse_methods(args.methods, PEERS)
+    size = parse_size(args.render_size)
     writable_dir(args.out)
     sequence = open_sequence(args.data, frames=args.frames)
     field = resolve_field(args.field, sequence)

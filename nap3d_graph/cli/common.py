@@ -194,3 +194,23 @@ def parse_pose(text: str | None, file: Path | None):
         raise UsageError(f"--initial-pose must be 'tx ty tz qx qy qz qw' (7 finite numbers, a non-zero quaternion), "
                          f"got {text!r}")
     return tum_to_T(values[None])[0]
+
+
+def parse_size(text: str, option: str = "--render-size") -> tuple[int, int]:
+    """``WxH`` (e.g. ``320x240``) as ``(width, height)``, or a one-line :class:`UsageError`."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"{option} must look like 320x240, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise UsageError(f"{option} must be positive, got {text!r}")
+    return w, h
+
+
+def parse_methods(text: str, known) -> tuple[str, ...]:
+    """A comma-separated ``--methods`` list, each one of ``known``, or a one-line error."""
+    methods = tuple(m.strip() for m in text.split(",") if m.strip())
+    unknown = [m for m in methods if m not in known]
+    if unknown or not methods:
+        raise UsageError(f"--methods: unknown {unknown or 'empty list'}; choose from {', '.join(known)}")
+    return methods

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import UsageError, add_frames_argument, positive_int, warn_trained_frames, writable_dir
+from .common import add_frames_argument, parse_methods, positive_int, warn_trained_frames, writable_dir
 
 
 def add_parser(sub) -> None:
@@ -50,10 +50,7 @@ def run(args) -> int:
     from nap3d_graph.evaluation.eval_k import METHODS, EvalKConfig, capture_timing, run_eval_k
     from nap3d_graph.fields import resolve_field
 
-    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    unknown = [m for m in methods if m not in METHODS]
-    if unknown or not methods:
-        raise UsageError(f"--methods: unknown {unknown or 'empty list'}; choose from {', '.join(METHODS)}")
+    methods = parse_methods(args.methods, METHODS)
     writable_dir(args.out)
     if args.iterate and "nap3d-iter" not in methods:
         methods += ("nap3d-iter",)

@@ -6,8 +6,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from .common import (UsageError, add_frames_argument, non_negative_float, parse_pose, positive_float, positive_int,
-                     probability, warn_trained_frames)
+from .common import (UsageError, add_frames_argument, non_negative_float, parse_pose, parse_size, positive_float,
+                     positive_int, probability, warn_trained_frames)
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 
@@ -100,16 +100,6 @@ class Prepared:
 
     def pipeline(self):
         return self.pipeline_class(self.sequence, self.field, self.odometry, self.config)
-
-
-def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"--render-size must look like 320x240, got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise UsageError(f"--render-size must be positive, got {text!r}")
-    return w, h
 
 
 def _timing(args, field_obj, sequence) -> dict | None:
@@ -220,7 +210,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
 
     if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
         raise UsageError("--groundtruth, --realsense-config and --record are for --traj realsense")
-    width, height = _parse_size(args.render_size)
+    width, height = parse_size(args.render_size)
     initial_pose = parse_pose(args.initial_pose, args.initial_pose_file)
     data, field_obj, field_desc, name = _inputs(args)
     extra = {"groundtruth": args.groundtruth, "realsense_config": args.realsense_config} if args.traj == "realsense" \
