@@ -8,8 +8,7 @@ field's frame in the world). Each keyframe first enters iSAM2 with its odometry 
 alone (the prediction); a correction then enters only if it passes the chi-square gate
 against that prediction: the joint marginal covariance of the factor's variables (the pose,
 and the anchor when there is one) carried through the factor's Jacobians, plus the
-correction's own covariance. Frames between keyframes are chained from the nearest keyframe
-with the odometry increments for the output trajectory.
+correction's own covariance. Other frames are chained from a keyframe (``trajectory``).
 
 ``Pipeline.run()`` reads as its steps; no failed correction stops a run or reaches the graph.
 """
@@ -29,6 +28,7 @@ from nap3d_graph.factors import (anchor_prior_factor, chi2_gate_isam2, nap3d_anc
 from .camera import Intrinsics
 from .conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T, pose_error
 from .graph_solve import gnc_solve, isam2_params, rebuilt_isam2
+from .trajectory import chain_forward, chain_from_nearest_keyframe
 from .nap3d.correct import correct_pose
 from .results import Correction
 
@@ -169,7 +169,7 @@ class Pipeline:
             self.new_values.insert(X(0), T_to_pose3(T0))
             self.T_pred = T0
         else:
-            cov = self.cov_since_kf + self._drift_covariance(self.T_since_kf, self.dt_since_kf)
+            cov = self.cov_since_kf + self.config.drift_covariance(self.T_since_kf, self.dt_since_kf)
             self._add_factor(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
             self.interval_odometry[i] = (self.T_since_kf.copy(), cov.copy())
             self.T_pred = self.T_last_kf_est @ self.T_since_kf
@@ -431,46 +431,12 @@ class Pipeline:
         return result
 
     def _chain_between_keyframes(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
-        """Every frame's pose: keyframes from the graph, the others chained from the nearest
-        keyframe with the odometry increments (forwards or backwards)."""
-        kf = np.array(self.keyframe_indices)
-        T = np.empty((n, 4, 4))
-        for i in range(n):
-            k = int(kf[np.argmin(np.abs(kf - i))])
-            pose = T_kf[k]
-            if i > k:
-                for m in range(k + 1, i + 1):
-                    pose = pose @ self.increments[m]
-            elif i < k:
-                for m in range(k, i, -1):
-                    pose = pose @ inv_T(self.increments[m])
-            T[i] = pose
-        return T
+        """Every frame's pose from the keyframes' (the IMU path predicts with the IMU instead)."""
+        return chain_from_nearest_keyframe(T_kf, self.increments, n)
 
     def _chain_forward(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
-        """Causal poses: each frame chained forward from the latest keyframe at or before it."""
-        T = np.empty((n, 4, 4))
-        latest = None
-        for i in range(n):
-            if i in T_kf:
-                latest, pose = i, T_kf[i]
-            elif latest is None:
-                pose = self.T_odom[i]
-            else:
-                pose = pose @ self.increments[i]
-            T[i] = pose
-        return T
-
-    def _drift_covariance(self, T_prev_cur: np.ndarray, dt_s: float) -> np.ndarray:
-        """Diagonal covariance of the odometry's bias-like drift over one keyframe interval:
-        sigmas growing with the distance, the angle and the time (``dt_s`` seconds)."""
-        distance_m, angle_deg = pose_error(T_prev_cur, np.eye(4))
-        c = self.config
-        rot = c.odom_drift_rad_per_m * distance_m + c.odom_drift_rad_per_rad * np.radians(angle_deg)
-        trans = c.odom_drift_fraction * distance_m
-        rot_var = rot**2 + (c.odom_drift_rad_per_s * dt_s) ** 2
-        trans_var = trans**2 + (c.odom_drift_m_per_s * dt_s) ** 2
-        return np.diag([rot_var] * 3 + [trans_var] * 3)
+        """The causal poses from the keyframes' as they were known at the time."""
+        return chain_forward(T_kf, self.increments, self.T_odom, n)
 
     def _render_intrinsics(self, frame) -> Intrinsics:
         w, h = self.config.render_width, self.config.render_height

@@ -101,6 +101,18 @@ class PipelineConfig:
             raise ValueError(f"field_sigma_m must be >= 0 and field_sigma_depth_m > 0, got {self.field_sigma_m}, "
                              f"{self.field_sigma_depth_m}")
 
+    def drift_covariance(self, T_prev_cur: np.ndarray, dt_s: float) -> np.ndarray:
+        """Diagonal covariance (6, 6) of the odometry's bias-like drift over one keyframe
+        interval: sigmas growing with the distance, the angle and the time (``dt_s`` seconds)."""
+        from .conventions import pose_error
+
+        distance_m, angle_deg = pose_error(T_prev_cur, np.eye(4))
+        rot = self.odom_drift_rad_per_m * distance_m + self.odom_drift_rad_per_rad * np.radians(angle_deg)
+        trans = self.odom_drift_fraction * distance_m
+        rot_var = rot**2 + (self.odom_drift_rad_per_s * dt_s) ** 2
+        trans_var = trans**2 + (self.odom_drift_m_per_s * dt_s) ** 2
+        return np.diag([rot_var] * 3 + [trans_var] * 3)
+
 
 @dataclass
 class KeyframeRecord:

@@ -1,0 +1,45 @@
+"""Whole trajectories from keyframe poses and the odometry's frame-to-frame increments."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .conventions import inv_T
+
+__all__ = ["chain_from_nearest_keyframe", "chain_forward"]
+
+
+def chain_from_nearest_keyframe(T_kf: dict[int, np.ndarray], increments: list[np.ndarray], n: int) -> np.ndarray:
+    """Every frame's pose (n, 4, 4): keyframes (``{frame: T_world_cam}``) as given, the others
+    chained from the nearest keyframe with the increments (``increments[i]`` = T_prev_cur of
+    frame i), forwards or backwards."""
+    kf = np.array(sorted(T_kf))
+    T = np.empty((n, 4, 4))
+    for i in range(n):
+        k = int(kf[np.argmin(np.abs(kf - i))])
+        pose = T_kf[k]
+        if i > k:
+            for m in range(k + 1, i + 1):
+                pose = pose @ increments[m]
+        elif i < k:
+            for m in range(k, i, -1):
+                pose = pose @ inv_T(increments[m])
+        T[i] = pose
+    return T
+
+
+def chain_forward(T_kf: dict[int, np.ndarray], increments: list[np.ndarray], T_before: list[np.ndarray],
+                  n: int) -> np.ndarray:
+    """Causal poses (n, 4, 4): each frame chained forward from the latest keyframe at or
+    before it; ``T_before[i]`` (the odometry) where no keyframe came yet."""
+    T = np.empty((n, 4, 4))
+    latest = None
+    for i in range(n):
+        if i in T_kf:
+            latest, pose = i, T_kf[i]
+        elif latest is None:
+            pose = T_before[i]
+        else:
+            pose = pose @ increments[i]
+        T[i] = pose
+    return T
