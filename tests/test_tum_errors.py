@@ -1,0 +1,190 @@
+"""TUM RGB-D reader and trajectory files under bad input: every mistake a one-line
+DatasetError that names the file, or a warning that says what was left out."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from nap3d_graph.camera import Intrinsics
+from nap3d_graph.datasets import DatasetError, TumSequence, read_tum_trajectory, write_tum_trajectory
+
+from conftest import TUM_FR1_XYZ
+
+TUM_DIR = TUM_FR1_XYZ
+
+
+def small_copy(tmp_path: Path, frames: int = 4, name: str = "rgbd_dataset_freiburg1_xyz") -> Path:
+    """First ``frames`` colour and depth frames of fr1/xyz in TUM's layout, writable."""
+    out = tmp_path / name
+    (out / "rgb").mkdir(parents=True)
+    (out / "depth").mkdir()
+    for list_name in ("rgb.txt", "depth.txt"):
+        lines = (TUM_DIR / list_name).read_text().splitlines()
+        header = [line for line in lines if line.startswith("#")]
+        data = [line for line in lines if line and not line.startswith("#")][:frames]
+        (out / list_name).write_text("\n".join(header + data) + "\n")
+        for line in data:
+            rel = line.split()[1]
+            shutil.copyfile(TUM_DIR / rel, out / rel)
+    shutil.copyfile(TUM_DIR / "groundtruth.txt", out / "groundtruth.txt")
+    return out
+
+
+def test_write_refuses_bad_poses(tmp_path):
+    path = tmp_path / "bad.txt"
+    with pytest.raises(DatasetError, match="bad.txt"):
+        write_tum_trajectory(path, [0.0], np.full((1, 4, 4), np.nan))
+    with pytest.raises(DatasetError, match="bad.txt"):
+        write_tum_trajectory(path, [0.0, 1.0], np.eye(4)[None])
+
+
+def test_read_trajectory_errors(tmp_path):
+    path = tmp_path / "traj.txt"
+    path.write_text("# header\n0.0 0 0 0 0 0 0 1\n1.0 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"traj\.txt:3: expected 8 columns"):
+        read_tum_trajectory(path)
+    path.write_text("0.0 0 0 0 0 0 0 x\n")
+    with pytest.raises(DatasetError, match=r"traj\.txt:1: 'x' is not a number"):
+        read_tum_trajectory(path)
+    path.write_text("0.0 0 0 0 0 0 0 0\n")
+    with pytest.raises(DatasetError, match="zero norm"):
+        read_tum_trajectory(path)
+    path.write_text("# only a comment\n")
+    with pytest.raises(DatasetError, match="no poses"):
+        read_tum_trajectory(path)
+    with pytest.raises(DatasetError, match="missing.txt"):
+        read_tum_trajectory(tmp_path / "missing.txt")
+
+
+# --- intrinsics resolution --------------------------------------------------------------------
+
+
+def test_intrinsics_resolution(tmp_path, caplog):
+    fr1_copy = small_copy(tmp_path / "a")
+    custom = Intrinsics(500.0, 501.0, 320.0, 240.0, 640, 480)
+    assert TumSequence(fr1_copy, intrinsics=custom).intrinsics == custom
+    assert TumSequence(fr1_copy, intrinsics=custom.to_dict()).intrinsics == custom
+    (fr1_copy / "intrinsics.json").write_text(json.dumps(custom.to_dict()))
+    from_json = TumSequence(fr1_copy)
+    assert from_json.intrinsics == custom and from_json[0].intrinsics == custom
+    (fr1_copy / "intrinsics.json").write_text('{"fx": 1}')
+    with pytest.raises(DatasetError, match=r"intrinsics\.json"):
+        TumSequence(fr1_copy)
+
+    fr3 = small_copy(tmp_path / "b", name="rgbd_dataset_freiburg3_office")
+    assert TumSequence(fr3).intrinsics == Intrinsics(535.4, 539.2, 320.1, 247.6, 640, 480)
+    fr2 = small_copy(tmp_path / "c", name="rgbd_dataset_freiburg2_desk")
+    fr2_distortion = (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)
+    assert TumSequence(fr2).raw_intrinsics.distortion == pytest.approx(fr2_distortion)
+
+    unnamed = small_copy(tmp_path / "d", name="my_recording")
+    with caplog.at_level(logging.WARNING, logger="nap3d_graph.datasets.tum"):
+        default = TumSequence(unnamed)
+    assert default.intrinsics == Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
+    assert "default camera" in caplog.text
+
+
+# --- bad input --------------------------------------------------------------------------------
+
+
+def test_missing_folder_and_lists(tmp_path):
+    with pytest.raises(DatasetError, match="nowhere"):
+        TumSequence(tmp_path / "nowhere")
+    folder = small_copy(tmp_path)
+    (folder / "rgb.txt").unlink()
+    with pytest.raises(DatasetError, match=r"rgb\.txt: file not found"):
+        TumSequence(folder)
+    folder = small_copy(tmp_path / "b")
+    (folder / "depth.txt").unlink()
+    with pytest.raises(DatasetError, match=r"depth\.txt: file not found"):
+        TumSequence(folder)
+
+
+def test_missing_image_file(tmp_path):
+    folder = small_copy(tmp_path)
+    seq = TumSequence(folder)
+    seq.rgb_paths[1].unlink()
+    # The sequence still opens (a run can skip the frame); reading that frame names the file.
+    again = TumSequence(folder)
+    assert again.missing_images == [seq.rgb_paths[1]]
+    again[0]
+    with pytest.raises(DatasetError, match=re.escape(seq.rgb_paths[1].name) + ".*not found"):
+        again[1]
+    for p in (*seq.rgb_paths, *seq.depth_paths):
+        p.unlink(missing_ok=True)
+    with pytest.raises(DatasetError, match="none of the listed images exist"):
+        TumSequence(folder)
+
+
+def test_corrupt_png(tmp_path):
+    seq = TumSequence(small_copy(tmp_path))
+    seq.rgb_paths[0].write_bytes(b"\x89PNG garbage, not an image" * 10)
+    with pytest.raises(DatasetError, match=re.escape(seq.rgb_paths[0].name) + ".*corrupt"):
+        seq[0]
+    seq.depth_paths[1].write_bytes(os.urandom(500))
+    with pytest.raises(DatasetError, match=re.escape(seq.depth_paths[1].name)):
+        seq[1]
+
+
+def test_depth_of_wrong_size_or_type(tmp_path):
+    seq = TumSequence(small_copy(tmp_path))
+    cv2.imwrite(str(seq.depth_paths[0]), np.full((240, 320), 5000, np.uint16))
+    with pytest.raises(DatasetError, match=re.escape(seq.depth_paths[0].name) + ".*320x240"):
+        seq[0]
+    cv2.imwrite(str(seq.depth_paths[1]), np.full((480, 640), 50, np.uint8))
+    with pytest.raises(DatasetError, match=re.escape(seq.depth_paths[1].name) + ".*uint16"):
+        seq[1]
+
+
+def test_timestamps_that_never_associate(tmp_path):
+    folder = small_copy(tmp_path)
+    lines = []
+    for line in (folder / "depth.txt").read_text().splitlines():
+        if line.startswith("#"):
+            lines.append(line)
+        else:
+            stamp, name = line.split()
+            lines.append(f"{float(stamp) + 10.0:.6f} {name}")
+    (folder / "depth.txt").write_text("\n".join(lines) + "\n")
+    with pytest.raises(DatasetError, match=r"depth\.txt: no depth timestamp within 0\.02 s"):
+        TumSequence(folder)
+
+
+def test_malformed_list_line(tmp_path):
+    folder = small_copy(tmp_path)
+    with open(folder / "rgb.txt", "a") as f:
+        f.write("not-a-stamp rgb/x.png\n")
+    with pytest.raises(DatasetError, match=r"rgb\.txt:8: 'not-a-stamp' is not a number"):
+        TumSequence(folder)
+
+
+def test_ground_truth_outside_frames(tmp_path, caplog):
+    folder = small_copy(tmp_path, frames=8)
+    full = TumSequence(folder)
+    # Keep only ground truth up to the middle of the frames: the later frames stay in the
+    # sequence (a run still runs them), with no pose to compare with, and a warning says so.
+    cut = full.timestamps[3] + 0.02  # past frame 3 (GT every 10 ms), before frame 4 (+33 ms)
+    lines = (folder / "groundtruth.txt").read_text().splitlines()
+    kept = [line for line in lines if line.startswith("#") or float(line.split()[0]) <= cut]
+    (folder / "groundtruth.txt").write_text("\n".join(kept) + "\n")
+    with caplog.at_level(logging.WARNING, logger="nap3d_graph.datasets.tum"):
+        partial = TumSequence(folder)
+    assert len(partial) == len(full) and np.array_equal(partial.timestamps, full.timestamps)
+    assert partial.has_gt.tolist() == [True] * 4 + [False] * (len(full) - 4)
+    assert np.all(np.isnan(partial.T_world_cam_gt[4:])) and np.allclose(partial.T_world_cam_gt[:4], full.T_world_cam_gt[:4])
+    assert "4 of 8 frames have no ground truth" in caplog.text and "frames 4, 5, 6, 7" in caplog.text
+    assert partial.rgb_line_index.tolist() == list(range(8))
+    (folder / "groundtruth.txt").write_text("1.0 0 0 0 0 0 0 1\n2.0 0 0 0 0 0 0 1\n")
+    with pytest.raises(DatasetError, match=r"groundtruth\.txt: ground truth covers none"):
+        TumSequence(folder)
+    (folder / "groundtruth.txt").unlink()
+    assert TumSequence(folder).T_world_cam_gt is None
