@@ -24,6 +24,7 @@ from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence
 from nap3d_graph.odometry import make_odometry
 from nap3d_graph.pipeline import Pipeline, PipelineConfig
+from nap3d_graph.sims.faults import ScaledDepth
 from nap3d_graph.sims.sensors import OdometryNoise
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
@@ -34,24 +35,6 @@ CONFIG = PipelineConfig(keyframe_every=3, render_width=None, render_height=None,
 def ate(result) -> float:
     return float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in
                                   zip(result.T_world_cam_estimate, result.T_world_cam_gt)])))
-
-
-class ScaledDepth:
-    """A sequence whose frames ``i`` have their depth multiplied by ``factors[i]``."""
-
-    def __init__(self, sequence, factors: dict[int, float]):
-        self._sequence, self._factors = sequence, factors
-
-    def __getattr__(self, name):
-        return getattr(self._sequence, name)
-
-    def __len__(self):
-        return len(self._sequence)
-
-    def __getitem__(self, i):
-        frame = self._sequence[i]
-        factor = self._factors.get(int(i), 1.0)
-        return frame if factor == 1.0 else frame.with_depth(frame.depth_m * np.float32(factor))
 
 
 def _run(seq, hook=None, sequence=None):

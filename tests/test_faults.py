@@ -14,6 +14,7 @@ from nap3d_graph.datasets import SimSequence
 from nap3d_graph.odometry import make_odometry
 from nap3d_graph.pipeline import Pipeline, PipelineConfig
 from nap3d_graph.results import Correction
+from nap3d_graph.sims.faults import ScaledDepth
 from nap3d_graph.sims.sensors import OdometryNoise
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
@@ -38,24 +39,6 @@ def walk(tmp_path_factory):
 @pytest.fixture(scope="module")
 def clean(walk):
     return Pipeline(walk, walk.oracle_field(), make_odometry("recorded", walk), CONFIG).run()
-
-
-class ScaledDepth:
-    """The walk with some frames' depth multiplied by a factor (a sensor's metre off)."""
-
-    def __init__(self, sequence, factors: dict[int, float]):
-        self._sequence, self._factors = sequence, factors
-
-    def __getattr__(self, name):
-        return getattr(self._sequence, name)
-
-    def __len__(self):
-        return len(self._sequence)
-
-    def __getitem__(self, i):
-        frame = self._sequence[i]
-        factor = self._factors.get(int(i), 1.0)
-        return frame if factor == 1.0 else frame.with_depth(frame.depth_m * np.float32(factor))
 
 
 def test_wrong_corrections_do_not_move_the_trajectory(walk, clean):
