@@ -18,8 +18,10 @@ from ..results import Alignment
 
 from .dense_rgbd import DenseRgbdConfig, dense_rgbd_align
 from .gicp import GicpConfig, gicp_align
+from .photometric import PhotometricConfig, photometric_align
 
-__all__ = ["PEERS", "run_peers", "gicp_align", "GicpConfig", "dense_rgbd_align", "DenseRgbdConfig"]
+__all__ = ["PEERS", "run_peers", "gicp_align", "GicpConfig", "dense_rgbd_align", "DenseRgbdConfig",
+           "photometric_align", "PhotometricConfig"]
 
 #: name -> what it is
 PEERS = {
@@ -29,14 +31,16 @@ PEERS = {
     "pnp-ransac": "PnP-RANSAC + LM on the same matches (rendered 3D, real 2D)",
     "gicp": "dense generalized ICP between the rendered and the real depth (small_gicp)",
     "dense-rgbd": "dense direct RGB-D alignment (OpenCV cv2.Odometry RGB_DEPTH, as DVO)",
+    "photometric": "iNeRF: the pose refined by Adam on the colour error through the differentiable grid field",
 }
 
 
 def run_peers(real: RGBDFrame, view: RenderedView, methods=tuple(PEERS), field=None,
               T_world_cam_est: np.ndarray | None = None, align_config=None) -> tuple[dict[str, Alignment], object]:
     """Every method of ``methods`` on one frame: ``({name: Alignment}, correspondences)``
-    (the shared SIFT correspondences, or None when matching failed). ``nap3d-iter`` needs
-    ``field`` and ``T_world_cam_est`` (it re-renders)."""
+    (the shared SIFT correspondences, or None when matching failed). ``nap3d-iter`` and
+    ``photometric`` need ``field`` and ``T_world_cam_est`` (they re-render; the photometric
+    peer needs a differentiable :class:`~nap3d_graph.fields.grid.GridField`)."""
     from ..nap3d.config import AlignConfig
     from ..nap3d.align import align_correspondences, prepare_correspondences
     from .pnp import pnp_from_correspondences
@@ -62,6 +66,11 @@ def run_peers(real: RGBDFrame, view: RenderedView, methods=tuple(PEERS), field=N
             result.timings_s["total"] = shared_s + time.perf_counter() - t0
         elif name == "nap3d-iter":
             result = _iterated(real, field, T_world_cam_est, align_config)
+            result.timings_s["total"] = time.perf_counter() - t0
+        elif name == "photometric":
+            result = (Alignment.failure("the photometric peer needs the field and the believed pose", method=name)
+                      if field is None or T_world_cam_est is None
+                      else _safe(lambda: photometric_align(real, view, field, T_world_cam_est), name))
             result.timings_s["total"] = time.perf_counter() - t0
         else:
             run = gicp_align if name == "gicp" else dense_rgbd_align

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import (add_frames_argument, parse_methods, parse_size, positive_float, positive_int,
+from .common import (UsageError, add_frames_argument, parse_methods, parse_size, positive_float, positive_int,
                      warn_trained_frames, writable_dir)
 
 
@@ -28,7 +28,8 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--max-trans", type=positive_float, default=0.10, help="perturbation per axis, m (default 0.10)")
     p.add_argument("--max-rot", type=positive_float, default=5.0, help="perturbation angle, deg (default 5)")
-    p.add_argument("--methods", default=",".join(PEERS), help=f"comma-separated (default all: {','.join(PEERS)})")
+    p.add_argument("--methods", default=None, help=f"comma-separated (default: all that apply to the field, of "
+                   f"{','.join(PEERS)}; photometric needs a trained grid field)")
     p.add_argument("--render-size", default="320x240", help="WxH of the render and the real frame (default 320x240)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.set_defaults(func=run)
@@ -40,12 +41,19 @@ def run(args) -> int:
     from nap3d_graph.evaluation.eval_k import capture_timing
     from nap3d_graph.evaluation.peers import PeersConfig, run_bench_peers
     from nap3d_graph.fields import resolve_field
+    from nap3d_graph.fields.grid import GridField
 
-    methods = parse_methods(args.methods, PEERS)
+    methods = parse_methods(args.methods or ",".join(PEERS), PEERS)
     size = parse_size(args.render_size)
     writable_dir(args.out)
     sequence = open_sequence(args.data, frames=args.frames)
     field = resolve_field(args.field, sequence)
+    if "photometric" in methods and not isinstance(field, GridField):
+        if args.methods:
+            raise UsageError(f"--methods photometric needs a trained grid field (it differentiates the field); "
+                             f"{args.field!r} is a {getattr(field, 'name', type(field).__name__)} field")
+        methods = tuple(m for m in methods if m != "photometric")
+        print(f"photometric peer left out: it needs a differentiable grid field, not {args.field!r}")
     warn_trained_frames(field, sequence.timestamps, "frames the trials are drawn from")
     config = PeersConfig(trials=args.trials, seed=args.seed, max_trans_m=args.max_trans, max_rot_deg=args.max_rot,
                          render_size=size, methods=methods, timing=capture_timing(field, sequence))

@@ -35,7 +35,8 @@ class PeersConfig:
     max_trans_m: float = 0.10
     max_rot_deg: float = 5.0
     render_size: tuple[int, int] | None = (320, 240)
-    methods: tuple[str, ...] = ("nap3d-plain", "nap3d-refined", "nap3d-iter", "pnp-ransac", "gicp", "dense-rgbd")
+    methods: tuple[str, ...] = ("nap3d-plain", "nap3d-refined", "nap3d-iter", "pnp-ransac", "gicp", "dense-rgbd",
+                                "photometric")
     timing: dict | None = None
 
 
