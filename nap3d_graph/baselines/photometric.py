@@ -106,7 +106,7 @@ def _interest_pixels(real: RGBDFrame, view: RenderedView, config: PhotometricCon
     h, w = gray.shape
     mask = np.zeros((h, w), np.uint8)
     for kp in keypoints:
-        u, v = int(round(kp.pt[0])), int(round(kp.pt[1]))
+        u, v = round(kp.pt[0]), round(kp.pt[1])
         if 0 <= u < w and 0 <= v < h:
             mask[v, u] = 1
     size = 2 * config.dilate_px + 1
@@ -186,7 +186,6 @@ def _optimise(real: RGBDFrame, field, T_world_cam_est: np.ndarray, uv: np.ndarra
 def _volume_render(field, points: torch.Tensor, dirs: torch.Tensor, dt: float, t: torch.Tensor):
     """Colour (N, 3), opacity (N,) and expected z-depth (N,) of rays with sample points
     ``points`` (N, S, 3) local metres at z-depths ``t`` (N, S), spacing ``dt``."""
-    n, s, _ = points.shape
     sigma = field.sigma_from_raw(field.raw_density_local(points))
     tau = sigma * dt * dirs.norm(dim=-1, keepdim=True)
     trans = torch.exp(-(torch.cumsum(tau, dim=1) - tau))
