@@ -79,6 +79,10 @@ class ImuPipeline(Pipeline):
     def _odometry_needs_frames(self) -> bool:
         return False
 
+    def _overlapping(self) -> bool:
+        # The IMU keyframe state (nav_kf, bias_kf) is taken right after each correction.
+        return False
+
     def _predict(self, t_from: float, nav: gtsam.NavState, bias, t_to: float) -> gtsam.NavState:
         if t_to <= t_from:
             return nav
@@ -174,7 +178,7 @@ class ImuPipeline(Pipeline):
             states.append((float(self.sequence.timestamps[idx]), nav, estimate.atConstantBias(B(j))))
         return self._frames_from_states(states, n)
 
-    def _chain_forward(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
+    def _chain_forward(self, n: int) -> np.ndarray:
         return self._frames_from_states(self.kf_states, n)
 
     def _final_estimate(self) -> gtsam.Values:

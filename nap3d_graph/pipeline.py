@@ -28,8 +28,8 @@ from nap3d_graph.factors import (anchor_prior_factor, chi2_gate_isam2, nap3d_anc
 from .camera import Intrinsics
 from .conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T, pose_error
 from .graph_solve import gnc_solve, isam2_params, rebuilt_isam2
-from .trajectory import chain_forward, chain_from_nearest_keyframe
-from .nap3d.correct import correct_pose
+from .trajectory import chain_from_nearest_keyframe
+from .keyframe_correction import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
 from .results import Correction
 
 from .pipeline_config import KeyframeRecord, PipelineConfig, RunResult
@@ -69,19 +69,33 @@ class Pipeline:
         self._start()
         n = len(self.sequence) if self.config.max_frames is None else min(len(self.sequence), self.config.max_frames)
         done, partial = n, False
-        for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
-            if stop is not None and stop():
-                done, partial = i, True
-                break
-            frame = self._read_frame(i) if self._odometry_needs_frames() else None
-            if i > 0:
-                self._propagate_odometry(i, frame)
-            if self._is_keyframe(i):
-                self._add_keyframe(i)
-                self._correct_keyframe(i, frame if frame is not None else self._read_frame(i))
-                record = self._finish_keyframe()
-                if on_keyframe is not None and record is not None:
-                    on_keyframe(record)
+        worker = CorrectionWorker(self.field, self.config) if self._overlapping() else None
+        try:
+            for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
+                if stop is not None and stop():
+                    done, partial = i, True
+                    break
+                frame = self._read_frame(i) if self._odometry_needs_frames() else None
+                if i > 0:
+                    self._propagate_odometry(i, frame)
+                if worker is not None and (worker.ready() or (worker.busy and self._is_keyframe(i))):
+                    self._land(worker, on_keyframe)  # a late correction enters the graph now
+                if self._is_keyframe(i):
+                    self._add_keyframe(i)
+                    frame = frame if frame is not None else self._read_frame(i)
+                    if worker is not None:
+                        self._launch(worker, i, frame)
+                    else:
+                        self._correct_keyframe(i, frame)
+                        record = self._finish_keyframe()
+                        if on_keyframe is not None and record is not None:
+                            on_keyframe(record)
+                self._online.append(self.T_last_kf_est @ self.T_since_kf)
+            if worker is not None and worker.busy:
+                self._land(worker, on_keyframe)
+        finally:
+            if worker is not None:
+                worker.close()
         result = self._finish(max(done, 1))
         result.partial = partial
         result.wall_time_s = time.perf_counter() - t_start
@@ -104,14 +118,13 @@ class Pipeline:
         self.keyframe_indices: list[int] = []
         self.records: list[KeyframeRecord] = []
         self.T_last_kf_est: np.ndarray | None = None
-        self.T_online_kf: list[np.ndarray] = []  # each keyframe as known right after its correction
         self.T_pred = self.T_odom[0]
         self._pending_record: KeyframeRecord | None = None
+        self._online: list[np.ndarray] = []  # each frame's pose as known at that frame (causal)
         self._trained = self._trained_timestamps()
         self.factor_log: list[tuple[gtsam.NonlinearFactor, bool, int]] = []  # (factor, is NAP3D, keyframe)
         timing = self._timing() or {}
-        self.depth_scale = float(timing.get("depth_scale", 1.0))
-        self.depth_scale_observations: list[float] = []
+        self.depth_scale = DepthScaleTracker(float(timing.get("depth_scale", 1.0)), self.config)
         # The measurement stream, for estimators compared on the same inputs
         # (nap3d_graph.estimators): each keyframe interval's odometry as its factor has it,
         # and every successful correction (gated out or not) with its covariance.
@@ -182,35 +195,55 @@ class Pipeline:
         self._update_isam()
 
     def _correct_keyframe(self, i: int, frame) -> None:
+        """Measure the pending keyframe's correction and give it to the graph, now."""
+        job = self._job(i, frame)
+        if job is not None:
+            self._apply_correction(self._pending_record, i, measure_keyframe(job, self.field, self.config),
+                                   job.T_render)
+
+    def _job(self, i: int, frame) -> KeyframeJob | None:
+        """What measuring keyframe i needs, or None (the reason recorded) when it cannot be."""
         record = self._pending_record
         if self.field is None:
             record.reason = "no field"
-            return
+            return None
         if frame is None:
             record.reason = f"frame unreadable: {getattr(self, '_frame_error', 'unknown error')}"
-            return
+            return None
         T_render = self.T_pred
         if self.config.use_anchor:
             T_render = inv_T(self._anchor_estimate()) @ self.T_pred  # the field's frame
-        frame, twist = self._at_colour_time(i, frame)
-        correction = correct_pose(frame, self.field, T_render, iterations=self.config.correction_iterations,
-                                  config=self.config.align, render_intrinsics=self._render_intrinsics(frame))
-        scale = correction.alignment.diagnostics.get("depth_scale", float("nan")) if correction.success else np.nan
-        if self.config.depth_scale_check and np.isfinite(scale) and abs(scale - 1.0) > self.config.align.scale_tolerance:
-            # The frame's depth is not in the field's metre: a rigid fit keeps only one depth
-            # band of it. Align again with the depth rescaled (the scale is kept for the check).
-            rescaled = frame.with_depth(frame.depth_m / np.float32(scale))
-            again = correct_pose(rescaled, self.field, T_render, iterations=self.config.correction_iterations,
-                                 config=self.config.align, render_intrinsics=self._render_intrinsics(frame))
-            if again.success:
-                again.alignment.diagnostics["depth_scale"] = scale * again.alignment.diagnostics.get("depth_scale", 1.0)
-                correction = again
-        if twist is not None and correction.success:
-            correction = self._to_frame_stamp(correction, twist)
-        if correction.success and self.config.field_sigma_m > 0:
-            correction = self._with_field_error(correction)
+        return KeyframeJob(i, frame, T_render, self._velocity(i), self._timing(), self.depth_scale.scale,
+                           self._render_intrinsics(frame))
+
+    def _launch(self, worker: CorrectionWorker, i: int, frame) -> None:
+        """Overlapped run: hand keyframe i's measurement to the worker and go on; until it
+        lands, the keyframe is known by its prediction."""
+        record, job = self._pending_record, self._job(i, frame)
+        self._pending_record = None
+        self.T_last_kf_est = pose3_to_T(self.isam.calculateEstimatePose3(record.key))
+        if job is None:
+            self.records.append(record)
+            return
+        record.timings_s["launched_frame"] = i
+        worker.submit((record, job.T_render), job)
+
+    def _land(self, worker: CorrectionWorker, on_keyframe) -> None:
+        """Overlapped run: the measurement in flight (waited for if need be) enters the graph
+        at its keyframe, and the latest keyframe's estimate is refreshed."""
+        (record, T_render), correction, waited_s = worker.take()
+        self._apply_correction(record, record.frame_index, correction, T_render)
+        record.timings_s["wait"] = round(waited_s, 5)
+        record.timings_s["landed_frame"] = len(self.T_odom) - 1
+        self.T_last_kf_est = pose3_to_T(self.isam.calculateEstimatePose3(X(len(self.keyframe_indices) - 1)))
+        self.records.append(record)
+        if on_keyframe is not None:
+            on_keyframe(record)
+
+    def _apply_correction(self, record: KeyframeRecord, i: int, correction: Correction, T_render) -> None:
+        """The graph half: depth-scale check, gate, factor (see the module docstring)."""
         if correction.success and self.config.depth_scale_check:
-            correction = self._check_depth_scale(correction, record)
+            correction = self.depth_scale.check(correction, record)
         if correction.success:
             self.measured_corrections[i] = (np.array(correction.T_world_cam_corrected), np.array(correction.covariance))
         if self.correction_hook is not None:
@@ -237,7 +270,10 @@ class Pipeline:
         self.factor_log.append((self._gaussian_twin(record.key, correction), True, i))
         record.accepted = True
         # Two iSAM2 steps: a correction can move the pose a long way from its linearisation.
-        self._update_isam(extra_step=True)
+        self._update_isam(extra_step=True, record=record)
+
+    def _overlapping(self) -> bool:
+        return bool(self.config.overlap) and self.field is not None
 
     def _timing(self) -> dict | None:
         if not self.config.compensate_timing:
@@ -255,39 +291,6 @@ class Pipeline:
         dt = float(self.sequence.timestamps[i] - self.sequence.timestamps[i - 1])
         return log_se3(self.increments[i]) / dt if dt > 0 else None
 
-    def _at_colour_time(self, i: int, frame):
-        """The frame with its depth moved to the colour's capture instant (and the twist used),
-        or the frame as it is when the capture timing or the velocity is unknown."""
-        from .camera import warp_depth
-        from .conventions import exp_se3
-
-        timing, twist = self._timing(), self._velocity(i)
-        if timing is None or twist is None or frame.depth_timestamp is None:
-            if self.depth_scale != 1.0:
-                frame = frame.with_depth(frame.depth_m * np.float32(self.depth_scale))
-            return frame, None
-        dt = (frame.depth_timestamp + timing["depth_offset_s"]) - (frame.timestamp + timing["colour_offset_s"])
-        T_colour_depth = exp_se3(twist * dt)
-        depth = warp_depth(frame.depth_m, frame.intrinsics, T_colour_depth, self.depth_scale)
-        return frame.with_depth(depth), twist
-
-    def _to_frame_stamp(self, correction: Correction, twist: np.ndarray) -> Correction:
-        """A correction measured at the colour's capture instant, moved to the frame's stamp."""
-        import dataclasses
-
-        from .conventions import exp_se3
-
-        shift = exp_se3(-twist * self._timing()["colour_offset_s"])
-        return dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
-
-    def _with_field_error(self, correction: Correction) -> Correction:
-        """The correction with the field's geometric error added to its covariance."""
-        import dataclasses
-
-        s = self.config.field_sigma_m
-        field_cov = np.diag([(s / self.config.field_sigma_depth_m) ** 2] * 3 + [s**2] * 3)
-        return dataclasses.replace(correction, covariance=correction.covariance + field_cov)
-
     def _add_factor(self, factor) -> None:
         self.new_factors.add(factor)
         self.factor_log.append((factor, False, -1))
@@ -297,32 +300,6 @@ class Pipeline:
         if self.config.use_anchor:
             return nap3d_anchor_factor(key, M(0), None, correction, robust=None)
         return nap3d_prior_factor(key, None, correction, robust=None)
-
-    def _check_depth_scale(self, correction: Correction, record: KeyframeRecord) -> Correction:
-        """Update the running depth-scale estimate with this frame's; fail the correction when
-        its scale disagrees with the estimate (see ``PipelineConfig.depth_scale_check``)."""
-        import dataclasses
-
-        diagnostics = correction.alignment.diagnostics
-        scale, sigma = diagnostics.get("depth_scale"), diagnostics.get("depth_scale_sigma")
-        if scale is None or not np.isfinite(scale):
-            return correction
-        # ``depth_scale`` is the factor the sensor's depth is multiplied by; this frame's depth
-        # (already multiplied by ``applied``) measured ``scale`` times the field's metre, so
-        # the factor this frame asks for is applied / scale.
-        applied = self.depth_scale
-        wanted = float(applied / scale)
-        self.depth_scale_observations.append(wanted)
-        record.depth_scale = wanted
-        recent = self.depth_scale_observations[-self.config.depth_scale_window:]
-        self.depth_scale = float(np.exp(np.median(np.log(recent))))
-        allowed = max(self.config.depth_scale_tolerance, self.config.depth_scale_sigmas * (sigma or 0.0))
-        off = wanted / self.depth_scale - 1.0
-        if abs(off) > allowed:
-            reason = (f"depth scale: this frame's depth needs x{wanted:.4f}, the run's x{self.depth_scale:.4f} "
-                      f"({off * 100:+.1f}%): its depth or its matches disagree with the field")
-            return dataclasses.replace(correction, success=False, reason=reason)
-        return correction
 
     def _gated_factor(self, key: int, correction: Correction):
         """The NAP3D factor and its gate result; ``(None, gate)`` when gated out.
@@ -340,7 +317,7 @@ class Pipeline:
         gate = chi2_gate_isam2(factor, self.isam, p=self.config.gate_p)
         return (factor if gate.accepted else None), gate
 
-    def _update_isam(self, extra_step: bool = False) -> None:
+    def _update_isam(self, extra_step: bool = False, record: KeyframeRecord | None = None) -> None:
         t0 = time.perf_counter()
         self._graph_all.push_back(self.new_factors)
         self._values_all.insert(self.new_values)
@@ -353,7 +330,7 @@ class Pipeline:
         # Fresh containers every update: iSAM2 keeps what it was given.
         self.new_factors = gtsam.NonlinearFactorGraph()
         self.new_values = gtsam.Values()
-        record = self._pending_record
+        record = record or self._pending_record
         if record is not None:
             record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
 
@@ -367,7 +344,6 @@ class Pipeline:
     def _finish_keyframe(self) -> KeyframeRecord | None:
         key = X(len(self.keyframe_indices) - 1)
         self.T_last_kf_est = pose3_to_T(self.isam.calculateEstimatePose3(key))
-        self.T_online_kf.append(self.T_last_kf_est)
         record, self._pending_record = self._pending_record, None
         if record is not None:
             self.records.append(record)
@@ -388,11 +364,11 @@ class Pipeline:
         estimate = self._final_estimate()
         T_kf = {idx: pose3_to_T(estimate.atPose3(X(j))) for j, idx in enumerate(self.keyframe_indices)}
         T_est = self._chain_between_keyframes(T_kf, n)
-        T_online = self._chain_forward(dict(zip(self.keyframe_indices, self.T_online_kf)), n)
+        T_online = self._chain_forward(n)
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
         return RunResult(stamps, T_est, np.stack(self.T_odom[:n]), T_gt, self.records, list(self.keyframe_indices), T_map,
                          T_world_cam_online=T_online, gnc_outliers=list(getattr(self, "gnc_outliers", [])),
-                         gnc_recovered=list(getattr(self, "gnc_recovered", [])), depth_scale=self.depth_scale,
+                         gnc_recovered=list(getattr(self, "gnc_recovered", [])), depth_scale=self.depth_scale.scale,
                          interval_odometry=dict(self.interval_odometry), corrections=dict(self.measured_corrections),
                          increments=list(self.increments[:n]))
 
@@ -434,9 +410,10 @@ class Pipeline:
         """Every frame's pose from the keyframes' (the IMU path predicts with the IMU instead)."""
         return chain_from_nearest_keyframe(T_kf, self.increments, n)
 
-    def _chain_forward(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
-        """The causal poses from the keyframes' as they were known at the time."""
-        return chain_forward(T_kf, self.increments, self.T_odom, n)
+    def _chain_forward(self, n: int) -> np.ndarray:
+        """The causal poses (n, 4, 4): each frame's as the run knew it at that frame (the latest
+        keyframe's estimate then, chained with the odometry since)."""
+        return np.stack(self._online[:n])
 
     def _render_intrinsics(self, frame) -> Intrinsics:
         w, h = self.config.render_width, self.config.render_height

@@ -59,6 +59,12 @@ class PipelineConfig:
         is a few percent off is calibrated on the fly; a frame whose scale still differs
         from it by more than ``depth_scale_tolerance`` and ``depth_scale_sigmas`` of its
         sigma is a failed correction (its depth or its match is wrong).
+    overlap: measure each keyframe's correction on a worker thread while the odometry goes
+        on (the second core); the correction enters the graph, at its keyframe, at the first
+        frame after it is ready, and a new keyframe waits for the one in flight. The causal
+        trajectory then holds each frame's pose as it was known at that frame. Results depend
+        on when a correction finishes, so an overlapped run is not bit-for-bit repeatable.
+        The IMU path does not overlap.
     """
 
     keyframe_every: int = 5
@@ -90,6 +96,7 @@ class PipelineConfig:
     odom_drift_rad_per_s: float = 0.0035
     field_sigma_m: float = 0.0
     field_sigma_depth_m: float = 2.0
+    overlap: bool = False
     max_frames: int | None = None
     progress: bool = False
     align: AlignConfig = field(default_factory=AlignConfig)

@@ -6,7 +6,7 @@ import numpy as np
 
 from .conventions import inv_T
 
-__all__ = ["chain_from_nearest_keyframe", "chain_forward"]
+__all__ = ["chain_from_nearest_keyframe"]
 
 
 def chain_from_nearest_keyframe(T_kf: dict[int, np.ndarray], increments: list[np.ndarray], n: int) -> np.ndarray:
@@ -24,22 +24,5 @@ def chain_from_nearest_keyframe(T_kf: dict[int, np.ndarray], increments: list[np
         elif i < k:
             for m in range(k, i, -1):
                 pose = pose @ inv_T(increments[m])
-        T[i] = pose
-    return T
-
-
-def chain_forward(T_kf: dict[int, np.ndarray], increments: list[np.ndarray], T_before: list[np.ndarray],
-                  n: int) -> np.ndarray:
-    """Causal poses (n, 4, 4): each frame chained forward from the latest keyframe at or
-    before it; ``T_before[i]`` (the odometry) where no keyframe came yet."""
-    T = np.empty((n, 4, 4))
-    latest = None
-    for i in range(n):
-        if i in T_kf:
-            latest, pose = i, T_kf[i]
-        elif latest is None:
-            pose = T_before[i]
-        else:
-            pose = pose @ increments[i]
         T[i] = pose
     return T

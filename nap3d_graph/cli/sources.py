@@ -76,6 +76,9 @@ def add_source_arguments(p) -> None:
                    help="the field's own geometric error in metres, added to every correction's covariance "
                    "(default 0: the field is taken as exact). A trained field's corrections are otherwise "
                    "over-confident; 0.01-0.02 made them honest on the simulated rooms")
+    p.add_argument("--overlap", action="store_true",
+                   help="measure each keyframe's correction on a second thread while the odometry goes on; it "
+                   "enters the graph when ready (faster on two cores; not bit-for-bit repeatable; not with --odom imu)")
     p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
     p.add_argument("--seed", type=int, default=0, help="seed of injected odometry noise (default 0)")
     p.add_argument("--cache", type=Path, default=None,
@@ -220,10 +223,13 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
         field_obj = resolve_field(args.field, sequence)
     trained_on = warn_trained_frames(field_obj, sequence.timestamps, "frames of this run")
     odom_kind, odometry, pipeline_class = _odometry(args, sequence, initial_pose)
+    if args.overlap and odom_kind == "imu":
+        raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
     config = PipelineConfig(keyframe_every=args.keyframe_every, keyframe_distance_m=args.keyframe_distance,
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
-                            field_sigma_m=args.field_sigma, max_frames=args.max_frames, progress=True, compensate_timing=args.timing == "auto",
+                            field_sigma_m=args.field_sigma, overlap=args.overlap, max_frames=args.max_frames,
+                            progress=True, compensate_timing=args.timing == "auto",
                             timing=_timing(args, field_obj, sequence))
     record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
               "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,

@@ -1,0 +1,158 @@
+"""One keyframe's NAP3D measurement, apart from the graph: what a run computes for a keyframe
+before its correction meets iSAM2.
+
+:func:`measure_keyframe` reads nothing a run changes while it works (its inputs are copied
+in), so a run can hand it to a worker thread and go on with the odometry
+(``PipelineConfig.overlap``); :class:`CorrectionWorker` is that thread. The graph half (the
+depth-scale check, the gate, the factor) stays with the run, on its own thread.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Intrinsics, RGBDFrame, warp_depth
+from .conventions import exp_se3
+from .nap3d.correct import correct_pose
+from .results import Correction
+
+__all__ = ["KeyframeJob", "measure_keyframe", "at_colour_time", "CorrectionWorker", "DepthScaleTracker"]
+
+
+@dataclass(frozen=True)
+class KeyframeJob:
+    """Everything one measurement needs. frame: the keyframe as read; T_render: (4, 4) the
+    pose to render at (the field's frame); twist: (6,) body twist per second (GTSAM order)
+    of the camera at the frame, or None; timing: the capture timing (``depth_offset_s``,
+    ``colour_offset_s``) or None; depth_scale: the run's current factor on the sensor's
+    depth; render_intrinsics: the virtual camera of the render."""
+
+    frame_index: int
+    frame: RGBDFrame
+    T_render: np.ndarray
+    twist: np.ndarray | None
+    timing: dict | None
+    depth_scale: float
+    render_intrinsics: Intrinsics
+
+
+def at_colour_time(frame: RGBDFrame, timing: dict | None, twist: np.ndarray | None, depth_scale: float):
+    """``(frame, twist_used)``: the frame with its depth (scaled by ``depth_scale``) moved to
+    its colour's capture instant along ``twist``; as it is (only scaled) and ``None`` when the
+    capture timing, the twist or the depth stamp is unknown."""
+    if timing is None or twist is None or frame.depth_timestamp is None:
+        if depth_scale != 1.0:
+            frame = frame.with_depth(frame.depth_m * np.float32(depth_scale))
+        return frame, None
+    dt = (frame.depth_timestamp + timing["depth_offset_s"]) - (frame.timestamp + timing["colour_offset_s"])
+    depth = warp_depth(frame.depth_m, frame.intrinsics, exp_se3(twist * dt), depth_scale)
+    return frame.with_depth(depth), twist
+
+
+def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
+    """The correction of one keyframe (``config``: the run's :class:`PipelineConfig`): depth to
+    the colour instant, ``correct_pose`` (again with the depth rescaled when the fit says the
+    frame's metre is off), the result moved back to the frame's stamp and, with
+    ``field_sigma_m``, the field's own error added to its covariance."""
+    t0 = time.perf_counter()
+    frame, twist = at_colour_time(job.frame, job.timing, job.twist, job.depth_scale)
+    correction = correct_pose(frame, field, job.T_render, iterations=config.correction_iterations,
+                              config=config.align, render_intrinsics=job.render_intrinsics)
+    scale = correction.alignment.diagnostics.get("depth_scale", float("nan")) if correction.success else np.nan
+    if config.depth_scale_check and np.isfinite(scale) and abs(scale - 1.0) > config.align.scale_tolerance:
+        # The frame's depth is not in the field's metre: a rigid fit keeps only one depth
+        # band of it. Align again with the depth rescaled (the scale is kept for the check).
+        rescaled = frame.with_depth(frame.depth_m / np.float32(scale))
+        again = correct_pose(rescaled, field, job.T_render, iterations=config.correction_iterations,
+                             config=config.align, render_intrinsics=job.render_intrinsics)
+        if again.success:
+            again.alignment.diagnostics["depth_scale"] = scale * again.alignment.diagnostics.get("depth_scale", 1.0)
+            correction = again
+    if twist is not None and correction.success:
+        # Measured at the colour's instant: move it to the frame's stamp.
+        shift = exp_se3(-twist * job.timing["colour_offset_s"])
+        correction = dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
+    if correction.success and config.field_sigma_m > 0:
+        s = config.field_sigma_m
+        field_cov = np.diag([(s / config.field_sigma_depth_m) ** 2] * 3 + [s**2] * 3)
+        correction = dataclasses.replace(correction, covariance=correction.covariance + field_cov)
+    correction.timings_s["measure"] = time.perf_counter() - t0
+    return correction
+
+
+class DepthScaleTracker:
+    """The run's factor on the sensor's depth (``scale``), learnt from the corrections: each
+    one measures its frame's depth against the field's metre (``PipelineConfig.depth_scale_*``).
+    """
+
+    def __init__(self, scale: float, config):
+        self.scale = float(scale)
+        self.config = config
+        self.observations: list[float] = []
+
+    def check(self, correction: Correction, record) -> Correction:
+        """Update the running estimate with this frame's scale (kept on ``record``); the
+        correction failed when its scale disagrees with the estimate."""
+        diagnostics = correction.alignment.diagnostics
+        scale, sigma = diagnostics.get("depth_scale"), diagnostics.get("depth_scale_sigma")
+        if scale is None or not np.isfinite(scale):
+            return correction
+        # ``self.scale`` is the factor the sensor's depth was multiplied by; this frame's depth
+        # measured ``scale`` times the field's metre, so it asks for self.scale / scale.
+        wanted = float(self.scale / scale)
+        self.observations.append(wanted)
+        record.depth_scale = wanted
+        recent = self.observations[-self.config.depth_scale_window:]
+        self.scale = float(np.exp(np.median(np.log(recent))))
+        allowed = max(self.config.depth_scale_tolerance, self.config.depth_scale_sigmas * (sigma or 0.0))
+        off = wanted / self.scale - 1.0
+        if abs(off) > allowed:
+            reason = (f"depth scale: this frame's depth needs x{wanted:.4f}, the run's x{self.scale:.4f} "
+                      f"({off * 100:+.1f}%): its depth or its matches disagree with the field")
+            return dataclasses.replace(correction, success=False, reason=reason)
+        return correction
+
+
+class CorrectionWorker:
+    """Runs :func:`measure_keyframe` on one worker thread; at most one measurement is in flight.
+
+    Why a thread and not a process: the measurement spends its time in torch, OpenCV and numpy,
+    which release the GIL, and it needs the field, which a process would have to copy.
+    """
+
+    def __init__(self, field, config):
+        self.field, self.config = field, config
+        self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="nap3d-correction")
+        self._flight: tuple[object, Future] | None = None
+
+    def submit(self, tag, job: KeyframeJob) -> None:
+        """Start measuring ``job``; ``tag`` comes back with its result. One in flight only:
+        :meth:`take` it first."""
+        if self._flight is not None:
+            raise RuntimeError("a correction is already in flight; take() it first")
+        self._flight = (tag, self._pool.submit(measure_keyframe, job, self.field, self.config))
+
+    @property
+    def busy(self) -> bool:
+        return self._flight is not None
+
+    def ready(self) -> bool:
+        """A measurement is in flight and done."""
+        return self._flight is not None and self._flight[1].done()
+
+    def take(self) -> tuple[object, Correction, float]:
+        """``(tag, correction, seconds waited)`` of the measurement in flight, waiting for it
+        if it is not done (an exception it raised is raised here)."""
+        tag, future = self._flight
+        self._flight = None
+        t0 = time.perf_counter()
+        result = future.result()
+        return tag, result, time.perf_counter() - t0
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True)
