@@ -67,9 +67,12 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     if config.depth_scale_check and np.isfinite(scale) and abs(scale - 1.0) > config.align.scale_tolerance:
         # The frame's depth is not in the field's metre: a rigid fit keeps only one depth
         # band of it. Align again with the depth rescaled (the scale is kept for the check).
+        t_retry = time.perf_counter()
         rescaled = frame.with_depth(frame.depth_m / np.float32(scale))
         again = correct_pose(rescaled, field, job.T_render, iterations=config.correction_iterations,
                              config=config.align, render_intrinsics=job.render_intrinsics)
+        retry_s = time.perf_counter() - t_retry
+        correction.timings_s["rescale_retry"] = again.timings_s["rescale_retry"] = retry_s
         if again.success:
             again.alignment.diagnostics["depth_scale"] = scale * again.alignment.diagnostics.get("depth_scale", 1.0)
             correction = again
