@@ -266,6 +266,9 @@ def test_run_command_with_the_imu_writes_the_biases(walk, tmp_path, capsys):
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "imu",
                  "--imu-noise", "1 2 3", "--out", str(tmp_path)]) == 2
     assert "--imu-noise needs 4 positive numbers" in capsys.readouterr().err
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "imu", "--overlap",
+                 "--out", str(tmp_path)]) == 2
+    assert "--overlap does not apply to --odom imu" in capsys.readouterr().err
 
 
 def test_imu_run_survives_a_failed_isam2_update(walk, monkeypatch):
