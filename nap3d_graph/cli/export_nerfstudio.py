@@ -29,7 +29,7 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.nerfstudio import export_nerfstudio
+    from nap3d_graph.fields.nerfstudio_export import export_nerfstudio
 
     empty_or_new_dir(args.out, args.force)
     sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses)

@@ -186,81 +186,6 @@ def png_mm_to_depth(depth_mm: np.ndarray) -> np.ndarray:
     return np.asarray(depth_mm).astype(np.float32) / np.float32(1000.0)
 
 
-# --- export ---------------------------------------------------------------------------------------
-
-
-def export_nerfstudio(sequence, out_dir, every: int = 1, progress: bool = False) -> Path:
-    """Write ``transforms.json``, ``images/`` (PNG) and ``depth/`` (uint16 mm PNG) for every
-    ``every``-th frame of a posed RGB-D sequence; returns the path of ``transforms.json``.
-
-    The world frame of the file is the sequence's (``T_world_cam_gt``), so a model trained on
-    it maps back to our world with its ``dataparser_transforms.json`` alone. Train with e.g.
-    ``ns-train depth-nerfacto --data OUT``.
-    """
-    import cv2
-    from tqdm import tqdm
-
-    every = int(every)
-    if every < 1:
-        raise FieldError(f"--every must be at least 1, got {every}")
-    poses = getattr(sequence, "T_world_cam_gt", None)
-    if poses is None:
-        raise FieldError("exporting for nerfstudio needs posed frames, but the sequence has no poses")
-    poses = np.asarray(poses, dtype=np.float64)
-    out = Path(out_dir)
-    (out / "images").mkdir(parents=True, exist_ok=True)
-    (out / "depth").mkdir(exist_ok=True)
-    intrinsics = sequence.intrinsics.without_distortion() if getattr(sequence, "undistort", True) else sequence.intrinsics
-    meta = nerfstudio_intrinsics(intrinsics)
-    frames = []
-    indices = range(0, len(sequence), every)
-    for i in tqdm(indices, desc="export", unit="frame", disable=not progress):
-        frame = sequence[i]
-        if not np.all(np.isfinite(poses[i])):
-            continue
-        name = f"frame_{i:05d}.png"
-        if not cv2.imwrite(str(out / "images" / name), cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR)):
-            raise FieldError(f"{out / 'images' / name}: cannot write image")
-        cv2.imwrite(str(out / "depth" / name), depth_to_png_mm(frame.depth_m))
-        frames.append({
-            "file_path": f"images/{name}",
-            "depth_file_path": f"depth/{name}",
-            "transform_matrix": opencv_to_opengl_pose(poses[i]).tolist(),
-            "timestamp": float(frame.timestamp),
-        })
-    if not frames:
-        raise FieldError("no frames to export")
-    document = {
-        **meta,
-        "frames": frames,
-        # Not read by nerfstudio; says where this came from and how to map back.
-        "nap3d_graph": {
-            "source": str(getattr(sequence, "path", type(sequence).__name__)),
-            "every": every,
-            "world_frame": "the source sequence's world (T_world_cam_gt); cameras OpenGL in this file",
-            "principal_point": "nerfstudio convention (pixel centres at i + 0.5): cx = cx_opencv + 0.5",
-            "depth_unit_scale_factor": 0.001,
-        },
-    }
-    path = out / "transforms.json"
-    path.write_text(json.dumps(document, indent=1))
-    log.info("exported %d frames to %s", len(frames), path)
-    return path
-
-
-def read_transforms_poses(path) -> tuple[np.ndarray, Intrinsics, list[dict]]:
-    """Read a ``transforms.json`` back: ``T_world_cam`` (N, 4, 4) with OpenCV cameras, the
-    intrinsics, and the raw frame entries."""
-    path = Path(path)
-    try:
-        meta = json.loads(path.read_text())
-        frames = meta["frames"]
-        T_gl = np.asarray([f["transform_matrix"] for f in frames], dtype=np.float64)
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise FieldError(f"{path}: not a readable transforms.json ({exc})") from None
-    return opengl_to_opencv_pose(T_gl), intrinsics_from_nerfstudio(meta), frames
-
-
 # --- trained models -------------------------------------------------------------------------------
 
 
@@ -461,3 +386,7 @@ def _model_bounds(pipeline, dataparser: DataparserTransform) -> np.ndarray | Non
     T_inv = inv_T(dataparser.transform)
     world = (corners / dataparser.scale) @ T_inv[:3, :3].T + T_inv[:3, 3]
     return np.stack([world.min(axis=0), world.max(axis=0)])
+
+
+# The dataset export lives in its own module (it needs no nerfstudio); its names stay here too.
+from .nerfstudio_export import export_nerfstudio, read_transforms_poses  # noqa: E402
