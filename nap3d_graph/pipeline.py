@@ -84,7 +84,7 @@ class Pipeline:
                     self._add_keyframe(i)
                     frame = frame if frame is not None else self._read_frame(i)
                     if worker is not None:
-                        self._launch(worker, i, frame)
+                        self._launch(worker, i, frame, on_keyframe)
                     else:
                         self._correct_keyframe(i, frame)
                         record = self._finish_keyframe()
@@ -216,16 +216,17 @@ class Pipeline:
         return KeyframeJob(i, frame, T_render, self._velocity(i), self._timing(), self.depth_scale.scale,
                            self._render_intrinsics(frame))
 
-    def _launch(self, worker: CorrectionWorker, i: int, frame) -> None:
+    def _launch(self, worker: CorrectionWorker, i: int, frame, on_keyframe) -> None:
         """Overlapped run: hand keyframe i's measurement to the worker and go on; until it
         lands, the keyframe is known by its prediction."""
         record, job = self._pending_record, self._job(i, frame)
         self._pending_record = None
         self.T_last_kf_est = pose3_to_T(self.isam.calculateEstimatePose3(record.key))
-        if job is None:
+        if job is None:  # nothing to measure: the keyframe is done (its reason recorded)
             self.records.append(record)
+            if on_keyframe is not None:
+                on_keyframe(record)
             return
-        record.timings_s["launched_frame"] = i
         worker.submit((record, job.T_render), job)
 
     def _land(self, worker: CorrectionWorker, on_keyframe) -> None:

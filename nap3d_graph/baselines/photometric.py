@@ -105,10 +105,10 @@ def _interest_pixels(real: RGBDFrame, view: RenderedView, config: PhotometricCon
     keypoints = cv2.SIFT_create(nfeatures=config.keypoints).detect(gray, None)
     h, w = gray.shape
     mask = np.zeros((h, w), np.uint8)
-    for kp in keypoints:
-        u, v = round(kp.pt[0]), round(kp.pt[1])
-        if 0 <= u < w and 0 <= v < h:
-            mask[v, u] = 1
+    if keypoints:
+        uv = np.round(cv2.KeyPoint_convert(keypoints)).astype(int)
+        uv = uv[(uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)]
+        mask[uv[:, 1], uv[:, 0]] = 1
     size = 2 * config.dilate_px + 1
     mask = cv2.dilate(mask, np.ones((size, size), np.uint8))
     v, u = np.nonzero(mask)
