@@ -24,7 +24,8 @@ from .nap3d.align import align_views
 from .camera import RenderedView, RGBDFrame
 from .conventions import inv_T
 
-__all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry"]
+__all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
+           "bridge_pose_gaps"]
 
 log = logging.getLogger(__name__)
 
@@ -61,20 +62,75 @@ class RecordedOdometry:
 
 class NoisyGroundTruthOdometry(RecordedOdometry):
     """Ground-truth increments with seeded noise (white per frame, a wandering camera-frame
-    bias, and a heading bias about gravity; see :class:`~nap3d_graph.sims.sensors.OdometryNoise`)."""
+    bias, and a heading bias about gravity; see :class:`~nap3d_graph.sims.sensors.OdometryNoise`).
+
+    Frames without ground truth (outside the motion capture or in its gaps; all-NaN rows of
+    ``T_world_cam_gt``) do not stop the odometry: the truth is bridged across them
+    (interpolated inside a gap, constant velocity beyond either end, see
+    :func:`bridge_pose_gaps`), and every increment that touches such a frame is marked as a
+    guess (``ok`` False) with the large fallback covariance, as visual odometry does when a
+    step fails. ``num_bridged`` says how many frames were bridged.
+    """
 
     name = "noisy"
 
     def __init__(self, T_world_cam_gt: np.ndarray, stamps: np.ndarray, rot_sigma_rad: float = 2e-3,
                  trans_sigma_m: float = 2e-3, bias=(0.0, 0.0, 0.004, 0.01, 0.0, 0.0), bias_walk: float = 1e-3,
-                 heading_bias_rad_s: float = 0.004, seed: int = 0):
+                 heading_bias_rad_s: float = 0.004, seed: int = 0, fallback_rot_sigma_rad: float = 0.05,
+                 fallback_trans_sigma_m: float = 0.05):
         from nap3d_graph.sims.sensors import OdometryNoise, drifting_odometry
 
+        T_world_cam_bridged, self.bridged = bridge_pose_gaps(np.asarray(stamps, dtype=float),
+                                                             np.asarray(T_world_cam_gt, dtype=float))
         noise = OdometryNoise(rot_sigma_rad=rot_sigma_rad, trans_sigma_m=trans_sigma_m, bias_init=tuple(bias),
                               bias_walk=bias_walk, heading_bias_rad_s=heading_bias_rad_s)
-        T_odom, _ = drifting_odometry(np.asarray(T_world_cam_gt), np.asarray(stamps), noise,
-                                      np.random.default_rng(seed))
+        T_odom, _ = drifting_odometry(T_world_cam_bridged, np.asarray(stamps), noise, np.random.default_rng(seed))
         super().__init__(T_odom, rot_sigma_rad, trans_sigma_m)
+        self._fallback_cov = _diag_cov(fallback_rot_sigma_rad, fallback_trans_sigma_m)
+
+    @property
+    def num_bridged(self) -> int:
+        return int(self.bridged.sum())
+
+    def increment(self, i: int, frame: RGBDFrame | None = None) -> Increment:
+        inc = super().increment(i, frame)
+        if self.bridged[i] or self.bridged[i - 1]:
+            return Increment(inc.T_prev_cur, self._fallback_cov, False, "no ground truth to inject noise on")
+        return inc
+
+
+def bridge_pose_gaps(stamps: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (N, 4, 4) with every non-finite one replaced by a guess, and which were (N,) bool.
+
+    Inside a gap the pose is interpolated in time between its valid neighbours (linear
+    translation, SLERP rotation); before the first or after the last valid pose it continues
+    at the constant velocity of the two nearest valid poses (held still when there is only
+    one). Raises ``ValueError`` when no pose is valid.
+    """
+    from nap3d_graph.datasets.association import interpolate_poses
+
+    from .conventions import exp_se3, log_se3
+
+    T_world_cam = np.array(T_world_cam, dtype=float)
+    missing = ~np.all(np.isfinite(T_world_cam), axis=(1, 2))
+    valid = np.flatnonzero(~missing)
+    if valid.size == 0:
+        raise ValueError("no frame has a ground-truth pose")
+    if not missing.any():
+        return T_world_cam, missing
+    inside = missing & (np.arange(len(stamps)) > valid[0]) & (np.arange(len(stamps)) < valid[-1])
+    if inside.any():
+        T_world_cam[inside] = interpolate_poses(stamps[valid], T_world_cam[valid], stamps[inside], max_gap=np.inf)
+    for end, (a, b) in ((np.arange(valid[0]), valid[:2]), (np.arange(valid[-1] + 1, len(stamps)), valid[-2:][::-1])):
+        if end.size == 0:
+            continue
+        T_anchor = T_world_cam[a]
+        velocity = np.zeros(6)
+        if a != b and stamps[a] != stamps[b]:  # twist per second, body frame of the end pose
+            velocity = log_se3(inv_T(T_world_cam[b]) @ T_anchor) / (stamps[a] - stamps[b])
+        for k in end:
+            T_world_cam[k] = T_anchor @ exp_se3(velocity * (stamps[k] - stamps[a]))
+    return T_world_cam, missing
 
 
 class VisualOdometry:
@@ -267,12 +323,13 @@ def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-
     if kind == "noisy":
         if sequence.T_world_cam_gt is None:
             raise ValueError(f"{sequence.path}: --odom noisy needs ground truth (groundtruth.txt); use --odom vo")
-        missing = int((~np.all(np.isfinite(sequence.T_world_cam_gt), axis=(1, 2))).sum())
-        if missing:
-            raise ValueError(f"{sequence.path}: --odom noisy injects noise on ground-truth increments, but {missing} "
-                             f"frames have no ground truth; use --odom vo (or --frames to skip them)")
-        return NoisyGroundTruthOdometry(sequence.T_world_cam_gt, sequence.timestamps, rot_sigma_rad, trans_sigma_m,
-                                        seed=seed)
+        odometry = NoisyGroundTruthOdometry(sequence.T_world_cam_gt, sequence.timestamps, rot_sigma_rad,
+                                            trans_sigma_m, seed=seed)
+        if odometry.num_bridged:
+            log.warning("%s: %d of %d frames have no ground truth; --odom noisy carries the odometry across them "
+                        "on interpolated (or constant-velocity) motion with a large covariance", sequence.path,
+                        odometry.num_bridged, len(sequence.timestamps))
+        return odometry
     if kind in ("vo", "dense"):
         start = initial_pose
         if start is None and sequence.T_world_cam_gt is not None and np.all(np.isfinite(sequence.T_world_cam_gt[0])):

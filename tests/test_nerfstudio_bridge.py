@@ -17,17 +17,16 @@ from nap3d_graph.fields.nerfstudio import (
     DataparserTransform,
     NerfstudioField,
     depth_to_png_mm,
-    export_nerfstudio,
     intrinsics_from_nerfstudio,
     model_depth_to_z_m,
     model_to_world_pose,
     nerfstudio_intrinsics,
     png_mm_to_depth,
     read_dataparser_transforms,
-    read_transforms_poses,
     world_to_model_pose,
     z_m_to_model_depth,
 )
+from nap3d_graph.fields.nerfstudio_export import export_nerfstudio, read_transforms_poses
 
 HAS_NERFSTUDIO = importlib.util.find_spec("nerfstudio") is not None
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)

@@ -387,6 +387,3 @@ def _model_bounds(pipeline, dataparser: DataparserTransform) -> np.ndarray | Non
     world = (corners / dataparser.scale) @ T_inv[:3, :3].T + T_inv[:3, 3]
     return np.stack([world.min(axis=0), world.max(axis=0)])
 
-
-# The dataset export lives in its own module (it needs no nerfstudio); its names stay here too.
-from .nerfstudio_export import export_nerfstudio, read_transforms_poses  # noqa: E402
