@@ -43,12 +43,12 @@ def stage_timings(width: int, height: int, repeats: int) -> dict:
         view = field.render(T_gt @ random_perturbation(rng), K)
         t = {}
         t0 = time.perf_counter()
-        fr = detect_features(frame.rgb)
+        fr = detect_features(frame.rgb, matcher=config.matcher)
         fv = view_features(view, config)
-        t["sift_both_ms"] = (time.perf_counter() - t0) * 1e3
+        t["detect_both_ms"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
-        matches = match_features(fr, fv, ratio=config.ratio, matcher=config.matcher)
-        t["flann_ms"] = (time.perf_counter() - t0) * 1e3
+        matches = match_features(fr, fv, ratio=config.ratio, nn_search=config.nn_search)
+        t["match_ms"] = (time.perf_counter() - t0) * 1e3
         t0 = time.perf_counter()
         corr = build_correspondences(frame, view, matches, config)
         t["backproject_ms"] = (time.perf_counter() - t0) * 1e3

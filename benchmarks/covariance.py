@@ -15,7 +15,7 @@ A consistent covariance gives a mean NEES of 6 (pose) and 3 (each block); the 95
 mean over the trials is printed beside it. Writes JSON.
 
     python benchmarks/covariance.py [--rooms 31 32 33] [--trials 100] \
-        [--out benchmarks/results/covariance.json]
+        [--matcher sift|xfeat|xfeat-lighterglue] [--out benchmarks/results/covariance.json]
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ CONFIGS = {
 }
 
 
-def nees_trials(room: int, settings: dict, method: str, trials: int, seed: int) -> dict:
+def nees_trials(room: int, settings: dict, method: str, trials: int, seed: int, matcher: str = "sift") -> dict:
     from nap3d_graph import correct_pose
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.conventions import inv_T, log_se3
@@ -48,7 +48,7 @@ def nees_trials(room: int, settings: dict, method: str, trials: int, seed: int) 
     K = default_intrinsics(*settings["size"])
     traj = make_trajectory("traverse", scene, np.random.default_rng(seed), 20.0)
     rng = np.random.default_rng(seed + 1)
-    config = AlignConfig(method=method)
+    config = AlignConfig(method=method, matcher=matcher)
     values, failures = [], 0
     while len(values) < trials:
         T_gt = traj.T_world_cam(rng.uniform(0, 20))
@@ -75,16 +75,18 @@ def main(argv=None) -> None:
     p.add_argument("--rooms", type=int, nargs="+", default=[31, 32, 33])
     p.add_argument("--trials", type=int, default=100)
     p.add_argument("--configs", nargs="+", default=list(CONFIGS), choices=list(CONFIGS))
+    p.add_argument("--matcher", default="sift", choices=("sift", "xfeat", "xfeat-lighterglue"))
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/covariance.json"))
     args = p.parse_args(argv)
-    result = {"rooms": args.rooms, "trials_per_room": args.trials, "per_room": {}, "pooled": {}}
+    result = {"rooms": args.rooms, "trials_per_room": args.trials, "matcher": args.matcher, "per_room": {},
+              "pooled": {}}
     for name in args.configs:
         settings = CONFIGS[name]
         for method in settings["methods"]:
             key = f"{name}/{method}"
             rows = []
             for room in args.rooms:
-                r = nees_trials(room, settings, method, args.trials, seed=room)
+                r = nees_trials(room, settings, method, args.trials, seed=room, matcher=args.matcher)
                 result["per_room"].setdefault(key, {})[room] = r
                 rows.append(r)
                 print(f"{key:18s} room {room}: NEES pose {r['nees_pose']:.2f} rotation {r['nees_rotation']:.2f} "

@@ -57,7 +57,7 @@ def run(sequence, field, overlap: bool, keyframe_every: int) -> dict:
         # AlignConfig.scale_tolerance, so the frame was aligned again with its depth rescaled.
         "rescale_retries": sum("rescale_retry" in r.timings_s for r in result.keyframes),
         "ms_per_keyframe": {k: stage_ms(result.keyframes, k)
-                            for k in ("measure", "render", "sift", "align", "rescale_retry", "wait")},
+                            for k in ("measure", "render", "detect", "align", "rescale_retry", "wait")},
         "frames_late": {"median": float(np.median(late)), "max": int(max(late))} if late else None,
     }
 

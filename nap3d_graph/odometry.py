@@ -304,11 +304,12 @@ class DenseVisualOdometry:
 
 
 def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-3, trans_sigma_m: float = 2e-3,
-                  initial_pose: np.ndarray | None = None):
+                  initial_pose: np.ndarray | None = None, matcher: str | None = None):
     """The odometry a run uses: ``recorded`` (the sequence's own drifting odometry, as the
     simulator writes it), ``noisy`` (noise injected on ground-truth increments), ``vo`` (SIFT
     frame-to-frame) or ``dense`` (:class:`DenseVisualOdometry`, at the camera's rate).
 
+    ``matcher``: the feature matcher of ``vo`` (default ``AlignConfig``'s).
     ``initial_pose`` (4, 4): where the camera starts in the field's frame, for ``vo`` (default
     the ground truth's first pose; required without one). Raises ``ValueError`` (one line,
     saying what to use instead) when the sequence cannot give that odometry."""
@@ -338,5 +339,8 @@ def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-
             raise ValueError(f"{sequence.path}: --odom {kind} needs to know where the camera starts in the field's frame: "
                              "give --initial-pose 'tx ty tz qx qy qz qw' or --initial-pose-file (the sequence has no "
                              "ground truth at its first frame)")
-        return VisualOdometry(start) if kind == "vo" else DenseVisualOdometry(start)
+        if kind == "dense":
+            return DenseVisualOdometry(start)
+        config = AlignConfig(min_opacity=0.5) if matcher is None else AlignConfig(min_opacity=0.5, matcher=matcher)
+        return VisualOdometry(start, config)
     raise ValueError(f"unknown odometry {kind!r}; use recorded, noisy, vo or dense")

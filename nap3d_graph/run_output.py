@@ -28,7 +28,7 @@ __all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary
 
 log = logging.getLogger(__name__)
 
-TIMING_STAGES = ("render", "sift", "flann", "ransac", "refine", "gate", "isam", "measure", "rescale_retry", "wait")
+TIMING_STAGES = ("render", "detect", "match", "ransac", "refine", "gate", "isam", "measure", "rescale_retry", "wait")
 CORRECTION_COLUMNS = ["frame_index", "run_index", "timestamp", "key", "matches", "inliers", "iterations", "accepted",
                       "reason", "gate_d2", "correction_m", "correction_deg", "trained_frame",
                       *[f"t_{s}_s" for s in TIMING_STAGES]]

@@ -186,9 +186,9 @@ def test_alignment_does_not_depend_on_what_ran_before(room, scenarios):
         for k in order:
             _disturb_global_random_state()
             frame, view = pairs[k]
-            for config in (AlignConfig(), AlignConfig(method="plain"), AlignConfig(matcher="flann")):
+            for config in (AlignConfig(), AlignConfig(method="plain"), AlignConfig(nn_search="flann")):
                 a = align_views(frame, view, config)
-                out[(k, config.method, config.matcher)] = (a.T_real_rendered, a.covariance, a.num_inliers)
+                out[(k, config.method, config.nn_search)] = (a.T_real_rendered, a.covariance, a.num_inliers)
             p = pnp_align(frame, view)
             out[(k, "pnp", "")] = (p.T_real_rendered, p.covariance, p.num_inliers)
         return out

@@ -38,9 +38,11 @@ PEERS = {
 def run_peers(real: RGBDFrame, view: RenderedView, methods=tuple(PEERS), field=None,
               T_world_cam_est: np.ndarray | None = None, align_config=None) -> tuple[dict[str, Alignment], object]:
     """Every method of ``methods`` on one frame: ``({name: Alignment}, correspondences)``
-    (the shared SIFT correspondences, or None when matching failed). ``nap3d-iter`` and
+    (the shared feature correspondences, or None when matching failed). ``nap3d-iter`` and
     ``photometric`` need ``field`` and ``T_world_cam_est`` (they re-render; the photometric
     peer needs a differentiable :class:`~nap3d_graph.fields.grid.GridField`)."""
+    from dataclasses import replace
+
     from ..nap3d.config import AlignConfig
     from ..nap3d.align import align_correspondences, prepare_correspondences
     from .pnp import pnp_from_correspondences
@@ -53,9 +55,9 @@ def run_peers(real: RGBDFrame, view: RenderedView, methods=tuple(PEERS), field=N
     timings: dict = {}
     t0 = time.perf_counter()
     corr, reason = prepare_correspondences(real, view, align_config, timings)
-    shared_s = time.perf_counter() - t0  # SIFT + matching, charged to every feature method
+    shared_s = time.perf_counter() - t0  # features + matching, charged to every feature method
     feature_methods = {
-        "nap3d-plain": lambda: align_correspondences(corr, real.intrinsics, AlignConfig(method="plain"), {}),
+        "nap3d-plain": lambda: align_correspondences(corr, real.intrinsics, replace(align_config, method="plain"), {}),
         "nap3d-refined": lambda: align_correspondences(corr, real.intrinsics, align_config, {}),
         "pnp-ransac": lambda: pnp_from_correspondences(corr, real.intrinsics, None, align_config, {}),
     }

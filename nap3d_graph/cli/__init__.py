@@ -58,9 +58,10 @@ def _known_errors() -> tuple[type[BaseException], ...]:
     from nap3d_graph.camera import CameraError
     from nap3d_graph.datasets import DatasetError
     from nap3d_graph.fields import FieldError
+    from nap3d_graph.nap3d.matching import MatcherUnavailable
 
     return (UsageError, FileNotFoundError, NotADirectoryError, PermissionError, CameraError, FieldError,
-            DatasetError)
+            DatasetError, MatcherUnavailable)
 
 
 def main(argv: list[str] | None = None) -> int:

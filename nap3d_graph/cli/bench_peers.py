@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import (UsageError, add_frames_argument, parse_methods, parse_size, positive_float, positive_int,
+from .common import (UsageError, add_frames_argument, add_matcher_argument, parse_methods, parse_size, positive_float, positive_int,
                      warn_trained_frames, writable_dir)
 
 
@@ -31,6 +31,7 @@ def add_parser(sub) -> None:
     p.add_argument("--methods", default=None, help=f"comma-separated (default: all that apply to the field, of "
                    f"{','.join(PEERS)}; photometric needs a trained grid field)")
     p.add_argument("--render-size", default="320x240", help="WxH of the render and the real frame (default 320x240)")
+    add_matcher_argument(p)
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.set_defaults(func=run)
 
@@ -56,7 +57,8 @@ def run(args) -> int:
         print(f"photometric peer left out: it needs a differentiable grid field, not {args.field!r}")
     warn_trained_frames(field, sequence.timestamps, "frames the trials are drawn from")
     config = PeersConfig(trials=args.trials, seed=args.seed, max_trans_m=args.max_trans, max_rot_deg=args.max_rot,
-                         render_size=size, methods=methods, timing=capture_timing(field, sequence))
+                         render_size=size, methods=methods, timing=capture_timing(field, sequence),
+                         matcher=args.matcher)
     summary = run_bench_peers(sequence, field, args.out, config, progress=True)
     print(format_summary(summary))
     print(f"results in {args.out}/ (trials.csv, summary.json, accuracy_vs_time.png)")

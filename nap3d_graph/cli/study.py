@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import UsageError, empty_or_new_dir, positive_int
+from .common import UsageError, add_matcher_argument, empty_or_new_dir, positive_int
 
 
 def add_parser(sub) -> None:
@@ -27,6 +27,7 @@ def add_parser(sub) -> None:
                    help="all 16 cells of Evaluation K (blur x intrinsics), not only CLEAN / no blur")
     p.add_argument("--odom", default="vo,noisy", help="odometries to run, comma-separated (default vo,noisy)")
     p.add_argument("--seed", type=int, default=0)
+    add_matcher_argument(p)
     p.add_argument("--force", action="store_true", help="write into a non-empty folder")
     p.set_defaults(func=run)
 
@@ -43,7 +44,7 @@ def run(args) -> int:
     empty_or_new_dir(args.out, args.force)
     config = StudyConfig(split=args.split, model=args.model, train_steps=args.train_steps,
                          keyframe_every=args.keyframe_every, odometries=odometries, eval_k_scenarios=args.scenarios,
-                         eval_k_full=args.eval_k_full, seed=args.seed)
+                         eval_k_full=args.eval_k_full, seed=args.seed, matcher=args.matcher)
     run_study(args.data, args.out, config)
     print((args.out / "summary.md").read_text())
     print(f"study in {args.out}/ (summary.md, summary.json, field.pt, runs/, eval_k/)")

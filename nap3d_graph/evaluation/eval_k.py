@@ -215,7 +215,7 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
         feats_view = view_features(view, config.align) if view is not None else None
         for sigma in config.blur_sigmas:
             blurred = _blur(frame, sigma)
-            feats_real = detect_features(blurred.rgb, config.align.max_features)
+            feats_real = detect_features(blurred.rgb, config.align.max_features, matcher=config.align.matcher)
             for name, (focal_scale, offset_px) in config.intrinsics_noise.items():
                 K_given = frame.intrinsics.shifted(focal_scale, offset_px)
                 given = blurred.with_intrinsics(K_given)
@@ -329,7 +329,7 @@ def summarise(rows: list[dict], config: EvalKConfig) -> dict:
     return {"config": {"scenarios": config.scenarios, "seed": config.seed, "methods": list(config.methods),
                        "max_trans_m": config.max_trans_m, "max_rot_deg": config.max_rot_deg,
                        "blur_sigmas": list(config.blur_sigmas), "intrinsics_noise": config.intrinsics_noise,
-                       "shift": config.shift, "grid_stride": config.grid_stride,
+                       "shift": config.shift, "grid_stride": config.grid_stride, "matcher": config.align.matcher,
                        "failures": "scored as the uncorrected pose's error",
                        "capture_timing": None if config.timing is None else {
                            k: config.timing[k] for k in ("depth_offset_s", "colour_offset_s", "depth_scale")

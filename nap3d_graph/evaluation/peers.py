@@ -38,6 +38,7 @@ class PeersConfig:
     methods: tuple[str, ...] = ("nap3d-plain", "nap3d-refined", "nap3d-iter", "pnp-ransac", "gicp", "dense-rgbd",
                                 "photometric")
     timing: dict | None = None
+    matcher: str = "sift"
 
 
 def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None, progress: bool = False) -> dict:
@@ -46,6 +47,7 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
 
     from nap3d_graph.baselines import run_peers
     from nap3d_graph.conventions import inv_T, pose_error
+    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
     from nap3d_graph.nap3d.correct import _resize_frame, render_safely
 
@@ -76,7 +78,8 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
             rows += [{**base, "method": m, "success": False, "reason": reason, "trans_err_m": t_unc,
                       "rot_err_deg": r_unc} for m in config.methods]
             continue
-        results, corr = run_peers(frame, view, config.methods, field, T_est)
+        results, corr = run_peers(frame, view, config.methods, field, T_est,
+                                      align_config=AlignConfig(matcher=config.matcher))
         bound_r = bound_t = float("nan")
         refined = results.get("nap3d-refined")
         if corr is not None and refined is not None and refined.success and refined.inlier_mask is not None:
@@ -116,6 +119,7 @@ def summarise(rows: list[dict], config: PeersConfig) -> dict:
                       and np.isfinite(r.get("crb_trans_m", np.nan))]) * 1000
     return {"config": {"trials": config.trials, "seed": config.seed, "max_trans_m": config.max_trans_m,
                        "max_rot_deg": config.max_rot_deg, "render_size": config.render_size,
+                       "matcher": config.matcher,
                        "capture_timing": None if not config.timing else
                        {k: config.timing.get(k) for k in ("depth_offset_s", "colour_offset_s", "depth_scale")},
                        "failures": "scored as the uncorrected pose's error"},

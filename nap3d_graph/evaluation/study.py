@@ -38,6 +38,7 @@ class StudyConfig:
     eval_k_scenarios: int = 40
     eval_k_full: bool = False
     seed: int = 0
+    matcher: str = "sift"
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -98,15 +99,18 @@ def _field_summary(report: dict) -> dict:
 
 
 def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) -> dict:
+    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.odometry import make_odometry
     from nap3d_graph.pipeline import Pipeline, PipelineConfig
     from nap3d_graph.run_output import write_results
 
-    odometry = make_odometry(odom, sequence, config.seed)
-    pipeline_config = PipelineConfig(keyframe_every=config.keyframe_every, progress=config.progress)
+    odometry = make_odometry(odom, sequence, config.seed, matcher=config.matcher)
+    pipeline_config = PipelineConfig(keyframe_every=config.keyframe_every, progress=config.progress,
+                                     align=AlignConfig(matcher=config.matcher))
     result = Pipeline(sequence, field, odometry, pipeline_config).run()
     record = {"study": True, "odometry": odom, "data": str(sequence.path), "frame_range": list(sequence.frame_range),
-              "pipeline": {k: v for k, v in vars(pipeline_config).items() if k != "align"}}
+              "pipeline": {k: v for k, v in vars(pipeline_config).items() if k != "align"},
+              "align": vars(pipeline_config.align)}
     run_dir, metrics = write_results(result, folder, record, odom)
     inliers = [k.inliers for k in result.keyframes if k.inliers]
     return {"folder": str(run_dir.relative_to(folder.parent.parent)),
@@ -120,11 +124,13 @@ def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) ->
 
 
 def _eval_k(sequence, field, folder: Path, config: StudyConfig) -> dict:
+    from nap3d_graph.nap3d.config import AlignConfig
+
     from .eval_k import EvalKConfig, capture_timing, run_eval_k
 
     cells = {} if config.eval_k_full else {"blur_sigmas": (0.0,), "intrinsics_noise": {"CLEAN": (1.0, 0.0)}}
     k_config = EvalKConfig(scenarios=config.eval_k_scenarios, seed=config.seed, timing=capture_timing(field, sequence),
-                           **cells)
+                           align=AlignConfig(matcher=config.matcher), **cells)
     summary = run_eval_k(sequence, field, folder, k_config, progress=config.progress)
     cell = summary["cells"]["blur0/CLEAN"]["methods"]
     return {m: {"success_rate": s["success_rate"], "trans_median_m": s["trans_err_m"]["median"],

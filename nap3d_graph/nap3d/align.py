@@ -2,8 +2,8 @@
 
 Pipeline for one (real frame, rendered view) pair:
 
-1. SIFT matches, the two nearest descriptors with Lowe's ratio test (``matching.py``; exact
-   search by default, FLANN as an option, both deterministic).
+1. Feature matches (``matching.py``): the paper's SIFT with Lowe's ratio test (exact search
+   by default, FLANN as an option, both deterministic), or XFeat's learned features.
 2. Back-projection: rendered keypoints with the rendered z-depth and the view's intrinsics
    give ``x_i`` (rendered camera); real keypoints with the sensor depth and the frame's
    intrinsics give ``y_i`` (real camera). Pairs with missing depth, depth outside the valid
@@ -37,13 +37,13 @@ from .config import AlignConfig
 from ..camera import Intrinsics, RenderedView, RGBDFrame, backproject
 from ..conventions import make_T
 from .correspondences import (Correspondences, build_correspondences, noise_sigmas, subset)
-from .matching import Features, detect_features, match_features
+from .matching import Features, detect_features, match_features, refine_matches_subpixel
 from .ransac import (anisotropic_residual_sq, ransac_procrustes, ransac_scale)
 from .refine import consensus_cost, plain_covariance, refine_pose
 from ..results import Alignment
 
 __all__ = ["align_views", "align_correspondences", "prepare_correspondences", "view_features",
-           "choose_intrinsics_model", "covariance_inflation", "viewpoint_change_px"]
+           "choose_intrinsics_model", "covariance_inflation", "inflate_rotation", "viewpoint_change_px"]
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +96,7 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
         cov = plain_covariance(R, t, corr.x[inliers], corr.y[inliers], weights[inliers], s_xy[inliers],
                                s_z[inliers]) * covariance_inflation(R, t, corr.y[inliers], intrinsics, config,
                                                                     plain=True)
+        cov = inflate_rotation(cov, config.plain_rotation_inflation)
     else:
         refined = refine_pose(R, t, subset(corr, inliers), intrinsics, config, return_intrinsics=True)
         if refined is None:
@@ -115,6 +116,7 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
             inliers = new_inliers
             R, t, cov, _, K_refined, diagnostics = again
         cov = cov * covariance_inflation(R, t, corr.y[inliers], intrinsics, config)
+        cov = inflate_rotation(cov, config.rotation_inflation)
     timings["refine"] = time.perf_counter() - t0
     if not np.all(np.isfinite(cov)) or np.min(np.linalg.eigvalsh(cov)) <= 0:
         return Alignment.failure("degenerate geometry (covariance not positive definite)", corr.num_matches,
@@ -165,6 +167,15 @@ def covariance_inflation(R: np.ndarray, t: np.ndarray, y_inliers: np.ndarray, in
             + config.covariance_inflation_per_octave * octaves)
 
 
+def inflate_rotation(covariance: np.ndarray, factor: float) -> np.ndarray:
+    """``covariance`` (6, 6, GTSAM order) with its rotation block times ``factor`` (and the
+    cross terms times its square root): the block NEES of rotation falls by ``factor``."""
+    if factor == 1.0:
+        return covariance
+    d = np.array([np.sqrt(factor)] * 3 + [1.0] * 3)
+    return covariance * np.outer(d, d)
+
+
 def choose_intrinsics_model(corr: Correspondences, intrinsics: Intrinsics, fixed: Alignment,
                             calibrated: Alignment, config: AlignConfig) -> Alignment:
     """The fixed-intrinsics or the self-calibrated alignment, whichever the data support.
@@ -208,7 +219,7 @@ def choose_intrinsics_model(corr: Correspondences, intrinsics: Intrinsics, fixed
 def prepare_correspondences(real: RGBDFrame, view: RenderedView, config: AlignConfig | None = None,
                             timings: dict | None = None, feats_real: Features | None = None,
                             feats_view: Features | None = None) -> tuple[Correspondences | None, str]:
-    """SIFT + FLANN + back-projection for one pair: ``(correspondences, "")`` or
+    """Features, matches and back-projection for one pair: ``(correspondences, "")`` or
     ``(None, reason)``. NAP3D and the PnP baseline both start from this, so an evaluation
     compares them on the very same matches. Features already computed for an image can be
     passed in (``feats_real``, ``feats_view``) to skip detecting them again."""
@@ -216,18 +227,20 @@ def prepare_correspondences(real: RGBDFrame, view: RenderedView, config: AlignCo
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
     if feats_real is None:
-        feats_real = detect_features(real.rgb, config.max_features)
+        feats_real = detect_features(real.rgb, config.max_features, matcher=config.matcher)
     if feats_view is None:
         feats_view = view_features(view, config)
-    timings["sift"] = time.perf_counter() - t0
+    timings["detect"] = time.perf_counter() - t0
     if len(feats_real) < 3:
         return None, "no keypoints in the real image"
     if len(feats_view) < 3:
         return None, "no keypoints in the rendered view"
     t0 = time.perf_counter()
     matches = match_features(feats_real, feats_view, ratio=config.ratio, mutual=config.mutual,
-                             matcher=config.matcher)
-    timings["flann"] = time.perf_counter() - t0
+                             nn_search=config.nn_search)
+    if config.subpixel:
+        matches = refine_matches_subpixel(real.rgb, view.rgb, matches)
+    timings["match"] = time.perf_counter() - t0
     if len(matches) < config.min_matches:
         return None, f"too few matches ({len(matches)} < {config.min_matches})"
     corr = build_correspondences(real, view, matches, config)
@@ -237,9 +250,10 @@ def prepare_correspondences(real: RGBDFrame, view: RenderedView, config: AlignCo
 
 
 def view_features(view: RenderedView, config: AlignConfig | None = None) -> Features:
-    """SIFT on a rendered view, only where the field is opaque."""
+    """Features of a rendered view (``config.matcher``'s), only where the field is opaque."""
     config = config or AlignConfig()
-    return detect_features(view.rgb, config.max_features, mask=view.opacity >= config.min_opacity)
+    return detect_features(view.rgb, config.max_features, mask=view.opacity >= config.min_opacity,
+                           matcher=config.matcher)
 
 
 def align_views(real: RGBDFrame, view: RenderedView, config: AlignConfig | None = None,
@@ -248,7 +262,7 @@ def align_views(real: RGBDFrame, view: RenderedView, config: AlignConfig | None 
 
     Returns an :class:`Alignment` whose ``T_real_rendered`` maps rendered-camera points into
     the real camera; ``success=False`` with a ``reason`` on bad data. Never raises on data.
-    ``feats_real``: the real frame's SIFT features, when already detected.
+    ``feats_real``: the real frame's features (``config.matcher``'s), when already detected.
     """
     config = config or AlignConfig()
     method = f"nap3d-{config.method}"

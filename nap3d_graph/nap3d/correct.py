@@ -72,8 +72,8 @@ def correct_pose(
     if intrinsics.shape != frame.intrinsics.shape:
         real = _resize_frame(frame, intrinsics.width, intrinsics.height)
     t0 = time.perf_counter()
-    feats_real = detect_features(real.rgb, config.max_features)
-    timings["sift"] = time.perf_counter() - t0
+    feats_real = detect_features(real.rgb, config.max_features, matcher=config.matcher)
+    timings["detect"] = time.perf_counter() - t0
     for rounds in range(1, max(1, iterations) + 1):
         t0 = time.perf_counter()
         view, reason = render_safely(field, T_current, intrinsics)
