@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from .common import (UsageError, add_frames_argument, add_matcher_argument, non_negative_float, parse_pose, parse_size, positive_float,
+from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_float, parse_pose, parse_size, positive_float,
                      positive_int, probability, warn_trained_frames)
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
@@ -70,7 +70,7 @@ def add_source_arguments(p) -> None:
                    help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
                    "a little more accurate, twice the time)")
     p.add_argument("--render-size", default="320x240", help="WxH the field renders at (default 320x240)")
-    add_matcher_argument(p)
+    add_matcher_argument(p, RUN_MATCHER)
     p.add_argument("--gate-p", type=probability, default=0.997,
                    help="chi-square gate probability, in (0, 1) (default 0.997)")
     p.add_argument("--field-sigma", type=non_negative_float, default=0.0, metavar="M",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import UsageError, add_matcher_argument, empty_or_new_dir, positive_int
+from .common import RUN_MATCHER, UsageError, add_matcher_argument, empty_or_new_dir, positive_int
 
 
 def add_parser(sub) -> None:
@@ -27,7 +27,7 @@ def add_parser(sub) -> None:
                    help="all 16 cells of Evaluation K (blur x intrinsics), not only CLEAN / no blur")
     p.add_argument("--odom", default="vo,noisy", help="odometries to run, comma-separated (default vo,noisy)")
     p.add_argument("--seed", type=int, default=0)
-    add_matcher_argument(p)
+    add_matcher_argument(p, RUN_MATCHER)
     p.add_argument("--force", action="store_true", help="write into a non-empty folder")
     p.set_defaults(func=run)
 

@@ -116,7 +116,7 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
             inliers = new_inliers
             R, t, cov, _, K_refined, diagnostics = again
         cov = cov * covariance_inflation(R, t, corr.y[inliers], intrinsics, config)
-        cov = inflate_rotation(cov, config.rotation_inflation)
+        cov = inflate_rotation(cov, config.rotation_inflation, config.cross_covariance_scale)
     timings["refine"] = time.perf_counter() - t0
     if not np.all(np.isfinite(cov)) or np.min(np.linalg.eigvalsh(cov)) <= 0:
         return Alignment.failure("degenerate geometry (covariance not positive definite)", corr.num_matches,
@@ -167,13 +167,17 @@ def covariance_inflation(R: np.ndarray, t: np.ndarray, y_inliers: np.ndarray, in
             + config.covariance_inflation_per_octave * octaves)
 
 
-def inflate_rotation(covariance: np.ndarray, factor: float) -> np.ndarray:
-    """``covariance`` (6, 6, GTSAM order) with its rotation block times ``factor`` (and the
-    cross terms times its square root): the block NEES of rotation falls by ``factor``."""
-    if factor == 1.0:
+def inflate_rotation(covariance: np.ndarray, factor: float, cross_scale: float = 1.0) -> np.ndarray:
+    """``covariance`` (6, 6, GTSAM order) with its rotation block times ``factor`` (the cross
+    terms times its square root, so the correlation is kept) and then the rotation-translation
+    cross terms times ``cross_scale`` (1 keeps them; 0 leaves the two blocks uncorrelated)."""
+    if factor == 1.0 and cross_scale == 1.0:
         return covariance
     d = np.array([np.sqrt(factor)] * 3 + [1.0] * 3)
-    return covariance * np.outer(d, d)
+    shaped = covariance * np.outer(d, d)
+    shaped[:3, 3:] *= cross_scale
+    shaped[3:, :3] *= cross_scale
+    return shaped
 
 
 def choose_intrinsics_model(corr: Correspondences, intrinsics: Intrinsics, fixed: Alignment,
