@@ -105,10 +105,11 @@ def empty_or_new_dir(path: Path, force: bool, what: str = "output folder") -> Pa
     return writable_dir(path, what=what)
 
 
-#: The matcher of a drift-correction run unless told otherwise: XFeat, measured best on real
-#: data (fr1/desk, field from the first half: ATE 2.32 cm and 27/28 corrections accepted against
-#: SIFT's 2.85 cm and 22/28; README). The evaluations of the paper's protocol keep SIFT.
-RUN_MATCHER = "xfeat"
+#: The matcher of a drift-correction run unless told otherwise. XFeat measured best on real
+#: data (fr1/desk, field from the first half: ATE 2.34 against 2.85 cm, README), but the run's
+#: other settings (the RealSense IMU path, the study's thresholds) were tuned and tested with
+#: SIFT and do not yet hold with it: SIFT stays the default until they are re-measured.
+RUN_MATCHER = "sift"
 
 
 def add_matcher_argument(parser, default: str = "sift") -> None:
