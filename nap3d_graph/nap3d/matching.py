@@ -79,9 +79,6 @@ class Features:
     def __len__(self) -> int:
         return len(self.uv)
 
-    def subset(self, mask: np.ndarray) -> "Features":
-        return Features(self.uv[mask], self.descriptors[mask], self.matcher, self.image_size)
-
 
 @dataclass(frozen=True)
 class Matches:
