@@ -60,7 +60,11 @@ def _cached_field(cache: Path, mapping: Path, steps: int, progress: bool, settin
     path = cache / "fields" / f"room{settings['scene_seed']}_{key}.pt"
     if path.exists():
         log.info("reusing trained field %s", path)
-        return load_field(path), path, None
+        field = load_field(path)
+        # Fields cached before they recorded their recording: name it now, so the traversal's
+        # frames (same stamps, another recording) are not reported as trained on.
+        field.meta.setdefault("train_recording", open_sequence(mapping).recording_id)
+        return field, path, None
     say(f"training the field on the survey for {steps} steps (cached for later runs as {path})")
     path.parent.mkdir(parents=True, exist_ok=True)
     field, report = build_field(open_sequence(mapping), "grid", steps=steps, progress=progress)

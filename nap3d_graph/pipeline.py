@@ -353,7 +353,7 @@ class Pipeline:
     def _trained_timestamps(self) -> np.ndarray:
         from nap3d_graph.fields import frames_seen_in_training
 
-        return frames_seen_in_training(self.field, self.sequence.timestamps) if self.field is not None else \
+        return frames_seen_in_training(self.field, self.sequence) if self.field is not None else \
             np.zeros(len(self.sequence), dtype=bool)
 
     def _finish(self, n: int) -> RunResult:

@@ -118,3 +118,32 @@ def test_default_run_works_when_ground_truth_misses_the_last_frame(walk, tmp_pat
     # The corrected run still follows the truth where it is known.
     errors = [pose_error(T_est[k], T_gt[k])[0] for k in range(23)]
     assert np.median(errors) < 0.02
+
+
+def test_trained_frames_are_recognised_by_recording_and_stamp(walk, tmp_path):
+    # A second walk of the same room shares every stamp with the first (the simulator stamps
+    # from 0 at a fixed rate), as the default run's survey and traversal do.
+    from nap3d_graph.datasets import TumSequence
+    from nap3d_graph.fields import frames_seen_in_training
+    from nap3d_graph.fields.build import build_field
+
+    other = simulate_sequence(tmp_path / "other", SimConfig(frames=24, fps=6.0, width=160, height=120,
+                                                            scene_seed=11, seed=5, timing=None))
+    first_half = TumSequence(walk, frames="0:0.5")
+    field, _ = build_field(first_half, "splat", timing=None, eval_frames=0, progress=False)
+    same, foreign = TumSequence(walk), TumSequence(other)
+    np.testing.assert_array_equal(same.timestamps, foreign.timestamps)
+    assert first_half.recording_id == same.recording_id != foreign.recording_id
+    # The field's own recording: exactly the first-half frames it trained on (not those held out).
+    trained = np.zeros(24, dtype=bool)
+    trained[field.meta["train_frames"]] = True
+    assert 8 <= trained.sum() <= 12 and not trained[12:].any()
+    np.testing.assert_array_equal(frames_seen_in_training(field, same), trained)
+    # Another recording with the same stamps: none of its frames.
+    assert not frames_seen_in_training(field, foreign).any()
+    # ... and the flag survives the checkpoint.
+    field.save(tmp_path / "f.pt")
+    from nap3d_graph.fields import load_field
+
+    assert not frames_seen_in_training(load_field(tmp_path / "f.pt"), foreign).any()
+    np.testing.assert_array_equal(frames_seen_in_training(load_field(tmp_path / "f.pt"), same), trained)

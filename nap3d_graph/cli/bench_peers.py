@@ -55,7 +55,7 @@ def run(args) -> int:
                              f"{args.field!r} is a {getattr(field, 'name', type(field).__name__)} field")
         methods = tuple(m for m in methods if m != "photometric")
         print(f"photometric peer left out: it needs a differentiable grid field, not {args.field!r}")
-    warn_trained_frames(field, sequence.timestamps, "frames the trials are drawn from")
+    warn_trained_frames(field, sequence, "frames the trials are drawn from")
     config = PeersConfig(trials=args.trials, seed=args.seed, max_trans_m=args.max_trans, max_rot_deg=args.max_rot,
                          render_size=size, methods=methods, timing=capture_timing(field, sequence),
                          matcher=args.matcher)

@@ -127,13 +127,14 @@ def add_frames_argument(parser, what: str) -> None:
                         "sequence (0:0.5 the first half, 0.5:1 the second); default all")
 
 
-def warn_trained_frames(field, timestamps, what: str) -> int:
-    """Print a warning when ``field`` was trained on some of these frames; returns how many."""
+def warn_trained_frames(field, sequence, what: str) -> int:
+    """Print a warning when ``field`` was trained on some frames of ``sequence`` (recognised
+    by recording and stamp); returns how many."""
     import sys
 
     from nap3d_graph.fields import frames_seen_in_training
 
-    seen = frames_seen_in_training(field, timestamps)
+    seen = frames_seen_in_training(field, sequence)
     count = int(seen.sum())
     if count:
         print(f"warning: {count} of {len(seen)} {what} are frames the field was trained on: there a correction "

@@ -61,7 +61,7 @@ def run(args) -> int:
     config = EvalKConfig(scenarios=args.scenarios, seed=args.seed, methods=methods, shift=args.shift,
                          align=AlignConfig(matcher=args.matcher),
                          timing=capture_timing(field_obj, sequence) if args.timing == "auto" else None)
-    warn_trained_frames(field_obj, sequence.timestamps, "frames the scenarios are drawn from")
+    warn_trained_frames(field_obj, sequence, "frames the scenarios are drawn from")
     summary = run_eval_k(sequence, field_obj, args.out, config, progress=True)
     print(_format_k(summary))
     print(f"results in {args.out}/ (results.csv, summary.json, table.md, heatmaps)")

@@ -223,7 +223,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     sequence = open_sequence(data, frames=args.frames, **extra)
     if args.data is not None:
         field_obj = resolve_field(args.field, sequence)
-    trained_on = warn_trained_frames(field_obj, sequence.timestamps, "frames of this run")
+    trained_on = warn_trained_frames(field_obj, sequence, "frames of this run")
     odom_kind, odometry, pipeline_class = _odometry(args, sequence, initial_pose)
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")

@@ -132,6 +132,13 @@ class RealSenseRecording(GroundTruthLookup):
         self.frame_range = parse_frame_range(frames, len(self.timestamps))
         self._select(*self.frame_range)
 
+    @property
+    def recording_id(self) -> str:
+        """Content fingerprint of the recording file (the same for any ``frames`` range)."""
+        from .identity import fingerprint_files
+
+        return fingerprint_files([self.path])
+
     @staticmethod
     def _intrinsics(K):
         from nap3d_graph.camera import Intrinsics

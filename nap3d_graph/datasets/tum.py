@@ -223,7 +223,8 @@ class TumSequence(GroundTruthLookup):
     when ``undistort`` and the camera has distortion), ``raw_intrinsics`` (as resolved,
     possibly with distortion), ``path``, ``name``, ``has_gt`` (N,), ``rgb_line_index`` (N,)
     (each frame's line among rgb.txt's data lines), ``undistort``,
-    ``undistort_depth``, ``association``, ``offset``, ``frame_range`` ``(start, stop)``.
+    ``undistort_depth``, ``association``, ``offset``, ``frame_range`` ``(start, stop)``,
+    ``recording_id`` (a content fingerprint of the whole recording).
 
     ``frames``: ``START:STOP`` keeps part of the associated frames (indices, or fractions
     such as ``0:0.5`` for the first half; see :func:`parse_frame_range`).
@@ -292,6 +293,10 @@ class TumSequence(GroundTruthLookup):
         # so a row of corrections.csv names the same image whatever association dropped.
         self.rgb_line_index = pairs[:, 0].astype(int)
         self.rgb_paths = [self.path / rgb_names[i] for i in pairs[:, 0]]
+        # What identifies the recording whatever frames are selected (recording_id).
+        self._identity_files = [rgb_list, depth_list, self.path / "groundtruth.txt",
+                                self.path / rgb_names[0], self.path / rgb_names[-1]]
+        self._recording_id: str | None = None
         self.depth_paths = [self.path / depth_names[j] for j in pairs[:, 1]]
         self.T_world_cam_gt = None
         self._gt_raw: tuple[np.ndarray, np.ndarray] | None = None
@@ -358,6 +363,17 @@ class TumSequence(GroundTruthLookup):
                 self.name, missing.size, len(keep), GT_MAX_GAP_S, ", ".join(str(int(i)) for i in missing[:5]),
             )
         self.T_world_cam_gt = T
+
+    @property
+    def recording_id(self) -> str:
+        """Content fingerprint of the whole recording (lists, ground truth, first and last
+        colour image): the same for any ``frames`` range, different for another recording
+        with the same stamps (see :mod:`nap3d_graph.datasets.identity`)."""
+        if self._recording_id is None:
+            from .identity import fingerprint_files
+
+            self._recording_id = fingerprint_files(self._identity_files)
+        return self._recording_id
 
     def __len__(self) -> int:
         return len(self.timestamps)

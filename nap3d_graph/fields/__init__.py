@@ -63,15 +63,30 @@ def resolve_field(field_arg: str, sequence=None):
     return load_field(field_arg)
 
 
-def frames_seen_in_training(field, timestamps, tolerance_s: float = 1e-3) -> np.ndarray:
-    """Which of ``timestamps`` (N,) the field was trained on (N,) bool: a correction there
-    measures the field's memory of that very image, not how it generalises. Fields that do
-    not record their training frames (the oracle, nerfstudio models) give all False."""
-    stamps = np.asarray(timestamps, dtype=float).reshape(-1)
-    trained = np.asarray((getattr(field, "meta", None) or {}).get("train_timestamps") or [], dtype=float)
-    if trained.size == 0 or stamps.size == 0:
+def frames_seen_in_training(field, sequence, tolerance_s: float = 1e-3) -> np.ndarray:
+    """Which frames of ``sequence`` the field was trained on, (N,) bool: a correction there
+    measures the field's memory of that very image, not how it generalises.
+
+    A frame is recognised by its recording and its stamp: when the field records the
+    recording it was built from (``meta["train_recording"]``) and the sequence has a
+    ``recording_id``, another recording's frames are never reported, whatever their stamps
+    (two simulated walks share stamps). ``sequence`` may also be a bare array of stamps (N,),
+    matched by stamp alone. Fields that do not record their training frames (the oracle,
+    nerfstudio models) give all False."""
+    stamps = np.asarray(getattr(sequence, "timestamps", sequence), dtype=float).reshape(-1)
+    meta = getattr(field, "meta", None) or {}
+    trained = np.asarray(meta.get("train_timestamps") or [], dtype=float)
+    if trained.size == 0 or stamps.size == 0 or not same_recording(meta, sequence):
         return np.zeros(stamps.shape, dtype=bool)
     trained = np.sort(trained)
     j = np.clip(np.searchsorted(trained, stamps), 1, max(trained.size - 1, 1))
     nearest = np.minimum(np.abs(stamps - trained[j - 1]), np.abs(stamps - trained[np.minimum(j, trained.size - 1)]))
     return nearest <= tolerance_s
+
+
+def same_recording(meta: dict, sequence) -> bool:
+    """Whether a field built with ``meta`` could have seen ``sequence``'s frames: False only
+    when both name their recording and the names differ (old checkpoints name none)."""
+    built_from = meta.get("train_recording")
+    recording = getattr(sequence, "recording_id", None)
+    return built_from is None or recording is None or built_from == recording

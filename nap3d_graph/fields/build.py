@@ -82,7 +82,8 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     field.meta.update({"model": model, "timing": timing, "source": str(getattr(sequence, "path", "")),
                        "frame_range": list(getattr(sequence, "frame_range", (0, len(sequence)))),
                        "train_frames": [int(i) for i in train_idx],
-                       "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx]})
+                       "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx],
+                       "train_recording": getattr(sequence, "recording_id", None)})
     K = sequence.intrinsics
     if render_size is not None and (render_size[0] > K.width or render_size[1] > K.height):
         render_size = None  # never evaluate above the frames' own resolution

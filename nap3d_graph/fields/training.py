@@ -378,6 +378,7 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
         # Colour stamps of the frames trained on: runs and evaluations warn when they use one.
         "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx]
         if hasattr(sequence, "timestamps") else [],
+        "train_recording": getattr(sequence, "recording_id", None),
         "steps": steps,
         "train_seconds": round(train_seconds, 2),
     }
