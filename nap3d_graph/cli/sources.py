@@ -14,11 +14,15 @@ __all__ = ["add_source_arguments", "prepare", "Prepared"]
 
 def add_source_arguments(p) -> None:
     """The source, field, odometry and keyframe options of a drift-correction run."""
+    from nap3d_graph.datasets import SOURCES
     from nap3d_graph.default_run import DEFAULT_TRAIN_STEPS
 
-    p.add_argument("--traj", choices=("sim", "tum", "realsense"), default="sim",
-                   help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder) "
-                   "or realsense (a .bag/.db3 recording, or 'live': a connected camera); default sim")
+    p.add_argument("--traj", choices=tuple(SOURCES), default="sim",
+                   help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder), "
+                   "realsense (a .bag/.db3 recording, or 'live': a connected camera) or 7scenes (a 7-Scenes sequence "
+                   "folder: depth is warped into its colour camera, whose focal length and centre are estimated from the "
+                   "data); "
+                   "default sim")
     p.add_argument("--data", type=Path, help="the sequence folder, or for realsense a recording or 'live'; omit "
                    "(with --traj sim) for the embedded default")
     p.add_argument("--groundtruth", type=Path, metavar="TUM_FILE",
@@ -165,6 +169,10 @@ def _inputs(args):
         return _realsense_data(args), None, args.field, args.traj
     if args.data.suffix.lower() in (".bag", ".db3"):
         raise UsageError(f"{args.data} is a RealSense recording: use --traj realsense")
+    from nap3d_graph.datasets import is_sevenscenes_folder
+
+    if args.traj == "7scenes" and args.data.is_dir() and not is_sevenscenes_folder(args.data):
+        raise UsageError(f"{args.data} is not a 7-Scenes folder (no frame-XXXXXX.pose.txt, no seq-XX/)")
     return args.data, None, args.field, args.traj
 
 

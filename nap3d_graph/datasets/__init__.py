@@ -3,12 +3,13 @@
 ``SOURCES`` maps a source name (as the CLI's ``--traj`` uses it) to its sequence class:
 ``"tum"`` any TUM RGB-D folder, ``"sim"`` a folder written by ``nap3d-graph simulate``,
 ``"realsense"`` a RealSense ``.bag`` / ``.db3`` recording (pyrealsense2 is imported only when
-one is read).
+one is read), ``"7scenes"`` a Microsoft 7-Scenes sequence (or scene) folder.
 """
 
 from __future__ import annotations
 
 from .realsense import RealSenseConfig, RealSenseRecording
+from .sevenscenes import SevenScenesSequence, is_sevenscenes_folder
 from .sim import SimSequence
 from .tum import DatasetError, TumSequence, read_tum_trajectory, write_tum_trajectory
 
@@ -20,11 +21,14 @@ __all__ = [
     "SimSequence",
     "RealSenseRecording",
     "RealSenseConfig",
+    "SevenScenesSequence",
+    "is_sevenscenes_folder",
     "read_tum_trajectory",
     "write_tum_trajectory",
 ]
 
-SOURCES: dict[str, type] = {"tum": TumSequence, "sim": SimSequence, "realsense": RealSenseRecording}
+SOURCES: dict[str, type] = {"tum": TumSequence, "sim": SimSequence, "realsense": RealSenseRecording,
+                            "7scenes": SevenScenesSequence}
 
 RECORDING_SUFFIXES = (".bag", ".db3")
 
@@ -33,7 +37,8 @@ def open_sequence(path, groundtruth=None, realsense_config=None, **kwargs):
     """A sequence as the right class: :class:`RealSenseRecording` for a ``.bag`` / ``.db3``
     file (``groundtruth``: a TUM file of its poses; ``realsense_config``: a YAML of what the
     file does not store), :class:`SimSequence` for a folder with a simulator's
-    ``scene.json``, :class:`TumSequence` for any other folder (its own groundtruth.txt)."""
+    ``scene.json``, :class:`SevenScenesSequence` for a 7-Scenes folder (``frame-*.pose.txt``
+    or ``seq-XX/``), :class:`TumSequence` for any other folder (its own groundtruth.txt)."""
     from pathlib import Path
 
     path = Path(path)
@@ -43,5 +48,8 @@ def open_sequence(path, groundtruth=None, realsense_config=None, **kwargs):
     if groundtruth is not None or realsense_config is not None:
         raise DatasetError(f"{path}: --groundtruth / --realsense-config are for RealSense recordings (.bag, .db3); "
                            "a TUM folder's own groundtruth.txt is read")
-    cls = SimSequence if (path / "scene.json").exists() else TumSequence
-    return cls(path, **kwargs)
+    if (path / "scene.json").exists():
+        return SimSequence(path, **kwargs)
+    if is_sevenscenes_folder(path) and not (path / "rgb.txt").exists():
+        return SevenScenesSequence(path, **kwargs)
+    return TumSequence(path, **kwargs)
