@@ -57,8 +57,8 @@ def at_colour_time(frame: RGBDFrame, timing: dict | None, twist: np.ndarray | No
 def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     """The correction of one keyframe (``config``: the run's :class:`PipelineConfig`): depth to
     the colour instant, ``correct_pose`` (again with the depth rescaled when the fit says the
-    frame's metre is off), the result moved back to the frame's stamp and, with
-    ``field_sigma_m``, the field's own error added to its covariance."""
+    frame's metre is off), the result moved back to the frame's stamp and the field's own
+    error (``config.field_covariance()``) added to its covariance."""
     t0 = time.perf_counter()
     frame, twist = at_colour_time(job.frame, job.timing, job.twist, job.depth_scale)
     correction = correct_pose(frame, field, job.T_render, iterations=config.correction_iterations,
@@ -80,9 +80,8 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         # Measured at the colour's instant: move it to the frame's stamp.
         shift = exp_se3(-twist * job.timing["colour_offset_s"])
         correction = dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
-    if correction.success and config.field_sigma_m > 0:
-        s = config.field_sigma_m
-        field_cov = np.diag([(s / config.field_sigma_depth_m) ** 2] * 3 + [s**2] * 3)
+    field_cov = config.field_covariance()
+    if correction.success and field_cov is not None:
         correction = dataclasses.replace(correction, covariance=correction.covariance + field_cov)
     correction.timings_s["measure"] = time.perf_counter() - t0
     return correction

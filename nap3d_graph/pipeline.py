@@ -32,7 +32,7 @@ from .trajectory import chain_from_nearest_keyframe
 from .keyframe_correction import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
 from .results import Correction
 
-from .pipeline_config import KeyframeRecord, PipelineConfig, RunResult
+from .pipeline_config import KeyframeRecord, PipelineConfig, RunResult, with_field_error
 
 __all__ = ["PipelineConfig", "Pipeline", "KeyframeRecord", "RunResult", "compose_covariance"]
 
@@ -54,7 +54,8 @@ class Pipeline:
         self.sequence = sequence
         self.field = field
         self.odometry = odometry
-        self.config = config or PipelineConfig()
+        # The field's own error, as it measured it when it was built, unless told otherwise.
+        self.config = with_field_error(config or PipelineConfig(), field)
         self.correction_hook = correction_hook
 
     # --- the run, as its steps ---------------------------------------------------------

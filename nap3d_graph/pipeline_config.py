@@ -10,7 +10,7 @@ import numpy as np
 
 from .nap3d.config import AlignConfig
 
-__all__ = ["PipelineConfig", "KeyframeRecord", "RunResult"]
+__all__ = ["PipelineConfig", "KeyframeRecord", "RunResult", "with_field_error"]
 
 @dataclass
 class PipelineConfig:
@@ -45,13 +45,15 @@ class PipelineConfig:
         correction that passed the gate (the prediction was uncertain just then) is found
         by its disagreement with the corrections and the odometry around it and weighed
         out (``gnc_p``: each factor's chi-square inlier probability).
-    field_sigma_m, field_sigma_depth_m: the field's own geometric error, added to every
-        correction's covariance (translation ``field_sigma_m`` per axis, rotation
-        ``field_sigma_m / field_sigma_depth_m`` rad): a correction measures the pose in the
-        field's geometry, and a trained field's is centimetres off where the alignment's
-        covariance, which knows only the matches, says millimetres. 0 (the default) adds
-        nothing, as for an exact field. Measured on a simulated room with a trained field:
-        keyframe NEES 112 -> 11 (1 cm) and 6.5 (2 cm), final ATE 1.91 -> 1.80 / 1.77 cm.
+    field_sigma_m, field_sigma_rad, field_sigma_depth_m: the field's own geometric error,
+        added to every correction's covariance (translation ``field_sigma_m`` per axis,
+        rotation ``field_sigma_rad`` per axis, or ``field_sigma_m / field_sigma_depth_m`` rad
+        when that is None): a correction measures the pose in the field's geometry, and a
+        trained field's is centimetres off where the alignment's covariance, which knows only
+        the matches, says millimetres. None (the default): what the field measured of itself
+        when it was built (``meta["field_error"]``, see
+        :mod:`nap3d_graph.fields.field_error`; 0 for a field that records none, such as the
+        exact oracle); :func:`with_field_error` resolves it. 0 adds nothing.
     depth_scale_check, depth_scale_tolerance, depth_scale_sigmas, depth_scale_window: every
         correction also measures the real depth's scale against the field's (a similarity
         fit on its inliers). A running estimate (median of the last ``depth_scale_window``
@@ -94,7 +96,8 @@ class PipelineConfig:
     odom_drift_rad_per_rad: float = 0.03
     odom_drift_m_per_s: float = 0.01
     odom_drift_rad_per_s: float = 0.0035
-    field_sigma_m: float = 0.0
+    field_sigma_m: float | None = None
+    field_sigma_rad: float | None = None
     field_sigma_depth_m: float = 2.0
     overlap: bool = False
     max_frames: int | None = None
@@ -104,9 +107,20 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
-        if not (self.field_sigma_m >= 0 and self.field_sigma_depth_m > 0):
-            raise ValueError(f"field_sigma_m must be >= 0 and field_sigma_depth_m > 0, got {self.field_sigma_m}, "
-                             f"{self.field_sigma_depth_m}")
+        for name in ("field_sigma_m", "field_sigma_rad"):
+            value = getattr(self, name)
+            if value is not None and not value >= 0:
+                raise ValueError(f"{name} must be >= 0 or None, got {value}")
+        if not self.field_sigma_depth_m > 0:
+            raise ValueError(f"field_sigma_depth_m must be > 0, got {self.field_sigma_depth_m}")
+
+    def field_covariance(self) -> np.ndarray | None:
+        """The field's error as a 6x6 covariance (GTSAM order), or None when it adds nothing."""
+        s_t = self.field_sigma_m or 0.0
+        s_r = self.field_sigma_rad if self.field_sigma_rad is not None else s_t / self.field_sigma_depth_m
+        if s_t <= 0 and s_r <= 0:
+            return None
+        return np.diag([s_r**2] * 3 + [s_t**2] * 3)
 
     def drift_covariance(self, T_prev_cur: np.ndarray, dt_s: float) -> np.ndarray:
         """Diagonal covariance (6, 6) of the odometry's bias-like drift over one keyframe
@@ -119,6 +133,20 @@ class PipelineConfig:
         rot_var = rot**2 + (self.odom_drift_rad_per_s * dt_s) ** 2
         trans_var = trans**2 + (self.odom_drift_m_per_s * dt_s) ** 2
         return np.diag([rot_var] * 3 + [trans_var] * 3)
+
+
+def with_field_error(config: PipelineConfig, field) -> PipelineConfig:
+    """``config`` with ``field_sigma_m`` / ``field_sigma_rad`` resolved: as given, or (None)
+    what ``field`` measured of itself when it was built (zeros when it records nothing)."""
+    import dataclasses
+
+    if config.field_sigma_m is not None:
+        return config
+    from .fields.field_error import field_sigmas
+
+    sigma_m, sigma_rad = field_sigmas(field) if field is not None else (0.0, 0.0)
+    rad = config.field_sigma_rad if config.field_sigma_rad is not None else sigma_rad
+    return dataclasses.replace(config, field_sigma_m=sigma_m, field_sigma_rad=rad)
 
 
 @dataclass

@@ -40,7 +40,8 @@ def test_own_layout_reads_back_bit_exactly(tmp_path):
         np.testing.assert_array_equal(frame.rgb, rgb)
         np.testing.assert_array_equal(frame.depth_m, (np.rint(depth_m * 1000) / 1000).astype(np.float32))
         assert frame.intrinsics == camera and frame.timestamp == k / 30.0
-        np.testing.assert_array_equal(seq.T_world_cam_gt[i], np.loadtxt(tmp_path / "seq-01" / f"frame-{k:06d}.pose.txt"))
+        np.testing.assert_allclose(seq.T_world_cam_gt[i], np.loadtxt(tmp_path / "seq-01" / f"frame-{k:06d}.pose.txt"),
+                                   atol=1e-15)
         np.testing.assert_allclose(seq.T_world_cam_gt[i], T, atol=1e-15)
     # A part of it: same frames, same recording.
     half = SevenScenesSequence(tmp_path / "seq-01", depth_intrinsics=camera, registration="none", frames="0.5:1")
@@ -75,6 +76,23 @@ def test_bad_folders_are_refused_in_one_line(tmp_path, damage, message):
     with pytest.raises(DatasetError, match=message) as info:
         SevenScenesSequence(tmp_path, registration="none")
     assert "\n" not in str(info.value)
+
+
+def test_rounded_rotations_are_made_rigid_and_wrong_ones_refused(tmp_path):
+    """Poses stored with rounding (as 7-Scenes' are: |R^T R - I| up to 2e-4) come out as exact
+    rotations; a matrix that is no rotation at all is a one-line error."""
+    _random_recording(tmp_path, count=2)
+    T = np.loadtxt(tmp_path / "frame-000000.pose.txt")
+    rounded = np.round(T, 4)
+    np.savetxt(tmp_path / "frame-000000.pose.txt", rounded)
+    seq = SevenScenesSequence(tmp_path, depth_intrinsics=Intrinsics(58.5, 58.5, 32, 24, 64, 48), registration="none")
+    R = seq.T_world_cam_gt[0][:3, :3]
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(seq.T_world_cam_gt[0], T, atol=2e-4)
+    rounded[:3, :3] *= 1.1
+    np.savetxt(tmp_path / "frame-000000.pose.txt", rounded)
+    with pytest.raises(DatasetError, match="not a rotation"):
+        SevenScenesSequence(tmp_path, depth_intrinsics=Intrinsics(58.5, 58.5, 32, 24, 64, 48), registration="none")
 
 
 def test_a_scene_with_several_sequences_asks_which(tmp_path):

@@ -6,10 +6,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_float, parse_pose, parse_size, positive_float,
                      positive_int, probability, warn_trained_frames)
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
+
+
+def _field_sigma(text: str) -> float | None:
+    return None if text == "auto" else non_negative_float(text)
 
 
 def add_source_arguments(p) -> None:
@@ -77,10 +83,11 @@ def add_source_arguments(p) -> None:
     add_matcher_argument(p, RUN_MATCHER)
     p.add_argument("--gate-p", type=probability, default=0.997,
                    help="chi-square gate probability, in (0, 1) (default 0.997)")
-    p.add_argument("--field-sigma", type=non_negative_float, default=0.0, metavar="M",
+    p.add_argument("--field-sigma", type=_field_sigma, default=None, metavar="M|auto",
                    help="the field's own geometric error in metres, added to every correction's covariance "
-                   "(default 0: the field is taken as exact). A trained field's corrections are otherwise "
-                   "over-confident; 0.01-0.02 made them honest on the simulated rooms")
+                   "(rotation: M / 2 m per radian). Default auto: what the field measured of itself when "
+                   "train-field built it (0 for the exact oracle and fields that record none); 0: take the field "
+                   "as exact")
     p.add_argument("--overlap", action="store_true",
                    help="measure each keyframe's correction on a second thread while the odometry goes on; it "
                    "enters the graph when ready (faster on two cores; not bit-for-bit repeatable; not with --odom imu)")
@@ -220,6 +227,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.pipeline import PipelineConfig
+    from nap3d_graph.pipeline_config import with_field_error
 
     if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
         raise UsageError("--groundtruth, --realsense-config and --record are for --traj realsense")
@@ -241,6 +249,11 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             field_sigma_m=args.field_sigma, overlap=args.overlap, max_frames=args.max_frames,
                             progress=True, compensate_timing=args.timing == "auto",
                             timing=_timing(args, field_obj, sequence), align=AlignConfig(matcher=args.matcher))
+    config = with_field_error(config, field_obj)
+    if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
+        print(f"field error: {config.field_sigma_m * 1000:.1f} mm, {np.degrees(config.field_sigma_rad or 0):.2f} deg "
+              "(measured by train-field on held-out frames) added to every correction's covariance; --field-sigma 0 "
+              "takes the field as exact")
     record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
               "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
               "initial_pose": None if initial_pose is None else initial_pose.tolist(),

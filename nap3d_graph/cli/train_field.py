@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .common import (UsageError, add_frames_argument, non_negative_int, positive_float, positive_int,
-                     writable_file_parent)
+from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_int,
+                     positive_float, positive_int, writable_file_parent)
 
 
 def add_parser(sub) -> None:
@@ -44,6 +44,12 @@ def add_parser(sub) -> None:
     p.add_argument("--eval-frames", type=non_negative_int, default=8, help="held-out frames to evaluate (default 8)")
     p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
+    add_matcher_argument(p, RUN_MATCHER)
+    p.add_argument("--no-field-error", action="store_true",
+                   help="do not measure the field's own error (by default each held-out frame is aligned with the "
+                   "render at its true pose, as a run would, and what the corrections miss beyond their covariance "
+                   "is recorded: runs of this field add it to every correction; --matcher picks the matcher "
+                   "of those alignments, use the runs' own)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -63,7 +69,8 @@ def run(args) -> int:
     field, report = build_field(sequence, args.model, steps=args.steps, minutes=args.minutes, every=args.every,
                                 eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
                                 timing="auto" if args.timing == "auto" else None, device=args.device,
-                                progress=not args.quiet)
+                                progress=not args.quiet, measure_error=not args.no_field_error,
+                                matcher=args.matcher)
     report["data"] = str(args.data)
     report["frames"] = args.frames
     report["checkpoint"] = str(args.out)
@@ -90,6 +97,15 @@ def summary(field, report: dict, out, report_path) -> str:
             f"({held['psnr_affine_db']:.2f} after an affine colour fit), depth error median "
             f"{_cm(depth.get('median'))} / p90 {_cm(depth.get('p90'))} ({held['depth_reference']}), opaque on "
             f"{held['opaque_fraction'] * 100:.0f}% of the surface, render {held['render_seconds']:.3f} s")
+    error = report.get("field_error")
+    if error and error.get("frames"):
+        lines.append(f"field error ({error['frames']} held-out frames aligned at their true pose, {error['matcher']}): "
+                     f"{error['sigma_m'] * 1000:.1f} mm, {error['sigma_rad'] * 57.2958:.2f} deg beyond the "
+                     f"corrections' covariance (their NEES median {error['nees_median_before']:.1f} -> "
+                     f"{error['nees_median_after']:.1f}); runs of this field add it to every correction")
+    elif error:
+        lines.append(f"field error: not measured ({error['frames']} held-out frames aligned, {error['failed']} "
+                     "failed); runs take the field as exact")
     return "\n".join(lines)
 
 

@@ -89,6 +89,21 @@ def _read_intrinsics_file(path: Path, width: int, height: int) -> Intrinsics:
     return Intrinsics(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height)
 
 
+def _nearest_rigid(T: np.ndarray, path: Path) -> np.ndarray:
+    """The pose with its rotation part projected onto the nearest rotation (SVD). 7-Scenes'
+    KinectFusion poses are stored with rounding: |R^T R - I| reaches 2e-4, and increments
+    composed from them (``--odom noisy``) drift away from rotations until a check refuses
+    them. A matrix far from a rotation is an error, not rounding."""
+    U, S, Vt = np.linalg.svd(T[:3, :3])
+    if np.max(np.abs(S - 1.0)) > 0.01 or np.linalg.det(U @ Vt) < 0:
+        raise DatasetError(f"{path}: the rotation part is not a rotation (singular values {np.round(S, 4).tolist()})")
+    if np.any(np.abs(T[3] - [0, 0, 0, 1]) > 1e-6):
+        raise DatasetError(f"{path}: the last row of a pose must be 0 0 0 1, got {T[3].tolist()}")
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = U @ Vt, T[:3, 3]
+    return out
+
+
 class SevenScenesSequence(GroundTruthLookup):
     """A 7-Scenes sequence, frames loaded lazily, in the colour camera.
 
@@ -180,7 +195,7 @@ class SevenScenesSequence(GroundTruthLookup):
             raise DatasetError(f"{p}: expected a 4x4 camera-to-world matrix, got shape {T.shape}")
         if not np.all(np.isfinite(T)):
             return np.full((4, 4), np.nan)  # a tracking loss: the frame stays, without a pose
-        return T
+        return _nearest_rigid(T, p)
 
     # --- registration ---
 

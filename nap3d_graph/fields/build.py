@@ -54,7 +54,8 @@ def estimate_timing(sequence) -> dict | None:
 def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = None, minutes: float | None = None,
                 every: int = 1, eval_frames: int = 8, seed: int = 0, voxel_size_m: float | None = None,
                 timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
-                device: str | None = None, progress: bool = True):
+                device: str | None = None, progress: bool = True, measure_error: bool = True,
+                matcher: str = "sift"):
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
@@ -62,7 +63,9 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     ``voxel_size_m``: the model's voxel (default: the model's own). ``timing``: ``"auto"``
     (estimate it), ``None`` (use the stamps as they are) or a dict. ``render_size``: the
     held-out evaluation renders at this size (the pipeline's; the frames' own when they are
-    smaller, or with ``None``).
+    smaller, or with ``None``). ``measure_error``: measure the field's own error on the
+    held-out frames with ``matcher`` (:mod:`~nap3d_graph.fields.field_error`), recorded in
+    ``field.meta["field_error"]`` and used by every run of the field to widen its corrections.
     """
     from .training_data import split_posed_frames
 
@@ -89,9 +92,29 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
         render_size = None  # never evaluate above the frames' own resolution
     held = evaluate_field(field, sequence, held_idx, oracle, size=render_size, timing=timing) if len(held_idx) else None
     report.update({"model": model, "timing": timing, "timing_seconds": round(timing_seconds, 2),
-                   "train_frames": int(len(train_idx)), "held_out": held,
-                   "total_seconds": round(time.perf_counter() - started, 2)})
+                   "train_frames": int(len(train_idx)), "held_out": held})
+    if measure_error:
+        report["field_error"] = field.meta["field_error"] = _field_error(field, sequence, every, timing, render_size,
+                                                                         matcher)
+    report["total_seconds"] = round(time.perf_counter() - started, 2)
     return field, report
+
+
+#: Held-out frames the field's error is measured on, at most (spread over all held-out ones).
+ERROR_FRAMES = 40
+
+
+def _field_error(field, sequence, every, timing, render_size, matcher) -> dict:
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    from .field_error import measure_field_error
+    from .training_data import split_posed_frames
+
+    _, error_idx = split_posed_frames(sequence, every, ERROR_FRAMES)
+    started = time.perf_counter()
+    error = measure_field_error(field, sequence, error_idx, timing, AlignConfig(matcher=matcher), render_size)
+    error.update({"matcher": matcher, "seconds": round(time.perf_counter() - started, 2)})
+    return error
 
 
 def _build_splat(sequence, train_idx, voxel_size_m, timing, progress):

@@ -1,0 +1,98 @@
+"""Is a run's covariance honest on real data with default settings? The field's own error,
+measured by ``train-field`` on held-out frames, against the same run with the field taken as
+exact (``--field-sigma 0``, the old default).
+
+The field is built on the first half of TUM fr1/desk (``--field``, default: a splat field
+with its error measured here); the second half, which it never saw, is corrected with
+visual odometry. Per setting: the NEES of every successful correction against the ground
+truth (6 dof: mean with the 95% band of a mean of k chi-square(6) values, median, p90), the
+ATE (no alignment), corrections accepted. Writes JSON.
+
+    python benchmarks/field_error_desk.py [--data ../shared/data/tum/rgbd_dataset_freiburg1_desk] \\
+        [--field FIELD.pt] [--matcher xfeat] [--out benchmarks/results/field_error_fr1_desk.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def correction_nees(result) -> np.ndarray:
+    """NEES (6 dof) of each measured correction against the ground truth at its frame."""
+    from nap3d_graph.conventions import inv_T, log_se3
+
+    out = []
+    for i, (T_corr, cov) in sorted(result.corrections.items()):
+        T_gt = result.T_world_cam_gt[i]
+        if np.all(np.isfinite(T_gt)) and np.all(np.isfinite(cov)):
+            e = log_se3(inv_T(T_corr) @ T_gt)
+            out.append(float(e @ np.linalg.solve(cov, e)))
+    return np.asarray(out)
+
+
+def run_one(data: Path, field, matcher: str, field_sigma) -> dict:
+    from scipy.stats import chi2
+
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.evaluation.metrics import ate
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.pipeline import Pipeline, PipelineConfig
+
+    sequence = open_sequence(data, frames="0.5:1")
+    odometry = make_odometry("vo", sequence, 0, 2e-3, 2e-3, matcher=matcher)
+    config = PipelineConfig(field_sigma_m=field_sigma, align=AlignConfig(matcher=matcher), progress=True)
+    pipeline = Pipeline(sequence, field, odometry, config)
+    result = pipeline.run()
+    nees = correction_nees(result)
+    k = len(nees)
+    band = [chi2.ppf(0.025, 6 * k) / k, chi2.ppf(0.975, 6 * k) / k] if k else [None, None]
+    posed = np.all(np.isfinite(result.T_world_cam_gt), axis=(1, 2))
+    stamps = result.timestamps[posed]
+    return {"field_sigma_m": pipeline.config.field_sigma_m, "field_sigma_rad": pipeline.config.field_sigma_rad,
+            "corrections": k, "nees_mean": float(np.mean(nees)) if k else None,
+            "nees_band_95": band, "nees_median": float(np.median(nees)) if k else None,
+            "nees_p90": float(np.percentile(nees, 90)) if k else None, "chi2_6_median": float(chi2.ppf(0.5, 6)),
+            "within_chi2_997": float(np.mean(nees < chi2.ppf(0.997, 6))) if k else None,
+            "ate_odometry_m": ate(stamps, result.T_world_cam_gt[posed], result.T_world_cam_odometry[posed])["rmse"],
+            "ate_estimate_m": ate(stamps, result.T_world_cam_gt[posed], result.T_world_cam_estimate[posed])["rmse"],
+            "ate_causal_m": ate(stamps, result.T_world_cam_gt[posed], result.T_world_cam_online[posed])["rmse"],
+            "keyframes": len(result.keyframes), "accepted": result.num_accepted}
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", type=Path, default=Path("../shared/data/tum/rgbd_dataset_freiburg1_desk"))
+    p.add_argument("--field", type=Path, default=None, help="a field built on frames 0:0.5 by train-field (default: "
+                   "build a splat field here)")
+    p.add_argument("--matcher", default="xfeat")
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results/field_error_fr1_desk.json"))
+    args = p.parse_args(argv)
+    from nap3d_graph.cli import main as cli
+    from nap3d_graph.fields import load_field
+
+    field_path = args.field
+    if field_path is None:
+        field_path = Path(tempfile.mkdtemp(prefix="field_error_desk_")) / "splat.pt"
+        assert cli(["train-field", str(args.data), "--frames", "0:0.5", "--model", "splat", "--matcher", args.matcher,
+                    "--out", str(field_path), "--quiet"]) == 0
+    field = load_field(field_path)
+    result = {"data": str(args.data), "field": str(field_path), "frames": "0.5:1 (field from 0:0.5)",
+              "odometry": "vo", "matcher": args.matcher, "field_error": field.meta.get("field_error"), "runs": {}}
+    for name, sigma in (("measured (default)", None), ("exact (--field-sigma 0)", 0.0)):
+        result["runs"][name] = r = run_one(args.data, field, args.matcher, sigma)
+        print(f"{name:24s} NEES mean {r['nees_mean']:.1f} (band {r['nees_band_95'][0]:.2f}-{r['nees_band_95'][1]:.2f}), "
+              f"median {r['nees_median']:.1f}; ATE {r['ate_estimate_m'] * 100:.2f} cm (odometry "
+              f"{r['ate_odometry_m'] * 100:.2f}); accepted {r['accepted']}/{r['keyframes']}", flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
