@@ -26,7 +26,7 @@ from nap3d_graph.factors import imu_factor, pose_prior_factor
 
 from .conventions import T_to_pose3, pose3_to_T
 from .imu import ImuConfig, ImuStream
-from .pipeline import KeyframeRecord, Pipeline
+from .pipeline import Pipeline
 
 __all__ = ["ImuOdometry", "ImuPipeline"]
 
@@ -124,8 +124,7 @@ class ImuPipeline(Pipeline):
             self.new_values.insert(V(j), predicted.velocity())
             self.new_values.insert(B(j), self.bias_kf)
         self.dt_since_kf = 0.0
-        self._pending_record = KeyframeRecord(i, t, X(j), trained_frame=bool(self._trained[i]),
-                                              reason="; ".join(self._notes))
+        self._pending_record = self._keyframe_record(i, X(j), reason="; ".join(self._notes))
         self._update_isam()
 
     def _correct_keyframe(self, i: int, frame) -> None:

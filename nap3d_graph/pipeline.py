@@ -76,12 +76,13 @@ class Pipeline:
                 if stop is not None and stop():
                     done, partial = i, True
                     break
-                frame = self._read_frame(i) if self._odometry_needs_frames() else None
+                frame = self._read_frame(i) if self._odometry_needs_frames() or self._wants_sharpness(i) else None
                 if i > 0:
                     self._propagate_odometry(i, frame)
-                if worker is not None and (worker.ready() or (worker.busy and self._is_keyframe(i))):
+                keyframe = self._is_keyframe(i, frame)
+                if worker is not None and (worker.ready() or (worker.busy and keyframe)):
                     self._land(worker, on_keyframe)  # a late correction enters the graph now
-                if self._is_keyframe(i):
+                if keyframe:
                     self._add_keyframe(i)
                     frame = frame if frame is not None else self._read_frame(i)
                     if worker is not None:
@@ -123,6 +124,10 @@ class Pipeline:
         self._pending_record: KeyframeRecord | None = None
         self._online: list[np.ndarray] = []  # each frame's pose as known at that frame (causal)
         self._trained = self._trained_timestamps()
+        self._due_since: int | None = None  # the frame a keyframe fell due at, while its window is open
+        self._due_why = ""
+        self._sharpness_since_kf: list[float] = []
+        self._odometry_doubted = False
         self.factor_log: list[tuple[gtsam.NonlinearFactor, bool, int]] = []  # (factor, is NAP3D, keyframe)
         timing = self._timing() or {}
         self.depth_scale = DepthScaleTracker(float(timing.get("depth_scale", 1.0)), self.config)
@@ -155,22 +160,70 @@ class Pipeline:
 
     def _propagate_odometry(self, i: int, frame) -> None:
         inc = self.odometry.increment(i, frame)
+        self._odometry_doubted = self._odometry_doubted or not getattr(inc, "ok", True)
         self.increments.append(inc.T_prev_cur)
         self.T_odom.append(self.T_odom[-1] @ inc.T_prev_cur)
         self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
         self.T_since_kf = self.T_since_kf @ inc.T_prev_cur
         self.dt_since_kf += float(self.sequence.timestamps[i] - self.sequence.timestamps[i - 1])
 
-    def _is_keyframe(self, i: int) -> bool:
+    def _keyframe_due(self, i: int) -> str:
+        """Why frame i is due to be a keyframe ("" when it is not)."""
         if not self.keyframe_indices:
-            return i == 0
+            return "first" if i == 0 else ""
+        if self.config.keyframe_on_doubt and self._odometry_doubted:
+            return "doubt"
         last = self.keyframe_indices[-1]
         if i - last >= self.config.keyframe_every:
-            return True
+            return "every"
         moved_m, turned_deg = pose_error(self.T_since_kf, np.eye(4))
         if self.config.keyframe_distance_m > 0 and moved_m >= self.config.keyframe_distance_m:
-            return True
-        return self.config.keyframe_angle_deg > 0 and turned_deg >= self.config.keyframe_angle_deg
+            return "distance"
+        return "angle" if self.config.keyframe_angle_deg > 0 and turned_deg >= self.config.keyframe_angle_deg else ""
+
+    def _wants_sharpness(self, i: int) -> bool:
+        """Whether frame i must be read for its sharpness: with a keyframe window, every frame
+        is (the frames since the last keyframe are the reference a due one is judged by)."""
+        return self.config.keyframe_window > 1
+
+    def _is_keyframe(self, i: int, frame=None) -> bool:
+        """Frame i is a keyframe: it is due (``_keyframe_due``) and, with a keyframe window,
+        sharp enough or the window's last frame. Records why on ``self._keyframe_why``."""
+        if self._due_since is None:
+            why = self._keyframe_due(i)
+            if not why:
+                self._note_sharpness(frame)
+                return False
+            self._due_since, self._due_why = i, why
+        sharpness = self._note_sharpness(frame)
+        waited = i - self._due_since
+        window = self.config.keyframe_window
+        if window > 1 and waited < window - 1 and self._due_why != "first":
+            recent = self._sharpness_since_kf[:-1]
+            reference = float(np.median(recent)) if recent else sharpness
+            if not sharpness >= self.config.keyframe_sharpness_fraction * reference:
+                return False  # blurred: a sharper one may follow within the window
+        self._keyframe_why = (self._due_why, sharpness, waited)
+        self._due_since = None
+        return True
+
+    def _keyframe_record(self, i: int, key: int, **extra) -> KeyframeRecord:
+        """The record of keyframe i (why it is one, its sharpness); starts the next interval."""
+        why, sharp, waited = getattr(self, "_keyframe_why", ("first", float("nan"), 0))
+        self._sharpness_since_kf = []
+        self._odometry_doubted = False
+        return KeyframeRecord(i, float(self.sequence.timestamps[i]), key, trained_frame=bool(self._trained[i]),
+                              why=why, sharpness=sharp, postponed=waited, **extra)
+
+    def _note_sharpness(self, frame) -> float:
+        """The frame's sharpness (NaN without a frame or a window), kept for the reference."""
+        if frame is None or self.config.keyframe_window <= 1:
+            return float("nan")
+        from .camera import sharpness
+
+        value = sharpness(frame.rgb)
+        self._sharpness_since_kf.append(value)
+        return value
 
     def _add_keyframe(self, i: int) -> None:
         """The keyframe's pose enters iSAM2 with its odometry factor: that is the prediction."""
@@ -191,8 +244,7 @@ class Pipeline:
         self.T_since_kf = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
         self.dt_since_kf = 0.0
-        self._pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j),
-                                              trained_frame=bool(self._trained[i]))
+        self._pending_record = self._keyframe_record(i, X(j))
         self._update_isam()
 
     def _correct_keyframe(self, i: int, frame) -> None:

@@ -18,6 +18,14 @@ class PipelineConfig:
 
     keyframe_every: a keyframe every N frames; keyframe_distance_m / keyframe_angle_deg
         (when > 0) also make one once the odometry moved that far since the last.
+    keyframe_window: when a keyframe is due, take it at the first frame of the next
+        ``keyframe_window`` frames that is sharp (variance of the Laplacian at least
+        ``keyframe_sharpness_fraction`` of the median of the frames since the last
+        keyframe), the last of them if none is: a motion-blurred frame gives the matcher
+        little to hold on to (0 or 1: the due frame, as it comes). Causal: no frame is
+        waited for beyond the window.
+    keyframe_on_doubt: also take a keyframe at the frame after the odometry guessed a step
+        (visual odometry lost track: fast, blurred motion), so a jump is corrected at once.
     correction_iterations: render-align rounds per correction (see ``correct_pose``).
     render_width, render_height: the field renders at this size (None: the frame's).
     gate_p: chi-square gate probability (6 dof) of a correction against the prediction.
@@ -72,6 +80,9 @@ class PipelineConfig:
     keyframe_every: int = 5
     keyframe_distance_m: float = 0.0
     keyframe_angle_deg: float = 0.0
+    keyframe_window: int = 0
+    keyframe_sharpness_fraction: float = 0.8
+    keyframe_on_doubt: bool = False
     correction_iterations: int = 1
     render_width: int | None = 320
     render_height: int | None = 240
@@ -107,6 +118,9 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
+        if self.keyframe_window < 0 or not 0 < self.keyframe_sharpness_fraction <= 1:
+            raise ValueError(f"keyframe_window must be >= 0 and keyframe_sharpness_fraction in (0, 1], got "
+                             f"{self.keyframe_window}, {self.keyframe_sharpness_fraction}")
         for name in ("field_sigma_m", "field_sigma_rad"):
             value = getattr(self, name)
             if value is not None and not value >= 0:
@@ -166,6 +180,9 @@ class KeyframeRecord:
     correction_deg: float = float("nan")
     timings_s: dict = field(default_factory=dict)
     trained_frame: bool = False
+    why: str = "every"  # why a keyframe here: every (due), distance, angle, first, doubt
+    sharpness: float = float("nan")
+    postponed: int = 0  # frames it was taken after it was due (keyframe_window)
     depth_scale: float = float("nan")
 
 

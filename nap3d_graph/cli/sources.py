@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_float, parse_pose, parse_size, positive_float,
-                     positive_int, probability, warn_trained_frames)
+from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_float,
+                     non_negative_int, parse_pose, parse_size, positive_float, positive_int, probability,
+                     warn_trained_frames)
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 
@@ -20,6 +21,9 @@ def _field_sigma(text: str) -> float | None:
 
 def add_source_arguments(p) -> None:
     """The source, field, odometry and keyframe options of a drift-correction run."""
+    import argparse
+
+    from nap3d_graph.pipeline_config import PipelineConfig
     from nap3d_graph.datasets import SOURCES
     from nap3d_graph.default_run import DEFAULT_TRAIN_STEPS
 
@@ -76,6 +80,14 @@ def add_source_arguments(p) -> None:
                    help="also a keyframe after this many metres of odometry (0: off)")
     p.add_argument("--keyframe-angle", type=non_negative_float, default=0.0,
                    help="also a keyframe after this many degrees of rotation (0: off)")
+    p.add_argument("--keyframe-window", type=non_negative_int, default=PipelineConfig.keyframe_window, metavar="N",
+                   help="a due keyframe is taken at the first sharp frame (variance of the Laplacian at least 0.8 of "
+                   "the median since the last keyframe) among the next N, the last of them if none is: motion blur "
+                   f"starves the matcher (0 or 1: the due frame; default {PipelineConfig.keyframe_window})")
+    p.add_argument("--keyframe-on-doubt", action=argparse.BooleanOptionalAction,
+                   default=PipelineConfig.keyframe_on_doubt,
+                   help="also a keyframe right after the odometry guessed a step (visual odometry lost track), so "
+                   f"the jump is corrected at once (default {'on' if PipelineConfig.keyframe_on_doubt else 'off'})")
     p.add_argument("--iterations", type=positive_int, default=1,
                    help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
                    "a little more accurate, twice the time)")
@@ -244,6 +256,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
     config = PipelineConfig(keyframe_every=args.keyframe_every, keyframe_distance_m=args.keyframe_distance,
+                            keyframe_window=args.keyframe_window, keyframe_on_doubt=args.keyframe_on_doubt,
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
                             field_sigma_m=args.field_sigma, overlap=args.overlap, max_frames=args.max_frames,
