@@ -24,7 +24,8 @@ from .datasets.tum import write_tum_trajectory
 from .evaluation.metrics import trajectory_metrics
 from .plots import plot_error_over_time, plot_top_view
 
-__all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary", "CORRECTION_COLUMNS"]
+__all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary", "CORRECTION_COLUMNS",
+           "refusal_reasons"]
 
 log = logging.getLogger(__name__)
 
@@ -76,6 +77,19 @@ def keyframe_timing_summary(result) -> dict:
     if totals:
         out["total_per_keyframe"] = float(np.median(totals))
     return out
+
+
+def refusal_reasons(keyframes) -> dict[str, int]:
+    """How many keyframes were refused for each kind of reason (its words before the first
+    number or detail: "too few inliers", "low opacity", "innovation", ...), most first."""
+    import re
+
+    counts: dict[str, int] = {}
+    for k in keyframes:
+        if not k.accepted:
+            kind = re.split(r"[(:=0-9]", k.reason or "unknown")[0].strip() or "unknown"
+            counts[kind] = counts.get(kind, 0) + 1
+    return dict(sorted(counts.items(), key=lambda item: -item[1]))
 
 
 def _correction_row(k, frame_index: int) -> list:
@@ -137,6 +151,7 @@ class RunWriter:
             "keyframes": len(result.keyframes),
             "corrections_accepted": result.num_accepted,
             "corrections_rejected_or_skipped": result.num_rejected,
+            "refused_reasons": refusal_reasons(result.keyframes),
             "median_inliers": float(np.median([k.inliers for k in result.keyframes])) if result.keyframes else 0.0,
             "seconds_per_keyframe_median": keyframe_timing_summary(result),
             "wall_time_s": result.wall_time_s,

@@ -184,7 +184,7 @@ def test_train_field_command_writes_checkpoint_and_report(survey, tmp_path, caps
     assert main(["train-field", str(survey.path), "--out", str(out), "--model", "grid", "--steps", "60",
                  "--voxel-size", "0.08", "--every", "2", "--eval-frames", "2", "--quiet"]) == 0
     assert out.is_file()
-    report = json.loads((out.parent / "field_report.json").read_text())
+    report = json.loads((out.parent / "field.report.json").read_text())
     held = report["held_out"]
     for key in ("psnr_db", "psnr_affine_db", "depth_abs_err_m", "opaque_fraction", "unit_check"):
         assert key in held
@@ -205,7 +205,7 @@ def test_train_field_builds_a_splat_field(survey, tmp_path, capsys):
                  "--quiet"]) == 0
     field = load_field(out)
     assert isinstance(field, SplatField) and field.meta["model"] == "splat"
-    report = json.loads((tmp_path / "field_report.json").read_text())
+    report = json.loads((tmp_path / "splat.report.json").read_text())
     held = report["held_out"]
     assert held["depth_reference"].startswith("noise-free")
     # Measured: depth 0.61 cm median against the exact room, opaque 91%, 18.2 dB after an affine

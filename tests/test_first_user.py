@@ -147,3 +147,77 @@ def test_trained_frames_are_recognised_by_recording_and_stamp(walk, tmp_path):
 
     assert not frames_seen_in_training(load_field(tmp_path / "f.pt"), foreign).any()
     np.testing.assert_array_equal(frames_seen_in_training(load_field(tmp_path / "f.pt"), same), trained)
+
+
+def test_version_module_entry_and_verbose_after_the_subcommand():
+    result = _fresh("-m", "nap3d_graph", "--version")
+    assert result.returncode == 0 and result.stdout.strip() == f"nap3d-graph {nap3d_graph.__version__}"
+    from nap3d_graph.cli import build_parser
+
+    args = build_parser().parse_args(["-v", "eval-j", "--out", "x", "-v"])
+    assert args.verbose == 1 and args.verbose_after == 1
+
+
+def test_nothing_is_overwritten_without_force(walk, tmp_path, capsys):
+    out = tmp_path / "evalk"
+    (out / "keep.txt").parent.mkdir()
+    (out / "keep.txt").write_text("earlier results")
+    assert main(["eval-k", str(walk), "--field", "oracle", "--scenarios", "2", "--out", str(out)]) == 2
+    assert "is not empty" in capsys.readouterr().err and (out / "keep.txt").read_text() == "earlier results"
+    # Two fields in one folder keep their own reports; an existing checkpoint is not replaced.
+    for name in ("a", "b"):
+        assert main(["train-field", str(walk), "--model", "splat", "--out", str(tmp_path / f"{name}.pt"),
+                     "--no-field-error", "--quiet"]) == 0
+    assert (tmp_path / "a.report.json").is_file() and (tmp_path / "b.report.json").is_file()
+    before = (tmp_path / "a.pt").stat().st_mtime_ns
+    assert main(["train-field", str(walk), "--model", "splat", "--out", str(tmp_path / "a.pt"), "--quiet"]) == 2
+    assert "add --force" in capsys.readouterr().err and (tmp_path / "a.pt").stat().st_mtime_ns == before
+
+
+def test_depth_in_the_wrong_unit_is_said_at_once(walk, tmp_path, capsys):
+    import cv2
+
+    data = tmp_path / "mm"
+    shutil.copytree(walk, data, ignore=shutil.ignore_patterns("odometry.txt", "scene.json", "sim.json", "imu*"))
+    for png in (data / "depth").iterdir():  # a converter that wrote millimetres where TUM has 5000 per metre
+        depth = cv2.imread(str(png), cv2.IMREAD_UNCHANGED).astype(np.float64) / 5000
+        cv2.imwrite(str(png), np.rint(depth * 1000).astype(np.uint16))
+    rc = main(["run", "--traj", "tum", "--data", str(data), "--field", str(walk), "--out", str(tmp_path / "o")])
+    captured = capsys.readouterr()
+    assert rc == 0
+    # The run says why its corrections failed, in the summary and as a hint that names the unit.
+    assert "rejected or skipped (" in captured.out and "corrections were refused for" in captured.err
+    assert "5000 per metre" in captured.err
+    # Depth in centimetres on top: no camera sees the world at 4 mm, said before anything runs.
+    for png in (data / "depth").iterdir():
+        depth = cv2.imread(str(png), cv2.IMREAD_UNCHANGED).astype(np.float64)
+        cv2.imwrite(str(png), np.rint(depth / 10).astype(np.uint16))
+    main(["run", "--traj", "tum", "--data", str(data), "--field", "none", "--out", str(tmp_path / "o2")])
+    assert "median depth is" in capsys.readouterr().err
+
+
+def test_runs_without_a_field_are_not_labelled_nap3d(walk, tmp_path, capsys):
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "none", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "with NAP3D" not in out and "graph (no field)" in out
+
+
+def test_a_frame_range_past_the_end_is_said(walk, caplog):
+    from nap3d_graph.datasets import TumSequence
+
+    caplog.set_level(logging.WARNING, logger="nap3d_graph")
+    assert len(TumSequence(walk, frames="0:1000")) == 24
+    assert "ends past the sequence's 24 frames" in caplog.text
+
+
+def test_correct_pose_takes_a_gtsam_pose3(walk):
+    import gtsam
+
+    from nap3d_graph import correct_pose
+    from nap3d_graph.datasets import SimSequence
+
+    seq = SimSequence(walk)
+    T_gt = seq.T_world_cam_gt[6]
+    T_est = T_gt @ exp_se3([0.01, -0.01, 0.0, 0.02, -0.01, 0.01])
+    correction = correct_pose(seq[6], seq.oracle_field(), gtsam.Pose3(T_est), iterations=2)
+    assert correction.success and pose_error(correction.T_world_cam_corrected, T_gt)[0] < 0.005

@@ -179,9 +179,14 @@ def test_bench_peers_command_writes_its_files(tmp_path, capsys):
     refined = [float(r["trans_err_m"]) * 1000 for r in rows if r["method"] == "nap3d-refined"]
     assert summary["methods"]["nap3d-refined"]["trans_mm"]["median"] == pytest.approx(np.median(refined))
     assert summary["methods"]["nap3d-refined"]["trans_mm"]["median"] < 10.0
-    assert main(["bench-peers", str(data), "--field", "oracle", "--methods", "nap3d,sift", "--out", str(out)]) == 2
-    assert main(["bench-peers", str(data), "--field", "oracle", "--methods", "photometric", "--out", str(out)]) == 2
+    assert main(["bench-peers", str(data), "--field", "oracle", "--methods", "nap3d,sift", "--out", str(out),
+                 "--force"]) == 2
+    assert main(["bench-peers", str(data), "--field", "oracle", "--methods", "photometric", "--out", str(out),
+                 "--force"]) == 2
     assert "needs a trained grid field" in capsys.readouterr().err
+    # Without --force nothing is written into the folder of an earlier benchmark.
+    assert main(["bench-peers", str(data), "--field", "oracle", "--trials", "3", "--out", str(out)]) == 2
+    assert "is not empty" in capsys.readouterr().err
 
 
 def test_the_public_names_import_from_the_package_and_its_parts():

@@ -242,7 +242,7 @@ def test_train_field_and_export_take_a_recording_with_poses(walk, tmp_path, caps
     rc, err = _cli(capsys, "train-field", noisy, "--poses", sim / "groundtruth.txt", "--out", tmp_path / "f.pt",
                    "--steps", 60, "--voxel-size", 0.08, "--every", 2, "--eval-frames", 2, "--quiet")
     assert rc == 0, err
-    report = json.loads((tmp_path / "field_report.json").read_text())
+    report = json.loads((tmp_path / "f.report.json").read_text())
     assert report["held_out"]["depth_abs_err_m"]["median"] < 0.05  # a coarse, short training: centimetres
     trained = np.asarray(load_field(tmp_path / "f.pt").meta["train_timestamps"])
     assert np.isin(np.round(trained, 6), np.round(seq.timestamps, 6)).all()

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .common import (UsageError, add_frames_argument, add_matcher_argument, parse_methods, parse_size, positive_float, positive_int,
-                     warn_trained_frames, writable_dir)
+                     warn_trained_frames, empty_or_new_dir)
 
 
 def add_parser(sub) -> None:
@@ -32,7 +32,8 @@ def add_parser(sub) -> None:
                    f"{','.join(PEERS)}; photometric needs a trained grid field)")
     p.add_argument("--render-size", default="320x240", help="WxH of the render and the real frame (default 320x240)")
     add_matcher_argument(p)
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder (empty or new unless --force)")
+    p.add_argument("--force", action="store_true", help="write into a non-empty folder (its files are replaced)")
     p.set_defaults(func=run)
 
 
@@ -46,7 +47,7 @@ def run(args) -> int:
 
     methods = parse_methods(args.methods or ",".join(PEERS), PEERS)
     size = parse_size(args.render_size)
-    writable_dir(args.out)
+    empty_or_new_dir(args.out, args.force)
     sequence = open_sequence(args.data, frames=args.frames)
     field = resolve_field(args.field, sequence)
     if "photometric" in methods and not isinstance(field, GridField):

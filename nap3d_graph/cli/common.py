@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["UsageError", "Parser", "add_frames_argument", "warn_trained_frames", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["UsageError", "Parser", "add_frames_argument", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
@@ -141,6 +141,34 @@ def warn_trained_frames(field, sequence, what: str) -> int:
               "measures the field's memory of that image, not how it generalises (train on other frames, "
               "e.g. train-field --frames 0:0.5 and run --frames 0.5:1)", file=sys.stderr)
     return count
+
+
+def warn_depth_units(sequence, frames: int = 3) -> float | None:
+    """Print a warning when the frames' depth does not look like metres (median of a few
+    frames' valid depth outside 0.1-20 m: a hand-held or robot RGB-D camera sees 0.3-10 m);
+    returns that median (None when no frame could be read)."""
+    import sys
+
+    import numpy as np
+
+    from nap3d_graph.datasets import DatasetError
+
+    values = []
+    for i in np.linspace(0, len(sequence) - 1, min(frames, len(sequence))).round().astype(int):
+        try:
+            depth = np.asarray(sequence[int(i)].depth_m, dtype=float)
+        except (DatasetError, OSError):
+            continue
+        valid = depth[np.isfinite(depth) & (depth > 0)]
+        if valid.size:
+            values.append(float(np.median(valid)))
+    if not values:
+        return None
+    median = float(np.median(values))
+    if not 0.1 <= median <= 20.0:
+        print(f"warning: the frames' median depth is {median:.4g} m: is the depth in metres (TUM PNGs: 5000 per "
+              "metre, 7-Scenes: 1000)? Fields and corrections assume it", file=sys.stderr)
+    return median
 
 
 class StopOnSignal:

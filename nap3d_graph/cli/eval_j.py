@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .common import positive_int, writable_dir
+from .common import positive_int, empty_or_new_dir
 
 
 def add_parser(sub) -> None:
@@ -25,7 +25,8 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the extra offsets and sensor noise")
     p.add_argument("--width", type=positive_int, default=640)
     p.add_argument("--height", type=positive_int, default=480)
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder (empty or new unless --force)")
+    p.add_argument("--force", action="store_true", help="write into a non-empty folder (its files are replaced)")
     p.set_defaults(func=run)
 
 
@@ -35,7 +36,7 @@ def run(args) -> int:
     from nap3d_graph.sims.scene import OracleField, Scene, make_scene
     from nap3d_graph.sims.sequence import default_intrinsics
 
-    writable_dir(args.out)
+    empty_or_new_dir(args.out, args.force)
 
     if args.data is not None:
         scene_file = Path(args.data) / "scene.json"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import add_frames_argument, add_matcher_argument, parse_methods, positive_int, warn_trained_frames, writable_dir
+from .common import add_frames_argument, add_matcher_argument, parse_methods, positive_int, warn_trained_frames, empty_or_new_dir
 
 
 def add_parser(sub) -> None:
@@ -42,7 +42,8 @@ def add_parser(sub) -> None:
                    "tens of ms before colour: uncompensated, a 3D-3D method measures that asynchrony); none: the "
                    "frames as stamped")
     add_matcher_argument(p)
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--out", type=Path, required=True, help="output folder (empty or new unless --force)")
+    p.add_argument("--force", action="store_true", help="write into a non-empty folder (its files are replaced)")
     p.set_defaults(func=run)
 
 
@@ -53,7 +54,7 @@ def run(args) -> int:
     from nap3d_graph.nap3d.config import AlignConfig
 
     methods = parse_methods(args.methods, METHODS)
-    writable_dir(args.out)
+    empty_or_new_dir(args.out, args.force)
     if args.iterate and "nap3d-iter" not in methods:
         methods += ("nap3d-iter",)
     sequence = open_sequence(args.data, frames=args.frames)

@@ -50,7 +50,10 @@ def run(args) -> int:
     finally:
         writer.close()
     metrics = writer.finish(result, partial=result.partial)
-    print(summary_table(metrics, time.perf_counter() - t0))
+    print(summary_table(metrics, time.perf_counter() - t0, with_field=prepared.field is not None))
+    hint = refusal_hint(metrics)
+    if hint:
+        print(f"warning: {hint}", file=sys.stderr)
     print(f"results: {writer.dir}  (also {Path(args.out) / 'latest'})")
     if result.partial:
         print(f"interrupted after {len(result.timestamps)} of {len(prepared.sequence)} frames: the results are partial "
@@ -59,12 +62,40 @@ def run(args) -> int:
     return 0
 
 
-def summary_table(metrics: dict, seconds: float) -> str:
+#: What to check when most corrections of a run fail for one reason.
+_HINTS = {
+    "low opacity": "the field does not cover these views: is it a field of this place, in this recording's "
+                   "frame (--anchor estimates an offset)?",
+    "too few matches": "the frames and the renders hardly match: is the field of this place, and the depth in "
+                       "metres (TUM PNGs: 5000 per metre)?",
+    "too few inliers": "matches do not agree in 3D: is the depth in metres (TUM PNGs: 5000 per metre), and the "
+                       "camera's intrinsics right?",
+    "depth scale": "the frames' depth disagrees with the field's metre: check the depth unit and scale",
+    "innovation": "the corrections disagree with the odometry's prediction: is the field in this recording's "
+                  "frame (--anchor), or the odometry noisier than its model (--odom-rot-sigma, --odom-trans-sigma)?",
+}
+
+
+def refusal_hint(metrics: dict) -> str:
+    """A warning when most keyframes (at least 60%) were refused, for one reason (at least
+    60% of the refusals): what the reason usually means. Empty otherwise."""
+    reasons, keyframes = metrics.get("refused_reasons") or {}, metrics.get("keyframes", 0)
+    refused = sum(reasons.values())
+    if keyframes < 3 or refused < 0.6 * keyframes or not reasons:
+        return ""
+    kind, count = next(iter(reasons.items()))
+    if count < 0.6 * refused or kind == "no field":
+        return ""
+    why = next((text for key, text in _HINTS.items() if kind.startswith(key)), "see corrections.csv")
+    return f"{count} of {keyframes} corrections were refused for '{kind}': {why}"
+
+
+def summary_table(metrics: dict, seconds: float, with_field: bool = True) -> str:
     lines = [""]
     if "estimate" in metrics:
         lines.append(f"{'':<22}{'ATE rmse':>12}{'ATE 1st half':>14}{'ATE 2nd half':>14}{'RPE rmse':>12}")
-    for name, label in (("odometry", "odometry only"), ("estimate", "with NAP3D"),
-                        ("estimate_online", "with NAP3D, causal")):
+    label, causal = ("with NAP3D", "with NAP3D, causal") if with_field else ("graph (no field)", "graph, causal")
+    for name, label in (("odometry", "odometry only"), ("estimate", label), ("estimate_online", causal)):
         m = metrics.get(name)
         if m is None:
             continue
@@ -77,8 +108,11 @@ def summary_table(metrics: dict, seconds: float) -> str:
         ratio = metrics["odometry"]["ate_m"]["rmse"] / max(metrics["estimate"]["ate_m"]["rmse"], 1e-12)
         lines.append(f"ATE reduced {ratio:.1f}x")
     timing = metrics["seconds_per_keyframe_median"]
+    reasons = metrics.get("refused_reasons") or {}
+    why = f" ({', '.join(f'{n} {kind}' for kind, n in reasons.items())})" if reasons else ""
     lines.append(f"corrections: {metrics['corrections_accepted']} accepted, "
-                 f"{metrics['corrections_rejected_or_skipped']} rejected or skipped, of {metrics['keyframes']} keyframes")
+                 f"{metrics['corrections_rejected_or_skipped']} rejected or skipped{why}, of {metrics['keyframes']} "
+                 "keyframes")
     if "total_per_keyframe" in timing:
         stages = ", ".join(f"{k} {v * 1000:.0f}" for k, v in timing.items() if k != "total_per_keyframe")
         lines.append(f"time per keyframe: {timing['total_per_keyframe']:.2f} s median ({stages} ms)")

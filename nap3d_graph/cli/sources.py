@@ -10,7 +10,7 @@ import numpy as np
 
 from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_float,
                      non_negative_int, parse_pose, parse_size, positive_float, positive_int, probability,
-                     warn_trained_frames)
+                     warn_depth_units, warn_trained_frames)
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 
@@ -252,6 +252,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     if args.data is not None:
         field_obj = resolve_field(args.field, sequence)
     trained_on = warn_trained_frames(field_obj, sequence, "frames of this run")
+    warn_depth_units(sequence)
     odom_kind, odometry, pipeline_class = _odometry(args, sequence, initial_pose)
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_int,
-                     positive_float, positive_int, writable_file_parent)
+                     positive_float, positive_int, warn_depth_units, writable_file_parent)
 
 
 def add_parser(sub) -> None:
@@ -14,14 +15,17 @@ def add_parser(sub) -> None:
         "train-field",
         help="train a grid radiance field on a posed RGB-D sequence",
         description="Train a dense voxel-grid radiance field (RGB + density, CPU or CUDA) on a posed "
-        "RGB-D sequence (TUM folder or simulated room) and write the checkpoint plus "
-        "field_report.json (held-out PSNR, depth errors, opacity, unit check) beside it.",
+        "RGB-D sequence (TUM folder or simulated room) and write the checkpoint plus FIELD.report.json "
+        "(held-out PSNR, depth errors, opacity, unit check, the field's own error) beside it. An existing "
+        "checkpoint is not replaced without --force.",
     )
     p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses), or a RealSense "
                    "recording (.bag/.db3) with --poses")
     p.add_argument("--poses", type=Path, metavar="TUM_FILE",
                    help="for a RealSense recording: the camera poses of its frames (TUM file)")
-    p.add_argument("--out", type=Path, required=True, help="checkpoint to write (FIELD.pt)")
+    p.add_argument("--out", type=Path, required=True, help="checkpoint to write (FIELD.pt; its report goes to "
+                   "FIELD.report.json)")
+    p.add_argument("--force", action="store_true", help="replace an existing checkpoint and its report")
     p.add_argument("--model", choices=("grid", "splat"), default="grid",
                    help="grid (default, chosen by measurement: see the README): a voxel-grid radiance field trained "
                    "with torch; splat: surface splats fused from the frames, no training (seconds, not minutes)")
@@ -63,9 +67,12 @@ def run(args) -> int:
     if args.out.suffix != ".pt":
         raise UsageError(f"--out must name a .pt checkpoint, got {args.out}")
     writable_file_parent(args.out)  # before minutes of training, not after
+    if args.out.exists() and not args.force:
+        raise UsageError(f"{args.out} exists (a trained field); choose another name, or add --force to replace it")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses)
+    warn_depth_units(sequence)
     field, report = build_field(sequence, args.model, steps=args.steps, minutes=args.minutes, every=args.every,
                                 eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
                                 timing="auto" if args.timing == "auto" else None, device=args.device,
@@ -75,10 +82,21 @@ def run(args) -> int:
     report["frames"] = args.frames
     report["checkpoint"] = str(args.out)
     field.save(args.out)
-    report_path = args.out.parent / "field_report.json"
+    report_path = report_path_for(args.out)
     report_path.write_text(json.dumps(report, indent=1, default=float))
     print(summary(field, report, args.out, report_path))
+    check = ((report.get("held_out") or {}).get("unit_check")) or {}
+    if check.get("a") is not None and (abs(check["a"] - 1.0) > 0.1 or (check.get("r2") or 0) < 0.8):
+        print(f"warning: the sensor's depth does not follow the field's (sensor = {check['a']:.3f} x field "
+              f"{check.get('b', 0):+.3f} m, R^2 = {check.get('r2', float('nan')):.2f}; the paper's unit check wants "
+              "a = 1, R^2 near 1): check the depth unit, the poses and the intrinsics", file=sys.stderr)
     return 0
+
+
+def report_path_for(checkpoint: Path) -> Path:
+    """``FIELD.report.json`` beside ``FIELD.pt``: one report per field, so two fields in one
+    folder keep theirs."""
+    return checkpoint.with_suffix(".report.json")
 
 
 def summary(field, report: dict, out, report_path) -> str:

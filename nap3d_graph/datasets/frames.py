@@ -8,7 +8,11 @@ the second half; otherwise they are indices (negative counts from the end, as in
 
 from __future__ import annotations
 
+import logging
+
 from .errors import DatasetError
+
+log = logging.getLogger(__name__)
 
 __all__ = ["parse_frame_range"]
 
@@ -44,4 +48,13 @@ def parse_frame_range(spec: str | None, n: int) -> tuple[int, int]:
     start, stop = _bound(start_text, n, 0, spec, fractions), _bound(stop_text, n, n, spec, fractions)
     if not 0 <= start < stop <= n:
         raise DatasetError(f"frame range {spec!r} selects no frames of {n} (start {start}, stop {stop})")
+    if not fractions and _past_end(stop_text, n):
+        log.warning("frame range %r ends past the sequence's %d frames: using %d:%d", spec, n, start, stop)
     return start, stop
+
+
+def _past_end(text: str, n: int) -> bool:
+    try:
+        return int(text.strip()) > n
+    except ValueError:
+        return False

@@ -67,7 +67,7 @@ def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = No
     _stage(f"1/{2 + len(config.odometries)} field ({config.model}) on frames {train_frames}", config.progress)
     train = open_sequence(data, frames=train_frames)
     field, report = build_field(train, config.model, steps=config.train_steps, seed=config.seed,
-                                progress=config.progress)
+                                progress=config.progress, matcher=config.matcher)
     field.save(out / "field.pt")
     (out / "field_report.json").write_text(json.dumps(report, indent=1, default=float))
     summary["field"] = _field_summary(report)
@@ -107,7 +107,9 @@ def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) ->
     odometry = make_odometry(odom, sequence, config.seed, matcher=config.matcher)
     pipeline_config = PipelineConfig(keyframe_every=config.keyframe_every, progress=config.progress,
                                      align=AlignConfig(matcher=config.matcher))
-    result = Pipeline(sequence, field, odometry, pipeline_config).run()
+    pipeline = Pipeline(sequence, field, odometry, pipeline_config)
+    pipeline_config = pipeline.config  # with the field's measured error resolved
+    result = pipeline.run()
     record = {"study": True, "odometry": odom, "data": str(sequence.path), "frame_range": list(sequence.frame_range),
               "pipeline": {k: v for k, v in vars(pipeline_config).items() if k != "align"},
               "align": vars(pipeline_config.align)}

@@ -39,13 +39,14 @@ def render_safely(field, T_world_cam: np.ndarray, intrinsics: Intrinsics):
 def correct_pose(
     frame: RGBDFrame,
     field,
-    T_world_cam_est: np.ndarray,
+    T_world_cam_est,
     iterations: int = 4,
     config: AlignConfig | None = None,
     render_intrinsics: Intrinsics | None = None,
     stop_mahalanobis: float = 0.3,
 ) -> Correction:
-    """Correct ``T_world_cam_est`` (world <- camera, OpenCV) of ``frame`` with ``field``.
+    """Correct ``T_world_cam_est`` (world <- camera, OpenCV; a (4, 4) array or a
+    ``gtsam.Pose3``, as a GTSAM loop has it) of ``frame`` with ``field``.
 
     Renders at the estimate, aligns with :func:`align_views`, and re-renders at the
     corrected pose, up to ``iterations`` rounds in all. It stops early once a round's update
@@ -55,6 +56,8 @@ def correct_pose(
     frame's) sets the rendering camera; a frame at another resolution is resized to it.
     Never raises on bad data: ``success=False`` and ``reason`` say why.
     """
+    if hasattr(T_world_cam_est, "matrix") and callable(T_world_cam_est.matrix):  # a gtsam.Pose3
+        T_world_cam_est = T_world_cam_est.matrix()
     T_est = np.asarray(T_world_cam_est, dtype=float)
     problem = rigid_transform_problem(T_est, tolerance=1e-5)
     if problem:
