@@ -76,23 +76,7 @@ class Pipeline:
                 if stop is not None and stop():
                     done, partial = i, True
                     break
-                frame = self._read_frame(i) if self._odometry_needs_frames() or self._wants_sharpness(i) else None
-                if i > 0:
-                    self._propagate_odometry(i, frame)
-                keyframe = self._is_keyframe(i, frame)
-                if worker is not None and (worker.ready() or (worker.busy and keyframe)):
-                    self._land(worker, on_keyframe)  # a late correction enters the graph now
-                if keyframe:
-                    self._add_keyframe(i)
-                    frame = frame if frame is not None else self._read_frame(i)
-                    if worker is not None:
-                        self._launch(worker, i, frame, on_keyframe)
-                    else:
-                        self._correct_keyframe(i, frame)
-                        record = self._finish_keyframe()
-                        if on_keyframe is not None and record is not None:
-                            on_keyframe(record)
-                self._online.append(self.T_last_kf_est @ self.T_since_kf)
+                self.step(i, worker, on_keyframe)
             if worker is not None and worker.busy:
                 self._land(worker, on_keyframe)
         finally:
@@ -102,6 +86,42 @@ class Pipeline:
         result.partial = partial
         result.wall_time_s = time.perf_counter() - t_start
         return result
+
+    def start(self) -> None:
+        """A fresh graph and state, before frame 0 (``run`` starts itself)."""
+        self._start()
+
+    def result(self, n: int) -> RunResult:
+        """The run over its first ``n`` frames as it stands: the final solve, every frame's
+        pose (``run`` returns this at its end)."""
+        return self._finish(n)
+
+    def step(self, i: int, worker: CorrectionWorker | None = None, on_keyframe=None) -> None:
+        """Frame i (after frames 0..i-1; ``_start`` first): its odometry, and when it is a
+        keyframe, its node, its correction and the solve. ``run`` is this over the sequence;
+        :class:`nap3d_graph.live.DriftCorrector` calls it a frame at a time."""
+        frame = self._read_frame(i) if self._odometry_needs_frames() or self._wants_sharpness(i) else None
+        if i > 0:
+            self._propagate_odometry(i, frame)
+        keyframe = self._is_keyframe(i, frame)
+        if worker is not None and (worker.ready() or (worker.busy and keyframe)):
+            self._land(worker, on_keyframe)  # a late correction enters the graph now
+        if keyframe:
+            self._add_keyframe(i)
+            frame = frame if frame is not None else self._read_frame(i)
+            if worker is not None:
+                self._launch(worker, i, frame, on_keyframe)
+            else:
+                self._correct_keyframe(i, frame)
+                record = self._finish_keyframe()
+                if on_keyframe is not None and record is not None:
+                    on_keyframe(record)
+        self._online.append(self.T_last_kf_est @ self.T_since_kf)
+
+    @property
+    def current_estimate(self) -> np.ndarray:
+        """(4, 4) the latest frame's pose as known now (the causal estimate)."""
+        return np.array(self._online[-1])
 
     # --- steps -----------------------------------------------------------------------------
 
@@ -123,6 +143,7 @@ class Pipeline:
         self.T_pred = self.T_odom[0]
         self._pending_record: KeyframeRecord | None = None
         self._online: list[np.ndarray] = []  # each frame's pose as known at that frame (causal)
+        self.last_correction = self.last_factor = None  # the latest keyframe's (a live caller reads them)
         self._trained = self._trained_timestamps()
         self._due_since: int | None = None  # the frame a keyframe fell due at, while its window is open
         self._due_why = ""
@@ -212,7 +233,8 @@ class Pipeline:
         why, sharp, waited = getattr(self, "_keyframe_why", ("first", float("nan"), 0))
         self._sharpness_since_kf = []
         self._odometry_doubted = False
-        return KeyframeRecord(i, float(self.sequence.timestamps[i]), key, trained_frame=bool(self._trained[i]),
+        trained = bool(self._trained[i]) if i < len(self._trained) else False  # a live run's frames: unknown
+        return KeyframeRecord(i, float(self.sequence.timestamps[i]), key, trained_frame=trained,
                               why=why, sharpness=sharp, postponed=waited, **extra)
 
     def _note_sharpness(self, frame) -> float:
@@ -302,6 +324,7 @@ class Pipeline:
             self.measured_corrections[i] = (np.array(correction.T_world_cam_corrected), np.array(correction.covariance))
         if self.correction_hook is not None:
             correction = self.correction_hook(i, correction)
+        self.last_correction, self.last_factor = correction, None
         record.timings_s.update({k: round(v, 4) for k, v in correction.timings_s.items()})
         record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
                                                              correction.iterations)
@@ -321,6 +344,7 @@ class Pipeline:
                 self.factor_log.append((self._gaussian_twin(record.key, correction), True, i))
             return
         self.new_factors.add(factor)
+        self.last_factor = factor
         self.factor_log.append((self._gaussian_twin(record.key, correction), True, i))
         record.accepted = True
         # Two iSAM2 steps: a correction can move the pose a long way from its linearisation.

@@ -1,0 +1,155 @@
+"""Drift correction a frame at a time, for a loop that owns its camera and its odometry.
+
+``DriftCorrector`` is the run of :class:`~nap3d_graph.pipeline.Pipeline` without a recorded
+sequence: each call to :meth:`DriftCorrector.add_frame` gives one RGB-D frame with its
+stamp and the odometry's increment since the previous frame, and returns the pose estimate
+now, and, at a keyframe, the NAP3D correction and the GTSAM factor it put in the graph (or
+why it did not). The batch run is the same steps over a sequence, so both give the same
+trajectory for the same inputs.
+
+    corrector = DriftCorrector(field, T_world_cam_start)
+    for rgb, depth_m, stamp, T_prev_cur in camera_and_odometry():
+        update = corrector.add_frame(rgb, depth_m, intrinsics, stamp, T_prev_cur)
+        use(update.T_world_cam)                  # causal estimate at this frame
+    trajectory = corrector.finish()             # the smoothed run (RunResult)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Intrinsics, RGBDFrame
+from .conventions import rigid_transform_problem
+from .odometry import Increment
+from .pipeline import Pipeline, PipelineConfig
+from .pipeline_config import KeyframeRecord, RunResult
+
+__all__ = ["DriftCorrector", "LiveUpdate"]
+
+
+@dataclass
+class LiveUpdate:
+    """What one frame changed. ``T_world_cam`` (4, 4): the estimate at this frame as known now
+    (causal). At a keyframe: ``record`` (one row of corrections.csv), ``correction`` (the
+    :class:`~nap3d_graph.results.Correction`, successful or not) and ``factor`` (the robust
+    GTSAM factor that entered the graph, or None when the correction failed or was gated out;
+    ``record.reason`` says why)."""
+
+    T_world_cam: np.ndarray
+    keyframe: bool = False
+    record: KeyframeRecord | None = None
+    correction: object | None = None
+    factor: object | None = None
+
+
+class _LiveFrames:
+    """The frames given so far, as the sequence the pipeline reads (the latest two kept)."""
+
+    def __init__(self):
+        self._stamps: list[float] = []
+        self._frames: dict[int, RGBDFrame] = {}
+        self.T_world_cam_gt = None
+        self.intrinsics: Intrinsics | None = None
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return np.asarray(self._stamps, dtype=float)
+
+    def append(self, frame: RGBDFrame) -> int:
+        i = len(self._stamps)
+        self._stamps.append(float(frame.timestamp))
+        self._frames[i] = frame
+        self._frames.pop(i - 2, None)
+        self.intrinsics = frame.intrinsics
+        return i
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def __getitem__(self, i: int) -> RGBDFrame:
+        return self._frames[int(i)]
+
+
+class _GivenOdometry:
+    """The caller's odometry: the increment handed in with each frame."""
+
+    needs_frames = False
+
+    def __init__(self, T_world_cam_start: np.ndarray):
+        self._start = T_world_cam_start
+        self.next: Increment | None = None
+
+    def initial_pose(self) -> np.ndarray:
+        return self._start
+
+    def increment(self, i: int, frame) -> Increment:
+        inc, self.next = self.next, None
+        return inc
+
+
+class DriftCorrector:
+    """Odometry and NAP3D corrections in an iSAM2 graph, a frame at a time.
+
+    field: anything with ``render(T_world_cam, intrinsics)`` (:func:`nap3d_graph.load_field`).
+    T_world_cam_start (4, 4) or ``gtsam.Pose3``: the first frame's pose in the field's frame.
+    config: a :class:`PipelineConfig` (corrections are measured inline: ``overlap`` is off).
+    odometry_sigmas: (rad, m) per-frame sigmas of the increments when ``add_frame`` is given
+    no covariance.
+    """
+
+    def __init__(self, field, T_world_cam_start, config: PipelineConfig | None = None,
+                 odometry_sigmas: tuple[float, float] = (2e-3, 2e-3)):
+        if hasattr(T_world_cam_start, "matrix"):
+            T_world_cam_start = T_world_cam_start.matrix()
+        T_start = np.asarray(T_world_cam_start, dtype=float)
+        problem = rigid_transform_problem(T_start, tolerance=1e-5)
+        if problem:
+            raise ValueError(f"T_world_cam_start is not a rigid transform: {problem}")
+        config = dataclasses.replace(config or PipelineConfig(), overlap=False, progress=False)
+        self._frames = _LiveFrames()
+        self._odometry = _GivenOdometry(T_start)
+        self._default_cov = np.diag([odometry_sigmas[0] ** 2] * 3 + [odometry_sigmas[1] ** 2] * 3)
+        self.pipeline = Pipeline(self._frames, field, self._odometry, config)
+        self.pipeline.start()
+
+    def add_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, stamp: float,
+                  T_prev_cur: np.ndarray | None = None, covariance: np.ndarray | None = None) -> LiveUpdate:
+        """One frame: RGB (H, W, 3) uint8, z-depth (H, W) metres (0 or NaN missing), its camera,
+        its stamp (s, increasing), and the odometry's ``T_prev_cur`` (4, 4) from the previous
+        frame's camera to this one's (with its 6x6 covariance, GTSAM order; default from
+        ``odometry_sigmas``). The first frame takes no increment. Raises ValueError on a bad
+        increment or stamp (the graph is left as it was)."""
+        i = len(self._frames)
+        if i > 0:
+            if T_prev_cur is None:
+                raise ValueError("every frame after the first needs the odometry's T_prev_cur")
+            if hasattr(T_prev_cur, "matrix"):
+                T_prev_cur = T_prev_cur.matrix()
+            T_prev_cur = np.asarray(T_prev_cur, dtype=float)
+            problem = rigid_transform_problem(T_prev_cur, tolerance=1e-5)
+            if problem:
+                raise ValueError(f"T_prev_cur is not a rigid transform: {problem}")
+            if not stamp > self._frames.timestamps[-1]:
+                raise ValueError(f"stamps must increase: {stamp} after {self._frames.timestamps[-1]}")
+            cov = self._default_cov if covariance is None else np.asarray(covariance, dtype=float)
+            if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+                raise ValueError(f"the increment's covariance must be a finite 6x6 matrix, got {cov.shape}")
+            self._odometry.next = Increment(T_prev_cur, cov)
+        frame = RGBDFrame(rgb, depth_m, intrinsics, float(stamp))  # validates the images
+        self._frames.append(frame)
+        pipeline = self.pipeline
+        records = len(pipeline.records)
+        pipeline.last_correction = pipeline.last_factor = None
+        pipeline.step(i)
+        update = LiveUpdate(pipeline.current_estimate)
+        if len(pipeline.records) > records:
+            update.keyframe, update.record = True, pipeline.records[-1]
+            update.correction, update.factor = pipeline.last_correction, pipeline.last_factor
+        return update
+
+    def finish(self) -> RunResult:
+        """Every frame's pose so far, smoothed with every correction (a batch solve)."""
+        return self.pipeline.result(len(self._frames))
