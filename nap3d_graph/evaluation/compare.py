@@ -143,34 +143,10 @@ def _write_tum(path: Path, stamps: np.ndarray, T: np.ndarray) -> None:
 
 
 def _plot(out: Path, stamps, T_gt, trajectories: dict) -> None:
-    from nap3d_graph.plots import _pyplot
+    from nap3d_graph.plots import plot_errors, plot_trajectories
 
-    plt = _pyplot()
-    posed = np.all(np.isfinite(T_gt), axis=(1, 2))
-    fig, ax = plt.subplots(figsize=(6.5, 5.5))
-    ax.plot(T_gt[posed, 0, 3], T_gt[posed, 1, 3], "k-", lw=2.5, label="ground truth")
-    for name, T in trajectories.items():
-        ax.plot(T[:, 0, 3], T[:, 1, 3], "-", lw=1.2, label=name)
-    ax.set(xlabel="x (m)", ylabel="y (m)", title="top view")
-    ax.set_aspect("equal", adjustable="datalim")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "trajectories.png", dpi=120)
-    plt.close(fig)
-    fig, ax = plt.subplots(figsize=(7.5, 3.8))
-    t = stamps - stamps[0]
-    for name, T in trajectories.items():
-        err = np.full(len(t), np.nan)
-        err[posed] = np.linalg.norm(T[posed, :3, 3] - T_gt[posed, :3, 3], axis=1) * 100
-        ax.plot(t, err, lw=1.2, label=name)
-    ax.set(xlabel="time (s)", ylabel="translation error (cm)", title="error over time")
-    ax.set_yscale("log")
-    ax.grid(alpha=0.3, which="both")
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "errors.png", dpi=120)
-    plt.close(fig)
+    plot_trajectories(out / "trajectories.png", trajectories, T_gt, title="estimators")
+    plot_errors(out / "errors.png", stamps - stamps[0], trajectories, T_gt, title="error over time")
 
 
 def _fmt(value, scale: float, digits: int, width: int) -> str:

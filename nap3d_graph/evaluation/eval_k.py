@@ -409,7 +409,7 @@ def plot_heatmaps(summary: dict, out: Path, config: EvalKConfig) -> list[Path]:
                      f"as uncorrected; intrinsics shift on {config.shift})")
         fig.tight_layout()
         path = out / (f"fig4_paper_{a}_vs_{b}.png" if pair == "paper" else f"heatmap_{pair}_{a}_vs_{b}.png")
-        fig.savefig(path, dpi=100)
+        fig.savefig(path, dpi=100, bbox_inches="tight")  # tight: the long x tick labels are not clipped
         plt.close(fig)
         paths.append(path)
     return paths
