@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from nap3d_graph.cli import main
-from nap3d_graph.datasets import TumSequence, read_tum_trajectory
+from nap3d_graph.datasets import DatasetError, TumSequence, read_tum_trajectory
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
 
@@ -211,3 +211,10 @@ def test_simulate_stops_at_once_on_sigint(tmp_path):
             proc.kill()
             pytest.fail(f"simulate still running 60 s after SIGINT (trial {trial})")
         assert proc.returncode == 130
+        # The folder says it is partial, is refused as data, and is redone only with --force.
+        assert (out / "PARTIAL.txt").is_file() and not (out / "rgb.txt").exists()
+        with pytest.raises(DatasetError, match="did not finish"):
+            TumSequence(out)
+        assert main(["simulate", str(out), "--frames", "3", "--width", "64", "--height", "48"]) == 2
+        assert main(["simulate", str(out), "--frames", "3", "--width", "64", "--height", "48", "--force"]) == 0
+        assert not (out / "PARTIAL.txt").exists() and len(TumSequence(out)) == 3

@@ -212,6 +212,7 @@ def test_navstate_ekf_refuses_the_odometry_path_and_a_lever_arm():
 
 def test_compare_command_writes_what_evo_loads_and_prints_the_same_numbers(walk, tmp_path, capsys):
     import csv
+    import json
 
     from evo.core import metrics, sync
     from evo.tools import file_interface
@@ -222,6 +223,10 @@ def test_compare_command_writes_what_evo_loads_and_prints_the_same_numbers(walk,
     assert main(["compare", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "imu",
                  "--render-size", "192x144", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
+    # Its configuration is written first (an interrupted comparison still says what it was);
+    # a finished one carries no PARTIAL marker.
+    assert json.loads((out / "config.json").read_text())["odometry"] == "imu"
+    assert not (out / "PARTIAL.txt").exists()
     with open(out / "comparison.csv") as f:
         rows = list(csv.DictReader(f))
     assert [r["estimator"] for r in rows] == ["odometry", "eskf", "navstate-ekf", "isam2-causal", "isam2-final",

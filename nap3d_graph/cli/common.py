@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["UsageError", "Parser", "add_frames_argument", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
@@ -94,6 +94,10 @@ def writable_file_parent(path: Path, what: str = "--out") -> Path:
     return path
 
 
+#: Left in a folder whose command did not finish (interrupted or failed), removed when it does.
+PARTIAL_MARKER = "PARTIAL.txt"
+
+
 def empty_or_new_dir(path: Path, force: bool, what: str = "output folder") -> Path:
     """Refuse to write into a non-empty folder unless ``force``: nothing is overwritten by
     surprise (a simulated sequence written over a real one loses the real one)."""
@@ -101,8 +105,32 @@ def empty_or_new_dir(path: Path, force: bool, what: str = "output folder") -> Pa
     if path.exists() and not path.is_dir():
         raise UsageError(f"{what} {path} is a file, not a folder")
     if path.is_dir() and any(path.iterdir()) and not force:
+        if (path / PARTIAL_MARKER).is_file():
+            raise UsageError(f"{what} {path} holds the partial output of an interrupted command ({PARTIAL_MARKER}); "
+                             "add --force to redo it there, or remove it")
         raise UsageError(f"{what} {path} is not empty; choose another, or add --force to write into it")
     return writable_dir(path, what=what)
+
+
+class PartialOutput:
+    """``with PartialOutput(folder, "nap3d-graph simulate ...")``: a ``PARTIAL.txt`` in the
+    folder says, while the command works and after it is interrupted or fails, that what is
+    there is incomplete and how to redo it; it goes when the command finishes."""
+
+    def __init__(self, folder: Path, command: str):
+        self.marker = Path(folder) / PARTIAL_MARKER
+        self.command = command
+
+    def __enter__(self):
+        self.marker.parent.mkdir(parents=True, exist_ok=True)
+        self.marker.write_text(f"This folder is incomplete: '{self.command}' did not finish here (interrupted or "
+                               "failed). Remove the folder, or redo it with the same command and --force.\n")
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.marker.unlink(missing_ok=True)
+        return False
 
 
 #: The matcher of a drift-correction run unless told otherwise. XFeat measured best on real

@@ -12,10 +12,11 @@ trajectories.png and errors.png, and prints the table.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
-from .common import UsageError, empty_or_new_dir
+from .common import PartialOutput, UsageError, empty_or_new_dir
 from .sources import add_source_arguments, prepare
 
 __all__ = ["add_parser", "run"]
@@ -40,15 +41,19 @@ def run(args) -> int:
     prepared = prepare(args)
     if prepared.sequence.T_world_cam_gt is None:
         raise UsageError(f"{args.data}: no ground truth, and a comparison scores every estimator against it")
-    print("reference run (measures the corrections every estimator uses) ...")
-    result = prepared.pipeline().run()
-    imu = getattr(prepared.odometry, "stream", None)
-    stream = stream_from_run(result, prepared.sequence, prepared.config, imu=imu,
-                             velocity0=getattr(prepared.odometry, "velocity0", None))
-    print(f"{len(stream.corrections)} corrections measured at {len(stream.keyframes)} keyframes; running the estimators")
-    results = compare(stream)
-    rows = comparison_rows(stream, results)
-    write_comparison(args.out, stream, results, rows, meta={"source": prepared.record})
+    with PartialOutput(args.out, "nap3d-graph compare ... --out " + str(args.out)):
+        # The configuration first: an interrupted comparison still says what it was.
+        (args.out / "config.json").write_text(json.dumps(prepared.record, indent=1, default=str))
+        print("reference run (measures the corrections every estimator uses) ...")
+        result = prepared.pipeline().run()
+        imu = getattr(prepared.odometry, "stream", None)
+        stream = stream_from_run(result, prepared.sequence, prepared.config, imu=imu,
+                                 velocity0=getattr(prepared.odometry, "velocity0", None))
+        print(f"{len(stream.corrections)} corrections measured at {len(stream.keyframes)} keyframes; running the "
+              "estimators")
+        results = compare(stream)
+        rows = comparison_rows(stream, results)
+        write_comparison(args.out, stream, results, rows, meta={"source": prepared.record})
     print(format_table(rows))
     print("ATE/RPE: evo, no alignment; NEES: keyframes, 6 dof, expected 6 (band: 95% were errors independent); "
           f"ms/step: per frame; final s: the solve after the last frame. Total {time.perf_counter() - t0:.0f} s")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import empty_or_new_dir, positive_float, positive_int
+from .common import PartialOutput, empty_or_new_dir, positive_float, positive_int
 
 
 def add_parser(sub) -> None:
@@ -54,7 +54,8 @@ def run(args) -> int:
     empty_or_new_dir(args.out, args.force)
     config = SimConfig(frames=args.frames, scene_seed=args.scene_seed, seed=args.seed, path=args.path,
                        fps=args.fps, width=args.width, height=args.height)
-    out = simulate_sequence(args.out, config, progress=True)
+    with PartialOutput(args.out, f"nap3d-graph simulate {args.out}"):
+        out = simulate_sequence(args.out, config, progress=True)
     print(f"wrote {args.frames} frames ({args.path}, room {args.scene_seed}, seed {args.seed}) to {out}")
     if args.realsense is not None:
         from nap3d_graph.sims.realsense import write_realsense_recording

@@ -268,6 +268,9 @@ class TumSequence(GroundTruthLookup):
             self.intrinsics = self.raw_intrinsics  # raw images: say so with the distortion
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
 
+        if (self.path / "PARTIAL.txt").is_file():
+            raise DatasetError(f"{self.path}: the command that wrote this folder did not finish (PARTIAL.txt); "
+                               "redo it with --force, or remove the folder")
         rgb_list, depth_list = self.path / "rgb.txt", self.path / "depth.txt"
         for listed in (rgb_list, depth_list):
             if not listed.is_file():
