@@ -49,6 +49,11 @@ def add_parser(sub) -> None:
     p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     add_matcher_argument(p, RUN_MATCHER)
+    p.add_argument("--refine-poses", type=non_negative_int, default=0, metavar="ROUNDS",
+                   help="refine the training frames' poses against the map first, for ROUNDS rounds: each frame is "
+                   "aligned (as a run would) with a splat map of the other half of the frames, fused with its input "
+                   "pose, and the maps rebuilt; the refined trajectory is held to the input one (default 0: the "
+                   "poses as given). The report gives each round and the multi-view depth agreement before and after")
     p.add_argument("--no-field-error", action="store_true",
                    help="do not measure the field's own error (by default each held-out frame is aligned with the "
                    "render at its true pose, as a run would, and what the corrections miss beyond their covariance "
@@ -77,7 +82,7 @@ def run(args) -> int:
                                 eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
                                 timing="auto" if args.timing == "auto" else None, device=args.device,
                                 progress=not args.quiet, measure_error=not args.no_field_error,
-                                matcher=args.matcher)
+                                matcher=args.matcher, refine_poses=args.refine_poses)
     report["data"] = str(args.data)
     report["frames"] = args.frames
     report["checkpoint"] = str(args.out)
@@ -115,6 +120,13 @@ def summary(field, report: dict, out, report_path) -> str:
             f"({held['psnr_affine_db']:.2f} after an affine colour fit), depth error median "
             f"{_cm(depth.get('median'))} / p90 {_cm(depth.get('p90'))} ({held['depth_reference']}), opaque on "
             f"{held['opaque_fraction'] * 100:.0f}% of the surface, render {held['render_seconds']:.3f} s")
+    refinement = report.get("pose_refinement")
+    if refinement and refinement.get("rounds"):
+        last = refinement["rounds"][-1]
+        lines.append(f"training poses refined in {len(refinement['rounds'])} rounds: median correction "
+                     f"{last['median_correction_mm']:.1f} mm / {last['median_correction_deg']:.2f} deg; multi-view "
+                     f"depth agreement {refinement.get('agreement_before_mm', float('nan')):.2f} -> "
+                     f"{refinement.get('agreement_after_mm', float('nan')):.2f} mm")
     error = report.get("field_error")
     if error and error.get("frames"):
         lines.append(f"field error ({error['frames']} held-out frames aligned at their true pose, {error['matcher']}): "

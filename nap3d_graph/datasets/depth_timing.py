@@ -29,7 +29,7 @@ from ..camera import backproject_depth, project
 from ..conventions import inv_T, transform_points
 from .errors import DatasetError
 
-__all__ = ["DepthTiming", "depth_agreement_mm", "frame_pairs", "estimate_depth_timing"]
+__all__ = ["DepthTiming", "depth_agreement_mm", "frame_pairs", "estimate_depth_timing", "multiview_agreement_mm"]
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +89,21 @@ def frame_pairs(timestamps: np.ndarray, count: int = 30, gap_s: tuple[float, flo
         if j < len(t) and (i, j) not in pairs:
             pairs.append((int(i), j))
     return pairs
+
+
+def multiview_agreement_mm(sequence, offset_s: float = 0.0, pairs: int = 30,
+                           gap_s: tuple[float, float] = (0.33, 0.83), stride: int = 4) -> float:
+    """Median disagreement (mm) of depth between frame pairs of ``sequence`` placed with its
+    poses at the depth stamps + ``offset_s``: how self-consistent its poses and depth are
+    (what refining training poses should lower)."""
+    chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
+    needed = sorted({i for pair in chosen for i in pair})
+    depths = {i: np.nan_to_num(sequence[i].depth_m, nan=0.0) for i in needed}
+    pose = dict(zip(needed, sequence.ground_truth_at(np.asarray(sequence.depth_timestamps)[needed] + offset_s)))
+    values = [depth_agreement_mm(depths[i], depths[j], sequence.intrinsics, pose[i], pose[j], stride, 1.0)[0]
+              for i, j in chosen if np.all(np.isfinite(pose[i])) and np.all(np.isfinite(pose[j]))]
+    values = [v for v in values if np.isfinite(v)]
+    return float(np.median(values)) if values else float("nan")
 
 
 def estimate_depth_timing(sequence, pairs: int = 30, gap_s: tuple[float, float] = (0.33, 0.83),

@@ -55,7 +55,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                 every: int = 1, eval_frames: int = 8, seed: int = 0, voxel_size_m: float | None = None,
                 timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
                 device: str | None = None, progress: bool = True, measure_error: bool = True,
-                matcher: str = "sift"):
+                matcher: str = "sift", refine_poses: int = 0):
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
@@ -66,6 +66,10 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     smaller, or with ``None``). ``measure_error``: measure the field's own error on the
     held-out frames with ``matcher`` (:mod:`~nap3d_graph.fields.field_error`), recorded in
     ``field.meta["field_error"]`` and used by every run of the field to widen its corrections.
+    ``refine_poses``: rounds of training-pose refinement against the map
+    (:mod:`~nap3d_graph.fields.pose_refinement`; 0: the poses as given); the field is built
+    with the refined poses, which it records (``meta["pose_corrections"]``), and the report
+    holds each round and the frames' multi-view depth agreement before and after.
     """
     from .training_data import split_posed_frames
 
@@ -76,6 +80,9 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     if timing == "auto":
         timing = estimate_timing(sequence)
     timing_seconds = time.perf_counter() - started
+    refinement = None
+    if refine_poses > 0:
+        sequence, refinement = _refined(sequence, train_idx, timing, refine_poses, matcher, render_size, progress)
     oracle = oracle_for(sequence)
     if model == "splat":
         field, report = _build_splat(sequence, train_idx, voxel_size_m, timing, progress)
@@ -93,11 +100,33 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     held = evaluate_field(field, sequence, held_idx, oracle, size=render_size, timing=timing) if len(held_idx) else None
     report.update({"model": model, "timing": timing, "timing_seconds": round(timing_seconds, 2),
                    "train_frames": int(len(train_idx)), "held_out": held})
+    if refinement is not None:
+        report["pose_refinement"] = refinement
+        field.meta["pose_corrections"] = {int(i): D.tolist() for i, D in sequence.corrections.items()}
     if measure_error:
         report["field_error"] = field.meta["field_error"] = _field_error(field, sequence, every, timing, render_size,
                                                                          matcher)
     report["total_seconds"] = round(time.perf_counter() - started, 2)
     return field, report
+
+
+def _refined(sequence, train_idx, timing, rounds, matcher, render_size, progress):
+    """The sequence with its training frames' poses refined (a PoseCorrectedSequence) and the
+    refinement's report, with the multi-view depth agreement before and after."""
+    from nap3d_graph.datasets.depth_timing import multiview_agreement_mm
+
+    from .pose_refinement import PoseCorrectedSequence, PoseRefinementConfig, refine_training_poses
+
+    started = time.perf_counter()
+    config = PoseRefinementConfig(rounds=rounds, matcher=matcher, render_size=render_size)
+    corrections, report = refine_training_poses(sequence, train_idx, timing, config, progress)
+    refined = PoseCorrectedSequence(sequence, corrections)
+    offset = (timing or {}).get("depth_offset_s", 0.0)
+    if getattr(sequence, "ground_truth_at", None) is not None and getattr(sequence, "depth_timestamps", None) is not None:
+        report["agreement_before_mm"] = round(multiview_agreement_mm(sequence, offset), 3)
+        report["agreement_after_mm"] = round(multiview_agreement_mm(refined, offset), 3)
+    report["seconds"] = round(time.perf_counter() - started, 2)
+    return refined, report
 
 
 #: Held-out frames the field's error is measured on, at most (spread over all held-out ones).

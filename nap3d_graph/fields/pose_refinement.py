@@ -1,0 +1,176 @@
+"""Training poses refined against the map they build: a self-consistent map.
+
+A field inherits every error of its training poses (motion capture at the wrong instant for a
+rolling-shutter, motion-blurred Kinect; a tracker's drift): the same surface lands in
+different places from different frames, and the map is smeared. Here the poses and the map
+are alternated: the training frames are split into two interleaved folds; each fold's frames
+are aligned with NAP3D (the run's own measurement, :func:`measure_keyframe`) against a splat
+map built from the *other* fold, so no frame is aligned with itself; each measurement is
+fused with the input pose under both covariances (the input's sigmas are the caller's
+knowledge of its poses, the measurement's error beyond its own covariance is estimated from
+the spread of the measurements, as :mod:`~nap3d_graph.fields.field_error` does); the maps are
+rebuilt with the fused poses, and the rounds repeat. The gauge is held to the input: the
+refined trajectory is rigidly aligned to the input one (evo's Umeyama), so the field stays
+in the recording's ground-truth frame.
+
+Why not nerfstudio's camera optimiser: it refines the poses through the photometric loss of a
+trained network (minutes to hours on a GPU); this is the same idea with the alignment the
+product already has, on a CPU.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..conventions import exp_se3, inv_T, log_se3
+
+__all__ = ["PoseRefinementConfig", "refine_training_poses", "PoseCorrectedSequence"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class PoseRefinementConfig:
+    """rounds: map-then-align rounds. input_sigma_m / input_sigma_rad: the training poses'
+    own error per axis (what the caller knows of its motion capture or tracker; 1 cm and
+    0.5 deg by default). matcher: of the alignments. render_size: of the renders (the
+    frames' own when None or larger)."""
+
+    rounds: int = 2
+    input_sigma_m: float = 0.01
+    input_sigma_rad: float = 0.0087
+    matcher: str = "sift"
+    render_size: tuple[int, int] | None = (320, 240)
+    history: list = field(default_factory=list)
+
+
+class PoseCorrectedSequence:
+    """``sequence`` with each frame ``i`` of ``corrections`` posed at ``T_gt[i] @ D_i`` (D_i: a
+    body-frame correction (4, 4)); ``ground_truth_at(t)`` applies the correction of the frame
+    nearest in time, so the capture-timing interpolation of a field build still works."""
+
+    def __init__(self, sequence, corrections: dict[int, np.ndarray]):
+        self._sequence = sequence
+        self._corrections = self.corrections = corrections
+        self._order = np.array(sorted(corrections), dtype=int)
+        poses = np.array(sequence.T_world_cam_gt, dtype=float)
+        for i, D in corrections.items():
+            poses[i] = poses[i] @ D
+        self.T_world_cam_gt = poses
+
+    def __getattr__(self, name):
+        return getattr(self._sequence, name)
+
+    def __len__(self) -> int:
+        return len(self._sequence)
+
+    def __getitem__(self, i):
+        return self._sequence[i]
+
+    def ground_truth_at(self, stamps) -> np.ndarray | None:
+        base = self._sequence.ground_truth_at(stamps)
+        if base is None or not len(self._order):
+            return base
+        stamps = np.asarray(stamps, dtype=float)
+        all_stamps = np.asarray(self._sequence.timestamps, dtype=float)
+        frame_stamps = all_stamps[self._order]
+        gap = np.abs(stamps[:, None] - frame_stamps[None, :])
+        nearest = gap.argmin(axis=1)
+        # Only instants of a corrected frame's own capture (its depth a few ms off its colour):
+        # a frame that was not refined (held out) keeps its input pose.
+        reach = 0.5 * float(np.median(np.diff(all_stamps))) if len(all_stamps) > 1 else np.inf
+        return np.stack([T @ self._corrections[int(self._order[k])] if gap[j, k] < reach else T
+                         for j, (T, k) in enumerate(zip(base, nearest))])
+
+
+def _spread_sigma(residuals: np.ndarray, covariances: np.ndarray, prior_var: float) -> float:
+    """Isotropic sigma of the measurements' error beyond their covariance and the input's:
+    median-based per 3-dof block (0 when covariance and input explain the spread)."""
+    from .field_error import _sigma_for_median_nees
+
+    return _sigma_for_median_nees(residuals, covariances + prior_var * np.eye(3))
+
+
+def refine_training_poses(sequence, train_idx, timing: dict | None = None,
+                          config: PoseRefinementConfig | None = None, progress: bool = False):
+    """Refined poses of frames ``train_idx`` of a posed ``sequence``: ``(corrections, report)``
+    with ``corrections`` ``{frame index: D (4, 4)}`` (refined pose = input pose @ D; use
+    :class:`PoseCorrectedSequence` to build with them) and a report of each round (median
+    correction, frames measured, the measurements' extra sigma)."""
+    from ..keyframe_correction import KeyframeJob, measure_keyframe
+    from ..nap3d.config import AlignConfig
+    from ..pipeline_config import PipelineConfig
+    from .field_error import _twist_at
+    from .splat import build_splat_field
+
+    config = config or PoseRefinementConfig()
+    timing = timing or {}
+    train_idx = np.asarray(train_idx, dtype=int)
+    folds = [train_idx[0::2], train_idx[1::2]]
+    T_in = np.asarray(sequence.T_world_cam_gt, dtype=float)
+    prior = np.diag([config.input_sigma_rad**2] * 3 + [config.input_sigma_m**2] * 3)
+    run_config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=config.matcher))
+    corrections = {int(i): np.eye(4) for i in train_idx}
+    rounds = []
+    for r in range(config.rounds):
+        current = PoseCorrectedSequence(sequence, corrections)
+        measured: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for a, b in ((0, 1), (1, 0)):
+            fold_map, _ = build_splat_field(current, folds[a], depth_offset_s=timing.get("depth_offset_s", 0.0),
+                                            colour_offset_s=timing.get("colour_offset_s", 0.0),
+                                            depth_scale=timing.get("depth_scale", 1.0), progress=progress)
+            for i in folds[b]:
+                frame = sequence[int(i)]
+                K = frame.intrinsics
+                if config.render_size is not None and config.render_size[0] < K.width:
+                    K = K.scaled(*config.render_size)
+                job = KeyframeJob(int(i), frame, current.T_world_cam_gt[i], _twist_at(current, int(i)), timing or None,
+                                  float(timing.get("depth_scale", 1.0)), K)
+                c = measure_keyframe(job, fold_map, run_config)
+                if c.success and np.all(np.isfinite(c.covariance)):
+                    measured[int(i)] = (c.T_world_cam_corrected, np.asarray(c.covariance, dtype=float))
+        if len(measured) < 5:
+            log.warning("pose refinement round %d: only %d frames aligned; poses left as they are", r + 1,
+                        len(measured))
+            break
+        corrections, info = _fuse(T_in, measured, prior, corrections)
+        info.update({"round": r + 1, "frames_measured": len(measured), "frames": int(len(train_idx))})
+        rounds.append(info)
+        log.info("pose refinement round %d: %d of %d frames aligned, median correction %.1f mm / %.2f deg",
+                 r + 1, len(measured), len(train_idx), info["median_correction_mm"], info["median_correction_deg"])
+    return corrections, {"rounds": rounds, "input_sigma_m": config.input_sigma_m,
+                         "input_sigma_rad": config.input_sigma_rad, "matcher": config.matcher}
+
+
+def _fuse(T_in: np.ndarray, measured: dict, prior: np.ndarray, previous: dict) -> tuple[dict, dict]:
+    """Each measured frame's pose fused with its input pose (a Kalman update in the input
+    pose's tangent space, per 3-dof block), the rest kept as they were; then the whole set
+    re-anchored to the input trajectory (rigid Umeyama on positions and the mean rotation
+    correction), so the map stays in the recording's frame."""
+    from evo.core.geometry import umeyama_alignment
+
+    idx = sorted(measured)
+    residuals = np.array([log_se3(inv_T(T_in[i]) @ measured[i][0]) for i in idx])
+    covs = np.array([measured[i][1] for i in idx])
+    extra_rad = _spread_sigma(residuals[:, :3], covs[:, :3, :3], prior[0, 0])
+    extra_m = _spread_sigma(residuals[:, 3:], covs[:, 3:, 3:], prior[3, 3])
+    extra = np.diag([extra_rad**2] * 3 + [extra_m**2] * 3)
+    fused = dict(previous)
+    for i, r, C in zip(idx, residuals, covs):
+        gain = prior @ np.linalg.inv(prior + C + extra)
+        fused[i] = exp_se3(gain @ r)
+    # Gauge: the refined positions rigidly aligned onto the input ones.
+    keys = sorted(fused)
+    p_in = np.array([T_in[i][:3, 3] for i in keys])
+    p_new = np.array([(T_in[i] @ fused[i])[:3, 3] for i in keys])
+    R, t, _ = umeyama_alignment(p_new.T, p_in.T, with_scale=False)
+    G = np.eye(4)
+    G[:3, :3], G[:3, 3] = R, t
+    fused = {i: inv_T(T_in[i]) @ G @ T_in[i] @ fused[i] for i in keys}
+    sizes = np.array([log_se3(fused[i]) for i in keys])
+    return fused, {"median_correction_mm": float(np.median(np.linalg.norm(sizes[:, 3:], axis=1)) * 1000),
+                   "median_correction_deg": float(np.degrees(np.median(np.linalg.norm(sizes[:, :3], axis=1)))),
+                   "measurement_extra_sigma_m": float(extra_m), "measurement_extra_sigma_rad": float(extra_rad)}
