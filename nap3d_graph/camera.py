@@ -69,11 +69,6 @@ class Intrinsics:
         """Image shape ``(height, width)``."""
         return (self.height, self.width)
 
-    @classmethod
-    def from_K(cls, K: np.ndarray, width: int, height: int, distortion=()) -> "Intrinsics":
-        K = np.asarray(K, dtype=float)
-        return cls(K[0, 0], K[1, 1], K[0, 2], K[1, 2], width, height, tuple(distortion))
-
     def scaled(self, width: int, height: int) -> "Intrinsics":
         """The same camera at another resolution (pixel centres at integer coordinates)."""
         sx, sy = width / self.width, height / self.height

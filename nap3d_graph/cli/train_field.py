@@ -141,7 +141,3 @@ def summary(field, report: dict, out, report_path) -> str:
 
 def _cm(value) -> str:
     return "n/a" if value is None else f"{value * 100:.2f} cm"
-
-
-def _num(value) -> str:
-    return "n/a" if value is None else f"{value:.4f}"
