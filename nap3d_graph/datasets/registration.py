@@ -167,8 +167,6 @@ def estimate_registration(frames_a, frames_b, T_world_depth_a, T_world_depth_b, 
     camera's poses. ``nominal``: where the fit starts, and the extrinsics it keeps (and what it
     returns, with its residual, when too few keypoints match). Pairs should be 0.2-1 s apart on a hand-held camera.
     """
-    from scipy.optimize import least_squares
-
     from ..nap3d.matching import detect_features, match_features
 
     pairs = []

@@ -57,8 +57,6 @@ __all__ = [
     "z_m_to_model_depth",
     "depth_to_png_mm",
     "png_mm_to_depth",
-    "export_nerfstudio",
-    "read_transforms_poses",
     "NerfstudioField",
     "load_nerfstudio_field",
 ]
