@@ -20,10 +20,10 @@ import numpy as np
 
 
 def stage_timings(width: int, height: int, repeats: int) -> dict:
-    from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.nap3d.align import align_correspondences, view_features
-    from nap3d_graph.nap3d.correspondences import build_correspondences
     from nap3d_graph.evaluation.perturb import random_perturbation
+    from nap3d_graph.nap3d.align import align_correspondences, view_features
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.nap3d.correspondences import build_correspondences
     from nap3d_graph.nap3d.matching import detect_features, match_features
     from nap3d_graph.sims.scene import OracleField, make_scene
     from nap3d_graph.sims.sensors import sensor_frame

@@ -35,9 +35,9 @@ CONFIGS = {
 
 def nees_trials(room: int, settings: dict, method: str, trials: int, seed: int, matcher: str = "sift") -> dict:
     from nap3d_graph import correct_pose
-    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.conventions import inv_T, log_se3
     from nap3d_graph.evaluation.perturb import random_perturbation
+    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.sims.scene import OracleField, make_scene
     from nap3d_graph.sims.sensors import sensor_frame
     from nap3d_graph.sims.sequence import default_intrinsics

@@ -65,11 +65,11 @@ class PartialOpacityField:
 
 
 def scenarios(sequence, field, config_base, n: int, seed: int, timing: dict | None = None):
-    from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
     from nap3d_graph.conventions import pose_error
     from nap3d_graph.evaluation.eval_k import at_colour_instant
     from nap3d_graph.evaluation.perturb import random_perturbation
+    from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
+    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.nap3d.correct import render_safely
 
     variants = {"plain-weighted": AlignConfig(method="plain"),
@@ -104,9 +104,9 @@ def stats(rows) -> dict:
 
 
 def main(argv=None) -> None:
-    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.fields.build import build_field, estimate_timing
+    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -24,9 +24,9 @@ def main(argv=None) -> None:
     p.add_argument("--matcher", default="xfeat")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/pose_refinement_fr1_desk.json"))
     args = p.parse_args(argv)
-    from nap3d_graph.cli import main as cli
-
     from keyframes_desk import run_one  # same folder: one run's figures from its results
+
+    from nap3d_graph.cli import main as cli
 
     work = Path(tempfile.mkdtemp(prefix="pose_refinement_desk_"))
     result = {"data": str(args.data), "frames": "field from 0:0.5, runs on 0.5:1", "odometry": "vo",

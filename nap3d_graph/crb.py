@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .nap3d.config import AlignConfig
 from .camera import Intrinsics
+from .nap3d.config import AlignConfig
 from .nap3d.correspondences import Correspondences
 from .nap3d.refine import _point_jacobian, _reprojection_terms, _stack_rows, _variance_factors
 

@@ -19,10 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .nap3d.config import AlignConfig
-from .nap3d.align import align_views
 from .camera import RenderedView, RGBDFrame
 from .conventions import inv_T
+from .nap3d.align import align_views
+from .nap3d.config import AlignConfig
 
 __all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
            "bridge_pose_gaps"]

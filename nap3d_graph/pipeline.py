@@ -22,17 +22,22 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import M, X
 
-from nap3d_graph.factors import (anchor_prior_factor, chi2_gate_isam2, nap3d_anchor_factor, nap3d_prior_factor,
-                                 odometry_factor, pose_prior_factor)
+from nap3d_graph.factors import (
+    anchor_prior_factor,
+    chi2_gate_isam2,
+    nap3d_anchor_factor,
+    nap3d_prior_factor,
+    odometry_factor,
+    pose_prior_factor,
+)
 
 from .camera import Intrinsics
 from .conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T, pose_error
 from .graph_solve import gnc_solve, isam2_params, rebuilt_isam2
-from .trajectory import chain_from_nearest_keyframe
 from .keyframe_correction import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
-from .results import Correction
-
 from .pipeline_config import KeyframeRecord, PipelineConfig, RunResult, with_field_error
+from .results import Correction
+from .trajectory import chain_from_nearest_keyframe
 
 __all__ = ["PipelineConfig", "Pipeline", "KeyframeRecord", "RunResult", "compose_covariance"]
 

@@ -27,8 +27,19 @@ from nap3d_graph.camera import Intrinsics
 from nap3d_graph.conventions import T_to_tum
 
 from .scene import make_scene
-from .sensors import (CameraTiming, DepthNoise, ExposureNoise, ImuNoise, OdometryNoise, add_depth_noise, add_rgb_noise,
-                      blur_poses, drifting_odometry, exposure_gains, simulate_imu)
+from .sensors import (
+    CameraTiming,
+    DepthNoise,
+    ExposureNoise,
+    ImuNoise,
+    OdometryNoise,
+    add_depth_noise,
+    add_rgb_noise,
+    blur_poses,
+    drifting_odometry,
+    exposure_gains,
+    simulate_imu,
+)
 from .trajectories import make_trajectory
 
 __all__ = ["SimConfig", "simulate_sequence", "default_intrinsics", "DEPTH_SCALE", "TIME_ORIGIN_S"]

@@ -15,8 +15,12 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics
-from nap3d_graph.datasets.sevenscenes import (NOMINAL_COLOUR_CAMERA, NOMINAL_DEPTH_CAMERA, SEVENSCENES_FPS,
-                                              write_sevenscenes_frame)
+from nap3d_graph.datasets.sevenscenes import (
+    NOMINAL_COLOUR_CAMERA,
+    NOMINAL_DEPTH_CAMERA,
+    SEVENSCENES_FPS,
+    write_sevenscenes_frame,
+)
 
 from .scene import make_scene
 from .trajectories import make_trajectory

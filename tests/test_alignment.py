@@ -6,12 +6,12 @@ from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
 from nap3d_graph import RenderedView, RGBDFrame, align_views, correct_pose
-from nap3d_graph.nap3d.config import AlignConfig
-from nap3d_graph.nap3d.ransac import anisotropic_residual_sq, kabsch_batch, ransac_procrustes, weighted_umeyama
-from nap3d_graph.nap3d.correspondences import sample_depth
+from nap3d_graph.baselines.pnp import pnp_align
 from nap3d_graph.conventions import inv_T, log_se3, pose_error
 from nap3d_graph.evaluation.perturb import random_perturbation
-from nap3d_graph.baselines.pnp import pnp_align
+from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.correspondences import sample_depth
+from nap3d_graph.nap3d.ransac import anisotropic_residual_sq, kabsch_batch, ransac_procrustes, weighted_umeyama
 from nap3d_graph.sims.sensors import sensor_frame
 from nap3d_graph.sims.sequence import default_intrinsics
 from nap3d_graph.sims.trajectories import make_trajectory
@@ -313,7 +313,7 @@ def test_real_tum_frames_align_to_mocap(tum_path):
 def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
     """With the camera's intrinsics off by the paper's HARSH shift (x1.10 focal, +10 px), the
     refinement that also estimates them recovers the pose and the true intrinsics."""
-    from nap3d_graph.nap3d.align import prepare_correspondences, align_correspondences
+    from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
     from nap3d_graph.nap3d.refine import refine_pose
 
     _, field = room

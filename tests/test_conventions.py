@@ -5,9 +5,24 @@ import pytest
 
 from nap3d_graph.camera import CameraError, Intrinsics, RenderedView, RGBDFrame, backproject, backproject_depth, project
 from nap3d_graph.conventions import (
-    OPENCV_FROM_OPENGL, T_opencv_to_opengl, T_opengl_to_opencv, T_to_pose3, T_to_tum, compose, exp_se3, inv_T,
-    log_se3, make_T, pose3_to_T, quat_xyzw_to_R, R_to_quat_xyzw, ray_length_to_z_depth, transform_points, tum_to_T,
-    z_depth_to_ray_length)
+    OPENCV_FROM_OPENGL,
+    R_to_quat_xyzw,
+    T_opencv_to_opengl,
+    T_opengl_to_opencv,
+    T_to_pose3,
+    T_to_tum,
+    compose,
+    exp_se3,
+    inv_T,
+    log_se3,
+    make_T,
+    pose3_to_T,
+    quat_xyzw_to_R,
+    ray_length_to_z_depth,
+    transform_points,
+    tum_to_T,
+    z_depth_to_ray_length,
+)
 
 
 def random_T(rng, n=None):

@@ -9,8 +9,17 @@ from filterpy.kalman import KalmanFilter
 
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3, pose3_to_T
 from nap3d_graph.datasets.sim import SimSequence
-from nap3d_graph.estimators import (BatchLM, ErrorStateEKF, ImuErrorStateEKF, Isam2Estimator, NavStateEKF,
-                                    OdometryOnly, default_estimators, run_estimator, stream_from_run)
+from nap3d_graph.estimators import (
+    BatchLM,
+    ErrorStateEKF,
+    ImuErrorStateEKF,
+    Isam2Estimator,
+    NavStateEKF,
+    OdometryOnly,
+    default_estimators,
+    run_estimator,
+    stream_from_run,
+)
 from nap3d_graph.estimators.synthetic import synthetic_stream
 from nap3d_graph.evaluation.compare import compare, comparison_rows
 from nap3d_graph.imu import ImuConfig, ImuStream

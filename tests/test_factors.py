@@ -11,6 +11,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from factor_helpers import alignment_for, random_covariance, random_T, unwhitened_jacobian, vals
 from gtsam.symbol_shorthand import M, X
 from gtsam.utils.numerical_derivative import numericalDerivative11, numericalDerivative21, numericalDerivative22
 
@@ -25,9 +26,6 @@ from nap3d_graph.factors import (
     pose_prior_factor,
 )
 from nap3d_graph.results import Alignment, Correction
-
-from factor_helpers import alignment_for, random_T, random_covariance, unwhitened_jacobian, vals
-
 
 # --- noise models ----------------------------------------------------------------------
 

@@ -13,8 +13,8 @@ import torch
 from nap3d_graph import load_field
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.fields import FieldError, RadianceField
-from nap3d_graph.fields.grid import CHECKPOINT_VERSION, GridField
 from nap3d_graph.fields.evaluation import evaluate_field
+from nap3d_graph.fields.grid import CHECKPOINT_VERSION, GridField
 from nap3d_graph.fields.training_data import split_frames
 
 TRAIN_STEPS = 300

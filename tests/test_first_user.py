@@ -2,13 +2,12 @@
 process (an import cycle shows only there), and a default run works on a recording whose
 ground truth misses frames (real TUM recordings have frames outside their motion capture)."""
 
+import logging
 import pkgutil
 import shutil
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
-
-import logging
 
 import numpy as np
 import pytest

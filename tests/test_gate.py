@@ -5,6 +5,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from factor_helpers import random_covariance, vals
 from gtsam.symbol_shorthand import X
 from scipy.stats import chi2
 
@@ -16,9 +17,6 @@ from nap3d_graph.factors import (
     mahalanobis_sq,
     noise_model,
 )
-
-from factor_helpers import random_covariance, vals
-
 
 # --- gate ------------------------------------------------------------------------------
 

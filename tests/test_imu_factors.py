@@ -5,12 +5,10 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from factor_helpers import G
 from gtsam.symbol_shorthand import B, V, X
 
 from nap3d_graph.factors import imu_factor, imu_params, preintegrate
-
-from factor_helpers import G
-
 
 # --- IMU -------------------------------------------------------------------------------
 

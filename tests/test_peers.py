@@ -6,12 +6,12 @@ import json
 import numpy as np
 import pytest
 
-from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.baselines import PEERS, run_peers
 from nap3d_graph.camera import Intrinsics, backproject, project
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3, pose_error
-from nap3d_graph.nap3d.correspondences import Correspondences
 from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
+from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.correspondences import Correspondences
 from nap3d_graph.nap3d.refine import refine_pose
 
 

@@ -7,11 +7,19 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.camera import Intrinsics, backproject, project
 from nap3d_graph.conventions import T_to_pose3, exp_se3, inv_T, log_se3, make_T, pose3_to_T
+from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correspondences import Correspondences
-from nap3d_graph.nap3d.refine import (_intrinsics_jacobian, _point_jacobian, _reprojection_terms, _stack_rows, _with_intrinsics_delta, consensus_cost, refine_pose)
+from nap3d_graph.nap3d.refine import (
+    _intrinsics_jacobian,
+    _point_jacobian,
+    _reprojection_terms,
+    _stack_rows,
+    _with_intrinsics_delta,
+    consensus_cost,
+    refine_pose,
+)
 
 K = Intrinsics(262.5, 260.0, 159.5, 121.0, 320, 240)
 

@@ -8,8 +8,12 @@ import pytest
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.cli import main
 from nap3d_graph.datasets import DatasetError, SevenScenesSequence, open_sequence
-from nap3d_graph.datasets.sevenscenes import (DEPTH_MISSING, NOMINAL_COLOUR_CAMERA, NOMINAL_DEPTH_CAMERA,
-                                              write_sevenscenes_frame)
+from nap3d_graph.datasets.sevenscenes import (
+    DEPTH_MISSING,
+    NOMINAL_COLOUR_CAMERA,
+    NOMINAL_DEPTH_CAMERA,
+    write_sevenscenes_frame,
+)
 from nap3d_graph.fields import frames_seen_in_training
 
 

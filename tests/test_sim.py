@@ -7,8 +7,14 @@ import pytest
 
 from nap3d_graph.conventions import inv_T, log_se3, pose_error
 from nap3d_graph.sims.scene import Cylinder, OracleField, Scene, Sphere, make_scene
-from nap3d_graph.sims.sensors import (DepthNoise, ImuNoise, OdometryNoise, add_depth_noise, drifting_odometry,
-                                      simulate_imu)
+from nap3d_graph.sims.sensors import (
+    DepthNoise,
+    ImuNoise,
+    OdometryNoise,
+    add_depth_noise,
+    drifting_odometry,
+    simulate_imu,
+)
 from nap3d_graph.sims.sequence import default_intrinsics
 from nap3d_graph.sims.trajectories import make_trajectory
 

@@ -13,11 +13,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import TUM_FR1_XYZ
 
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.datasets import DatasetError, TumSequence, read_tum_trajectory, write_tum_trajectory
-
-from conftest import TUM_FR1_XYZ
 
 TUM_DIR = TUM_FR1_XYZ
 

@@ -15,7 +15,6 @@ import numpy as np
 
 from ..camera import RenderedView, RGBDFrame
 from ..results import Alignment
-
 from .dense_rgbd import DenseRgbdConfig, dense_rgbd_align
 from .gicp import GicpConfig, gicp_align
 from .photometric import PhotometricConfig, photometric_align
@@ -43,8 +42,8 @@ def run_peers(real: RGBDFrame, view: RenderedView, methods=tuple(PEERS), field=N
     peer needs a differentiable :class:`~nap3d_graph.fields.grid.GridField`)."""
     from dataclasses import replace
 
-    from ..nap3d.config import AlignConfig
     from ..nap3d.align import align_correspondences, prepare_correspondences
+    from ..nap3d.config import AlignConfig
     from .pnp import pnp_from_correspondences
 
     unknown = set(methods) - set(PEERS)
@@ -95,6 +94,7 @@ def _safe(fn, name: str) -> Alignment:
 def _iterated(real, field, T_world_cam_est, align_config) -> Alignment:
     """``correct_pose`` as an alignment against the view at ``T_world_cam_est``."""
     from nap3d_graph import correct_pose
+
     from ..conventions import inv_T
 
     if field is None or T_world_cam_est is None:

@@ -15,20 +15,16 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from dataclasses import replace
-
-from ..nap3d.config import AlignConfig
-from ..nap3d.correspondences import Correspondences
-from ..nap3d.align import prepare_correspondences
-from ..nap3d.refine import refine_pose
-from ..nap3d.correspondences import subset
-from ..nap3d.refine import consensus_cost
 from ..camera import Intrinsics, RenderedView, RGBDFrame
 from ..conventions import make_T
+from ..nap3d.align import prepare_correspondences
+from ..nap3d.config import AlignConfig
+from ..nap3d.correspondences import Correspondences, subset
+from ..nap3d.refine import consensus_cost, refine_pose
 from ..results import Alignment
 
 __all__ = ["PnPConfig", "pnp_align", "pnp_from_correspondences"]

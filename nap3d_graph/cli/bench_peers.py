@@ -4,8 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import (UsageError, add_frames_argument, add_matcher_argument, parse_methods, parse_size, positive_float, positive_int,
-                     warn_trained_frames, empty_or_new_dir)
+from .common import (
+    UsageError,
+    add_frames_argument,
+    add_matcher_argument,
+    empty_or_new_dir,
+    parse_methods,
+    parse_size,
+    positive_float,
+    positive_int,
+    warn_trained_frames,
+)
 
 
 def add_parser(sub) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .common import positive_int, empty_or_new_dir
+from .common import empty_or_new_dir, positive_int
 
 
 def add_parser(sub) -> None:

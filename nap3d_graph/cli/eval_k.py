@@ -4,7 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import add_frames_argument, add_matcher_argument, parse_methods, positive_int, warn_trained_frames, empty_or_new_dir
+from .common import (
+    add_frames_argument,
+    add_matcher_argument,
+    empty_or_new_dir,
+    parse_methods,
+    positive_int,
+    warn_trained_frames,
+)
 
 
 def add_parser(sub) -> None:

@@ -8,9 +8,21 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_float,
-                     non_negative_int, parse_pose, parse_size, positive_float, positive_int, probability,
-                     warn_depth_units, warn_trained_frames)
+from .common import (
+    RUN_MATCHER,
+    UsageError,
+    add_frames_argument,
+    add_matcher_argument,
+    non_negative_float,
+    non_negative_int,
+    parse_pose,
+    parse_size,
+    positive_float,
+    positive_int,
+    probability,
+    warn_depth_units,
+    warn_trained_frames,
+)
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 
@@ -23,9 +35,9 @@ def add_source_arguments(p) -> None:
     """The source, field, odometry and keyframe options of a drift-correction run."""
     import argparse
 
-    from nap3d_graph.pipeline_config import PipelineConfig
     from nap3d_graph.datasets import SOURCES
     from nap3d_graph.default_run import DEFAULT_TRAIN_STEPS
+    from nap3d_graph.pipeline_config import PipelineConfig
 
     p.add_argument("--traj", choices=tuple(SOURCES), default="sim",
                    help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder), "

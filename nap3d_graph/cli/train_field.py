@@ -6,8 +6,17 @@ import json
 import sys
 from pathlib import Path
 
-from .common import (RUN_MATCHER, UsageError, add_frames_argument, add_matcher_argument, non_negative_int,
-                     positive_float, positive_int, warn_depth_units, writable_file_parent)
+from .common import (
+    RUN_MATCHER,
+    UsageError,
+    add_frames_argument,
+    add_matcher_argument,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    warn_depth_units,
+    writable_file_parent,
+)
 
 
 def add_parser(sub) -> None:

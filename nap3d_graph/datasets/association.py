@@ -9,7 +9,6 @@ keeps the most pairs with the least total time difference, ``"greedy"`` is TUM's
 from __future__ import annotations
 
 import math
-
 from typing import Sequence
 
 import numpy as np

@@ -27,8 +27,14 @@ import numpy as np
 
 from ..camera import CameraError, Intrinsics, RGBDFrame
 from ..conventions import T_to_tum, tum_to_T
-from .association import (GT_MAX_GAP_S, ASSOCIATION_METHODS, GroundTruthLookup, associate, estimate_stream_offset,
-                          interpolate_poses)
+from .association import (
+    ASSOCIATION_METHODS,
+    GT_MAX_GAP_S,
+    GroundTruthLookup,
+    associate,
+    estimate_stream_offset,
+    interpolate_poses,
+)
 from .errors import DatasetError
 from .frames import parse_frame_range
 

@@ -13,8 +13,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
-from nap3d_graph.conventions import T_to_pose3, inv_T, log_se3, pose3_to_T
-from nap3d_graph.conventions import compose_covariance
+from nap3d_graph.conventions import T_to_pose3, compose_covariance, inv_T, log_se3, pose3_to_T
 
 __all__ = ["OdometryOnly"]
 

@@ -11,8 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nap3d_graph.conventions import exp_se3, inv_T
-from nap3d_graph.conventions import compose_covariance
+from nap3d_graph.conventions import compose_covariance, exp_se3, inv_T
 
 from .base import MeasurementStream
 

@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.nap3d.config import AlignConfig
-from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
-from nap3d_graph.conventions import inv_T, make_T
 from nap3d_graph.baselines.pnp import pnp_from_correspondences
+from nap3d_graph.conventions import inv_T, make_T
+from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
+from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.sims.sensors import sensor_frame
 from nap3d_graph.sims.trajectories import R_world_cam_from_angles
 

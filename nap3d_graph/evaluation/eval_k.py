@@ -43,13 +43,13 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.nap3d.config import AlignConfig
-from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences, view_features
-from nap3d_graph.camera import RGBDFrame, RenderedView, backproject_depth
-from nap3d_graph.conventions import inv_T, log_se3, pose_error, transform_points
-from nap3d_graph.nap3d.matching import detect_features
-from nap3d_graph.nap3d.correct import correct_pose, render_safely
 from nap3d_graph.baselines.pnp import pnp_from_correspondences
+from nap3d_graph.camera import RenderedView, RGBDFrame, backproject_depth
+from nap3d_graph.conventions import inv_T, log_se3, pose_error, transform_points
+from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences, view_features
+from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.correct import correct_pose, render_safely
+from nap3d_graph.nap3d.matching import detect_features
 from nap3d_graph.results import Alignment
 
 from .perturb import random_perturbation

@@ -47,8 +47,8 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
 
     from nap3d_graph.baselines import run_peers
     from nap3d_graph.conventions import inv_T, pose_error
-    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
+    from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.nap3d.correct import _resize_frame, render_safely
 
     from .eval_k import at_colour_instant

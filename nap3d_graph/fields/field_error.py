@@ -83,7 +83,6 @@ def measure_field_error(field, sequence, indices, timing: dict | None = None, al
     the true pose.
     """
     from ..conventions import exp_se3
-
     from ..keyframe_correction import KeyframeJob, measure_keyframe
     from ..pipeline_config import PipelineConfig
 

@@ -43,7 +43,6 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-
 from .base import FieldError
 from .checkpoint import load_state, meta_json
 from .grid_render import GridRenderer, RenderConfig, pixel_directions, torch_threads

@@ -38,8 +38,13 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RenderedView
-from nap3d_graph.conventions import (T_opencv_to_opengl, T_opengl_to_opencv, inv_T, ray_length_to_z_depth,
-                                     z_depth_to_ray_length)
+from nap3d_graph.conventions import (
+    T_opencv_to_opengl,
+    T_opengl_to_opencv,
+    inv_T,
+    ray_length_to_z_depth,
+    z_depth_to_ray_length,
+)
 
 from .base import FieldError
 

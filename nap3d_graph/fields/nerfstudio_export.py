@@ -14,8 +14,13 @@ import numpy as np
 from nap3d_graph.camera import Intrinsics
 
 from .base import FieldError
-from .nerfstudio import (depth_to_png_mm, intrinsics_from_nerfstudio, nerfstudio_intrinsics, opencv_to_opengl_pose,
-                         opengl_to_opencv_pose)
+from .nerfstudio import (
+    depth_to_png_mm,
+    intrinsics_from_nerfstudio,
+    nerfstudio_intrinsics,
+    opencv_to_opengl_pose,
+    opengl_to_opencv_pose,
+)
 
 __all__ = ["export_nerfstudio", "read_transforms_poses"]
 

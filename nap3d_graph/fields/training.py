@@ -38,15 +38,18 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-
 from .base import FieldError
 from .evaluation import evaluate_field, oracle_for, psnr
-from .grid import (CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, torch_threads,
-                   trilinear_corners)
-
+from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, torch_threads, trilinear_corners
 from .lazy_adam import LazyAdam
-from .training_data import (TrainingRays, _ray_poses, scene_bounds_from_depth, split_frames,
-                            split_posed_frames, splat_init)
+from .training_data import (
+    TrainingRays,
+    _ray_poses,
+    scene_bounds_from_depth,
+    splat_init,
+    split_frames,
+    split_posed_frames,
+)
 
 __all__ = [
     "TrainConfig",

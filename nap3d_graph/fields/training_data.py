@@ -15,7 +15,7 @@ from nap3d_graph.camera import Intrinsics, backproject_depth, valid_depth_mask
 from nap3d_graph.conventions import transform_points
 
 from .base import FieldError
-from .grid import (GridField, pixel_directions, trilinear_corners)
+from .grid import GridField, pixel_directions, trilinear_corners
 
 if TYPE_CHECKING:
     from .training import TrainConfig

@@ -33,14 +33,14 @@ from dataclasses import replace
 
 import numpy as np
 
-from .config import AlignConfig
 from ..camera import Intrinsics, RenderedView, RGBDFrame, backproject
 from ..conventions import make_T
-from .correspondences import (Correspondences, build_correspondences, noise_sigmas, subset)
-from .matching import Features, detect_features, match_features, refine_matches_subpixel
-from .ransac import (anisotropic_residual_sq, ransac_procrustes, ransac_scale)
-from .refine import consensus_cost, plain_covariance, refine_pose
 from ..results import Alignment
+from .config import AlignConfig
+from .correspondences import Correspondences, build_correspondences, noise_sigmas, subset
+from .matching import Features, detect_features, match_features, refine_matches_subpixel
+from .ransac import anisotropic_residual_sq, ransac_procrustes, ransac_scale
+from .refine import consensus_cost, plain_covariance, refine_pose
 
 __all__ = ["align_views", "align_correspondences", "prepare_correspondences", "view_features",
            "choose_intrinsics_model", "covariance_inflation", "inflate_rotation", "viewpoint_change_px"]

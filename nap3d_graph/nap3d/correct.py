@@ -12,12 +12,12 @@ import time
 
 import numpy as np
 
-from .config import AlignConfig
-from .align import align_views
-from .matching import detect_features
 from ..camera import Intrinsics, RGBDFrame
 from ..conventions import inv_T, log_se3, rigid_transform_problem
 from ..results import Alignment, Correction
+from .align import align_views
+from .config import AlignConfig
+from .matching import detect_features
 
 __all__ = ["correct_pose", "render_safely"]
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .config import AlignConfig
 from ..camera import Intrinsics, RenderedView, RGBDFrame, backproject, valid_depth_mask
+from .config import AlignConfig
 from .matching import Matches
 
 __all__ = ["Correspondences", "build_correspondences", "sample_depth", "depth_gradient", "noise_sigmas",

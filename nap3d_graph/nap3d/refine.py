@@ -11,11 +11,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import chi2
 
-from .config import AlignConfig
 from ..camera import Intrinsics
-from ..conventions import exp_se3, make_T
+from ..conventions import exp_se3, make_T, skew
+from .config import AlignConfig
 from .correspondences import Correspondences
-from ..conventions import skew
 
 __all__ = ["refine_pose", "plain_covariance", "consensus_cost"]
 
