@@ -322,6 +322,33 @@ class Pipeline:
             on_keyframe(record)
 
     def _apply_correction(self, record: KeyframeRecord, i: int, correction: Correction, T_render) -> None:
+        """The graph half (:meth:`_gate_and_add`), and a warning while the run goes when
+        corrections keep failing for one reason."""
+        self._gate_and_add(record, i, correction, T_render)
+        self._watch_refusals(record)
+
+    #: Consecutive keyframes refused for one reason before the run says so.
+    REFUSAL_STREAK = 5
+
+    def _watch_refusals(self, record: KeyframeRecord) -> None:
+        """Warn (once per streak) when the last REFUSAL_STREAK keyframes were all refused for
+        the same reason: the run then goes on on its odometry alone, and the user should know
+        it now, not from the summary."""
+        from .run_output import refusal_hint_for, refusal_kind
+
+        if record.accepted:
+            self._streak = (None, 0)
+            return
+        kind = refusal_kind(record.reason)
+        previous, count = getattr(self, "_streak", (None, 0))
+        count = count + 1 if kind == previous else 1
+        self._streak = (kind, count)
+        if count == self.REFUSAL_STREAK:
+            log.warning("the last %d keyframes (to frame %d) were all refused for '%s'; the run goes on on its "
+                        "odometry alone until corrections land again. %s", count, record.frame_index, kind,
+                        refusal_hint_for(kind))
+
+    def _gate_and_add(self, record: KeyframeRecord, i: int, correction: Correction, T_render) -> None:
         """The graph half: depth-scale check, gate, factor (see the module docstring)."""
         if correction.success and self.config.depth_scale_check:
             correction = self.depth_scale.check(correction, record)

@@ -79,15 +79,39 @@ def keyframe_timing_summary(result) -> dict:
     return out
 
 
+#: What to check when corrections keep failing for one reason (the reason's first words).
+REFUSAL_HINTS = {
+    "low opacity": "the field does not cover these views: have they left the mapped area, or is it a field of "
+                   "another place or in another frame (--anchor estimates an offset)?",
+    "too few matches": "the frames and the renders hardly match: is the field of this place, and the depth in "
+                       "metres (TUM PNGs: 5000 per metre)?",
+    "too few inliers": "matches do not agree in 3D: is the depth in metres (TUM PNGs: 5000 per metre), and the "
+                       "camera's intrinsics right?",
+    "depth scale": "the frames' depth disagrees with the field's metre: check the depth unit and scale",
+    "innovation": "the corrections disagree with the odometry's prediction: is the field in this recording's "
+                  "frame (--anchor), or the odometry noisier than its model (--odom-rot-sigma, --odom-trans-sigma)?",
+}
+
+
+def refusal_kind(reason: str) -> str:
+    """A refusal's kind: its words before the first number or detail."""
+    import re
+
+    return re.split(r"[(:=0-9]", reason or "unknown")[0].strip() or "unknown"
+
+
+def refusal_hint_for(kind: str) -> str:
+    """What a kind of refusal usually means ("" when there is nothing to add)."""
+    return next((text for key, text in REFUSAL_HINTS.items() if kind.startswith(key)), "")
+
+
 def refusal_reasons(keyframes) -> dict[str, int]:
     """How many keyframes were refused for each kind of reason (its words before the first
     number or detail: "too few inliers", "low opacity", "innovation", ...), most first."""
-    import re
-
     counts: dict[str, int] = {}
     for k in keyframes:
         if not k.accepted:
-            kind = re.split(r"[(:=0-9]", k.reason or "unknown")[0].strip() or "unknown"
+            kind = refusal_kind(k.reason)
             counts[kind] = counts.get(kind, 0) + 1
     return dict(sorted(counts.items(), key=lambda item: -item[1]))
 

@@ -220,3 +220,20 @@ def test_correct_pose_takes_a_gtsam_pose3(walk):
     T_est = T_gt @ exp_se3([0.01, -0.01, 0.0, 0.02, -0.01, 0.01])
     correction = correct_pose(seq[6], seq.oracle_field(), gtsam.Pose3(T_est), iterations=2)
     assert correction.success and pose_error(correction.T_world_cam_corrected, T_gt)[0] < 0.005
+
+
+def test_a_streak_of_refusals_is_said_during_the_run(walk, caplog):
+    """A field of another room: every correction is refused, and the run says so while it
+    goes (once), not only in its summary."""
+    from nap3d_graph.datasets import SimSequence
+    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.pipeline import Pipeline, PipelineConfig
+    from nap3d_graph.sims.scene import OracleField, make_scene
+
+    seq = SimSequence(walk)
+    caplog.set_level(logging.WARNING, logger="nap3d_graph")
+    result = Pipeline(seq, OracleField(make_scene(5)), make_odometry("recorded", seq),
+                      PipelineConfig(keyframe_every=2, render_width=None, render_height=None)).run()
+    assert result.num_accepted <= 1
+    warnings = [r.message for r in caplog.records if "keyframes (to frame" in r.message]
+    assert len(warnings) >= 1 and "odometry alone" in warnings[0]

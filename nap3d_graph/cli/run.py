@@ -14,6 +14,8 @@ import sys
 import time
 from pathlib import Path
 
+from nap3d_graph.run_output import refusal_hint_for
+
 from .common import StopOnSignal, writable_dir
 from .sources import add_source_arguments, prepare
 
@@ -62,20 +64,6 @@ def run(args) -> int:
     return 0
 
 
-#: What to check when most corrections of a run fail for one reason.
-_HINTS = {
-    "low opacity": "the field does not cover these views: is it a field of this place, in this recording's "
-                   "frame (--anchor estimates an offset)?",
-    "too few matches": "the frames and the renders hardly match: is the field of this place, and the depth in "
-                       "metres (TUM PNGs: 5000 per metre)?",
-    "too few inliers": "matches do not agree in 3D: is the depth in metres (TUM PNGs: 5000 per metre), and the "
-                       "camera's intrinsics right?",
-    "depth scale": "the frames' depth disagrees with the field's metre: check the depth unit and scale",
-    "innovation": "the corrections disagree with the odometry's prediction: is the field in this recording's "
-                  "frame (--anchor), or the odometry noisier than its model (--odom-rot-sigma, --odom-trans-sigma)?",
-}
-
-
 def refusal_hint(metrics: dict) -> str:
     """A warning when most keyframes (at least 60%) were refused, for one reason (at least
     60% of the refusals): what the reason usually means. Empty otherwise."""
@@ -86,7 +74,7 @@ def refusal_hint(metrics: dict) -> str:
     kind, count = next(iter(reasons.items()))
     if count < 0.6 * refused or kind == "no field":
         return ""
-    why = next((text for key, text in _HINTS.items() if kind.startswith(key)), "see corrections.csv")
+    why = refusal_hint_for(kind) or "see corrections.csv"
     return f"{count} of {keyframes} corrections were refused for '{kind}': {why}"
 
 
