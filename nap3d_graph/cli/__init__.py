@@ -35,6 +35,8 @@ EPILOG = """examples:
   nap3d-graph run --traj realsense --data data/rs_walk.db3 --groundtruth data/rs_walk/groundtruth.txt --field data/rs_walk
   nap3d-graph run --traj realsense --data live --seconds 30 --record walk.bag --field room.pt --initial-pose-file start.txt
   nap3d-graph eval-k data/room_walk --field oracle --scenarios 40 --out evalk
+  nap3d-graph train-field 7scenes/redkitchen/seq-01 --frames 0:0.5 --model splat --out kitchen.pt
+  nap3d-graph run --traj 7scenes --data 7scenes/redkitchen/seq-01 --frames 0.5:1 --field kitchen.pt
 """
 
 
