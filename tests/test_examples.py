@@ -22,3 +22,12 @@ def test_own_estimator_runs_next_to_the_library_ones(capsys):
     for name in ("complementary", "eskf", "isam2-final"):
         assert by_name[name]["ate_rmse_m"] < 0.3 * by_name["odometry"]["ate_rmse_m"]
     assert "complementary" in capsys.readouterr().out
+
+
+def test_your_frames_in_your_isam2(capsys):
+    """Real fr1/xyz frames read with OpenCV, a splat map of the even frames, the odd ones in a
+    plain iSAM2 loop with gated NAP3D priors: the drifting odometry is pulled back."""
+    out = runpy.run_path(str(EXAMPLES / "your_frames_in_your_isam2.py"))["main"]()
+    assert out["accepted"] >= 4
+    assert out["odometry_error_m"] > 0.015 and out["estimate_error_m"] < 0.5 * out["odometry_error_m"]
+    assert "accepted" in capsys.readouterr().out
