@@ -40,24 +40,31 @@ def _positive(value: float, name: str) -> float:
 
 
 def imu_params(accel_noise_density: float, gyro_noise_density: float,
-               accel_bias_rw: float, gyro_bias_rw: float, gravity: float = 9.81,
+               accel_bias_rw: float, gyro_bias_rw: float, gravity=9.81,
                integration_sigma: float = DEFAULT_INTEGRATION_SIGMA,
                ) -> gtsam.PreintegrationCombinedParams:
-    """Preintegration parameters for a Z-up world with isotropic IMU noise.
+    """Preintegration parameters with isotropic IMU noise, for a Z-up world or any other.
 
     Args:
         accel_noise_density: m/s^2/sqrt(Hz).
         gyro_noise_density: rad/s/sqrt(Hz).
         accel_bias_rw: accelerometer bias random walk, m/s^3/sqrt(Hz).
         gyro_bias_rw: gyroscope bias random walk, rad/s^2/sqrt(Hz).
-        gravity: magnitude of gravity (m/s^2); the world's gravity is ``(0, 0, -gravity)``.
+        gravity: magnitude of gravity (m/s^2), the world's gravity then ``(0, 0, -gravity)``;
+            or the gravity vector (3,) in the world frame (m/s^2), for a world that is not
+            Z-up (a nerfstudio or COLMAP frame, a y-down room).
         integration_sigma: integration uncertainty (m/sqrt(Hz)); small.
 
     Returns:
         ``gtsam.PreintegrationCombinedParams`` with the 3x3 covariances set.
     """
     I3 = np.eye(3)
-    params = gtsam.PreintegrationCombinedParams.MakeSharedU(_positive(gravity, "gravity"))
+    if np.ndim(gravity) == 0:
+        params = gtsam.PreintegrationCombinedParams.MakeSharedU(_positive(float(gravity), "gravity"))
+    else:
+        g = np.asarray(gravity, dtype=float).reshape(3)
+        _positive(float(np.linalg.norm(g)), "|gravity|")
+        params = gtsam.PreintegrationCombinedParams(g)
     params.setAccelerometerCovariance(_positive(accel_noise_density, "accel_noise_density") ** 2 * I3)
     params.setGyroscopeCovariance(_positive(gyro_noise_density, "gyro_noise_density") ** 2 * I3)
     params.setBiasAccCovariance(_positive(accel_bias_rw, "accel_bias_rw") ** 2 * I3)

@@ -23,31 +23,39 @@ import numpy as np
 from nap3d_graph.factors import imu_params, imu_pieces, integrate_pieces
 from nap3d_graph.factors.imu import preintegrate as _preintegrate
 
-__all__ = ["ImuConfig", "ImuStream"]
+__all__ = ["ImuConfig", "ImuStream", "estimate_gravity", "gravity_angle_deg"]
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class ImuConfig:
-    """Noise densities (continuous time, per sqrt(Hz)), gravity (m/s^2, world +Z up), the
-    camera-IMU extrinsics ``T_cam_imu`` (4, 4) (IMU frame -> camera frame) and the prior
-    sigmas of the first velocity and biases."""
+    """Noise densities (continuous time, per sqrt(Hz)), gravity (m/s^2; ``gravity_world``, the
+    gravity vector in the world (field) frame when it is not ``(0, 0, -gravity)``: see
+    :func:`estimate_gravity`), the camera-IMU extrinsics ``T_cam_imu`` (4, 4) (IMU frame ->
+    camera frame) and the prior sigmas of the first velocity and biases."""
 
     accel_noise_density: float = 2.0e-3
     gyro_noise_density: float = 2.4e-4
     accel_bias_rw: float = 1.0e-4
     gyro_bias_rw: float = 2.0e-6
     gravity: float = 9.81
+    gravity_world: tuple[float, float, float] | None = None
     T_cam_imu: np.ndarray = field(default_factory=lambda: np.eye(4))
     velocity_prior_sigma: float = 0.1
     accel_bias_prior_sigma: float = 0.05
     gyro_bias_prior_sigma: float = 0.005
     max_gap_s: float = 0.05
 
+    def gravity_vector(self) -> np.ndarray:
+        """Gravity (3,) in the world frame, m/s^2."""
+        if self.gravity_world is not None:
+            return np.asarray(self.gravity_world, dtype=float).reshape(3)
+        return np.array([0.0, 0.0, -self.gravity])
+
     def params(self) -> gtsam.PreintegrationCombinedParams:
         params = imu_params(self.accel_noise_density, self.gyro_noise_density, self.accel_bias_rw,
-                            self.gyro_bias_rw, self.gravity)
+                            self.gyro_bias_rw, self.gravity_vector())
         T = np.asarray(self.T_cam_imu, dtype=float)
         if not np.allclose(T, np.eye(4)):
             params.setBodyPSensor(gtsam.Pose3(T))  # body = camera, sensor = IMU
@@ -55,6 +63,32 @@ class ImuConfig:
 
     def to_dict(self) -> dict:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in self.__dict__.items()}
+
+
+def estimate_gravity(stream: "ImuStream", T_world_cam0: np.ndarray, magnitude: float = 9.81,
+                     window_s: float = 0.5) -> tuple[np.ndarray, float]:
+    """Gravity (3,) in the world frame from the accelerometer over the first ``window_s`` and
+    the camera's starting pose ``T_world_cam0`` (4, 4): at rest the accelerometer reads minus
+    gravity in its own frame, so ``g_world = -R_world_imu mean(f)``, scaled to ``magnitude``.
+    Returns it with the spread (m/s^2) of the samples' norm in the window: a camera that
+    moved meanwhile (spread of tenths of m/s^2) gives a rougher direction, which the graph's
+    accelerometer bias then partly takes up."""
+    t0 = float(stream.stamps[0])
+    inside = stream.stamps <= t0 + window_s
+    f = stream.accel[inside] if inside.sum() >= 3 else stream.accel[:3]
+    R_world_imu = (np.asarray(T_world_cam0, dtype=float) @ np.asarray(stream.config.T_cam_imu, dtype=float))[:3, :3]
+    down = -R_world_imu @ f.mean(axis=0)
+    norm = float(np.linalg.norm(down))
+    if not norm > 1.0:
+        raise ValueError(f"the accelerometer's mean over the first {window_s} s is {norm:.2f} m/s^2: no gravity in "
+                         "it (is it in m/s^2?)")
+    return down / norm * magnitude, float(np.std(np.linalg.norm(f, axis=1)))
+
+
+def gravity_angle_deg(g_a: np.ndarray, g_b: np.ndarray) -> float:
+    """The angle (deg) between two gravity vectors."""
+    c = float(np.dot(g_a, g_b) / (np.linalg.norm(g_a) * np.linalg.norm(g_b)))
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 class ImuStream:

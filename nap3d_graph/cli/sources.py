@@ -27,6 +27,24 @@ from .common import (
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 
 
+def _gravity(text: str):
+    """'auto', a magnitude (m/s^2) or a vector 'gx gy gz' (m/s^2, the field's frame)."""
+    import argparse
+
+    if text.strip() == "auto":
+        return "auto"
+    parts = text.replace(",", " ").split()
+    try:
+        values = [float(v) for v in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a magnitude, 'auto' or 'gx gy gz', got {text!r}") from None
+    if len(values) == 1 and values[0] > 0:
+        return values[0]
+    if len(values) == 3 and 1.0 < float(np.linalg.norm(values)) < 100.0:
+        return tuple(values)
+    raise argparse.ArgumentTypeError(f"must be a positive magnitude, 'auto' or a vector 'gx gy gz' (m/s^2), got {text!r}")
+
+
 def _field_sigma(text: str) -> float | None:
     return None if text == "auto" else non_negative_float(text)
 
@@ -71,7 +89,11 @@ def add_source_arguments(p) -> None:
                    "gyro bias walk rad/s^2/sqrt(Hz) (default: the simulator's, 2e-3 2.4e-4 1e-4 2e-6)")
     p.add_argument("--imu-extrinsics", metavar="'tx ty tz qx qy qz qw'", default=None,
                    help="T_cam_imu: the IMU frame in the camera frame (default identity, as simulated)")
-    p.add_argument("--gravity", type=positive_float, default=9.81, help="gravity, m/s^2 (default 9.81)")
+    p.add_argument("--gravity", type=_gravity, default=9.81, metavar="G|auto|'gx gy gz'",
+                   help="--odom imu: gravity in the field's frame. A magnitude (default 9.81 m/s^2) for a z-up world, "
+                   "'auto' to take its direction from the accelerometer over the first 0.5 s with the starting pose "
+                   "(a field's frame from COLMAP or nerfstudio, a y-down room), or the vector in m/s^2. With a "
+                   "magnitude the run warns when the accelerometer disagrees with z-up by more than 10 deg")
     p.add_argument("--timing", choices=("auto", "none"), default="auto",
                    help="auto: move each keyframe's depth to its colour's capture instant with the capture timing the "
                    "field records, or, for a field that records none (the oracle, nerfstudio), the timing estimated "
@@ -163,7 +185,12 @@ def imu_config(args, base=None):
 
     from nap3d_graph.imu import ImuConfig
 
-    config = dataclasses.replace(base, gravity=args.gravity) if base is not None else ImuConfig(gravity=args.gravity)
+    magnitude = args.gravity if isinstance(args.gravity, float) else 9.81
+    vector = args.gravity if isinstance(args.gravity, tuple) else None
+    if vector is not None:
+        magnitude = float(np.linalg.norm(vector))
+    config = (dataclasses.replace(base, gravity=magnitude, gravity_world=vector) if base is not None
+              else ImuConfig(gravity=magnitude, gravity_world=vector))
     if args.imu_noise is not None:
         try:
             values = [float(v) for v in args.imu_noise.replace(",", " ").split()]
@@ -237,12 +264,41 @@ def _odometry(args, sequence, initial_pose):
             from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
 
             config = imu_config(args, getattr(sequence, "imu_config", None))
+            odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
+            config = _checked_gravity(args, odometry)
             return odom_kind, ImuOdometry.from_sequence(sequence, config, initial_pose), ImuPipeline
         odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma,
                                  initial_pose=initial_pose, matcher=args.matcher)
         return odom_kind, odometry, Pipeline
     except ValueError as exc:  # the data cannot give that odometry: say which and what to use
         raise UsageError(str(exc)) from None
+
+
+def _checked_gravity(args, odometry):
+    """The IMU config with gravity estimated (``--gravity auto``), or as given, after saying
+    when the accelerometer at the start disagrees with it by more than 10 degrees."""
+    import dataclasses
+    import sys
+
+    from nap3d_graph.imu import estimate_gravity, gravity_angle_deg
+
+    config = odometry.stream.config
+    try:
+        measured, spread = estimate_gravity(odometry.stream, odometry.T_world_cam0, config.gravity)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    if args.gravity == "auto":
+        angle = gravity_angle_deg(measured, np.array([0.0, 0.0, -1.0]))
+        print(f"gravity from the accelerometer over the first 0.5 s: ({measured[0]:.2f}, {measured[1]:.2f}, "
+              f"{measured[2]:.2f}) m/s^2 in the field's frame, {angle:.1f} deg from -z (samples' spread "
+              f"{spread:.2f} m/s^2)")
+        return dataclasses.replace(config, gravity_world=tuple(float(v) for v in measured))
+    angle = gravity_angle_deg(measured, config.gravity_vector())
+    if angle > 10.0:
+        print(f"warning: the accelerometer at the start puts gravity {angle:.0f} deg from the one assumed "
+              f"({config.gravity_vector().round(2).tolist()} m/s^2 in the field's frame): is the field's frame not "
+              "z-up? --gravity auto estimates it from the data, --gravity 'gx gy gz' sets it", file=sys.stderr)
+    return config
 
 
 def prepare(args, use_anchor: bool = False) -> Prepared:

@@ -134,7 +134,7 @@ class ImuErrorStateEKF(_PoseCorrections):
         self.R, self.p = T_world_imu[:3, :3].copy(), T_world_imu[:3, 3].copy()
         self.v = np.asarray(stream.velocity0, float).copy()
         self.ba, self.bg = np.zeros(3), np.zeros(3)
-        self.g = np.array([0.0, 0.0, -cfg.gravity])
+        self.g = cfg.gravity_vector()
         self.noise = (cfg.gyro_noise_density**2, cfg.accel_noise_density**2, cfg.accel_bias_rw**2, cfg.gyro_bias_rw**2)
         self.kf = KalmanFilter(dim_x=15, dim_z=6)
         P0 = np.zeros((15, 15))

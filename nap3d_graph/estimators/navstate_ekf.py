@@ -60,7 +60,7 @@ class NavStateEKF:
         cfg = stream.imu.config
         stamps = np.asarray(stream.timestamps, float)[list(stream.keyframes)]
         t_kf = float(np.median(np.diff(stamps))) if len(stamps) > 1 else 1.0
-        params = gtsam.PreintegrationParams.MakeSharedU(cfg.gravity)
+        params = gtsam.PreintegrationParams(cfg.gravity_vector())
         params.setAccelerometerCovariance(np.eye(3) * (cfg.accel_noise_density**2 + cfg.accel_bias_prior_sigma**2 * t_kf))
         params.setGyroscopeCovariance(np.eye(3) * (cfg.gyro_noise_density**2 + cfg.gyro_bias_prior_sigma**2 * t_kf))
         params.setIntegrationCovariance(np.asarray(stream.imu.params.getIntegrationCovariance()))
