@@ -237,3 +237,31 @@ def test_a_streak_of_refusals_is_said_during_the_run(walk, caplog):
     assert result.num_accepted <= 1
     warnings = [r.message for r in caplog.records if "keyframes (to frame" in r.message]
     assert len(warnings) >= 1 and "odometry alone" in warnings[0]
+
+
+def test_a_run_is_reproduced_from_its_config(walk, tmp_path, capsys):
+    import yaml
+
+    first = tmp_path / "first"
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--keyframe-every", "3",
+                 "--gate-p", "0.99", "--render-size", "160x120", "--out", str(first)]) == 0
+    config = first / "latest" / "config.yaml"
+    # A setting with no flag survives too.
+    edited = yaml.safe_load(config.read_text())
+    edited["pipeline"]["depth_scale_tolerance"] = 0.05
+    config.write_text(yaml.safe_dump(edited, sort_keys=False))
+    again = tmp_path / "again"
+    assert main(["run", "--config", str(config), "--out", str(again)]) == 0
+    stamps_a, T_a = read_tum_trajectory(first / "latest" / "estimate.txt")
+    stamps_b, T_b = read_tum_trajectory(again / "latest" / "estimate.txt")
+    np.testing.assert_array_equal(stamps_a, stamps_b)
+    np.testing.assert_allclose(T_a, T_b, atol=1e-9)
+    reproduced = yaml.safe_load((again / "latest" / "config.yaml").read_text())
+    assert reproduced["pipeline"]["keyframe_every"] == 3 and reproduced["pipeline"]["gate_p"] == 0.99
+    assert reproduced["pipeline"]["depth_scale_tolerance"] == 0.05
+    # A flag given on the command line wins over the file.
+    assert main(["run", "--config", str(config), "--keyframe-every", "4", "--out", str(tmp_path / "third")]) == 0
+    assert yaml.safe_load((tmp_path / "third" / "latest" / "config.yaml").read_text())["pipeline"]["keyframe_every"] == 4
+    capsys.readouterr()
+    assert main(["run", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "x")]) == 2
+    assert "file not found" in capsys.readouterr().err

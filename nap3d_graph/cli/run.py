@@ -36,13 +36,20 @@ def add_parser(sub) -> None:
                    help="estimate the field's frame in the world (map anchor M(0)) instead of assuming it is the "
                    "odometry's world frame")
     p.add_argument("--out", type=Path, default=Path("results"), help="results root (default ./results)")
-    p.set_defaults(func=run)
+    p.add_argument("--config", type=Path, metavar="CONFIG.yaml",
+                   help="reproduce a run from the config.yaml it wrote: its options and settings, except the options "
+                   "given here with a value other than their default")
+    p.set_defaults(func=run, parser=p)
 
 
 def run(args) -> int:
     from nap3d_graph.run_output import RunWriter
 
     t0 = time.perf_counter()
+    if args.config is not None:
+        from .run_config import apply_run_config
+
+        apply_run_config(args, args.parser, args.config)
     writable_dir(args.out)  # before the run, not after it
     prepared = prepare(args, use_anchor=args.anchor)
     writer = RunWriter(args.out, prepared.name, prepared.record, getattr(prepared.sequence, "rgb_line_index", None))

@@ -309,6 +309,8 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     from nap3d_graph.pipeline import PipelineConfig
     from nap3d_graph.pipeline_config import with_field_error
 
+    from .run_config import with_overrides
+
     if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
         raise UsageError("--groundtruth, --realsense-config and --record are for --traj realsense")
     width, height = parse_size(args.render_size)
@@ -330,7 +332,9 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
                             field_sigma_m=args.field_sigma, overlap=args.overlap, max_frames=args.max_frames,
                             progress=True, compensate_timing=args.timing == "auto",
-                            timing=_timing(args, field_obj, sequence), align=AlignConfig(matcher=args.matcher))
+                            timing=_timing(args, field_obj, sequence),
+                            align=with_overrides(AlignConfig(matcher=args.matcher), getattr(args, "align_overrides", None)))
+    config = with_overrides(config, getattr(args, "pipeline_overrides", None))  # run --config: unflagged settings
     config = with_field_error(config, field_obj)
     if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
         print(f"field error: {config.field_sigma_m * 1000:.1f} mm, {np.degrees(config.field_sigma_rad or 0):.2f} deg "

@@ -1,0 +1,86 @@
+"""``run --config config.yaml``: a run reproduced from the configuration another run wrote.
+
+Every run writes ``config.yaml`` (:mod:`nap3d_graph.run_output`): the options it was given,
+the pipeline's and the alignment's settings as they were resolved. Reading it back sets each
+option the file knows, unless the command line gives that option a value other than its
+default (flags override the file); settings with no flag (the depth-scale check's tolerance,
+the alignment's noise model...) are carried into the run's configuration as they were.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from .common import UsageError
+
+__all__ = ["apply_run_config", "load_run_config"]
+
+#: config.yaml key -> run option (argparse dest).
+_TOP = {"traj": "traj", "data": "data", "frames": "frames", "field": "field", "odometry": "odom",
+        "odom_rot_sigma_rad": "odom_rot_sigma", "odom_trans_sigma_m": "odom_trans_sigma", "seed": "seed"}
+_PIPELINE = {"keyframe_every": "keyframe_every", "keyframe_distance_m": "keyframe_distance",
+             "keyframe_angle_deg": "keyframe_angle", "keyframe_window": "keyframe_window",
+             "keyframe_on_doubt": "keyframe_on_doubt", "correction_iterations": "iterations", "gate_p": "gate_p",
+             "field_sigma_m": "field_sigma", "overlap": "overlap", "max_frames": "max_frames",
+             "use_anchor": "anchor"}
+#: Pipeline settings a run resolves for itself each time (not carried over).
+_RESOLVED = {"timing", "progress", "align"}
+
+
+def load_run_config(path: Path) -> dict:
+    """The mapping a run's ``config.yaml`` holds (one-line errors for a bad file)."""
+    import yaml
+
+    try:
+        config = yaml.safe_load(Path(path).read_text())
+    except FileNotFoundError:
+        raise UsageError(f"--config {path}: file not found") from None
+    except (OSError, yaml.YAMLError) as exc:
+        raise UsageError(f"--config {path}: not a readable YAML file ({str(exc).splitlines()[0]})") from None
+    if not isinstance(config, dict) or "pipeline" not in config:
+        raise UsageError(f"--config {path}: not a run's config.yaml (no 'pipeline' section)")
+    return config
+
+
+def apply_run_config(args, parser, path: Path) -> None:
+    """Set ``args`` from the run configuration at ``path`` where the command line left an
+    option at its default; the file's other pipeline and alignment settings go to
+    ``args.pipeline_overrides`` and ``args.align_overrides``."""
+    config = load_run_config(path)
+    pipeline = config.get("pipeline") or {}
+    values = {dest: config[key] for key, dest in _TOP.items() if key in config}
+    values.update({dest: pipeline[key] for key, dest in _PIPELINE.items() if key in pipeline})
+    if "data" in values and values["data"] is not None:
+        values["data"] = Path(values["data"])
+    if "render_width" in pipeline and pipeline.get("render_width"):
+        values["render_size"] = f"{pipeline['render_width']}x{pipeline['render_height']}"
+    if "compensate_timing" in pipeline:
+        values["timing"] = "auto" if pipeline["compensate_timing"] else "none"
+    if config.get("initial_pose") is not None:
+        from nap3d_graph.conventions import T_to_tum
+
+        values["initial_pose"] = " ".join(f"{v:.12g}" for v in T_to_tum(np.asarray(config["initial_pose"])[None])[0])
+    if (config.get("align") or {}).get("matcher"):
+        values["matcher"] = config["align"]["matcher"]
+    imu = config.get("imu") or {}
+    if imu.get("gravity_world") is not None:
+        values["gravity"] = tuple(float(v) for v in imu["gravity_world"])
+    elif imu.get("gravity") is not None:
+        values["gravity"] = float(imu["gravity"])
+    for dest, value in values.items():
+        if hasattr(args, dest) and getattr(args, dest) == parser.get_default(dest):
+            setattr(args, dest, value)
+    mapped = set(_PIPELINE) | {"render_width", "render_height", "compensate_timing"} | _RESOLVED
+    args.pipeline_overrides = {k: v for k, v in pipeline.items() if k not in mapped}
+    args.align_overrides = {k: v for k, v in (config.get("align") or {}).items() if k != "matcher"}
+
+
+def with_overrides(config, overrides: dict | None):
+    """``config`` (a dataclass) with the fields of ``overrides`` it has replaced."""
+    if not overrides:
+        return config
+    names = {f.name for f in dataclasses.fields(config)}
+    return dataclasses.replace(config, **{k: v for k, v in overrides.items() if k in names})
