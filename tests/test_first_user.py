@@ -265,3 +265,12 @@ def test_a_run_is_reproduced_from_its_config(walk, tmp_path, capsys):
     capsys.readouterr()
     assert main(["run", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "x")]) == 2
     assert "file not found" in capsys.readouterr().err
+
+
+def test_a_guessed_camera_is_said_on_the_terminal(walk, tmp_path, capsys):
+    data = tmp_path / "my_recording"  # no freiburg in the name, no intrinsics.json
+    shutil.copytree(walk, data, ignore=shutil.ignore_patterns("odometry.txt", "scene.json", "sim.json", "imu*",
+                                                              "intrinsics.json"))
+    main(["run", "--traj", "tum", "--data", str(data), "--field", "none", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert "warning: " in err and "default camera" in err and "intrinsics.json" in err

@@ -122,9 +122,14 @@ class PartialOutput:
         self.command = command
 
     def __enter__(self):
+        import shlex
+        import sys
+
         self.marker.parent.mkdir(parents=True, exist_ok=True)
+        argv = " ".join(shlex.quote(a) for a in ["nap3d-graph", *sys.argv[1:]])
         self.marker.write_text(f"This folder is incomplete: '{self.command}' did not finish here (interrupted or "
-                               "failed). Remove the folder, or redo it with the same command and --force.\n")
+                               "failed). Remove the folder, or redo it with the same command and --force.\n"
+                               f"command line: {argv}\n")
         return self
 
     def __exit__(self, exc_type, exc, tb):

@@ -27,6 +27,17 @@ from .common import (
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 
 
+def warn_guessed_camera(sequence) -> None:
+    """Print a warning when a TUM-layout folder's camera is TUM's default, a guess."""
+    import sys
+
+    if getattr(sequence, "intrinsics_source", None) == "default":
+        K = sequence.intrinsics
+        print(f"warning: {sequence.path} has no intrinsics.json and no freiburg1/2/3 in its name: using TUM's "
+              f"default camera (fx={K.fx:g}, fy={K.fy:g}, cx={K.cx:g}, cy={K.cy:g}), a guess; write your camera to "
+              "intrinsics.json in the folder (fx, fy, cx, cy, width, height)", file=sys.stderr)
+
+
 def _gravity(text: str):
     """'auto', a magnitude (m/s^2) or a vector 'gx gy gz' (m/s^2, the field's frame)."""
     import argparse
@@ -323,6 +334,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
         field_obj = resolve_field(args.field, sequence)
     trained_on = warn_trained_frames(field_obj, sequence, "frames of this run")
     warn_depth_units(sequence)
+    warn_guessed_camera(sequence)
     odom_kind, odometry, pipeline_class = _odometry(args, sequence, initial_pose)
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")

@@ -171,6 +171,17 @@ def tum_intrinsics_for(name: str) -> Intrinsics | None:
     return None
 
 
+def _intrinsics_source(folder: Path, intrinsics) -> str:
+    """Where a sequence's camera came from: "argument", "intrinsics.json", "freiburgN" (TUM's
+    published calibration by the folder's name) or "default" (TUM's default camera: a guess)."""
+    if intrinsics is not None:
+        return "argument"
+    if (folder / "intrinsics.json").is_file():
+        return "intrinsics.json"
+    name = folder.name.lower()
+    return next((key for key in _TUM_CAMERAS if key in name), "default")
+
+
 def _resolve_intrinsics(folder: Path, intrinsics) -> Intrinsics:
     """Explicit argument, else ``intrinsics.json``, else TUM's camera from the name, else default."""
     if intrinsics is not None:
@@ -261,6 +272,7 @@ class TumSequence(GroundTruthLookup):
         self.association = association
         self.offset = offset
         self.raw_intrinsics = _resolve_intrinsics(self.path, intrinsics)
+        self.intrinsics_source = _intrinsics_source(self.path, intrinsics)
         has_distortion = any(d != 0.0 for d in self.raw_intrinsics.distortion)
         self.undistort = bool(undistort) and has_distortion
         # Depth PNGs are registered to colour by the Kinect driver (OpenNI, factory pinhole
