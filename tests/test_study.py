@@ -54,3 +54,35 @@ def test_study_refuses_a_bad_split(recording, tmp_path, capsys):
 
     assert main(["study", str(recording), "--out", str(tmp_path / "s"), "--split", "1.5"]) == 2
     assert "--split must be in" in capsys.readouterr().err
+
+
+def test_cross_recording_study_corrects_one_recording_with_anothers_map(tmp_path, capsys):
+    """The product's use case: a map made from one recording (a survey), a robot's other
+    recording of the same room (a traversal, another day) corrected with it."""
+    from nap3d_graph.cli import main
+    from nap3d_graph.datasets import SimSequence
+    from nap3d_graph.evaluation.study import StudyConfig, shared_world_check
+    from nap3d_graph.fields import load_field
+
+    recording = simulate_sequence(tmp_path / "survey", SimConfig(frames=60, path="mapping", width=320, height=240,
+                                                                 scene_seed=11, seed=7))
+    query = simulate_sequence(tmp_path / "walk", SimConfig(frames=30, fps=6.0, width=320, height=240, scene_seed=11,
+                                                           seed=3))
+    out = tmp_path / "cross"
+    assert main(["study", "--map", str(recording), "--query", str(query), "--out", str(out), "--model", "splat",
+                 "--odom", "recorded", "--scenarios", "2", "--keyframe-every", "3"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["query"] == str(query) and summary["shared_world"]["shared"] is True
+    assert summary["shared_world"]["median_correction_m"] < 0.03
+    run = summary["runs"]["recorded"]  # the walk's own drifting odometry
+    assert run["ate_estimate_m"] < 0.6 * run["ate_odometry_m"]
+    assert "they share a world frame" in (out / "summary.md").read_text()
+    # A recording of another room does not share the map's frame, and is said not to.
+    other = SimSequence(simulate_sequence(tmp_path / "elsewhere", SimConfig(frames=6, fps=2.0, width=320, height=240,
+                                                                            scene_seed=5, seed=3)))
+    assert shared_world_check(load_field(out / "field.pt"), other, StudyConfig())["shared"] is False
+    # Usage: --map without --query, or both forms at once, are one-line errors.
+    assert main(["study", "--map", str(recording), "--out", str(tmp_path / "x")]) == 2
+    assert main(["study", str(recording), "--map", str(recording), "--query", str(query),
+                 "--out", str(tmp_path / "y")]) == 2
+    assert "--map and --query go together" in capsys.readouterr().err

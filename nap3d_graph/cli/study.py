@@ -13,10 +13,18 @@ def add_parser(sub) -> None:
         help="the study of one recording: field on the first part, drift correction and Evaluation K on the rest",
         description="Build a field on the first part of a recording with ground truth (--split, default the first "
         "half), then on the rest, which the field never saw: drift correction with visual odometry and with noise "
-        "injected on the ground-truth increments, and Evaluation K. Writes one folder: field.pt, "
-        "field_report.json, runs/vo, runs/noisy, eval_k/, summary.md and summary.json.",
+        "injected on the ground-truth increments, and Evaluation K. Or, with --map A --query B, build the field on "
+        "one recording and correct another of the same place (checked to share its world frame). Writes one "
+        "folder: field.pt, field_report.json, runs/vo, runs/noisy, eval_k/, summary.md and summary.json.",
     )
-    p.add_argument("data", type=Path, help="a TUM-layout recording with groundtruth.txt (or a simulated one)")
+    p.add_argument("data", type=Path, nargs="?", help="a recording with ground truth (TUM layout, simulated, "
+                   "7-Scenes), split in time; or use --map and --query")
+    p.add_argument("--map", type=Path, dest="map_data", metavar="REC_A",
+                   help="the recording the field is built from (with --query)")
+    p.add_argument("--map-frames", metavar="START:STOP", default=None, help="--map: its frames to use (default all)")
+    p.add_argument("--query", type=Path, metavar="REC_B", help="the recording corrected with --map's field")
+    p.add_argument("--query-frames", metavar="START:STOP", default=None,
+                   help="--query: its frames to correct (default all)")
     p.add_argument("--out", type=Path, required=True, help="output folder (must be empty unless --force)")
     p.add_argument("--split", type=float, default=0.5, help="fraction of the frames the field is built on (default 0.5)")
     p.add_argument("--model", choices=("grid", "splat"), default="grid", help="field model (default grid)")
@@ -41,11 +49,19 @@ def run(args) -> int:
     unknown = [o for o in odometries if o not in ("vo", "dense", "noisy", "recorded")]
     if unknown or not odometries:
         raise UsageError(f"--odom: unknown {unknown or 'empty list'}; choose from vo, dense, noisy, recorded")
+    if (args.map_data is None) != (args.query is None):
+        raise UsageError("--map and --query go together (a field from one recording, the other corrected)")
+    if (args.data is None) == (args.map_data is None):
+        raise UsageError("give one recording (split in time) or --map REC_A --query REC_B, not both")
     empty_or_new_dir(args.out, args.force)
     config = StudyConfig(split=args.split, model=args.model, train_steps=args.train_steps,
                          keyframe_every=args.keyframe_every, odometries=odometries, eval_k_scenarios=args.scenarios,
                          eval_k_full=args.eval_k_full, seed=args.seed, matcher=args.matcher)
-    run_study(args.data, args.out, config)
+    if args.map_data is not None:
+        run_study(args.map_data, args.out, config, query=args.query, map_frames=args.map_frames,
+                  query_frames=args.query_frames)
+    else:
+        run_study(args.data, args.out, config)
     print((args.out / "summary.md").read_text())
     print(f"study in {args.out}/ (summary.md, summary.json, field.pt, runs/, eval_k/)")
     return 0

@@ -51,8 +51,14 @@ def _stage(name: str, progress: bool) -> None:
         print(f"== {name}", flush=True)
 
 
-def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = None) -> dict:
-    """Run the study on the recording ``data`` into ``out``; returns the summary dict."""
+def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = None, query: str | Path | None = None,
+              map_frames: str | None = None, query_frames: str | None = None) -> dict:
+    """Run the study into ``out``; returns the summary dict. With ``data`` alone, the field is
+    built on its first part and the rest is corrected; with ``query`` (a second recording of
+    the same place), the field is built on ``data`` (its ``map_frames``, default all) and
+    ``query`` (its ``query_frames``) is corrected: a map made yesterday, a robot today. The
+    two must share a world frame: checked on a few query frames aligned at their
+    ground-truth pose (``summary["shared_world"]``), with a warning when they do not."""
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields.build import build_field
 
@@ -60,11 +66,17 @@ def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = No
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     started = time.perf_counter()
-    train_frames, test_frames = f"0:{config.split}", f"{config.split}:1"
-    summary: dict = {"data": str(data), "train_frames": train_frames, "test_frames": test_frames,
+    if query is None:
+        train_frames, test_frames = f"0:{config.split}", f"{config.split}:1"
+        test_data = data
+    else:
+        train_frames, test_frames, test_data = map_frames, query_frames, query  # None: all frames
+    summary: dict = {"data": str(data), "train_frames": train_frames or "all", "test_frames": test_frames or "all",
                      "config": asdict(config)}
+    if query is not None:
+        summary["query"] = str(query)
 
-    _stage(f"1/{2 + len(config.odometries)} field ({config.model}) on frames {train_frames}", config.progress)
+    _stage(f"1/{2 + len(config.odometries)} field ({config.model}) on frames {train_frames or 'all'}", config.progress)
     train = open_sequence(data, frames=train_frames)
     field, report = build_field(train, config.model, steps=config.train_steps, seed=config.seed,
                                 progress=config.progress, matcher=config.matcher)
@@ -72,20 +84,58 @@ def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = No
     (out / "field_report.json").write_text(json.dumps(report, indent=1, default=float))
     summary["field"] = _field_summary(report)
 
-    test = open_sequence(data, frames=test_frames)
+    test = open_sequence(test_data, frames=test_frames)
+    if query is not None:
+        summary["shared_world"] = shared_world_check(field, test, config)
     summary["runs"] = {}
     for k, odom in enumerate(config.odometries, start=2):
-        _stage(f"{k}/{2 + len(config.odometries)} drift correction, --odom {odom}, frames {test_frames}",
+        _stage(f"{k}/{2 + len(config.odometries)} drift correction, --odom {odom}, frames {test_frames or 'all'}",
                config.progress)
         summary["runs"][odom] = _drift_run(test, field, odom, out / "runs" / odom, config)
 
-    _stage(f"{2 + len(config.odometries)}/{2 + len(config.odometries)} Evaluation K on frames {test_frames}",
+    _stage(f"{2 + len(config.odometries)}/{2 + len(config.odometries)} Evaluation K on frames {test_frames or 'all'}",
            config.progress)
     summary["eval_k"] = _eval_k(test, field, out / "eval_k", config)
     summary["seconds"] = round(time.perf_counter() - started, 1)
     (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
     (out / "summary.md").write_text(summary_markdown(summary))
     return summary
+
+
+def shared_world_check(field, sequence, config: StudyConfig, frames: int = 6) -> dict:
+    """Do a map and a query recording share a world frame? A few query frames, spread over
+    it, are aligned with the map's render at their own ground-truth pose: in a shared frame
+    the corrections are centimetres at most; in another frame they fail (the view is not
+    where the field has anything) or are large. Logs a warning when they do not agree."""
+    from nap3d_graph.conventions import pose_error
+    from nap3d_graph.keyframe_correction import KeyframeJob, measure_keyframe
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.pipeline import PipelineConfig
+
+    run_config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=config.matcher))
+    T_gt = sequence.T_world_cam_gt
+    if T_gt is None:
+        return {"shared": None, "why": "the query has no ground truth"}
+    sizes, failed = [], 0
+    for i in np.linspace(0, len(sequence) - 1, min(frames, len(sequence))).round().astype(int):
+        if not np.all(np.isfinite(T_gt[i])):
+            continue
+        frame = sequence[int(i)]
+        K = frame.intrinsics.scaled(320, 240) if frame.intrinsics.width > 320 else frame.intrinsics
+        c = measure_keyframe(KeyframeJob(int(i), frame, T_gt[i], None, None, 1.0, K), field, run_config)
+        if c.success:
+            sizes.append(pose_error(c.T_world_cam_corrected, T_gt[i])[0])
+        else:
+            failed += 1
+    median = float(np.median(sizes)) if sizes else float("nan")
+    shared = bool(sizes) and len(sizes) >= failed and median < 0.1
+    result = {"shared": shared, "frames_aligned": len(sizes), "frames_failed": failed,
+              "median_correction_m": median}
+    if not shared:
+        log.warning("the map and the query recordings do not seem to share a world frame: of %d query frames "
+                    "aligned at their own ground-truth pose, %d failed and the others moved %.2f m (median); "
+                    "corrections will not land", len(sizes) + failed, failed, median)
+    return result
 
 
 def _field_summary(report: dict) -> dict:
@@ -148,9 +198,23 @@ def _fmt(value, scale: float = 1.0, digits: int = 2, unit: str = "") -> str:
 def summary_markdown(summary: dict) -> str:
     """The study's table as Markdown (the same figures as ``summary.json``)."""
     f = summary["field"]
-    lines = [f"# Study of {summary['data']}", "",
-             f"Field ({f['model']}) built on frames {summary['train_frames']}; everything below is on frames "
-             f"{summary['test_frames']}, which it never saw.", "", "## Field (held-out frames of the training part)",
+    if summary.get("query"):
+        shared = summary.get("shared_world") or {}
+        said = ("they share a world frame" if shared.get("shared") else
+                "**they do not seem to share a world frame**" if shared.get("shared") is False else
+                "whether they share a world frame is not known")
+        heading = [f"# Study: map {summary['data']} (frames {summary['train_frames']}), query {summary['query']} "
+                   f"(frames {summary['test_frames']})", "",
+                   f"Field ({f['model']}) built on the map recording; everything below is on the query recording: "
+                   f"{said} (query frames aligned at their true pose: {shared.get('frames_aligned', 0)} aligned, "
+                   f"{shared.get('frames_failed', 0)} failed, median correction "
+                   f"{_fmt(shared.get('median_correction_m'), 100, unit=' cm')}).", "",
+                   "## Field (held-out frames of the map recording)"]
+    else:
+        heading = [f"# Study of {summary['data']}", "",
+                   f"Field ({f['model']}) built on frames {summary['train_frames']}; everything below is on frames "
+                   f"{summary['test_frames']}, which it never saw.", "", "## Field (held-out frames of the training part)"]
+    lines = [*heading,
              "", "| PSNR raw | PSNR after affine colour fit | depth error median / p90 | opaque | render |",
              "|---|---|---|---|---|",
              f"| {_fmt(f['psnr_db'], unit=' dB')} | {_fmt(f['psnr_affine_db'], unit=' dB')} | "
