@@ -13,6 +13,7 @@ import numpy as np
 from .conventions import pixel_ray_norms
 
 __all__ = [
+    "DEPTH_SIGMA_Z2_PER_M",
     "sharpness",
     "CameraError",
     "Intrinsics",
@@ -24,6 +25,12 @@ __all__ = [
     "valid_depth_mask",
     "warp_depth",
 ]
+
+
+#: The RGB-D sensor's depth noise grows as z^2: sigma(z) = k z^2 metres at z metres (Khoshelham
+#: and Elberink's Kinect model, k ~ 1.4e-3). One value for the simulator's sensor, the
+#: alignment's noise model, the splat fusion and the grid's training window.
+DEPTH_SIGMA_Z2_PER_M = 1.4e-3
 
 
 class CameraError(ValueError):

@@ -9,6 +9,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M
 from nap3d_graph.conventions import exp_se3, inv_T
 
 from .trajectories import Trajectory
@@ -40,7 +41,7 @@ class DepthNoise:
     of the depth away) a ``flying_fraction`` of the pixels report a depth between the two
     surfaces, as a Kinect's mixed pixels do."""
 
-    sigma_z2_per_m: float = 1.4e-3
+    sigma_z2_per_m: float = DEPTH_SIGMA_Z2_PER_M
     hole_fraction: float = 0.01
     hole_radius_px: int = 4
     max_range_m: float = 6.0

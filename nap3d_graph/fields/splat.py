@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nap3d_graph.camera import Intrinsics, RenderedView
+from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics, RenderedView
 from nap3d_graph.conventions import inv_T
 
 from .base import FieldError
@@ -69,7 +69,7 @@ class SplatConfig:
     edge_rel_jump: float = 0.04
     min_views: int = 2
     depth_sigma_floor_m: float = 0.002
-    depth_sigma_z2_per_m: float = 1.4e-3
+    depth_sigma_z2_per_m: float = DEPTH_SIGMA_Z2_PER_M
     exposure_rounds: int = 2
     splat_radius_vox: float = 1.3
     max_footprint_px: float = 2.5

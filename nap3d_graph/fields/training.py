@@ -38,6 +38,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..camera import DEPTH_SIGMA_Z2_PER_M
 from .base import FieldError
 from .evaluation import evaluate_field, oracle_for, psnr
 from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, torch_threads, trilinear_corners
@@ -95,7 +96,7 @@ class TrainConfig:
     window_samples: int = 16
     window_min_m: float = 0.04
     window_sigmas: float = 3.0
-    depth_sigma_z2: float = 1.4e-3
+    depth_sigma_z2: float = DEPTH_SIGMA_Z2_PER_M
     min_depth_m: float = 0.1
     max_depth_m: float = 8.0
     bounds_margin_m: float = 0.15

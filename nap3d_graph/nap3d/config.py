@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..camera import DEPTH_SIGMA_Z2_PER_M
 from .matching import MATCHERS, NN_SEARCHES
 
 #: XFeat's covariance inflation over SIFT's (refined and the paper's plain estimator).
@@ -136,7 +137,7 @@ class AlignConfig:
     max_depth_m: float = 10.0
     keypoint_sigma_px: float | None = None
     depth_sigma_floor_m: float = 0.002
-    depth_sigma_z2_per_m: float = 1.4e-3
+    depth_sigma_z2_per_m: float = DEPTH_SIGMA_Z2_PER_M
     render_depth_sigma_m: float = 0.005
     inlier_chi2: float = 11.34
     ransac_confidence: float = 0.999
