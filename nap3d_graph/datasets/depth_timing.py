@@ -91,6 +91,17 @@ def frame_pairs(timestamps: np.ndarray, count: int = 30, gap_s: tuple[float, flo
     return pairs
 
 
+def _pairs_agreement_mm(chosen, depths: dict, K, T_world: np.ndarray, needed: list, stride: int,
+                        scale: float) -> float:
+    """Median depth disagreement (mm) over frame pairs ``chosen`` with frames ``needed`` posed
+    at ``T_world`` (len(needed), 4, 4); NaN when no pair could be compared."""
+    pose = dict(zip(needed, T_world))
+    values = [depth_agreement_mm(depths[i], depths[j], K, pose[i], pose[j], stride, scale)[0]
+              for i, j in chosen if np.all(np.isfinite(pose[i])) and np.all(np.isfinite(pose[j]))]
+    values = [v for v in values if np.isfinite(v)]
+    return float(np.median(values)) if values else float("nan")
+
+
 def multiview_agreement_mm(sequence, offset_s: float = 0.0, pairs: int = 30,
                            gap_s: tuple[float, float] = (0.33, 0.83), stride: int = 4) -> float:
     """Median disagreement (mm) of depth between frame pairs of ``sequence`` placed with its
@@ -99,11 +110,8 @@ def multiview_agreement_mm(sequence, offset_s: float = 0.0, pairs: int = 30,
     chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
     needed = sorted({i for pair in chosen for i in pair})
     depths = {i: np.nan_to_num(sequence[i].depth_m, nan=0.0) for i in needed}
-    pose = dict(zip(needed, sequence.ground_truth_at(np.asarray(sequence.depth_timestamps)[needed] + offset_s)))
-    values = [depth_agreement_mm(depths[i], depths[j], sequence.intrinsics, pose[i], pose[j], stride, 1.0)[0]
-              for i, j in chosen if np.all(np.isfinite(pose[i])) and np.all(np.isfinite(pose[j]))]
-    values = [v for v in values if np.isfinite(v)]
-    return float(np.median(values)) if values else float("nan")
+    T = sequence.ground_truth_at(np.asarray(sequence.depth_timestamps)[needed] + offset_s)
+    return _pairs_agreement_mm(chosen, depths, sequence.intrinsics, T, needed, stride, 1.0)
 
 
 def estimate_depth_timing(sequence, pairs: int = 30, gap_s: tuple[float, float] = (0.33, 0.83),
@@ -128,12 +136,8 @@ def estimate_depth_timing(sequence, pairs: int = 30, gap_s: tuple[float, float] 
 
     def score(offset: float, scale: float, at_colour: bool = False) -> float:
         stamps = sequence.timestamps if at_colour else sequence.depth_timestamps + offset
-        T = sequence.ground_truth_at(stamps[needed])
-        pose = dict(zip(needed, T))
-        values = [depth_agreement_mm(depths[i], depths[j], K, pose[i], pose[j], stride, scale)[0]
-                  for i, j in chosen if np.all(np.isfinite(pose[i])) and np.all(np.isfinite(pose[j]))]
-        values = [v for v in values if np.isfinite(v)]
-        result = float(np.median(values)) if values else float("inf")
+        result = _pairs_agreement_mm(chosen, depths, K, sequence.ground_truth_at(stamps[needed]), needed, stride, scale)
+        result = result if np.isfinite(result) else float("inf")
         search.append([round(offset, 4), round(scale, 4), result])
         return result
 

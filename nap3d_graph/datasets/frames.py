@@ -14,7 +14,7 @@ from .errors import DatasetError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["parse_frame_range"]
+__all__ = ["parse_frame_range", "frame_index"]
 
 
 def _bound(text: str, n: int, default: int, spec: str, fractions: bool) -> int:
@@ -58,3 +58,16 @@ def _past_end(text: str, n: int) -> bool:
         return int(text.strip()) > n
     except ValueError:
         return False
+
+
+def frame_index(index, n: int, name: str) -> int:
+    """``seq[index]``'s position among ``n`` frames (negative counts from the end, as in
+    Python); IndexError naming the sequence when it is out of range."""
+    import operator
+
+    i = operator.index(index)
+    if i < 0:
+        i += n
+    if not 0 <= i < n:
+        raise IndexError(f"frame index {index} out of range for {n} frames of {name}")
+    return i

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import logging
-import operator
 import re
 from pathlib import Path
 from typing import Iterator
@@ -34,7 +33,7 @@ import numpy as np
 from ..camera import Intrinsics, RGBDFrame
 from .association import GroundTruthLookup
 from .errors import DatasetError
-from .frames import parse_frame_range
+from .frames import frame_index, parse_frame_range
 from .registration import DepthColourRegistration, estimate_registration, register_depth_to_colour
 
 __all__ = ["SevenScenesSequence", "NOMINAL_DEPTH_CAMERA", "NOMINAL_COLOUR_CAMERA", "SEVENSCENES_FPS",
@@ -307,12 +306,7 @@ class SevenScenesSequence(GroundTruthLookup):
         return len(self.timestamps)
 
     def __getitem__(self, index) -> RGBDFrame:
-        i = operator.index(index)
-        n = len(self)
-        if i < 0:
-            i += n
-        if not 0 <= i < n:
-            raise IndexError(f"frame index {index} out of range for {n} frames of {self.name}")
+        i = frame_index(index, len(self), self.name)
         rgb, depth_m = self._read_raw(int(self.frame_numbers[i]))
         if rgb.shape[:2] != (self.intrinsics.height, self.intrinsics.width):
             raise DatasetError(f"{self._colour_paths[int(self.frame_numbers[i])]}: colour is "

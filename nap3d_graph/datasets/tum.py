@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import logging
 import math
-import operator
 from pathlib import Path
 from typing import Iterator
 
@@ -36,7 +35,7 @@ from .association import (
     interpolate_poses,
 )
 from .errors import DatasetError
-from .frames import parse_frame_range
+from .frames import frame_index, parse_frame_range
 
 __all__ = [
     "DatasetError",
@@ -400,12 +399,7 @@ class TumSequence(GroundTruthLookup):
         return len(self.timestamps)
 
     def __getitem__(self, index) -> RGBDFrame:
-        i = operator.index(index)
-        n = len(self)
-        if i < 0:
-            i += n
-        if not 0 <= i < n:
-            raise IndexError(f"frame index {index} out of range for {n} frames of {self.name}")
+        i = frame_index(index, len(self), self.name)
         rgb = self._read_rgb(self.rgb_paths[i])
         depth_m = self._read_depth(self.depth_paths[i])
         return RGBDFrame(rgb, depth_m, self.intrinsics, float(self.timestamps[i]), float(self.depth_timestamps[i]))
