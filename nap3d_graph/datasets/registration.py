@@ -117,7 +117,7 @@ def _bilinear_valid(depth: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return np.where(inside & (lo > 0) & (hi - lo < 0.03 * hi), z, np.nan)
 
 
-def _colour_ray_depth(depth: np.ndarray, K_depth: Intrinsics, reg: DepthColourRegistration,
+def _colour_ray_depth(pair: "_Pair", K_depth: Intrinsics, reg: DepthColourRegistration,
                       uv: np.ndarray) -> np.ndarray:
     """Colour-camera points (N, 3) where colour pixels ``uv`` (N, 2) meet the surface of the
     depth image: fixed-point steps along each ray, looking the depth up where the current
@@ -125,11 +125,11 @@ def _colour_ray_depth(depth: np.ndarray, K_depth: Intrinsics, reg: DepthColourRe
     K = reg.colour
     rays = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(uv))], axis=1)
     T_depth_colour = inv_T(reg.T_colour_depth)
-    z = np.full(len(uv), float(np.median(depth[depth > 0])) if np.any(depth > 0) else 1.0)
+    z = np.full(len(uv), pair.start_depth_m)
     for _ in range(4):
         p_depth = transform_points(T_depth_colour, rays * z[:, None])
         uv_d, z_d = project(p_depth, K_depth)
-        looked = _bilinear_valid(depth, uv_d)
+        looked = _bilinear_valid(pair.depth_a, uv_d)
         # Move along the ray by the depth disagreement along the depth camera's axis.
         with np.errstate(invalid="ignore", divide="ignore"):
             z = z * looked / z_d
@@ -138,11 +138,19 @@ def _colour_ray_depth(depth: np.ndarray, K_depth: Intrinsics, reg: DepthColourRe
 
 @dataclass
 class _Pair:
+    """Two frames' matched keypoints, the first frame's depth (and the median depth the ray
+    search starts from, computed once rather than at every residual evaluation) and the depth
+    camera's poses."""
+
     depth_a: np.ndarray
     T_world_depth_a: np.ndarray
     T_world_depth_b: np.ndarray
     uv_a: np.ndarray
     uv_b: np.ndarray
+
+    def __post_init__(self) -> None:
+        valid = self.depth_a > 0
+        self.start_depth_m = float(np.median(self.depth_a[valid])) if np.any(valid) else 1.0
 
 
 def _residuals(p: np.ndarray, pairs: list[_Pair], K_depth: Intrinsics, template: Intrinsics,
@@ -150,7 +158,7 @@ def _residuals(p: np.ndarray, pairs: list[_Pair], K_depth: Intrinsics, template:
     reg = _params_to_registration(p, template, T_colour_depth)
     out = []
     for pair in pairs:
-        points_a = _colour_ray_depth(pair.depth_a, K_depth, reg, pair.uv_a)
+        points_a = _colour_ray_depth(pair, K_depth, reg, pair.uv_a)
         T_cb_ca = reg.T_colour_depth @ inv_T(pair.T_world_depth_b) @ pair.T_world_depth_a @ inv_T(reg.T_colour_depth)
         uv_b, _ = project(transform_points(T_cb_ca, points_a), reg.colour)
         out.append((uv_b - pair.uv_b).ravel())

@@ -50,7 +50,7 @@ DEPTH_PER_METRE = 1000.0
 DEPTH_MISSING = 65535
 
 _FRAME = re.compile(r"^frame-(\d+)\.pose\.txt$")
-_REGISTRATION_VERSION = 1
+_REGISTRATION_VERSION = 2  # 2: poses projected onto rigid transforms before the estimate
 
 
 def is_sevenscenes_folder(path) -> bool:
