@@ -241,7 +241,8 @@ def _inputs(args):
     from nap3d_graph.datasets import is_sevenscenes_folder
 
     if args.traj == "7scenes" and args.data.is_dir() and not is_sevenscenes_folder(args.data):
-        raise UsageError(f"{args.data} is not a 7-Scenes folder (no frame-XXXXXX.pose.txt, no seq-XX/)")
+        raise UsageError(f"{args.data} is not a 7-Scenes folder (no frame-000000.pose.txt-like files, no "
+                         "seq-01/-like folders)")
     return args.data, None, args.field, args.traj
 
 

@@ -38,7 +38,8 @@ def open_sequence(path, groundtruth=None, realsense_config=None, **kwargs):
     file (``groundtruth``: a TUM file of its poses; ``realsense_config``: a YAML of what the
     file does not store), :class:`SimSequence` for a folder with a simulator's
     ``scene.json``, :class:`SevenScenesSequence` for a 7-Scenes folder (``frame-*.pose.txt``
-    or ``seq-XX/``), :class:`TumSequence` for any other folder (its own groundtruth.txt)."""
+    or sequence folders ``seq-01/``...), :class:`TumSequence` for any other folder (its own
+    groundtruth.txt)."""
     from pathlib import Path
 
     path = Path(path)

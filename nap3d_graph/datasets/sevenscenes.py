@@ -1,8 +1,9 @@
 """Microsoft 7-Scenes RGB-D sequences (and anything written in their layout).
 
-A sequence folder (``seq-XX/`` in the release) holds, per frame k,
-``frame-XXXXXX.color.png`` (or ``.jpg``), ``frame-XXXXXX.depth.png`` (uint16 millimetres; 0
-or 65535 missing) and ``frame-XXXXXX.pose.txt`` (4x4 camera-to-world, metres, tracked for
+A sequence folder (``seq-01/``, ``seq-02/``... in the release) holds, per frame k (its number
+in six digits: ``frame-000042`` for k = 42), ``frame-000042.color.png`` (or ``.jpg``),
+``frame-000042.depth.png`` (uint16 millimetres; 0 or 65535 missing) and
+``frame-000042.pose.txt`` (4x4 camera-to-world, metres, tracked for
 the *depth* camera by KinectFusion). Frame k was captured at k / 30 s. A
 ``camera-intrinsics.txt`` (3x3) beside the frames or in the scene folder gives the depth
 camera; without one the dataset's nominal fx = fy = 585, centre (320, 240) is used.
@@ -54,7 +55,8 @@ _REGISTRATION_VERSION = 2  # 2: poses projected onto rigid transforms before the
 
 
 def is_sevenscenes_folder(path) -> bool:
-    """A 7-Scenes sequence folder (``frame-*.pose.txt``) or a scene folder of ``seq-XX/``."""
+    """A 7-Scenes sequence folder (``frame-*.pose.txt``) or a scene folder of sequence
+    folders (``seq-01/``, ``seq-02/``...)."""
     path = Path(path)
     if not path.is_dir():
         return False
@@ -106,7 +108,7 @@ def _nearest_rigid(T: np.ndarray, path: Path) -> np.ndarray:
 class SevenScenesSequence(GroundTruthLookup):
     """A 7-Scenes sequence, frames loaded lazily, in the colour camera.
 
-    path: a sequence folder, or a scene folder with one ``seq-XX/`` (or name it with
+    path: a sequence folder, or a scene folder with one sequence folder ``seq-01/`` (or name it with
     ``sequence``). depth_intrinsics: the depth camera (default: ``camera-intrinsics.txt``,
     else nominal). registration: ``"auto"`` (estimate the colour camera from the data,
     cached in ``cache_dir``), ``"none"`` (treat the depth camera as the colour camera: the
@@ -131,7 +133,7 @@ class SevenScenesSequence(GroundTruthLookup):
         self.name = f"{self.path.parent.name}_{self.path.name}" if in_scene else self.path.name
         numbers = sorted(int(m.group(1)) for p in self.path.iterdir() if (m := _FRAME.match(p.name)))
         if not numbers:
-            raise DatasetError(f"{self.path}: no frame-XXXXXX.pose.txt files")
+            raise DatasetError(f"{self.path}: no frame-<number>.pose.txt files (e.g. frame-000000.pose.txt)")
         self._all_numbers = np.asarray(numbers, dtype=int)
         self._colour_paths = {k: self._colour_path(k) for k in numbers}
         probe = cv2.imread(str(self._colour_paths[numbers[0]]), cv2.IMREAD_COLOR)
@@ -165,7 +167,8 @@ class SevenScenesSequence(GroundTruthLookup):
         if len(seqs) == 1:
             return seqs[0]
         if not seqs:
-            raise DatasetError(f"{path}: not a 7-Scenes folder (no frame-XXXXXX.pose.txt, no seq-XX/)")
+            raise DatasetError(f"{path}: not a 7-Scenes folder (no frame-000000.pose.txt-like files, no seq-01/-like "
+                               "folders)")
         raise DatasetError(f"{path}: holds {len(seqs)} sequences ({', '.join(p.name for p in seqs)}); "
                            "give one folder, e.g. " + str(seqs[0]))
 
