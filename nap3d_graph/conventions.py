@@ -28,6 +28,7 @@ __all__ = [
     "compose",
     "transform_points",
     "T_to_pose3",
+    "as_T",
     "pose3_to_T",
     "T_to_tum",
     "tum_to_T",
@@ -186,6 +187,14 @@ def T_to_pose3(T: np.ndarray):
 def pose3_to_T(pose) -> np.ndarray:
     """``gtsam.Pose3`` to a 4x4 numpy transform."""
     return np.asarray(pose.matrix(), dtype=float)
+
+
+def as_T(pose) -> np.ndarray:
+    """A pose as a 4x4 float array, whether given as one or as a ``gtsam.Pose3`` (what a
+    GTSAM loop holds): the one place the public API accepts either."""
+    if hasattr(pose, "matrix") and callable(pose.matrix):
+        return pose3_to_T(pose)
+    return np.asarray(pose, dtype=float)
 
 
 # --- TUM --------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .camera import Intrinsics, RGBDFrame
-from .conventions import rigid_transform_problem
+from .conventions import as_T, rigid_transform_problem
 from .odometry import Increment
 from .pipeline import Pipeline, PipelineConfig
 from .pipeline_config import KeyframeRecord, RunResult
@@ -90,6 +90,16 @@ class _GivenOdometry:
         return inc
 
 
+def _rigid(pose, what: str) -> np.ndarray:
+    """``pose`` (4x4 or ``gtsam.Pose3``) as a 4x4 array; ValueError naming ``what`` when it is
+    not a rigid transform."""
+    T = as_T(pose)
+    problem = rigid_transform_problem(T, tolerance=1e-5)
+    if problem:
+        raise ValueError(f"{what} is not a rigid transform: {problem}")
+    return T
+
+
 class DriftCorrector:
     """Odometry and NAP3D corrections in an iSAM2 graph, a frame at a time.
 
@@ -102,12 +112,7 @@ class DriftCorrector:
 
     def __init__(self, field, T_world_cam_start, config: PipelineConfig | None = None,
                  odometry_sigmas: tuple[float, float] = (2e-3, 2e-3)):
-        if hasattr(T_world_cam_start, "matrix"):
-            T_world_cam_start = T_world_cam_start.matrix()
-        T_start = np.asarray(T_world_cam_start, dtype=float)
-        problem = rigid_transform_problem(T_start, tolerance=1e-5)
-        if problem:
-            raise ValueError(f"T_world_cam_start is not a rigid transform: {problem}")
+        T_start = _rigid(T_world_cam_start, "T_world_cam_start")
         config = dataclasses.replace(config or PipelineConfig(), overlap=False, progress=False)
         self._frames = _LiveFrames()
         self._odometry = _GivenOdometry(T_start)
@@ -126,12 +131,7 @@ class DriftCorrector:
         if i > 0:
             if T_prev_cur is None:
                 raise ValueError("every frame after the first needs the odometry's T_prev_cur")
-            if hasattr(T_prev_cur, "matrix"):
-                T_prev_cur = T_prev_cur.matrix()
-            T_prev_cur = np.asarray(T_prev_cur, dtype=float)
-            problem = rigid_transform_problem(T_prev_cur, tolerance=1e-5)
-            if problem:
-                raise ValueError(f"T_prev_cur is not a rigid transform: {problem}")
+            T_prev_cur = _rigid(T_prev_cur, "T_prev_cur")
             if not stamp > self._frames.timestamps[-1]:
                 raise ValueError(f"stamps must increase: {stamp} after {self._frames.timestamps[-1]}")
             cov = self._default_cov if covariance is None else np.asarray(covariance, dtype=float)

@@ -13,7 +13,7 @@ import time
 import numpy as np
 
 from ..camera import Intrinsics, RGBDFrame
-from ..conventions import inv_T, log_se3, rigid_transform_problem
+from ..conventions import as_T, inv_T, log_se3, rigid_transform_problem
 from ..results import Alignment, Correction
 from .align import align_views
 from .config import AlignConfig
@@ -56,9 +56,7 @@ def correct_pose(
     frame's) sets the rendering camera; a frame at another resolution is resized to it.
     Never raises on bad data: ``success=False`` and ``reason`` say why.
     """
-    if hasattr(T_world_cam_est, "matrix") and callable(T_world_cam_est.matrix):  # a gtsam.Pose3
-        T_world_cam_est = T_world_cam_est.matrix()
-    T_est = np.asarray(T_world_cam_est, dtype=float)
+    T_est = as_T(T_world_cam_est)  # a 4x4 array or a gtsam.Pose3
     problem = rigid_transform_problem(T_est, tolerance=1e-5)
     if problem:
         failed = Alignment.failure(f"T_world_cam_est is not a rigid transform: {problem}")
