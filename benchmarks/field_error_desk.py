@@ -22,23 +22,11 @@ from pathlib import Path
 import numpy as np
 
 
-def correction_nees(result) -> np.ndarray:
-    """NEES (6 dof) of each measured correction against the ground truth at its frame."""
-    from nap3d_graph.conventions import inv_T, log_se3
-
-    out = []
-    for i, (T_corr, cov) in sorted(result.corrections.items()):
-        T_gt = result.T_world_cam_gt[i]
-        if np.all(np.isfinite(T_gt)) and np.all(np.isfinite(cov)):
-            e = log_se3(inv_T(T_corr) @ T_gt)
-            out.append(float(e @ np.linalg.solve(cov, e)))
-    return np.asarray(out)
-
-
 def run_one(data: Path, field, matcher: str, field_sigma) -> dict:
     from scipy.stats import chi2
 
     from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.evaluation.compare import correction_nees
     from nap3d_graph.evaluation.metrics import ate
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.odometry import make_odometry

@@ -21,25 +21,21 @@ from pathlib import Path
 import numpy as np
 
 
-def correction_nees(sequence, timing) -> dict:
+def walk_corrections(sequence, timing) -> dict:
     from nap3d_graph.conventions import inv_T, log_se3
+    from nap3d_graph.evaluation.compare import correction_nees
     from nap3d_graph.odometry import make_odometry
     from nap3d_graph.pipeline import Pipeline, PipelineConfig
 
     result = Pipeline(sequence, sequence.oracle_field(), make_odometry("recorded", sequence),
                       PipelineConfig(timing=timing)).run()
-    nees, whitened = [], []
-    for i, (T, C) in sorted(result.corrections.items()):
-        e = log_se3(inv_T(T) @ sequence.T_world_cam_gt[i])
-        nees.append(float(e @ np.linalg.solve(C, e)))
-        whitened.append(np.linalg.cholesky(np.linalg.inv(C)).T @ e)
-    w = np.array(whitened)
+    nees = correction_nees(result)
+    items = sorted(result.corrections.items())
+    errors = np.array([log_se3(inv_T(T) @ sequence.T_world_cam_gt[i]) for i, (T, _) in items])
+    whitened = np.array([np.linalg.cholesky(np.linalg.inv(C)).T @ e for e, (_, (_, C)) in zip(errors, items)])
     return {"corrections": len(nees), "nees_mean": float(np.mean(nees)), "nees_median": float(np.median(nees)),
-            "whitened_std_per_axis": w.std(axis=0).round(2).tolist(),
-            "raw_error_std_mm_mrad": (np.array([log_se3(inv_T(T) @ sequence.T_world_cam_gt[i])
-                                                for i, (T, _) in sorted(result.corrections.items())]).std(axis=0)
-                                      * 1000).round(2).tolist()}
-
+            "whitened_std_per_axis": whitened.std(axis=0).round(2).tolist(),
+            "raw_error_std_mm_mrad": (errors.std(axis=0) * 1000).round(2).tolist()}
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -58,7 +54,7 @@ def main(argv=None) -> None:
         folder = simulate_sequence(work / name.split()[0], SimConfig(frames=60, width=320, height=240, scene_seed=3,
                                                                      seed=2, odometry=noise))
         sequence = SimSequence(folder)
-        entry = {"corrections": correction_nees(sequence, estimate_timing(sequence))}
+        entry = {"corrections": walk_corrections(sequence, estimate_timing(sequence))}
         assert cli(["compare", "--traj", "sim", "--data", str(folder), "--field", "oracle", "--out",
                     str(work / f"cmp_{name.split()[0]}")]) == 0
         rows = json.loads((work / f"cmp_{name.split()[0]}" / "comparison.json").read_text())

@@ -8,8 +8,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.datasets import SimSequence
+from nap3d_graph.evaluation.compare import correction_nees
 from nap3d_graph.fields import load_field
 from nap3d_graph.fields.build import build_field
 from nap3d_graph.fields.field_error import _sigma_for_median_nees, field_sigmas
@@ -40,12 +40,6 @@ def room(tmp_path_factory):
     return field, report, SimSequence(walk), base
 
 
-def _correction_nees(pipeline: Pipeline, result) -> np.ndarray:
-    return np.array([float(e @ np.linalg.solve(cov, e)) for e, cov in
-                     ((log_se3(inv_T(T) @ result.T_world_cam_gt[i]), cov)
-                      for i, (T, cov) in result.corrections.items())])
-
-
 def test_measured_field_error_makes_an_unseen_walks_corrections_honest(room):
     field, report, walk, base = room
     error = report["field_error"]
@@ -65,7 +59,7 @@ def test_measured_field_error_makes_an_unseen_walks_corrections_honest(room):
     k = min(set(measured.measured_corrections) & set(exact.measured_corrections))
     added = measured.measured_corrections[k][1] - exact.measured_corrections[k][1]
     np.testing.assert_allclose(np.diag(added), [sigma_rad**2] * 3 + [sigma_m**2] * 3, rtol=0.05, atol=1e-9)
-    nees_measured, nees_exact = _correction_nees(measured, measured_result), _correction_nees(exact, exact_result)
+    nees_measured, nees_exact = correction_nees(measured_result), correction_nees(exact_result)
     assert len(nees_measured) >= 8
     # chi2(6) median is 5.35. The walk sees the room from viewpoints the survey did not
     # (11.2 here): the held-out survey frames measure part of the field's error, not all.

@@ -59,6 +59,17 @@ def nees_at_keyframes(T_est: np.ndarray, P: np.ndarray, T_gt: np.ndarray, keyfra
     return np.asarray(out)
 
 
+def correction_nees(result) -> np.ndarray:
+    """NEES (6 dof) of each successful correction of a run (``RunResult.corrections``: the
+    corrected pose and its covariance) against the ground truth at its frame, frame order."""
+    idx = sorted(result.corrections)
+    if not idx or result.T_world_cam_gt is None:
+        return np.zeros(0)
+    T = np.stack([result.corrections[i][0] for i in idx])
+    P = np.stack([result.corrections[i][1] for i in idx])
+    return nees_at_keyframes(T, P, np.asarray(result.T_world_cam_gt)[idx], range(len(idx)))
+
+
 def _row(name: str, T: np.ndarray, P, stream, result, which: str) -> dict:
     T_gt = stream.T_world_cam_gt
     posed = np.all(np.isfinite(T_gt), axis=(1, 2))
