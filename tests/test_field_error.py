@@ -12,7 +12,7 @@ from nap3d_graph.datasets import SimSequence
 from nap3d_graph.evaluation.compare import correction_nees
 from nap3d_graph.fields import load_field
 from nap3d_graph.fields.build import build_field
-from nap3d_graph.fields.field_error import _sigma_for_median_nees, field_sigmas
+from nap3d_graph.fields.field_error import field_sigmas, sigma_for_median_nees
 from nap3d_graph.odometry import make_odometry
 from nap3d_graph.pipeline import Pipeline, PipelineConfig
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
@@ -23,10 +23,10 @@ def test_sigma_is_recovered_from_errors_with_known_spread():
     C = np.array([np.diag(rng.uniform(1e-6, 4e-6, 3)) for _ in range(2000)])
     true_sigma = 3e-3
     errors = np.array([rng.multivariate_normal(np.zeros(3), c + true_sigma**2 * np.eye(3)) for c in C])
-    assert abs(_sigma_for_median_nees(errors, C) / true_sigma - 1) < 0.08
+    assert abs(sigma_for_median_nees(errors, C) / true_sigma - 1) < 0.08
     # Errors the covariances already explain: nothing to add.
     small = np.array([rng.multivariate_normal(np.zeros(3), c) for c in C])
-    assert _sigma_for_median_nees(small, C) < 3e-4
+    assert sigma_for_median_nees(small, C) < 3e-4
 
 
 @pytest.fixture(scope="module")

@@ -108,7 +108,7 @@ def shared_world_check(field, sequence, config: StudyConfig, frames: int = 6) ->
     the corrections are centimetres at most; in another frame they fail (the view is not
     where the field has anything) or are large. Logs a warning when they do not agree."""
     from nap3d_graph.conventions import pose_error
-    from nap3d_graph.keyframe_correction import KeyframeJob, measure_keyframe
+    from nap3d_graph.fields.field_error import measure_frame
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.pipeline import PipelineConfig
 
@@ -120,9 +120,7 @@ def shared_world_check(field, sequence, config: StudyConfig, frames: int = 6) ->
     for i in np.linspace(0, len(sequence) - 1, min(frames, len(sequence))).round().astype(int):
         if not np.all(np.isfinite(T_gt[i])):
             continue
-        frame = sequence[int(i)]
-        K = frame.intrinsics.scaled(320, 240) if frame.intrinsics.width > 320 else frame.intrinsics
-        c = measure_keyframe(KeyframeJob(int(i), frame, T_gt[i], None, None, 1.0, K), field, run_config)
+        c = measure_frame(sequence, int(i), field, T_gt[i], run_config, with_twist=False)
         if c.success:
             sizes.append(pose_error(c.T_world_cam_corrected, T_gt[i])[0])
         else:

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..conventions import inv_T, log_se3
 
-__all__ = ["measure_field_error", "field_sigmas"]
+__all__ = ["measure_field_error", "measure_frame", "field_sigmas", "sigma_for_median_nees", "twist_at"]
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,7 @@ def field_sigmas(field) -> tuple[float, float]:
     return float(error.get("sigma_m", 0.0) or 0.0), float(error.get("sigma_rad", 0.0) or 0.0)
 
 
-def _twist_at(sequence, i: int) -> np.ndarray | None:
+def twist_at(sequence, i: int) -> np.ndarray | None:
     """Body twist per second (GTSAM order) of the ground truth over the step into frame i."""
     T = sequence.T_world_cam_gt
     j = i - 1 if i > 0 else i + 1
@@ -51,7 +51,26 @@ def _twist_at(sequence, i: int) -> np.ndarray | None:
     return log_se3(inv_T(T[a]) @ T[b]) / dt if dt > 0 else None
 
 
-def _sigma_for_median_nees(errors: np.ndarray, covariances: np.ndarray) -> float:
+def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, timing: dict | None = None,
+                  render_size: tuple[int, int] | None = (320, 240), with_twist: bool = True):
+    """Frame ``i`` of a posed ``sequence`` measured as a run measures a keyframe
+    (:func:`~nap3d_graph.keyframe_correction.measure_keyframe`, ``run_config`` a
+    PipelineConfig) from a render at ``T_render``: the field's error, a training pose's
+    refinement and a recording's shared world frame are all checked this way. The render is
+    at ``render_size`` (the frame's own when None or larger); ``with_twist``: move depth to the
+    colour's instant with the ground truth's motion (when ``timing`` says how)."""
+    from ..keyframe_correction import KeyframeJob, measure_keyframe
+
+    frame = sequence[int(i)]
+    K = frame.intrinsics
+    if render_size is not None and render_size[0] < K.width:
+        K = K.scaled(*render_size)
+    twist = twist_at(sequence, int(i)) if with_twist else None
+    job = KeyframeJob(int(i), frame, T_render, twist, timing or None, float((timing or {}).get("depth_scale", 1.0)), K)
+    return measure_keyframe(job, field, run_config)
+
+
+def sigma_for_median_nees(errors: np.ndarray, covariances: np.ndarray) -> float:
     """The isotropic sigma s with median_i e_i^T (C_i + s^2 I)^-1 e_i = the chi2(3) median
     (0 when the covariances alone already reach it). errors (N, 3), covariances (N, 3, 3)."""
     def median_nees(s: float) -> float:
@@ -83,7 +102,6 @@ def measure_field_error(field, sequence, indices, timing: dict | None = None, al
     the true pose.
     """
     from ..conventions import exp_se3
-    from ..keyframe_correction import KeyframeJob, measure_keyframe
     from ..pipeline_config import PipelineConfig
 
     config = PipelineConfig(field_sigma_m=0.0, **({"align": align} if align is not None else {}))
@@ -95,12 +113,7 @@ def measure_field_error(field, sequence, indices, timing: dict | None = None, al
         T_gt = sequence.T_world_cam_gt[i]
         if not np.all(np.isfinite(T_gt)):
             continue
-        frame = sequence[int(i)]
-        K = frame.intrinsics if render_size is None or render_size[0] >= frame.intrinsics.width \
-            else frame.intrinsics.scaled(*render_size)
-        scale = float((timing or {}).get("depth_scale", 1.0))
-        job = KeyframeJob(int(i), frame, T_gt @ offset, _twist_at(sequence, int(i)), timing, scale, K)
-        correction = measure_keyframe(job, field, config)
+        correction = measure_frame(sequence, int(i), field, T_gt @ offset, config, timing, render_size)
         if not correction.success or not np.all(np.isfinite(correction.covariance)):
             failed += 1
             continue
@@ -112,8 +125,8 @@ def measure_field_error(field, sequence, indices, timing: dict | None = None, al
                     "measured and runs take it as exact", len(errors), len(errors) + failed, min_frames)
         return result
     e, C = np.asarray(errors), np.asarray(covariances)
-    sigma_rad = _sigma_for_median_nees(e[:, :3], C[:, :3, :3])
-    sigma_m = _sigma_for_median_nees(e[:, 3:], C[:, 3:, 3:])
+    sigma_rad = sigma_for_median_nees(e[:, :3], C[:, :3, :3])
+    sigma_m = sigma_for_median_nees(e[:, 3:], C[:, 3:, 3:])
     inflated = C + np.diag([sigma_rad**2] * 3 + [sigma_m**2] * 3)
     before = [x @ np.linalg.solve(P, x) for x, P in zip(e, C)]
     after = [x @ np.linalg.solve(P, x) for x, P in zip(e, inflated)]

@@ -89,9 +89,9 @@ class PoseCorrectedSequence:
 def _spread_sigma(residuals: np.ndarray, covariances: np.ndarray, prior_var: float) -> float:
     """Isotropic sigma of the measurements' error beyond their covariance and the input's:
     median-based per 3-dof block (0 when covariance and input explain the spread)."""
-    from .field_error import _sigma_for_median_nees
+    from .field_error import sigma_for_median_nees
 
-    return _sigma_for_median_nees(residuals, covariances + prior_var * np.eye(3))
+    return sigma_for_median_nees(residuals, covariances + prior_var * np.eye(3))
 
 
 def refine_training_poses(sequence, train_idx, timing: dict | None = None,
@@ -100,10 +100,9 @@ def refine_training_poses(sequence, train_idx, timing: dict | None = None,
     with ``corrections`` ``{frame index: D (4, 4)}`` (refined pose = input pose @ D; use
     :class:`PoseCorrectedSequence` to build with them) and a report of each round (median
     correction, frames measured, the measurements' extra sigma)."""
-    from ..keyframe_correction import KeyframeJob, measure_keyframe
     from ..nap3d.config import AlignConfig
     from ..pipeline_config import PipelineConfig
-    from .field_error import _twist_at
+    from .field_error import measure_frame
     from .splat import build_splat_field
 
     config = config or PoseRefinementConfig()
@@ -123,13 +122,8 @@ def refine_training_poses(sequence, train_idx, timing: dict | None = None,
                                             colour_offset_s=timing.get("colour_offset_s", 0.0),
                                             depth_scale=timing.get("depth_scale", 1.0), progress=progress)
             for i in folds[b]:
-                frame = sequence[int(i)]
-                K = frame.intrinsics
-                if config.render_size is not None and config.render_size[0] < K.width:
-                    K = K.scaled(*config.render_size)
-                job = KeyframeJob(int(i), frame, current.T_world_cam_gt[i], _twist_at(current, int(i)), timing or None,
-                                  float(timing.get("depth_scale", 1.0)), K)
-                c = measure_keyframe(job, fold_map, run_config)
+                c = measure_frame(current, int(i), fold_map, current.T_world_cam_gt[i], run_config, timing,
+                                  config.render_size)
                 if c.success and np.all(np.isfinite(c.covariance)):
                     measured[int(i)] = (c.T_world_cam_corrected, np.asarray(c.covariance, dtype=float))
         if len(measured) < 5:
