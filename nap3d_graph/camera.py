@@ -355,14 +355,15 @@ class _BilinearDepth:
         return top + b * (bottom - top), self.smooth[v0 * (w - 1) + u0]
 
 
-def sharpness(rgb: np.ndarray, width: int = 320) -> float:
+def sharpness(rgb: np.ndarray, width: int | None = 320) -> float:
     """Variance of the Laplacian of an RGB (H, W, 3) or gray (H, W) image at ``width`` pixels
-    wide: high for a crisp image, low for a motion-blurred one. Comparable only between
-    frames of one camera (it grows with texture and contrast as much as with focus)."""
+    wide (None: as it is): high for a crisp image, low for a motion-blurred one. Comparable
+    only between frames of one camera (it grows with texture and contrast as much as with
+    focus). The run's keyframe choice and the splat fusion's colour weights both use it."""
     import cv2
 
     image = np.asarray(rgb)
     gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-    if gray.shape[1] > width:
+    if width is not None and gray.shape[1] > width:
         gray = cv2.resize(gray, (width, round(gray.shape[0] * width / gray.shape[1])), interpolation=cv2.INTER_AREA)
-    return float(cv2.Laplacian(gray, cv2.CV_32F).var())
+    return float(cv2.Laplacian(gray, cv2.CV_64F).var())

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics, RenderedView
+from nap3d_graph.camera import sharpness as image_sharpness
 from nap3d_graph.conventions import inv_T
 
 from .base import FieldError
@@ -363,7 +364,8 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
         if not (np.all(np.isfinite(T_depth[k])) and np.all(np.isfinite(T_colour[k]))):
             continue
         frame = sequence[int(i)]
-        sharpness[k] = _sharpness(frame.rgb)
+        # Full resolution; the small offset keeps a featureless frame's weight above zero.
+        sharpness[k] = image_sharpness(frame.rgb, width=None) + 1e-6
         points, colours, weights = _frame_points(frame, T_depth[k], T_colour[k], depth_scale, config)
         chunks.append((np.full(len(points), k, np.int64), points, colours, weights))
     if not chunks:
@@ -414,14 +416,6 @@ def _depth_sample(sequence) -> np.ndarray:
         values.append(d[d > 0][::50])
     values = np.concatenate(values) if values else np.zeros(0)
     return values if values.size else np.array([1.0])
-
-
-def _sharpness(rgb: np.ndarray) -> float:
-    """Variance of the Laplacian of the grey image: falls with motion blur and defocus."""
-    import cv2
-
-    gray = cv2.cvtColor(np.asarray(rgb), cv2.COLOR_RGB2GRAY)
-    return float(cv2.Laplacian(gray, cv2.CV_64F).var()) + 1e-6
 
 
 def _capture_poses(sequence, indices, depth_offset_s: float, colour_offset_s: float):
