@@ -15,8 +15,8 @@ camera's focal length and principal point are estimated from the recording itsel
 not observable that way and is left at zero, absorbed mostly by the principal point), cached
 per recording, and each frame's depth is warped into the colour camera, so frames and ground
 truth are the colour camera's, as for every other source here. On the redkitchen copy in
-this project's shared data it found f = 511.1 px, centre (309.3, 235.2): matched keypoints
-reproject to 3.52 px median against 4.16 px at the nominal 525 px (the poses' own errors
+this project's shared data it found f = 510.1 px, centre (308.3, 235.2): matched keypoints
+reproject to 3.45 px median against 4.16 px at the nominal 525 px (the poses' own errors
 dominate both).
 """
 
