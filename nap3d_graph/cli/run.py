@@ -16,7 +16,7 @@ from pathlib import Path
 
 from nap3d_graph.run_output import refusal_hint_for
 
-from .common import StopOnSignal, writable_dir
+from .common import StopOnSignal, UsageError, writable_dir
 from .sources import add_source_arguments, prepare
 
 __all__ = ["add_parser", "run"]
@@ -36,6 +36,11 @@ def add_parser(sub) -> None:
                    help="estimate the field's frame in the world (map anchor M(0)) instead of assuming it is the "
                    "odometry's world frame")
     p.add_argument("--out", type=Path, default=Path("results"), help="results root (default ./results)")
+    p.add_argument("--write-bag", type=Path, metavar="OUT.bag|OUT_DIR",
+                   help="also write the trajectories as a ROS bag in the input's time, to play next to the input in "
+                   "RViz: causal, smoothed and odometry poses (PoseStamped), paths (nav_msgs/Path) and /tf from the "
+                   "world to the corrected camera. A .bag path is a ROS 1 bag, any other a ROS 2 bag folder (MCAP when "
+                   "it ends in .mcap)")
     p.add_argument("--config", type=Path, metavar="CONFIG.yaml",
                    help="reproduce a run from the config.yaml it wrote: its options and settings, except the options "
                    "given here with a value other than their default")
@@ -51,6 +56,8 @@ def run(args) -> int:
 
         apply_run_config(args, args.parser, args.config)
     writable_dir(args.out)  # before the run, not after it
+    if args.write_bag is not None:
+        _check_bag_path(args.write_bag)
     prepared = prepare(args, use_anchor=args.anchor)
     writer = RunWriter(args.out, prepared.name, prepared.record, getattr(prepared.sequence, "rgb_line_index", None))
     try:
@@ -59,6 +66,12 @@ def run(args) -> int:
     finally:
         writer.close()
     metrics = writer.finish(result, partial=result.partial)
+    if args.write_bag is not None:
+        from nap3d_graph.run_bag import write_run_bag
+
+        world = getattr(prepared.sequence, "world_frame", None) or "world"
+        write_run_bag(args.write_bag, result, world_frame=world)
+        print(f"bag: {args.write_bag} (/nap3d/causal/pose, /nap3d/smoothed/pose, paths and /tf in frame {world!r})")
     print(summary_table(metrics, time.perf_counter() - t0, with_field=prepared.field is not None))
     hint = refusal_hint(metrics)
     if hint:
@@ -69,6 +82,16 @@ def run(args) -> int:
               "(metrics.json says so)", file=sys.stderr)
         return 130
     return 0
+
+
+def _check_bag_path(path: Path) -> None:
+    from nap3d_graph.datasets import DatasetError
+    from nap3d_graph.run_bag import check_bag_path
+
+    try:
+        check_bag_path(path)
+    except DatasetError as exc:
+        raise UsageError(str(exc)) from None
 
 
 def refusal_hint(metrics: dict) -> str:

@@ -13,6 +13,7 @@ from .common import (
     UsageError,
     add_frames_argument,
     add_matcher_argument,
+    add_topics_argument,
     non_negative_float,
     non_negative_int,
     parse_pose,
@@ -72,10 +73,12 @@ def add_source_arguments(p) -> None:
                    help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder), "
                    "realsense (a .bag/.db3 recording, or 'live': a connected camera) or 7scenes (a 7-Scenes sequence "
                    "folder: depth is warped into its colour camera, whose focal length and centre are estimated from the "
-                   "data); "
-                   "default sim")
-    p.add_argument("--data", type=Path, help="the sequence folder, or for realsense a recording or 'live'; omit "
-                   "(with --traj sim) for the embedded default")
+                   "data), "
+                   "or rosbag (a ROS 1 .bag or a ROS 2 bag folder: colour, depth, camera info, IMU and ground truth "
+                   "from /tf or a pose topic; see --topics); default sim")
+    p.add_argument("--data", type=Path, help="the sequence folder, or for realsense a recording or 'live', or for "
+                   "rosbag the .bag file or ROS 2 bag folder; omit (with --traj sim) for the embedded default")
+    add_topics_argument(p)
     p.add_argument("--groundtruth", type=Path, metavar="TUM_FILE",
                    help="realsense: camera poses of the recording's frames, for ATE/RPE (without it the results "
                    "report correction statistics)")
@@ -234,6 +237,17 @@ def _inputs(args):
         return data, field_obj, str(field_path), "default"
     if args.field is None:
         raise UsageError("--data needs --field (a checkpoint, 'oracle' for simulated data, or 'none')")
+    from nap3d_graph.datasets import is_rosbag
+
+    if args.traj == "rosbag":
+        if not args.data.exists():
+            raise UsageError(f"--traj rosbag: {args.data}: no such bag file or folder")
+        if not is_rosbag(args.data):
+            raise UsageError(f"--traj rosbag needs a ROS 1 .bag (not a RealSense recording) or a ROS 2 bag folder "
+                             f"(with metadata.yaml), got {args.data}")
+        return args.data, None, args.field, args.traj
+    if is_rosbag(args.data):
+        raise UsageError(f"{args.data} is a ROS bag: use --traj rosbag")
     if args.traj == "realsense":
         return _realsense_data(args), None, args.field, args.traj
     if args.data.suffix.lower() in (".bag", ".db3"):
@@ -267,7 +281,8 @@ def _odometry(args, sequence, initial_pose):
 
     if args.odom:
         odom_kind = args.odom
-    elif args.traj == "realsense":  # a recording's own motion source: its IMU, else its frames
+    elif args.traj == "realsense" or (args.traj == "rosbag" and sequence.T_world_cam_gt is None):
+        # A recording without ground truth to draw noise on: its own motion source, its IMU or its frames.
         odom_kind = "imu" if getattr(sequence, "imu", None) is not None else "vo"
     else:
         odom_kind = "recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy"
@@ -328,8 +343,10 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     width, height = parse_size(args.render_size)
     initial_pose = parse_pose(args.initial_pose, args.initial_pose_file)
     data, field_obj, field_desc, name = _inputs(args)
+    if args.topics and args.traj != "rosbag":
+        raise UsageError("--topics is for --traj rosbag")
     extra = {"groundtruth": args.groundtruth, "realsense_config": args.realsense_config} if args.traj == "realsense" \
-        else {}
+        else {"topics": args.topics} if args.traj == "rosbag" else {}
     sequence = open_sequence(data, frames=args.frames, **extra)
     if args.data is not None:
         field_obj = resolve_field(args.field, sequence)

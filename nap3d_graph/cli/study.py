@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import RUN_MATCHER, UsageError, add_matcher_argument, empty_or_new_dir, positive_int
+from .common import RUN_MATCHER, UsageError, add_matcher_argument, add_topics_argument, empty_or_new_dir, positive_int
 
 
 def add_parser(sub) -> None:
@@ -37,6 +37,7 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     add_matcher_argument(p, RUN_MATCHER)
     p.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    add_topics_argument(p)
     p.set_defaults(func=run)
 
 
@@ -56,7 +57,8 @@ def run(args) -> int:
     empty_or_new_dir(args.out, args.force)
     config = StudyConfig(split=args.split, model=args.model, train_steps=args.train_steps,
                          keyframe_every=args.keyframe_every, odometries=odometries, eval_k_scenarios=args.scenarios,
-                         eval_k_full=args.eval_k_full, seed=args.seed, matcher=args.matcher)
+                         eval_k_full=args.eval_k_full, seed=args.seed, matcher=args.matcher,
+                         topics=args.topics)
     if args.map_data is not None:
         run_study(args.map_data, args.out, config, query=args.query, map_frames=args.map_frames,
                   query_frames=args.query_frames)

@@ -11,6 +11,7 @@ from .common import (
     UsageError,
     add_frames_argument,
     add_matcher_argument,
+    add_topics_argument,
     non_negative_int,
     positive_float,
     positive_int,
@@ -28,8 +29,10 @@ def add_parser(sub) -> None:
         "(held-out PSNR, depth errors, opacity, unit check, the field's own error) beside it. An existing "
         "checkpoint is not replaced without --force.",
     )
-    p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses), or a RealSense "
+    p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses), a ROS bag with its "
+                   "ground truth in /tf or a pose topic (.bag or ROS 2 folder; see --topics), or a RealSense "
                    "recording (.bag/.db3) with --poses")
+    add_topics_argument(p)
     p.add_argument("--poses", type=Path, metavar="TUM_FILE",
                    help="for a RealSense recording: the camera poses of its frames (TUM file)")
     p.add_argument("--out", type=Path, required=True, help="checkpoint to write (FIELD.pt; its report goes to "
@@ -85,7 +88,7 @@ def run(args) -> int:
         raise UsageError(f"{args.out} exists (a trained field); choose another name, or add --force to replace it")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses)
+    sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses, topics=args.topics)
     warn_depth_units(sequence)
     from .sources import warn_guessed_camera
 

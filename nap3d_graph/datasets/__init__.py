@@ -3,12 +3,14 @@
 ``SOURCES`` maps a source name (as the CLI's ``--traj`` uses it) to its sequence class:
 ``"tum"`` any TUM RGB-D folder, ``"sim"`` a folder written by ``nap3d-graph simulate``,
 ``"realsense"`` a RealSense ``.bag`` / ``.db3`` recording (pyrealsense2 is imported only when
-one is read), ``"7scenes"`` a Microsoft 7-Scenes sequence (or scene) folder.
+one is read), ``"7scenes"`` a Microsoft 7-Scenes sequence (or scene) folder, ``"rosbag"`` a
+ROS 1 ``.bag`` or a ROS 2 bag folder (read with ``rosbags``).
 """
 
 from __future__ import annotations
 
 from .realsense import RealSenseConfig, RealSenseRecording
+from .rosbag import BagTopics, RosbagSequence, is_rosbag
 from .sevenscenes import SevenScenesSequence, is_sevenscenes_folder
 from .sim import SimSequence
 from .tum import DatasetError, TumSequence, read_tum_trajectory, write_tum_trajectory
@@ -23,26 +25,38 @@ __all__ = [
     "RealSenseConfig",
     "SevenScenesSequence",
     "is_sevenscenes_folder",
+    "RosbagSequence",
+    "BagTopics",
+    "is_rosbag",
     "read_tum_trajectory",
     "write_tum_trajectory",
 ]
 
 SOURCES: dict[str, type] = {"tum": TumSequence, "sim": SimSequence, "realsense": RealSenseRecording,
-                            "7scenes": SevenScenesSequence}
+                            "7scenes": SevenScenesSequence, "rosbag": RosbagSequence}
 
 RECORDING_SUFFIXES = (".bag", ".db3")
 
 
-def open_sequence(path, groundtruth=None, realsense_config=None, **kwargs):
-    """A sequence as the right class: :class:`RealSenseRecording` for a ``.bag`` / ``.db3``
-    file (``groundtruth``: a TUM file of its poses; ``realsense_config``: a YAML of what the
-    file does not store), :class:`SimSequence` for a folder with a simulator's
-    ``scene.json``, :class:`SevenScenesSequence` for a 7-Scenes folder (``frame-*.pose.txt``
-    or sequence folders ``seq-01/``...), :class:`TumSequence` for any other folder (its own
-    groundtruth.txt)."""
+def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, **kwargs):
+    """A sequence as the right class: :class:`RosbagSequence` for a ROS bag (a ROS 2 bag
+    folder, or a ``.bag`` whose topics are not a RealSense recording's; ``topics``: its
+    :class:`BagTopics` or their ``key=value`` text), :class:`RealSenseRecording` for a RealSense
+    ``.bag`` / ``.db3`` file (``groundtruth``: a TUM file of its poses; ``realsense_config``: a
+    YAML of what the file does not store), :class:`SimSequence` for a folder with a
+    simulator's ``scene.json``, :class:`SevenScenesSequence` for a 7-Scenes folder
+    (``frame-*.pose.txt`` or sequence folders ``seq-01/``...), :class:`TumSequence` for any
+    other folder (its own groundtruth.txt)."""
     from pathlib import Path
 
     path = Path(path)
+    if is_rosbag(path):
+        if groundtruth is not None or realsense_config is not None:
+            raise DatasetError(f"{path}: a ROS bag's ground truth comes from its /tf or a pose topic (--topics gt=...), "
+                               "not --groundtruth / --realsense-config")
+        return RosbagSequence(path, topics=topics, frames=kwargs.get("frames"))
+    if topics:
+        raise DatasetError(f"{path}: --topics is for ROS bags (a .bag file or a ROS 2 bag folder)")
     if path.suffix.lower() in RECORDING_SUFFIXES:
         config = None if realsense_config is None else RealSenseConfig.load(realsense_config)
         return RealSenseRecording(path, groundtruth=groundtruth, frames=kwargs.get("frames"), config=config)

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from .errors import DatasetError
 
-__all__ = ["ASSOCIATION_METHODS", "GT_MAX_GAP_S", "associate", "estimate_stream_offset", "interpolate_poses",
+__all__ = ["ASSOCIATION_METHODS", "GT_MAX_GAP_S", "associate", "estimate_stream_offset", "interpolate_poses", "pair_streams",
            "GroundTruthLookup"]
 
 #: Ground truth runs at 100 Hz; a larger hole than this between two poses is a gap.
@@ -261,3 +261,22 @@ class GroundTruthLookup:
         if self._gt_raw is None:
             return None
         return interpolate_poses(*self._gt_raw, np.asarray(stamps, dtype=float))
+
+
+def pair_streams(stamps_a, stamps_b, max_difference: float = 0.02, association: str = "optimal"
+                 ) -> tuple[float, np.ndarray]:
+    """``(offset, pairs)``: stream b paired to stream a with its estimated lead removed
+    (:func:`estimate_stream_offset`), unless a zero offset pairs more frames.
+
+    The lead estimate helps raw recordings (fr1/xyz: 37 of 37 frames instead of 36), but
+    lists that were already associated (every colour stamp has its partner, as in a
+    subsampled copy of a sequence) can lose frames by it: fr1/desk at 15 Hz kept 211 of its
+    277 listed pairs with the 7 ms estimate. Keeping whichever pairs more frames never drops
+    a frame the plain pairing had.
+    """
+    estimated = estimate_stream_offset(stamps_a, stamps_b, max_difference)
+    with_lead = associate(stamps_a, stamps_b, max_difference, estimated, association)
+    plain = associate(stamps_a, stamps_b, max_difference, 0.0, association)
+    if len(plain) > len(with_lead):
+        return 0.0, plain
+    return estimated, with_lead

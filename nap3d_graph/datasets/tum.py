@@ -31,8 +31,8 @@ from .association import (
     GT_MAX_GAP_S,
     GroundTruthLookup,
     associate,
-    estimate_stream_offset,
     interpolate_poses,
+    pair_streams,
 )
 from .errors import DatasetError
 from .frames import frame_index, parse_frame_range
@@ -295,7 +295,7 @@ class TumSequence(GroundTruthLookup):
         rgb_stamps, rgb_names = read_file_list(rgb_list)
         depth_stamps, depth_names = read_file_list(depth_list)
         if self.offset == "auto":
-            self.offset, pairs = self._auto_offset_pairs(rgb_stamps, depth_stamps)
+            self.offset, pairs = pair_streams(rgb_stamps, depth_stamps, self.max_difference, self.association)
         else:
             self.offset = float(self.offset)
             pairs = associate(rgb_stamps, depth_stamps, self.max_difference, self.offset, association)
@@ -331,22 +331,6 @@ class TumSequence(GroundTruthLookup):
         if self.missing_images:
             logger.warning("%s: %d listed image(s) not found, e.g. %s; those frames will fail to load",
                            self.name, len(self.missing_images), self.missing_images[0])
-
-    def _auto_offset_pairs(self, rgb_stamps: np.ndarray, depth_stamps: np.ndarray) -> tuple[float, np.ndarray]:
-        """The estimated depth lead and its pairs, unless a zero offset pairs more frames.
-
-        The lead estimate helps raw recordings (fr1/xyz: 37 of 37 frames instead of 36), but
-        lists that were already associated (every line of ``rgb.txt`` has its partner on the
-        same line of ``depth.txt``, as in a subsampled copy of a sequence) can lose frames
-        by it: fr1/desk at 15 Hz kept 211 of its 277 listed pairs with the 7 ms estimate.
-        Keeping whichever pairs more frames never drops a frame the plain pairing had.
-        """
-        estimated = estimate_stream_offset(rgb_stamps, depth_stamps, self.max_difference)
-        with_lead = associate(rgb_stamps, depth_stamps, self.max_difference, estimated, self.association)
-        plain = associate(rgb_stamps, depth_stamps, self.max_difference, 0.0, self.association)
-        if len(plain) > len(with_lead):
-            return 0.0, plain
-        return estimated, with_lead
 
     def _select(self, start: int, stop: int) -> None:
         """Keep frames ``start:stop`` of the associated frames (``frames=`` of the constructor)."""
@@ -425,11 +409,7 @@ class TumSequence(GroundTruthLookup):
 
     def _undistort_maps(self) -> tuple[np.ndarray, np.ndarray]:
         if self._maps is None:
-            K = self.raw_intrinsics.K
-            dist = np.asarray(self.raw_intrinsics.distortion, dtype=float)
-            size = (self.raw_intrinsics.width, self.raw_intrinsics.height)
-            # Same K as new camera matrix: the delivered pinhole camera keeps TUM's fx fy cx cy.
-            self._maps = cv2.initUndistortRectifyMap(K, dist, None, K, size, cv2.CV_32FC1)
+            self._maps = self.raw_intrinsics.undistortion_maps()
         return self._maps
 
     def _read_rgb(self, path: Path) -> np.ndarray:

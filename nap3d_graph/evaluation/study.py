@@ -40,6 +40,7 @@ class StudyConfig:
     seed: int = 0
     matcher: str = "sift"
     progress: bool = True
+    topics: str | None = None  # ROS bags: which topics to read (BagTopics' text)
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.split <= 0.95:
@@ -77,14 +78,14 @@ def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = No
         summary["query"] = str(query)
 
     _stage(f"1/{2 + len(config.odometries)} field ({config.model}) on frames {train_frames or 'all'}", config.progress)
-    train = open_sequence(data, frames=train_frames)
+    train = open_sequence(data, frames=train_frames, topics=config.topics)
     field, report = build_field(train, config.model, steps=config.train_steps, seed=config.seed,
                                 progress=config.progress, matcher=config.matcher)
     field.save(out / "field.pt")
     (out / "field_report.json").write_text(json.dumps(report, indent=1, default=float))
     summary["field"] = _field_summary(report)
 
-    test = open_sequence(test_data, frames=test_frames)
+    test = open_sequence(test_data, frames=test_frames, topics=config.topics)
     if query is not None:
         summary["shared_world"] = shared_world_check(field, test, config)
     summary["runs"] = {}
