@@ -292,7 +292,7 @@ class RosbagSequence(GroundTruthLookup):
             stream = self._rgb if topic == t.rgb else self._depth
             if stream.first is None:  # check the encoding now: one line before any work
                 stream.frame_id = str(msg.header.frame_id).lstrip("/")
-                stream.first = (decode_colour if topic == t.rgb else decode_depth_m)(msg, topic).shape[:2]
+                stream.first = (decode_colour if topic == t.rgb else decode_depth_m)(msg, f"{self.path}: {topic}").shape[:2]
             stream.stamps.append(stamp_s(msg.header.stamp))
             stream.log_ns.append(int(log_ns))
         elif topic == t.camera_info and self._info is None:
@@ -476,9 +476,10 @@ class RosbagSequence(GroundTruthLookup):
         from nap3d_graph.camera import RGBDFrame, warp_depth
 
         i = frame_index(index, len(self), self.name)
-        rgb = decode_colour(self._message(self.topics.rgb, self._rgb, int(self._colour_index[i])), self.topics.rgb)
+        rgb = decode_colour(self._message(self.topics.rgb, self._rgb, int(self._colour_index[i])),
+                            f"{self.path}: {self.topics.rgb}")
         depth_m = decode_depth_m(self._message(self.topics.depth, self._depth, int(self._depth_index[i])),
-                                 self.topics.depth)
+                                 f"{self.path}: {self.topics.depth}")
         if rgb.shape[:2] != self.raw_intrinsics.shape:
             raise DatasetError(f"{self.path}: colour message {int(self._colour_index[i])} is "
                                f"{rgb.shape[1]}x{rgb.shape[0]}, the camera {self.raw_intrinsics.width}x"
