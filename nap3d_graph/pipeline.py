@@ -149,6 +149,7 @@ class Pipeline:
         self._pending_record: KeyframeRecord | None = None
         self._online: list[np.ndarray] = []  # each frame's pose as known at that frame (causal)
         self.last_correction = self.last_factor = None  # the latest keyframe's (a live caller reads them)
+        self.last_correction_frame = -1
         self._trained = self._trained_timestamps()
         self._due_since: int | None = None  # the frame a keyframe fell due at, while its window is open
         self._due_why = ""
@@ -357,6 +358,7 @@ class Pipeline:
         if self.correction_hook is not None:
             correction = self.correction_hook(i, correction)
         self.last_correction, self.last_factor = correction, None
+        self.last_correction_frame = i  # which keyframe last_correction is (an observer checks)
         record.timings_s.update({k: round(v, 4) for k, v in correction.timings_s.items()})
         record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
                                                              correction.iterations)

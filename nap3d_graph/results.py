@@ -58,6 +58,9 @@ class Correction:
     T_world_cam_corrected: (4, 4) corrected camera pose (world <- camera, OpenCV camera).
     covariance: (6, 6) of that pose, GTSAM order and frame.
     iterations: how many render-align rounds ran.
+    views: what the last round compared, for display (``run --viz``): ``real_rgb`` and
+        ``render_rgb`` (H, W, 3) uint8 at the render's resolution, and on success the inlier
+        matches' pixels ``inlier_uv_real`` / ``inlier_uv_render`` (K, 2).
     """
 
     T_world_cam_est: np.ndarray
@@ -68,6 +71,7 @@ class Correction:
     success: bool = False
     reason: str = ""
     timings_s: dict = field(default_factory=dict)
+    views: dict = field(default_factory=dict, repr=False, compare=False)
 
     @property
     def num_inliers(self) -> int:

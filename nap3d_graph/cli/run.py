@@ -41,6 +41,11 @@ def add_parser(sub) -> None:
                    "RViz: causal, smoothed and odometry poses (PoseStamped), paths (nav_msgs/Path) and /tf from the "
                    "world to the corrected camera. A .bag path is a ROS 1 bag, any other a ROS 2 bag folder (MCAP when "
                    "it ends in .mcap)")
+    p.add_argument("--viz", metavar="RUN.rrd|spawn",
+                   help="also record the run for the rerun viewer (extra 'viz': rerun-sdk): trajectories, each "
+                   "keyframe's image, render and inlier matches, the corrections' covariance ellipsoids, accepted or "
+                   "refused with the reason, on one timeline. RUN.rrd: a file to open with 'rerun RUN.rrd'; spawn: "
+                   "open the viewer now (needs a display)")
     p.add_argument("--config", type=Path, metavar="CONFIG.yaml",
                    help="reproduce a run from the config.yaml it wrote: its options and settings, except the options "
                    "given here with a value other than their default")
@@ -58,14 +63,32 @@ def run(args) -> int:
     writable_dir(args.out)  # before the run, not after it
     if args.write_bag is not None:
         _check_bag_path(args.write_bag)
+    if args.viz is not None:
+        _check_viz(args.viz)
     prepared = prepare(args, use_anchor=args.anchor)
     writer = RunWriter(args.out, prepared.name, prepared.record, getattr(prepared.sequence, "rgb_line_index", None))
+    pipeline = prepared.pipeline()
+    recorder, on_keyframe = None, writer.add_keyframe
+    if args.viz is not None:
+        from nap3d_graph.viz import RunRecorder
+
+        recorder = RunRecorder(args.viz, prepared.name, getattr(prepared.sequence, "intrinsics", None))
+
+        def on_keyframe(record):
+            writer.add_keyframe(record)
+            measured = pipeline.last_correction_frame == record.frame_index
+            recorder.keyframe(record, pipeline.last_correction if measured else None)
     try:
         with StopOnSignal() as stop:
-            result = prepared.pipeline().run(on_keyframe=writer.add_keyframe, stop=stop)
+            result = pipeline.run(on_keyframe=on_keyframe, stop=stop)
     finally:
         writer.close()
     metrics = writer.finish(result, partial=result.partial)
+    if recorder is not None:
+        recorder.finish(result)
+        recorder.close()
+        print(f"rerun recording: {args.viz}" + (" (open it with: rerun " + str(args.viz) + ")"
+                                                 if args.viz != "spawn" else ""))
     if args.write_bag is not None:
         from nap3d_graph.run_bag import write_run_bag
 
@@ -91,6 +114,15 @@ def _check_bag_path(path: Path) -> None:
     try:
         check_bag_path(path)
     except DatasetError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _check_viz(target: str) -> None:
+    from nap3d_graph.viz import VizError, check_viz_target
+
+    try:
+        check_viz_target(target)
+    except VizError as exc:
         raise UsageError(str(exc)) from None
 
 

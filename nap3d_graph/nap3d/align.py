@@ -33,7 +33,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..camera import Intrinsics, RenderedView, RGBDFrame, backproject
+from ..camera import Intrinsics, RenderedView, RGBDFrame, backproject, project
 from ..conventions import make_T
 from ..results import Alignment
 from .config import AlignConfig
@@ -125,6 +125,9 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
     # The paper's Procrustes also gives a scale: the real depth's metre against the field's.
     diagnostics = dict(diagnostics)
     diagnostics["depth_scale"], diagnostics["depth_scale_sigma"] = scale, scale_sigma
+    # The inlier matches' pixels, for display: the rendered keypoint is its 3D point projected.
+    diagnostics["inlier_uv_real"] = corr.uv_real[inliers]
+    diagnostics["inlier_uv_render"] = project(corr.x[inliers], intrinsics)[0]
     return Alignment(
         T_real_rendered=make_T(R, t),
         covariance=cov,

@@ -67,6 +67,7 @@ def correct_pose(
     T_current = T_est
     alignment = Alignment.failure("not run")
     rounds = 0
+    shown = None  # the render the kept alignment compared (for Correction.views)
     config = config or AlignConfig()
     # The real frame is the same every round: resize it and detect its features once.
     real = frame
@@ -90,18 +91,20 @@ def correct_pose(
         if not step.success:
             # A failed re-render round keeps the previous round's good result.
             if not alignment.success:
-                alignment = step
+                alignment, shown = step, view
             break
-        alignment = step
+        alignment, shown = step, view
         T_next = step.corrected_pose(T_current)
         update = log_se3(inv_T(T_current) @ T_next)
         T_current = T_next
         if float(update @ np.linalg.solve(step.covariance, update)) < stop_mahalanobis**2:
             break
+    views = {"real_rgb": real.rgb, "render_rgb": None if shown is None else shown.rgb,
+             **{k: alignment.diagnostics[k] for k in ("inlier_uv_real", "inlier_uv_render") if k in alignment.diagnostics}}
     if not alignment.success:
         return Correction(T_est, T_est.copy(), np.full((6, 6), np.inf), alignment, rounds, False,
-                          alignment.reason, timings)
-    return Correction(T_est, T_current, alignment.covariance, alignment, rounds, True, "", timings)
+                          alignment.reason, timings, views)
+    return Correction(T_est, T_current, alignment.covariance, alignment, rounds, True, "", timings, views)
 
 
 def _resize_frame(frame: RGBDFrame, width: int, height: int) -> RGBDFrame:
