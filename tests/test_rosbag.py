@@ -263,3 +263,24 @@ def test_realsense_bags_are_left_to_the_realsense_reader(tmp_path):
         writer.write(connection, 1, store.serialize_ros1(header(store, 1e-9, "x"), "std_msgs/msg/Header"))
     assert not is_rosbag(path)
     assert not is_rosbag(tmp_path / "missing.bag")
+
+
+def test_train_field_compare_and_study_read_bags(bags, tmp_path):
+    """The other commands that take a recording open a bag by itself (its ground truth from tf)."""
+    import json
+
+    from nap3d_graph.cli import main
+    from nap3d_graph.fields import load_field
+
+    bag = str(bags["ros2_mcap_mm"])
+    field = tmp_path / "bag.pt"
+    assert main(["train-field", bag, "--model", "splat", "--out", str(field), "--quiet", "--topics", "gt=/tf"]) == 0
+    assert load_field(field).meta["train_recording"] == RosbagSequence(bags["ros2_mcap_mm"]).recording_id
+    assert main(["compare", "--traj", "rosbag", "--data", bag, "--field", str(field), "--odom", "noisy",
+                 "--out", str(tmp_path / "cmp")]) == 0
+    rows = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
+    assert rows, "compare wrote no rows"
+    assert main(["study", bag, "--model", "splat", "--odom", "noisy", "--scenarios", "4", "--out",
+                 str(tmp_path / "study")]) == 0
+    summary = json.loads((tmp_path / "study" / "summary.json").read_text())
+    assert summary["runs"]["noisy"]["ate_odometry_m"] > 0
