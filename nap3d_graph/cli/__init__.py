@@ -37,6 +37,8 @@ EPILOG = """examples:
   nap3d-graph eval-k data/room_walk --field oracle --scenarios 40 --out evalk
   nap3d-graph train-field 7scenes/redkitchen/seq-01 --frames 0:0.5 --model splat --out kitchen.pt
   nap3d-graph run --traj 7scenes --data 7scenes/redkitchen/seq-01 --frames 0.5:1 --field kitchen.pt
+  nap3d-graph simulate data/room_walk --frames 90 --rosbag data/room_walk.bag
+  nap3d-graph run --traj rosbag --data data/room_walk.bag --field data/room_walk --write-bag walk_nap3d.bag --viz walk.rrd
 """
 
 

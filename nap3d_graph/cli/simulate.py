@@ -32,6 +32,10 @@ def add_parser(sub) -> None:
                    help="also write the traversal as a RealSense recording (depth z16 from a depth camera 15 mm to the "
                    "side, colour rgb8, accel and gyro; FILE.yaml beside it holds the IMU extrinsics and noise): run it "
                    "with --traj realsense --data FILE.db3 --groundtruth OUT/groundtruth.txt --field OUT")
+    p.add_argument("--rosbag", type=Path, metavar="FILE.bag|DIR",
+                   help="also write the sequence as a ROS bag in TUM's bag layout (colour rgb8, depth 32FC1, camera "
+                   "info, IMU, ground truth on /tf): a .bag is ROS 1, any other name a ROS 2 bag folder. Run it with "
+                   "--traj rosbag --data FILE.bag --field OUT")
     p.add_argument("--force", action="store_true", help="write into a non-empty folder (files are replaced)")
     p.set_defaults(func=run)
 
@@ -51,6 +55,8 @@ def run(args) -> int:
         from nap3d_graph.datasets.realsense_io import import_pyrealsense2
 
         import_pyrealsense2()  # a missing libusb is said now, not after the rendering
+    if args.rosbag is not None and args.rosbag.exists():
+        raise UsageError(f"--rosbag {args.rosbag} exists; a bag is never overwritten: choose another name")
     empty_or_new_dir(args.out, args.force)
     config = SimConfig(frames=args.frames, scene_seed=args.scene_seed, seed=args.seed, path=args.path,
                        fps=args.fps, width=args.width, height=args.height)
@@ -63,4 +69,10 @@ def run(args) -> int:
         recording = write_realsense_recording(out, args.realsense, seed=args.seed, progress=True)
         print(f"wrote the RealSense recording {recording} and {recording.with_suffix('.yaml')}; run it with: "
               f"nap3d-graph run --traj realsense --data {recording} --groundtruth {out}/groundtruth.txt --field {out}")
+    if args.rosbag is not None:
+        from nap3d_graph.datasets import SimSequence
+        from nap3d_graph.datasets.rosbag_write import write_sequence_bag
+
+        bag = write_sequence_bag(SimSequence(out), args.rosbag, ros=1 if args.rosbag.suffix == ".bag" else 2)
+        print(f"wrote the ROS bag {bag}; run it with: nap3d-graph run --traj rosbag --data {bag} --field {out}")
     return 0
