@@ -261,10 +261,10 @@ class RosbagSequence(GroundTruthLookup):
         self._info, self._depth_info = None, None
         self._imu_rows, self._imu_frame, self._gyro_missing = [], "", False
         self._tf, self._poses = TfTree(), []
-        wanted = {t.rgb, t.depth, t.camera_info, t.depth_info, t.imu}
-        if t.gt == "/tf":
-            wanted |= {topic for topic, m in available.items() if m in TF_TYPES}
-        elif t.gt not in (None, "none"):
+        # tf is read whatever the ground truth: it also places the depth camera and the IMU.
+        wanted = {t.rgb, t.depth, t.camera_info, t.depth_info, t.imu} | {
+            topic for topic, m in available.items() if m in TF_TYPES}
+        if t.gt not in (None, "none", "/tf"):
             wanted.add(t.gt)
         connections = [c for c in self._reader.connections if c.topic in wanted]
         try:
@@ -340,19 +340,29 @@ class RosbagSequence(GroundTruthLookup):
 
     def _depth_registration(self):
         """``(depth intrinsics, T_colour_depth)`` when depth must be warped into the colour
-        camera, else None (depth already registered: the same frame, or no tf between)."""
+        camera, else None (depth already registered: the same frame, the colour camera's
+        intrinsics, or no tf between the two frames)."""
         from nap3d_graph.camera import Intrinsics
 
         colour, depth = self._rgb.frame_id, self._depth.frame_id
-        if depth == colour or not depth or self._depth_info is None or depth not in self._tf.frames \
+        # A driver that registers depth to colour publishes the colour camera's intrinsics with
+        # it (OpenNI's depth_registered, RealSense's aligned_depth_to_color), whatever frame id
+        # it stamps: same camera matrix and size means registered, even across frame ids.
+        same_camera = self._depth_info is not None and np.allclose(
+            camera_info_arrays(self._depth_info)[0], camera_info_arrays(self._info)[0], atol=0.5) \
+            and self._depth.first == self._rgb.first
+        if depth == colour or not depth or self._depth_info is None or same_camera or depth not in self._tf.frames \
                 or colour not in self._tf.frames:
             if self._depth.first != self._rgb.first:
                 raise DatasetError(f"{self.path}: depth images are {self._depth.first[1]}x{self._depth.first[0]}, colour "
                                    f"{self._rgb.first[1]}x{self._rgb.first[0]}, and no depth camera info with a tf "
                                    "between their frames to register them")
-            if depth and depth != colour:
-                log.warning("%s: depth frame %r is not the colour frame %r and tf does not connect them: taking the "
-                            "depth as registered to colour", self.path, depth, colour)
+            if depth and depth != colour and same_camera:
+                log.info("%s: depth (frame %r) has the colour camera's intrinsics: taken as registered to colour",
+                         self.path, depth)
+            elif depth and depth != colour:
+                log.warning("%s: depth frame %r is not the colour frame %r and no depth camera info with a tf between "
+                            "them: taking the depth as registered to colour", self.path, depth, colour)
             return None
         T = self._tf.lookup(colour, depth, [self._rgb.stamps[0]])[0]
         if not np.all(np.isfinite(T)):
