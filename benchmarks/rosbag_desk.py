@@ -9,7 +9,8 @@ colour, 32FC1 depth, ground truth on /tf through a camera mount) and as a ROS 2 
   half a millimetre for 16UC1) and the ground truth through tf;
 - runs ``nap3d-graph run --odom vo`` on the second half of each with the same splat field
   (built on the folder's first half) and compares the trajectories and ATE;
-- writes the run's ``--write-bag`` output and reads it back against estimate.txt.
+- writes the run's ``--write-bag`` output and reads it back against estimate.txt, and its
+  ``--viz`` rerun recording, read back with rerun's reader (entries per keyframe).
 
 Writes ``benchmarks/results/rosbag_fr1_desk.json``.
 
@@ -109,7 +110,8 @@ def main() -> None:
         field.save(field_path)
         runs = {"folder": _run(args.data, "tum", field_path, tmp / "run_folder")}
         for name, path in bags.items():
-            extra = ("--write-bag", str(tmp / f"{name}_out.bag")) if name.startswith("ros1") else ()
+            extra = ("--write-bag", str(tmp / f"{name}_out.bag"), "--viz", str(tmp / f"{name}.rrd")) \
+                if name.startswith("ros1") else ()
             runs[name] = _run(path, "rosbag", field_path, tmp / f"run_{name}", extra)
         want = read_tum_trajectory(runs["folder"]["estimate"])
         for name in bags:
@@ -120,6 +122,14 @@ def main() -> None:
         got = read_tum_trajectory(runs[ros1]["estimate"])
         runs[ros1]["written_bag_max_pose_difference_to_estimate_m"] = float(np.abs(poses[:, :3, 3] - got[1][:, :3, 3]).max())
         runs[ros1]["written_bag_stamps_equal"] = bool(np.allclose(stamps, got[0], atol=1e-6))
+        from nap3d_graph.viz import keyframe_entries
+
+        entries = keyframe_entries(tmp / f"{ros1}.rrd")
+        runs[ros1]["rerun_recording"] = {"mb": round((tmp / f"{ros1}.rrd").stat().st_size / 1e6, 1),
+                                         "status_entries": entries.get("/keyframes/status", 0),
+                                         "render_entries": entries.get("/keyframes/render", 0),
+                                         "accepted_ellipsoids": sum(p.startswith("/world/corrections/accepted/")
+                                                                    for p in entries)}
         for run in runs.values():
             run.pop("estimate")
         result["runs"] = runs

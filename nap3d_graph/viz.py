@@ -30,6 +30,7 @@ log = logging.getLogger(__name__)
 
 COLOURS = {"odometry": (230, 159, 0), "causal": (0, 114, 178), "smoothed": (0, 158, 115), "truth": (90, 90, 90),
            "accepted": (0, 158, 115), "refused": (213, 94, 0)}
+JPEG_QUALITY = 90
 SIGMAS = 3.0  # ellipsoids drawn at 3 sigma: a 1-sigma centimetre is invisible beside a room
 
 
@@ -85,21 +86,24 @@ class RunRecorder:
     def keyframe(self, record, correction=None, T_render=None) -> None:
         """One keyframe: its images, matches, status, covariance and camera (``correction``:
         its :class:`~nap3d_graph.results.Correction`, or None when none was measured)."""
-        rr = self.rr
         self._at(record.frame_index, record.timestamp)
         self.count += 1
         views = getattr(correction, "views", None) or {}
         real, render = views.get("real_rgb"), views.get("render_rgb")
         if real is not None:
-            self.stream.log("keyframes/real", rr.Image(real))
+            self.stream.log("keyframes/real", self._image(real))
         if render is not None:
-            self.stream.log("keyframes/render", rr.Image(render))
+            self.stream.log("keyframes/render", self._image(render))
         if real is not None and render is not None and real.shape == render.shape:
             self._matches(real, render, views)
         self.stream.log("keyframes/status", self._status(record))
         if correction is not None and correction.success:
             self._ellipsoid(record, correction)
             self._camera(correction.T_world_cam_corrected, real)
+
+    def _image(self, rgb: np.ndarray):
+        """JPEG-compressed: raw images would make a long run's recording a gigabyte."""
+        return self.rr.Image(np.ascontiguousarray(rgb)).compress(jpeg_quality=JPEG_QUALITY)
 
     def _status(self, record):
         rr = self.rr
@@ -113,7 +117,7 @@ class RunRecorder:
     def _matches(self, real: np.ndarray, render: np.ndarray, views: dict) -> None:
         rr = self.rr
         width = real.shape[1]
-        self.stream.log("keyframes/matches", rr.Image(np.concatenate([real, render], axis=1)))
+        self.stream.log("keyframes/matches", self._image(np.concatenate([real, render], axis=1)))
         uv_real, uv_render = views.get("inlier_uv_real"), views.get("inlier_uv_render")
         if uv_real is None or uv_render is None or not len(uv_real):
             self.stream.log("keyframes/matches/inliers", rr.Clear(recursive=False))

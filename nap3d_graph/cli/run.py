@@ -83,6 +83,8 @@ def run(args) -> int:
             result = pipeline.run(on_keyframe=on_keyframe, stop=stop)
     finally:
         writer.close()
+        if recorder is not None and sys.exc_info()[0] is not None:
+            recorder.close()  # what was recorded stays readable
     metrics = writer.finish(result, partial=result.partial)
     if recorder is not None:
         recorder.finish(result)
