@@ -285,3 +285,19 @@ def test_overlapped_run_lands_late_corrections_at_their_keyframes(walk, baseline
     online = float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in
                                     zip(result.T_world_cam_online, result.T_world_cam_gt)])))
     assert ate(result) <= online < 0.65 * ate_odometry(result)
+
+
+def test_a_capture_timing_the_data_cannot_tell_is_not_applied(tmp_path, caplog):
+    """12 frames of a camera that captures at its stamps: the timing search's minimum is noise
+    (here +40 ms, the edge of the range, agreeing worse than the stamps): not compensated."""
+    from nap3d_graph.datasets import SimSequence
+    from nap3d_graph.fields.build import estimate_timing
+    from nap3d_graph.sims.sensors import DepthNoise
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    ideal = SimConfig(frames=12, seed=5, width=160, height=120, timing=None, exposure=None,
+                      depth=DepthNoise(flying_fraction=0.0))
+    sequence = SimSequence(simulate_sequence(tmp_path / "w", ideal))
+    with caplog.at_level("WARNING"):
+        assert estimate_timing(sequence) is None
+    assert "capture timing not compensated" in caplog.text
