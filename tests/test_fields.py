@@ -254,3 +254,15 @@ def test_export_nerfstudio_command(survey, tmp_path, capsys):
     assert main(["export-nerfstudio", str(survey.path), str(tmp_path / "ns")]) == 2
     assert "not empty" in capsys.readouterr().err
     assert main(["export-nerfstudio", str(survey.path), str(tmp_path / "ns"), "--every", "8", "--force"]) == 0
+
+
+def test_train_field_summary_when_too_few_held_out_frames_aligned():
+    """Some held-out frames aligned, too few to measure the field's error: said, not a crash."""
+    from nap3d_graph.cli.train_field import summary
+
+    report = {"field_error": {"frames": 2, "failed": 6, "sigma_m": 0.0, "sigma_rad": 0.0}}
+    text = summary("field", report, "f.pt", "f.report.json")
+    assert "field error: not measured (2 held-out frames aligned, too few; 6 failed)" in text
+    measured = {"frames": 8, "failed": 0, "matcher": "sift", "sigma_m": 0.007, "sigma_rad": 0.009,
+                "nees_median_before": 30.0, "nees_median_after": 6.0}
+    assert "7.0 mm, 0.52 deg" in summary("field", {"field_error": measured}, "f.pt", "f.report.json")

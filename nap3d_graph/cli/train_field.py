@@ -143,14 +143,14 @@ def summary(field, report: dict, out, report_path) -> str:
                      f"depth agreement {refinement.get('agreement_before_mm', float('nan')):.2f} -> "
                      f"{refinement.get('agreement_after_mm', float('nan')):.2f} mm")
     error = report.get("field_error")
-    if error and error.get("frames"):
+    if error and "nees_median_before" in error:  # measured: enough held-out frames aligned
         lines.append(f"field error ({error['frames']} held-out frames aligned at their true pose, {error['matcher']}): "
                      f"{error['sigma_m'] * 1000:.1f} mm, {error['sigma_rad'] * 57.2958:.2f} deg beyond the "
                      f"corrections' covariance (their NEES median {error['nees_median_before']:.1f} -> "
                      f"{error['nees_median_after']:.1f}); runs of this field add it to every correction")
     elif error:
-        lines.append(f"field error: not measured ({error['frames']} held-out frames aligned, {error['failed']} "
-                     "failed); runs take the field as exact")
+        lines.append(f"field error: not measured ({error['frames']} held-out frames aligned, too few; "
+                     f"{error['failed']} failed); runs take the field as exact")
     return "\n".join(lines)
 
 
