@@ -18,7 +18,7 @@ __all__ = ["main", "build_parser", "UsageError", "SUBCOMMANDS"]
 log = logging.getLogger("nap3d_graph")
 
 #: Subcommand modules of this package, in the order ``--help`` lists them.
-SUBCOMMANDS = ("run", "compare", "study", "simulate", "train_field", "export_nerfstudio", "eval_k", "eval_j",
+SUBCOMMANDS = ("run", "compare", "study", "sweep", "simulate", "train_field", "export_nerfstudio", "eval_k", "eval_j",
                "bench_peers")
 
 EPILOG = """examples:
