@@ -360,3 +360,18 @@ def test_depth_from_a_separate_depth_camera_is_warped_into_colour(sim_dir, tmp_p
         assert both.mean() > 0.8  # most of the image is seen by both cameras
         err = np.abs(got[both] - want[both])
         assert np.median(err) < 1e-3 and np.percentile(err, 90) < 5e-3, (np.median(err), np.percentile(err, 90))
+
+
+def test_sweep_cells_read_bags(bags, tmp_path):
+    """A sweep's recording may be a bag: its cells run with --traj rosbag and its --topics."""
+    from nap3d_graph.sweep_spec import SweepSpec
+
+    spec = SweepSpec.from_dict({"recordings": [{"data": str(bags["ros2_sqlite"]), "topics": "gt=/tf"}],
+                                "field": {"model": "splat"}, "run": {"odom": "noisy"}})
+    (task,) = spec.fields()
+    (cell,) = spec.cells()
+    assert task.argv(tmp_path / "f.pt")[:2] == ["train-field", str(bags["ros2_sqlite"])]
+    assert "--topics" in task.argv(tmp_path / "f.pt")
+    argv = cell.argv(tmp_path / "f.pt", tmp_path / "run")
+    assert argv[1:3] == ["--traj", "rosbag"] and argv[argv.index("--topics") + 1] == "gt=/tf"
+    assert argv[argv.index("--frames") + 1] == "0.5:1"
