@@ -56,26 +56,23 @@ def at_colour_time(frame: RGBDFrame, timing: dict | None, twist: np.ndarray | No
 
 def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     """The correction of one keyframe (``config``: the run's :class:`PipelineConfig`): depth to
-    the colour instant, ``correct_pose`` (again with the depth rescaled when the fit says the
-    frame's metre is off), the result moved back to the frame's stamp and the field's own
-    error (``config.field_covariance()``) added to its covariance."""
+    the colour instant, ``correct_pose``, the result moved back to the frame's stamp and the
+    field's own error (``config.field_covariance()``) added to its covariance.
+
+    With ``config.depth_scale_check`` the alignment measures the frame's depth scale against
+    the field's and, when it is off by more than ``AlignConfig.scale_tolerance``, fits the pose
+    to the rescaled real points in the same pass (``AlignConfig.rescale_depth``): the render,
+    the features and the matches do not depend on the depth's metre, so aligning again from
+    scratch (as earlier versions did, for 21 of 28 keyframes on fr1/desk, +165 ms each) only
+    repeated them.
+    """
     t0 = time.perf_counter()
     frame, twist = at_colour_time(job.frame, job.timing, job.twist, job.depth_scale)
+    align = config.align
+    if config.depth_scale_check and not align.rescale_depth:
+        align = dataclasses.replace(align, rescale_depth=True)
     correction = correct_pose(frame, field, job.T_render, iterations=config.correction_iterations,
-                              config=config.align, render_intrinsics=job.render_intrinsics)
-    scale = correction.alignment.diagnostics.get("depth_scale", float("nan")) if correction.success else np.nan
-    if config.depth_scale_check and np.isfinite(scale) and abs(scale - 1.0) > config.align.scale_tolerance:
-        # The frame's depth is not in the field's metre: a rigid fit keeps only one depth
-        # band of it. Align again with the depth rescaled (the scale is kept for the check).
-        t_retry = time.perf_counter()
-        rescaled = frame.with_depth(frame.depth_m / np.float32(scale))
-        again = correct_pose(rescaled, field, job.T_render, iterations=config.correction_iterations,
-                             config=config.align, render_intrinsics=job.render_intrinsics)
-        retry_s = time.perf_counter() - t_retry
-        correction.timings_s["rescale_retry"] = again.timings_s["rescale_retry"] = retry_s
-        if again.success:
-            again.alignment.diagnostics["depth_scale"] = scale * again.alignment.diagnostics.get("depth_scale", 1.0)
-            correction = again
+                              config=align, render_intrinsics=job.render_intrinsics)
     if twist is not None and correction.success:
         # Measured at the colour's instant: move it to the frame's stamp.
         shift = exp_se3(-twist * job.timing["colour_offset_s"])

@@ -29,7 +29,7 @@ __all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary
 
 log = logging.getLogger(__name__)
 
-TIMING_STAGES = ("render", "detect", "match", "ransac", "refine", "gate", "isam", "measure", "rescale_retry", "wait")
+TIMING_STAGES = ("render", "detect", "match", "ransac", "refine", "gate", "isam", "measure", "wait")
 CORRECTION_COLUMNS = ["frame_index", "run_index", "timestamp", "key", "matches", "inliers", "iterations", "accepted",
                       "reason", "gate_d2", "correction_m", "correction_deg", "trained_frame", "keyframe_why",
                       "sharpness", "postponed_frames", *[f"t_{s}_s" for s in TIMING_STAGES]]
@@ -71,8 +71,8 @@ def keyframe_timing_summary(result) -> dict:
         values = [k.timings_s[stage] for k in result.keyframes if stage in k.timings_s]
         if values:
             out[stage] = float(np.median(values))
-    # "measure" is the whole measurement (depth warp, render, align, and the rescaled retry
-    # when there is one); the run's graph work comes on top.
+    # "measure" is the whole measurement (depth warp, render, align); the run's graph work
+    # comes on top.
     totals = [sum(k.timings_s.get(s, 0.0) for s in ("measure", "gate", "isam")) for k in result.keyframes]
     if totals:
         out["total_per_keyframe"] = float(np.median(totals))

@@ -124,3 +124,27 @@ def test_a_wrong_correction_that_passes_the_gate_is_weighed_out(walk, clean):
                            dataclasses.replace(CONFIG, final_gnc=False), correction_hook=inject).run()
     assert ate(without_gnc) > 1.2 * ate(honest), (ate(without_gnc), ate(honest))
     assert ate(faulty) <= 1.1 * ate(honest), (ate(faulty), ate(honest), ate(without_gnc))
+
+
+def test_a_frame_whose_metre_is_off_is_aligned_in_one_pass(walk):
+    """A keyframe whose depth is 3.5% long is fitted to its rescaled points in the alignment's
+    own pass: the same correction as aligning the frame with its depth divided by the scale
+    from scratch (what runs did before, repeating the render and the matching), once."""
+    from nap3d_graph import correct_pose
+    from nap3d_graph.keyframe_correction import KeyframeJob, measure_keyframe
+
+    i = 12
+    frame = ScaledDepth(walk, {i: 1.035})[i]
+    T_render = walk.T_world_cam_gt[i] @ exp_se3(np.r_[0.01, -0.005, 0.008, 0.02, -0.01, 0.015])
+    config = dataclasses.replace(CONFIG, field_sigma_m=0.0, field_sigma_rad=0.0)
+    job = KeyframeJob(i, frame, T_render, None, None, 1.0, frame.intrinsics)
+    once = measure_keyframe(job, walk.oracle_field(), config)
+    assert once.success and once.alignment.diagnostics["depth_scale"] == pytest.approx(1.035, rel=0.003)
+    assert once.timings_s.get("render", 0) > 0 and "rescale_retry" not in once.timings_s
+    scale = once.alignment.diagnostics["depth_scale"]
+    again = correct_pose(frame.with_depth(frame.depth_m / np.float32(scale)), walk.oracle_field(), T_render,
+                         iterations=config.correction_iterations, config=config.align)
+    dt, dr = pose_error(once.T_world_cam_corrected, again.T_world_cam_corrected)
+    assert dt < 1e-3 and np.degrees(dr) < 0.05, (dt, np.degrees(dr))
+    truth_t, _ = pose_error(once.T_world_cam_corrected, walk.T_world_cam_gt[i])
+    assert truth_t < 0.01
