@@ -63,6 +63,8 @@ class ImuOdometry:
 class ImuPipeline(Pipeline):
     """:class:`Pipeline` with IMU preintegration between keyframes (see the module docstring)."""
 
+    supports_graph_window = False  # velocities and biases would need marginalising too
+
     def _start(self) -> None:
         super()._start()
         self.imu: ImuStream = self.odometry.stream

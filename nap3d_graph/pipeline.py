@@ -55,6 +55,9 @@ class Pipeline:
         gate (tests use it to inject a wrong correction).
     """
 
+    #: Whether this run's graph can be bounded (``PipelineConfig.graph_window``).
+    supports_graph_window = True
+
     def __init__(self, sequence, field, odometry, config: PipelineConfig | None = None, correction_hook=None):
         self.sequence = sequence
         self.field = field
@@ -62,6 +65,8 @@ class Pipeline:
         # The field's own error, as it measured it when it was built, unless told otherwise.
         self.config = with_field_error(config or PipelineConfig(), field)
         self.correction_hook = correction_hook
+        if self.config.graph_window and (self.config.use_anchor or not self.supports_graph_window):
+            raise ValueError("graph_window (a bounded graph) does not apply with the map anchor or the IMU path")
 
     # --- the run, as its steps ---------------------------------------------------------
 
@@ -113,7 +118,8 @@ class Pipeline:
             self._land(worker, on_keyframe)  # a late correction enters the graph now
         if keyframe:
             self._add_keyframe(i)
-            frame = frame if frame is not None else self._read_frame(i)
+            if frame is None and self.field is not None:  # without a field a keyframe needs no image
+                frame = self._read_frame(i)
             if worker is not None:
                 self._launch(worker, i, frame, on_keyframe)
             else:
@@ -156,6 +162,8 @@ class Pipeline:
         self._sharpness_since_kf: list[float] = []
         self._odometry_doubted = False
         self.factor_log: list[tuple[gtsam.NonlinearFactor, bool, int]] = []  # (factor, is NAP3D, keyframe)
+        self._frozen: dict[int, np.ndarray] = {}  # keyframes marginalised out of the window: their poses
+        self._first_live = 0  # the oldest keyframe still in iSAM2
         timing = self._timing() or {}
         self.depth_scale = DepthScaleTracker(float(timing.get("depth_scale", 1.0)), self.config)
         # The measurement stream, for estimators compared on the same inputs
@@ -366,6 +374,9 @@ class Pipeline:
             record.reason = correction.reason
             return
         record.correction_m, record.correction_deg = pose_error(correction.T_world_cam_corrected, T_render)
+        if not self.isam.valueExists(record.key):
+            record.reason = "keyframe left the graph window before its correction landed"
+            return
         t0 = time.perf_counter()
         factor, gate = self._gated_factor(record.key, correction)
         record.timings_s["gate"] = round(time.perf_counter() - t0, 5)
@@ -442,9 +453,54 @@ class Pipeline:
         # Fresh containers every update: iSAM2 keeps what it was given.
         self.new_factors = gtsam.NonlinearFactorGraph()
         self.new_values = gtsam.Values()
+        self._bound_graph()
         record = record or self._pending_record
         if record is not None:
             record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
+
+    def _bound_graph(self) -> None:
+        """With ``graph_window`` N: once more than 1.5 N keyframes are live, marginalise the
+        oldest down to N and fix their poses (see :class:`PipelineConfig`). What is kept for a
+        rebuild and for the final solve becomes iSAM2's own factors, the marginal included; the
+        final solve is then Levenberg-Marquardt on them (GNC takes no marginal)."""
+        window = self.config.graph_window
+        n = len(self.keyframe_indices)
+        if not window or n - self._first_live <= window + window // 2:
+            return
+        cut = n - window
+        # Poses about to be fixed: relinearise everything first (iSAM2 relinearises lazily, past
+        # a threshold, and the final solve will not polish these any more), then solve fully.
+        try:
+            self.isam.update(force_relinearize=True)
+            self.isam.update(force_relinearize=True)
+        except RuntimeError as exc:
+            log.debug("relinearisation before the window moved failed (%s)", exc)
+            return
+        best = self.isam.calculateBestEstimate()
+        frozen = {j: pose3_to_T(best.atPose3(X(j))) for j in range(self._first_live, cut)}
+        leaving = gtsam.KeyList()
+        for j in frozen:
+            leaving.push_back(X(j))
+        try:
+            self.isam.marginalizeLeaves(leaving)
+        except RuntimeError as exc:  # not leaves of the Bayes tree: keep them, try again later
+            log.debug("keyframes %d-%d not marginalised yet (%s)", self._first_live, cut - 1, exc)
+            return
+        self._frozen.update(frozen)
+        self._first_live = cut
+        gone = {X(j) for j in frozen}
+        factors = self.isam.getFactorsUnsafe()
+        live = [(i, factors.at(i)) for i in range(factors.size()) if factors.at(i) is not None]
+        # The marginal on the window's first keyframe is a known inlier of the final solve.
+        self.factor_log = [entry for entry in self.factor_log if not gone & set(entry[0].keys())]
+        self._graph_all = gtsam.NonlinearFactorGraph()
+        for _, f in live:
+            self._graph_all.add(f)
+        self._values_all = self.isam.calculateEstimate()
+        oldest_frame = self.keyframe_indices[cut]
+        for kept in (self.interval_odometry, self.measured_corrections):
+            for i in [i for i in kept if i < oldest_frame]:
+                del kept[i]
 
     def _rebuild_isam(self, why: str) -> None:
         """After a failed iSAM2 update (its state is then undefined): a fresh iSAM2 from
@@ -474,7 +530,8 @@ class Pipeline:
             T_odom = np.stack(self.T_odom[:n])
             return RunResult(stamps, T_odom, T_odom, T_gt, [], [], T_world_cam_online=T_odom)
         estimate = self._final_estimate()
-        T_kf = {idx: pose3_to_T(estimate.atPose3(X(j))) for j, idx in enumerate(self.keyframe_indices)}
+        T_kf = {idx: self._frozen[j] if j in self._frozen else pose3_to_T(estimate.atPose3(X(j)))
+                for j, idx in enumerate(self.keyframe_indices)}
         T_est = self._chain_between_keyframes(T_kf, n)
         T_online = self._chain_forward(n)
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
@@ -493,9 +550,11 @@ class Pipeline:
         estimate = self.isam.calculateEstimate()
         nap3d = [k for k, (_, is_nap3d, _) in enumerate(self.factor_log) if is_nap3d]
         try:
-            if self.config.final_gnc and nap3d:
+            # GNC needs every factor with a noise model; a window's marginal has none (the window's
+            # own robust factors then decide, with Levenberg-Marquardt).
+            if self.config.final_gnc and nap3d and not self._frozen:
                 return self._gnc_solve(estimate, nap3d)
-            return gtsam.LevenbergMarquardtOptimizer(self.isam.getFactorsUnsafe(), estimate).optimize()
+            return gtsam.LevenbergMarquardtOptimizer(self._graph_all, estimate).optimize()
         except RuntimeError as exc:  # keep iSAM2's answer rather than lose the run
             log.warning("final batch optimisation failed (%s); writing the iSAM2 estimate", exc)
             return estimate

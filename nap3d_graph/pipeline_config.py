@@ -75,6 +75,12 @@ class PipelineConfig:
         trajectory then holds each frame's pose as it was known at that frame. Results depend
         on when a correction finishes, so an overlapped run is not bit-for-bit repeatable.
         The IMU path does not overlap.
+    graph_window: keyframes kept in iSAM2 (0: all, the default). With N > 0, once more than
+        1.5 N keyframes are in the graph the oldest are marginalised down to N (iSAM2's
+        ``marginalizeLeaves``: their information stays as a linear prior on the window's
+        first keyframe) and their poses are fixed at their estimate then, so a long run's
+        graph, its updates and its final solve stay bounded; corrections that land later
+        no longer move those poses. Not with the map anchor or the IMU path.
     """
 
     keyframe_every: int = 5
@@ -111,11 +117,14 @@ class PipelineConfig:
     field_sigma_rad: float | None = None
     field_sigma_depth_m: float = 2.0
     overlap: bool = False
+    graph_window: int = 0
     max_frames: int | None = None
     progress: bool = False
     align: AlignConfig = field(default_factory=AlignConfig)
 
     def __post_init__(self) -> None:
+        if self.graph_window and self.graph_window < 3:
+            raise ValueError(f"graph_window must be 0 (all keyframes) or >= 3, got {self.graph_window}")
         if self.keyframe_every < 1:
             raise ValueError(f"keyframe_every must be >= 1, got {self.keyframe_every}")
         if self.keyframe_window < 0 or not 0 < self.keyframe_sharpness_fraction <= 1:

@@ -37,6 +37,8 @@ def run(args) -> int:
     from nap3d_graph.evaluation.compare import compare, comparison_rows, format_table, write_comparison
 
     t0 = time.perf_counter()
+    if args.graph_window:
+        raise UsageError("--graph-window does not apply to compare: its estimators are fed the whole run")
     empty_or_new_dir(args.out, args.force)
     prepared = prepare(args)
     if prepared.sequence.T_world_cam_gt is None:

@@ -151,6 +151,10 @@ def add_source_arguments(p) -> None:
     p.add_argument("--overlap", action="store_true",
                    help="measure each keyframe's correction on a second thread while the odometry goes on; it "
                    "enters the graph when ready (faster on two cores; not bit-for-bit repeatable; not with --odom imu)")
+    p.add_argument("--graph-window", type=non_negative_int, default=0, metavar="N",
+                   help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their "
+                   "poses, so a long run's graph and its updates stay bounded (default 0: every keyframe, the whole "
+                   "trajectory smoothed at the end; not with --odom imu or --anchor)")
     p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
     p.add_argument("--seed", type=int, default=0, help="seed of injected odometry noise (default 0)")
     p.add_argument("--cache", type=Path, default=None,
@@ -356,11 +360,16 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     odom_kind, odometry, pipeline_class = _odometry(args, sequence, initial_pose)
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
+    if args.graph_window and (odom_kind == "imu" or use_anchor):
+        raise UsageError("--graph-window does not apply to --odom imu or --anchor")
+    if args.graph_window and args.graph_window < 3:
+        raise UsageError(f"--graph-window must be 0 (every keyframe) or at least 3, got {args.graph_window}")
     config = PipelineConfig(keyframe_every=args.keyframe_every, keyframe_distance_m=args.keyframe_distance,
                             keyframe_window=args.keyframe_window, keyframe_on_doubt=args.keyframe_on_doubt,
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
                             field_sigma_m=args.field_sigma, overlap=args.overlap, max_frames=args.max_frames,
+                            graph_window=args.graph_window,
                             progress=True, compensate_timing=args.timing == "auto",
                             timing=_timing(args, field_obj, sequence),
                             align=with_overrides(AlignConfig(matcher=args.matcher), getattr(args, "align_overrides", None)))
