@@ -1,0 +1,128 @@
+"""The graph of a long run, bounded or not: iSAM2 time per keyframe and memory up to 50,000 poses.
+
+A synthetic walk (30 Hz, every frame a keyframe) goes through the real :class:`Pipeline`
+graph: odometry with injected noise, and at every keyframe a NAP3D-like correction (the true
+pose perturbed by its stated 1 cm / 0.5 deg covariance) through the same gate, factor and
+iSAM2 updates a run uses; only the image work is left out (the measurement is drawn, not
+rendered and aligned), since this measures the graph. For ``--graph-window 0`` (every
+keyframe kept, the default) and a bounded window, the median iSAM2 milliseconds per keyframe
+over each block of 1,000 keyframes, the process's resident memory at each 10,000, the final
+solve's seconds and the ATE. Writes ``benchmarks/results/graph_window.json``.
+
+    python benchmarks/graph_window.py [--keyframes 50000] [--window 200]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nap3d_graph.conventions import exp_se3, pose_error
+from nap3d_graph.odometry import make_odometry
+from nap3d_graph.pipeline import Pipeline, PipelineConfig
+from nap3d_graph.results import Alignment, Correction
+
+CORRECTION_SIGMAS = np.r_[np.full(3, np.radians(0.5)), np.full(3, 0.01)]
+
+
+class Walk:
+    """Timestamps and ground truth of a smooth walk; no images (none is read)."""
+
+    def __init__(self, n: int, fps: float = 30.0, seed: int = 0):
+        rng = np.random.default_rng(seed)
+        self.timestamps = np.arange(n) / fps
+        self.depth_timestamps = self.timestamps.copy()
+        T = [np.eye(4)]
+        for _ in range(n - 1):
+            T.append(T[-1] @ exp_se3(np.r_[rng.normal(0, 0.002, 3), 0.01, rng.normal(0, 0.002, 2)]))
+        self.T_world_cam_gt = np.stack(T)
+        self.path = self.name = "synthetic walk"
+
+    def __len__(self):
+        return len(self.timestamps)
+
+    def __getitem__(self, i):
+        raise RuntimeError("no images in a synthetic walk")
+
+
+class DrawnCorrections(Pipeline):
+    """The run's graph with each keyframe's correction drawn around the truth."""
+
+    def _read_frame(self, i: int):
+        return None  # nothing to read: the correction is drawn
+
+    def _correct_keyframe(self, i: int, frame) -> None:
+        rng = np.random.default_rng(i)
+        T_true = self.sequence.T_world_cam_gt[i]
+        T_measured = T_true @ exp_se3(rng.normal(0.0, CORRECTION_SIGMAS))
+        covariance = np.diag(CORRECTION_SIGMAS**2)
+        alignment = Alignment(covariance=covariance, num_matches=200, num_inliers=150, success=True)
+        correction = Correction(self.T_pred, T_measured, covariance, alignment, 1, True)
+        self._apply_correction(self._pending_record, i, correction, self.T_pred)
+
+
+def rss_mb() -> float:
+    with open("/proc/self/status") as handle:
+        for line in handle:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def run(walk: Walk, window: int) -> dict:
+    config = PipelineConfig(keyframe_every=1, graph_window=window, progress=False, final_gnc=True)
+    pipeline = DrawnCorrections(walk, object(), make_odometry("noisy", walk, 1, 2e-3, 2e-3), config)
+    memory, isam_ms = {}, []
+
+    def on_keyframe(record):
+        isam_ms.append(record.timings_s.get("isam", 0.0) * 1000.0)
+        if len(isam_ms) % 10_000 == 0:
+            memory[len(isam_ms)] = rss_mb()
+
+    t0 = time.perf_counter()
+    pipeline.start()
+    for i in range(len(walk)):
+        pipeline.step(i, on_keyframe=on_keyframe)
+    run_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    result = pipeline.result(len(walk))
+    final_s = time.perf_counter() - t0
+    blocks = {str(k + 1000): float(np.median(isam_ms[k:k + 1000])) for k in range(0, len(isam_ms), 1000)}
+    ate = float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(result.T_world_cam_estimate,
+                                                                            walk.T_world_cam_gt)])))
+    return {"graph_window": window, "keyframes": len(isam_ms), "run_s": run_s, "final_solve_s": final_s,
+            "isam_ms_median_per_1000_keyframes": blocks, "isam_ms_p90_last_1000": float(np.percentile(isam_ms[-1000:], 90)),
+            "rss_mb_at": {str(k): v for k, v in memory.items()}, "accepted": result.num_accepted, "ate_m": ate,
+            "graph_variables_at_end": int(pipeline.isam.calculateEstimate().size())}
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--keyframes", type=int, default=50_000)
+    p.add_argument("--window", type=int, default=200)
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results/graph_window.json"))
+    args = p.parse_args()
+    walk = Walk(args.keyframes)
+    result = {"benchmark": "graph_window", "keyframes": args.keyframes,
+              "machine": {"cpus": os.cpu_count(), "python": platform.python_version()}, "runs": []}
+    for window in (args.window, 0):
+        out = run(walk, window)
+        result["runs"].append(out)
+        last = list(out["isam_ms_median_per_1000_keyframes"].values())
+        print(f"window {window or 'all'}: iSAM2 {last[9] if len(last) > 9 else last[-1]:.3f} ms per keyframe at "
+              f"10k, {last[-1]:.3f} at {out['keyframes']} (p90 {out['isam_ms_p90_last_1000']:.3f}); RSS "
+              f"{out['rss_mb_at']} MB; final solve {out['final_solve_s']:.1f} s; ATE {out['ate_m'] * 100:.2f} cm; "
+              f"{out['graph_variables_at_end']} variables at the end", flush=True)
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(result, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
