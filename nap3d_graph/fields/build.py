@@ -60,7 +60,7 @@ def estimate_timing(sequence) -> dict | None:
 
 
 #: An estimated depth offset is used only when it makes the frames agree this much better than
-#: the stamps as they are (depth's or colour's), and lies inside the searched range: on a
+#: the depth stamps as they are, and lies inside the searched range: on a
 #: short recording (12 frames, 9 pairs) the search's minimum is noise, and a wrong offset warps
 #: every keyframe's depth the wrong way (measured: ATE 1.63 instead of 0.60 cm).
 TIMING_MIN_GAIN = 0.05
@@ -69,10 +69,10 @@ TIMING_SEARCH_S = (-0.06, 0.04)
 
 def _unclear_timing(depth) -> str:
     """Why an estimated capture timing is not to be trusted ('' when it is)."""
-    plain = min(depth.at_depth_stamps_mm, depth.at_colour_stamps_mm)
+    plain = depth.at_depth_stamps_mm  # what a run without the timing uses: depth at its own stamp
     if not depth.agreement_mm < (1.0 - TIMING_MIN_GAIN) * plain:
         return (f"the best depth offset ({depth.offset_s * 1000:+.0f} ms) makes the frames agree to "
-                f"{depth.agreement_mm:.1f} mm, no better than the stamps as they are ({plain:.1f} mm)")
+                f"{depth.agreement_mm:.1f} mm, no better than the depth stamps as they are ({plain:.1f} mm)")
     if not TIMING_SEARCH_S[0] + 0.002 < depth.offset_s < TIMING_SEARCH_S[1] - 0.002:
         return f"the best depth offset ({depth.offset_s * 1000:+.0f} ms) is at the edge of the searched range"
     return ""
