@@ -50,8 +50,8 @@ def add_parser(sub) -> None:
 
 
 def _same_sweep(out: Path, spec_path: Path) -> None:
-    """A folder holds one sweep: its sweep.yaml must be this one (edits that add cells are fine
-    only under the same file: a different file's folder is refused)."""
+    """A folder holds one sweep: its saved sweep.yaml must be this file's text (an edited file
+    is another sweep: give it another folder)."""
     saved = out / "sweep.yaml"
     if saved.is_file() and saved.read_text() != spec_path.read_text():
         raise UsageError(f"{out} holds another sweep (its sweep.yaml differs from {spec_path}): choose another --out")
