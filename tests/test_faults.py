@@ -148,3 +148,29 @@ def test_a_frame_whose_metre_is_off_is_aligned_in_one_pass(walk):
     assert dt < 1e-3 and np.degrees(dr) < 0.05, (dt, np.degrees(dr))
     truth_t, _ = pose_error(once.T_world_cam_corrected, walk.T_world_cam_gt[i])
     assert truth_t < 0.01
+
+
+def _correct_in_child(args):
+    from nap3d_graph import correct_pose
+
+    frame, field, T = args
+    return correct_pose(frame, field, T).T_world_cam_corrected
+
+
+def test_correct_pose_detects_beside_the_render_and_survives_a_fork(walk):
+    """The real frame's features are detected on a helper thread while the render is made:
+    the same correction as ever, and a forked process (a multiprocessing pool's default on
+    Linux) gets its own helper instead of waiting on the parent's."""
+    import multiprocessing
+
+    from nap3d_graph import correct_pose
+
+    i = 20
+    T = walk.T_world_cam_gt[i] @ exp_se3(np.r_[0.01, 0.0, -0.01, 0.02, 0.01, -0.01])
+    first = correct_pose(walk[i], walk.oracle_field(), T)
+    again = correct_pose(walk[i], walk.oracle_field(), T)
+    assert first.success and first.timings_s["detect"] > 0 and first.timings_s["render"] > 0
+    np.testing.assert_array_equal(first.T_world_cam_corrected, again.T_world_cam_corrected)
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        child = pool.map_async(_correct_in_child, [(walk[i], walk.oracle_field(), T)]).get(timeout=120)[0]
+    np.testing.assert_allclose(child, first.T_world_cam_corrected, atol=1e-9)

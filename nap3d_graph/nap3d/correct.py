@@ -8,7 +8,9 @@ iterating is both more accurate and gives a more honest covariance than one roun
 from __future__ import annotations
 
 import logging
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -73,13 +75,15 @@ def correct_pose(
     real = frame
     if intrinsics.shape != frame.intrinsics.shape:
         real = _resize_frame(frame, intrinsics.width, intrinsics.height)
-    t0 = time.perf_counter()
-    feats_real = detect_features(real.rgb, config.max_features, matcher=config.matcher)
-    timings["detect"] = time.perf_counter() - t0
+    # The real frame's features while the first render is made: the two do not depend on each
+    # other, and OpenCV and torch both release the GIL, so the second core takes one of them.
+    detecting = _detector().submit(_timed_detect, real.rgb, config)
     for rounds in range(1, max(1, iterations) + 1):
         t0 = time.perf_counter()
         view, reason = render_safely(field, T_current, intrinsics)
         timings["render"] += time.perf_counter() - t0
+        if rounds == 1:
+            feats_real, timings["detect"] = detecting.result()
         if view is None:
             alignment = Alignment.failure(reason)
             break
@@ -105,6 +109,23 @@ def correct_pose(
         return Correction(T_est, T_est.copy(), np.full((6, 6), np.inf), alignment, rounds, False,
                           alignment.reason, timings, views)
     return Correction(T_est, T_current, alignment.covariance, alignment, rounds, True, "", timings, views)
+
+
+def _timed_detect(rgb: np.ndarray, config: AlignConfig):
+    t0 = time.perf_counter()
+    return detect_features(rgb, config.max_features, matcher=config.matcher), time.perf_counter() - t0
+
+
+_DETECTOR: tuple[int, ThreadPoolExecutor] | None = None
+
+
+def _detector() -> ThreadPoolExecutor:
+    """One thread for the real frame's features, per process (a forked child gets its own: an
+    executor's thread does not survive a fork)."""
+    global _DETECTOR
+    if _DETECTOR is None or _DETECTOR[0] != os.getpid():
+        _DETECTOR = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="nap3d-detect"))
+    return _DETECTOR[1]
 
 
 def _resize_frame(frame: RGBDFrame, width: int, height: int) -> RGBDFrame:
