@@ -27,28 +27,9 @@ from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.odometry import make_odometry
 from nap3d_graph.pipeline import Pipeline, PipelineConfig
 from nap3d_graph.results import Alignment, Correction
+from nap3d_graph.sims.trajectories import ImagelessWalk
 
 CORRECTION_SIGMAS = np.r_[np.full(3, np.radians(0.5)), np.full(3, 0.01)]
-
-
-class Walk:
-    """Timestamps and ground truth of a smooth walk; no images (none is read)."""
-
-    def __init__(self, n: int, fps: float = 30.0, seed: int = 0):
-        rng = np.random.default_rng(seed)
-        self.timestamps = np.arange(n) / fps
-        self.depth_timestamps = self.timestamps.copy()
-        T = [np.eye(4)]
-        for _ in range(n - 1):
-            T.append(T[-1] @ exp_se3(np.r_[rng.normal(0, 0.002, 3), 0.01, rng.normal(0, 0.002, 2)]))
-        self.T_world_cam_gt = np.stack(T)
-        self.path = self.name = "synthetic walk"
-
-    def __len__(self):
-        return len(self.timestamps)
-
-    def __getitem__(self, i):
-        raise RuntimeError("no images in a synthetic walk")
 
 
 class DrawnCorrections(Pipeline):
@@ -75,7 +56,7 @@ def rss_mb() -> float:
     return float("nan")
 
 
-def run(walk: Walk, window: int) -> dict:
+def run(walk: ImagelessWalk, window: int) -> dict:
     config = PipelineConfig(keyframe_every=1, graph_window=window, progress=False, final_gnc=True)
     pipeline = DrawnCorrections(walk, object(), make_odometry("noisy", walk, 1, 2e-3, 2e-3), config)
     memory, isam_ms = {}, []
@@ -108,7 +89,7 @@ def main() -> None:
     p.add_argument("--window", type=int, default=200)
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/graph_window.json"))
     args = p.parse_args()
-    walk = Walk(args.keyframes)
+    walk = ImagelessWalk(args.keyframes)
     result = {"benchmark": "graph_window", "keyframes": args.keyframes,
               "machine": {"cpus": os.cpu_count(), "python": platform.python_version()}, "runs": []}
     for window in (args.window, 0):

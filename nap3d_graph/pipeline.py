@@ -489,13 +489,12 @@ class Pipeline:
         self._frozen.update(frozen)
         self._first_live = cut
         gone = {X(j) for j in frozen}
-        factors = self.isam.getFactorsUnsafe()
-        live = [(i, factors.at(i)) for i in range(factors.size()) if factors.at(i) is not None]
-        # The marginal on the window's first keyframe is a known inlier of the final solve.
         self.factor_log = [entry for entry in self.factor_log if not gone & set(entry[0].keys())]
+        factors = self.isam.getFactorsUnsafe()  # marginalised factors leave empty slots
         self._graph_all = gtsam.NonlinearFactorGraph()
-        for _, f in live:
-            self._graph_all.add(f)
+        for k in range(factors.size()):
+            if (factor := factors.at(k)) is not None:
+                self._graph_all.add(factor)
         self._values_all = self.isam.calculateEstimate()
         oldest_frame = self.keyframe_indices[cut]
         for kept in (self.interval_odometry, self.measured_corrections):

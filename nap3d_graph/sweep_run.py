@@ -260,17 +260,18 @@ def _alive(pid: int) -> bool:
     return True
 
 
+def _read_json(path: Path) -> dict | None:
+    """A task's status file, or None when it is absent (unfinished) or unreadable."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
 def cell_status(folder: Path, cell) -> dict | None:
     """A cell's result.json or error.json, or None when it is not finished."""
     cell_dir = folder / "cells" / cell.id
-    for name in ("result.json", "error.json"):
-        path = cell_dir / name
-        if path.is_file():
-            try:
-                return json.loads(path.read_text())
-            except ValueError:
-                return None
-    return None
+    return _read_json(cell_dir / "result.json") or _read_json(cell_dir / "error.json")
 
 
 def _field_path(folder: Path, task) -> Path:
@@ -278,13 +279,7 @@ def _field_path(folder: Path, task) -> Path:
 
 
 def _field_done(folder: Path, task) -> dict | None:
-    done = _field_path(folder, task).with_suffix(".done.json")
-    if done.is_file():
-        try:
-            return json.loads(done.read_text())
-        except ValueError:
-            return None
-    return None
+    return _read_json(_field_path(folder, task).with_suffix(".done.json"))
 
 
 def run_sweep(spec, folder, pool, progress: bool = True, retry_failed: bool = False) -> dict:
@@ -320,8 +315,9 @@ def run_sweep(spec, folder, pool, progress: bool = True, retry_failed: bool = Fa
                 (cell_dir / "log.txt").unlink(missing_ok=True)
                 task = cell.field
                 field_path = None if task.untrained else _field_path(folder, task)
-                if field_path is not None and (_field_done(folder, task) or {}).get("status") != "ok":
-                    error = (_field_done(folder, task) or {}).get("error", "not built")
+                built = {} if field_path is None else (_field_done(folder, task) or {})
+                if field_path is not None and built.get("status") != "ok":
+                    error = built.get("error", "not built")
                     _write_json(cell_dir / "error.json", {"status": "failed", "error": f"field {task.id} failed: {error}",
                                                           "attempts": 0})
                     counts["failed"] += 1

@@ -37,7 +37,7 @@ import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
-__all__ = ["SweepError", "SweepSpec", "FieldTask", "Cell", "Recording", "detect_traj"]
+__all__ = ["SweepError", "SweepSpec", "FieldTask", "Cell", "Recording"]
 
 #: Options the sweep sets for each cell itself.
 _RESERVED_RUN = {"data", "traj", "frames", "field", "out", "seed", "config", "write_bag", "viz", "max_frames_per_cell"}
@@ -48,22 +48,6 @@ UNTRAINED = ("none", "oracle")
 
 class SweepError(ValueError):
     """A sweep file that cannot be used; the message names the file and the key."""
-
-
-def detect_traj(path: Path) -> str:
-    """The ``--traj`` of a recording: rosbag, realsense, sim, 7scenes or tum."""
-    from nap3d_graph.datasets import is_rosbag, is_sevenscenes_folder
-
-    path = Path(path)
-    if is_rosbag(path):
-        return "rosbag"
-    if path.suffix.lower() in (".bag", ".db3"):
-        return "realsense"
-    if (path / "scene.json").is_file():
-        return "sim"
-    if is_sevenscenes_folder(path) and not (path / "rgb.txt").exists():
-        return "7scenes"
-    return "tum"
 
 
 def _slug(text: str) -> str:
@@ -151,7 +135,9 @@ class Cell:
 
     def argv(self, field_path: Path | None, out_dir: Path) -> list[str]:
         data = self.recording.query_data
-        argv = ["run", "--traj", detect_traj(Path(data)), "--data", data, "--field",
+        from nap3d_graph.datasets import source_of
+
+        argv = ["run", "--traj", source_of(data), "--data", data, "--field",
                 self.field.run_field or str(field_path), "--seed", str(self.seed), "--out", str(out_dir)]
         if self.recording.query_frames:
             argv += ["--frames", self.recording.query_frames]

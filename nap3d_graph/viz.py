@@ -75,7 +75,7 @@ class RunRecorder:
             self.stream.spawn()
         else:
             self.stream.save(target)
-        self.target, self.intrinsics, self.count = target, intrinsics, 0
+        self.target, self.intrinsics = target, intrinsics
         self.stream.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.stream.log("run", rr.TextDocument(f"nap3d-graph run: {name}"), static=True)
 
@@ -87,7 +87,6 @@ class RunRecorder:
         """One keyframe: its images, matches, status, covariance and camera (``correction``:
         its :class:`~nap3d_graph.results.Correction`, or None when none was measured)."""
         self._at(record.frame_index, record.timestamp)
-        self.count += 1
         views = getattr(correction, "views", None) or {}
         real, render = views.get("real_rgb"), views.get("render_rgb")
         if real is not None:

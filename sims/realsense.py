@@ -40,7 +40,7 @@ def write_realsense_recording(sim_dir, out_path, baseline_m: float = 0.015, dept
     fps = int(round(1.0 / float(np.median(np.diff(seq.timestamps))))) if len(seq) > 1 else 15
     writer = RecordingWriter(out_path, stream_K, stream_K, depth_units, T_colour_depth, fps=fps, imu_hz=200)
     capture = np.asarray(seq.config.get("depth_capture_stamps") or seq.depth_timestamps, dtype=float)
-    gt_stamps = seq._gt_raw[0]
+    gt_stamps = seq.ground_truth_samples[0]
     # The ground truth covers every capture instant to the microsecond it is written with.
     capture = np.clip(capture, gt_stamps[0], gt_stamps[-1])
     T_world_colour = seq.ground_truth_at(capture)  # the colour camera's pose when the depth was taken

@@ -19,7 +19,8 @@ from nap3d_graph.conventions import exp_so3, log_so3
 
 from .scene import Scene
 
-__all__ = ["Trajectory", "traverse_trajectory", "mapping_trajectory", "make_trajectory", "R_world_cam_from_angles"]
+__all__ = ["Trajectory", "traverse_trajectory", "mapping_trajectory", "make_trajectory", "R_world_cam_from_angles",
+           "ImagelessWalk"]
 
 # Camera looking along world +X, level: x_cam = -Y_world (right), y_cam = -Z_world (down).
 _R_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -152,3 +153,28 @@ def make_trajectory(kind: str, scene: Scene, rng: np.random.Generator, duration_
     if kind == "mapping":
         return mapping_trajectory(scene, rng, duration_s)
     raise ValueError(f"unknown path kind {kind!r}; use 'traverse' or 'mapping'")
+
+
+class ImagelessWalk:
+    """A long random walk as a sequence without images: ``timestamps`` (``fps`` Hz) and
+    ``T_world_cam_gt`` (1 cm forward per frame, 2 mrad/2 mm jitter), for runs that read no
+    frame (no field, injected odometry noise): the graph's cost on 50,000 keyframes in
+    seconds. Reading a frame raises."""
+
+    def __init__(self, n: int, fps: float = 30.0, seed: int = 0):
+        from nap3d_graph.conventions import exp_se3
+
+        rng = np.random.default_rng(seed)
+        self.timestamps = np.arange(n) / fps
+        self.depth_timestamps = self.timestamps.copy()
+        T = [np.eye(4)]
+        for _ in range(n - 1):
+            T.append(T[-1] @ exp_se3(np.r_[rng.normal(0, 0.002, 3), 0.01, rng.normal(0, 0.002, 2)]))
+        self.T_world_cam_gt = np.stack(T)
+        self.path = self.name = "imageless walk"
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+    def __getitem__(self, i):
+        raise RuntimeError("an imageless walk has no frames to read")

@@ -9,30 +9,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from nap3d_graph.conventions import exp_se3, pose_error
+from nap3d_graph.conventions import pose_error
 from nap3d_graph.odometry import make_odometry
 from nap3d_graph.pipeline import Pipeline, PipelineConfig
-
-
-class _Walk:
-    """A long trajectory without images: timestamps and ground truth only (a run with no field
-    and injected odometry noise never reads a frame)."""
-
-    def __init__(self, n: int, fps: float = 30.0, seed: int = 0):
-        rng = np.random.default_rng(seed)
-        self.timestamps = np.arange(n) / fps
-        self.depth_timestamps = self.timestamps.copy()
-        T = [np.eye(4)]
-        for _ in range(n - 1):
-            T.append(T[-1] @ exp_se3(np.r_[rng.normal(0, 0.002, 3), 0.01, rng.normal(0, 0.002, 2)]))
-        self.T_world_cam_gt = np.stack(T)
-        self.path, self.name = "walk", "walk"
-
-    def __len__(self):
-        return len(self.timestamps)
-
-    def __getitem__(self, i):
-        raise AssertionError("a run without field and with injected odometry reads no frame")
+from nap3d_graph.sims.trajectories import ImagelessWalk
 
 
 def _graph_size(pipeline) -> tuple[int, int]:
@@ -42,7 +22,7 @@ def _graph_size(pipeline) -> tuple[int, int]:
 
 
 def test_a_long_run_keeps_a_bounded_graph_and_the_same_trajectory():
-    walk = _Walk(3000)
+    walk = ImagelessWalk(3000)
     base = PipelineConfig(keyframe_every=5, progress=False)
     sizes = []
     bounded = Pipeline(walk, None, make_odometry("noisy", walk, 1, 2e-3, 2e-3),
@@ -88,6 +68,6 @@ def test_a_bounded_run_still_removes_the_drift(tmp_path):
 def test_graph_window_is_refused_where_it_does_not_apply():
     with pytest.raises(ValueError, match="graph_window must be 0"):
         PipelineConfig(graph_window=2)
-    walk = _Walk(10)
+    walk = ImagelessWalk(10)
     with pytest.raises(ValueError, match="map anchor"):
         Pipeline(walk, None, make_odometry("noisy", walk, 1), PipelineConfig(graph_window=5, use_anchor=True))

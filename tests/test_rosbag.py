@@ -76,7 +76,7 @@ class _RepeatedFrame:
     """A sequence of one 320x240 frame repeated at 30 Hz: bags of any length, cheaply."""
 
     def __init__(self, frame, n: int):
-        self.frame, self.n, self._gt_raw, self.imu = frame, n, None, None
+        self.frame, self.n, self.ground_truth_samples, self.imu = frame, n, None, None
 
     def __len__(self):
         return self.n
@@ -307,7 +307,7 @@ def test_depth_from_a_separate_depth_camera_is_warped_into_colour(sim_dir, tmp_p
     from rosbags.rosbag2 import Writer
 
     from nap3d_graph.camera import Intrinsics
-    from nap3d_graph.datasets.rosbag_msgs import header, make_typestore, stamp_ns, transform_msg
+    from nap3d_graph.datasets.rosbag_msgs import camera_info_msg, image_msg, make_typestore, stamp_ns, transform_msg
 
     folder = SimSequence(sim_dir)
     colour_K = folder.intrinsics
@@ -316,19 +316,6 @@ def test_depth_from_a_separate_depth_camera_is_warped_into_colour(sim_dir, tmp_p
     T_colour_depth[0, 3] = 0.025
     store = make_typestore(2)
     types = store.types
-
-    def image(t, frame_id, pixels, encoding):
-        data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
-        return types["sensor_msgs/msg/Image"](header=header(store, t, frame_id), height=pixels.shape[0],
-                                              width=pixels.shape[1], encoding=encoding, is_bigendian=0,
-                                              step=data.size // pixels.shape[0], data=data)
-
-    def info(t, frame_id, K):
-        roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-        P = np.concatenate([K.K, np.zeros((3, 1))], axis=1).reshape(-1)
-        return types["sensor_msgs/msg/CameraInfo"](header=header(store, t, frame_id), height=K.height, width=K.width,
-                                                   distortion_model="plumb_bob", d=np.zeros(5), k=K.K.reshape(-1),
-                                                   r=np.eye(3).reshape(-1), p=P, binning_x=0, binning_y=0, roi=roi)
 
     path = tmp_path / "two_cameras"
     frames = (0, 5)
@@ -347,10 +334,10 @@ def test_depth_from_a_separate_depth_camera_is_warped_into_colour(sim_dir, tmp_p
         for i in frames:
             t, T = float(folder.timestamps[i]), folder.T_world_cam_gt[i]
             depth = folder.scene.render_depth(T @ T_colour_depth, depth_K).astype(np.float32)
-            put("/color/image", image(t, "color_optical", folder[i].rgb, "rgb8"), t)
-            put("/color/camera_info", info(t, "color_optical", colour_K), t)
-            put("/depth/image", image(t, "depth_optical", depth, "32FC1"), t)
-            put("/depth/camera_info", info(t, "depth_optical", depth_K), t)
+            put("/color/image", image_msg(store, t, "color_optical", folder[i].rgb, "rgb8"), t)
+            put("/color/camera_info", camera_info_msg(store, t, "color_optical", colour_K), t)
+            put("/depth/image", image_msg(store, t, "depth_optical", depth, "32FC1"), t)
+            put("/depth/camera_info", camera_info_msg(store, t, "depth_optical", depth_K), t)
     bag = RosbagSequence(path, topics="gt=none")
     assert len(bag) == len(frames)
     for k, i in enumerate(frames):

@@ -17,6 +17,7 @@ from .tum import DatasetError, TumSequence, read_tum_trajectory, write_tum_traje
 
 __all__ = [
     "SOURCES",
+    "source_of",
     "open_sequence",
     "DatasetError",
     "TumSequence",
@@ -38,6 +39,25 @@ SOURCES: dict[str, type] = {"tum": TumSequence, "sim": SimSequence, "realsense":
 RECORDING_SUFFIXES = (".bag", ".db3")
 
 
+def source_of(path) -> str:
+    """The source (a key of ``SOURCES``) a path is read as: "rosbag" for a ROS bag (a ROS 2
+    folder, or a ``.bag`` whose topics are not a RealSense recording's), "realsense" for a
+    RealSense ``.bag`` / ``.db3``, "sim" for a folder with a simulator's ``scene.json``,
+    "7scenes" for a 7-Scenes folder, "tum" for any other folder."""
+    from pathlib import Path
+
+    path = Path(path)
+    if is_rosbag(path):
+        return "rosbag"
+    if path.suffix.lower() in RECORDING_SUFFIXES:
+        return "realsense"
+    if (path / "scene.json").exists():
+        return "sim"
+    if is_sevenscenes_folder(path) and not (path / "rgb.txt").exists():
+        return "7scenes"
+    return "tum"
+
+
 def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, **kwargs):
     """A sequence as the right class: :class:`RosbagSequence` for a ROS bag (a ROS 2 bag
     folder, or a ``.bag`` whose topics are not a RealSense recording's; ``topics``: its
@@ -50,21 +70,18 @@ def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, **
     from pathlib import Path
 
     path = Path(path)
-    if is_rosbag(path):
+    source = source_of(path)
+    if source == "rosbag":
         if groundtruth is not None or realsense_config is not None:
             raise DatasetError(f"{path}: a ROS bag's ground truth comes from its /tf or a pose topic (--topics gt=...), "
                                "not --groundtruth / --realsense-config")
         return RosbagSequence(path, topics=topics, frames=kwargs.get("frames"))
     if topics:
         raise DatasetError(f"{path}: --topics is for ROS bags (a .bag file or a ROS 2 bag folder)")
-    if path.suffix.lower() in RECORDING_SUFFIXES:
+    if source == "realsense":
         config = None if realsense_config is None else RealSenseConfig.load(realsense_config)
         return RealSenseRecording(path, groundtruth=groundtruth, frames=kwargs.get("frames"), config=config)
     if groundtruth is not None or realsense_config is not None:
         raise DatasetError(f"{path}: --groundtruth / --realsense-config are for RealSense recordings (.bag, .db3); "
                            "a TUM folder's own groundtruth.txt is read")
-    if (path / "scene.json").exists():
-        return SimSequence(path, **kwargs)
-    if is_sevenscenes_folder(path) and not (path / "rgb.txt").exists():
-        return SevenScenesSequence(path, **kwargs)
-    return TumSequence(path, **kwargs)
+    return SOURCES[source](path, **kwargs)

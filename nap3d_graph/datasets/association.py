@@ -255,6 +255,11 @@ class GroundTruthLookup:
             return np.zeros(len(self), dtype=bool)
         return np.all(np.isfinite(self.T_world_cam_gt), axis=(1, 2))
 
+    @property
+    def ground_truth_samples(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The ground truth as recorded: ``(stamps (M,), T_world_cam (M, 4, 4))``, or None."""
+        return self._gt_raw
+
     def ground_truth_at(self, stamps) -> np.ndarray | None:
         """Ground-truth poses (M, 4, 4) interpolated at any times (M,) (NaN outside or in a
         gap of the ground truth), e.g. at the depth stamps; None without ground truth."""

@@ -34,6 +34,8 @@ __all__ = [
     "header",
     "transform_msg",
     "pose_msg",
+    "image_msg",
+    "camera_info_msg",
 ]
 
 #: sensor_msgs/Image colour encodings read: their channels and OpenCV's conversion to RGB.
@@ -131,8 +133,8 @@ def decode_depth_m(msg, topic: str) -> np.ndarray:
 
 def camera_info_arrays(msg) -> tuple[np.ndarray, tuple[float, ...], str, int, int]:
     """``(K (3, 3), distortion, model, width, height)`` of a sensor_msgs/CameraInfo."""
-    K = np.asarray(getattr(msg, "k", None) if hasattr(msg, "k") else msg.K, dtype=float).reshape(3, 3)
-    D = np.asarray(getattr(msg, "d", None) if hasattr(msg, "d") else msg.D, dtype=float).reshape(-1)
+    K = np.asarray(msg.k if hasattr(msg, "k") else msg.K, dtype=float).reshape(3, 3)
+    D = np.asarray(msg.d if hasattr(msg, "d") else msg.D, dtype=float).reshape(-1)
     return K, tuple(float(d) for d in D), str(msg.distortion_model), int(msg.width), int(msg.height)
 
 
@@ -214,3 +216,24 @@ def pose_msg(store, T_parent_child: np.ndarray, t_s: float, parent: str, seq: in
     _, rotation, position = _geometry(store, T_parent_child)
     pose = store.types["geometry_msgs/msg/Pose"](position=position, orientation=rotation)
     return store.types["geometry_msgs/msg/PoseStamped"](header=header(store, t_s, parent, seq), pose=pose)
+
+
+def image_msg(store, t_s: float, frame_id: str, pixels: np.ndarray, encoding: str, seq: int = 0):
+    """A sensor_msgs/Image of (H, W[, C]) pixels in ``encoding`` (rows packed, little-endian)."""
+    h, w = pixels.shape[:2]
+    data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
+    return store.types["sensor_msgs/msg/Image"](header=header(store, t_s, frame_id, seq), height=h, width=w,
+                                                encoding=encoding, is_bigendian=0, step=data.size // h, data=data)
+
+
+def camera_info_msg(store, t_s: float, frame_id: str, intrinsics, seq: int = 0):
+    """A sensor_msgs/CameraInfo of a pinhole :class:`~nap3d_graph.camera.Intrinsics` (no distortion)."""
+    Info = store.types["sensor_msgs/msg/CameraInfo"]
+    K = intrinsics.K.reshape(-1)
+    P = np.concatenate([intrinsics.K, np.zeros((3, 1))], axis=1).reshape(-1)
+    names = ("D", "K", "R", "P") if "K" in Info.__dataclass_fields__ else ("d", "k", "r", "p")
+    values = (np.zeros(5), K, np.eye(3).reshape(-1), P)
+    roi = store.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return Info(header=header(store, t_s, frame_id, seq), height=intrinsics.height, width=intrinsics.width,
+                distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi,
+                **dict(zip(names, values)))

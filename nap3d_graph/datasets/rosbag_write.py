@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from .errors import DatasetError
-from .rosbag_msgs import header, make_typestore, stamp_ns, transform_msg
+from .rosbag_msgs import camera_info_msg, header, image_msg, make_typestore, stamp_ns, transform_msg
 
 __all__ = ["write_sequence_bag", "T_KINECT_OPTICAL", "CAMERA_FRAME"]
 
@@ -58,25 +58,6 @@ class _Bag:
         self.writer.close()
 
 
-def _image(store, t_s: float, frame_id: str, pixels: np.ndarray, encoding: str, seq: int):
-    h, w = pixels.shape[:2]
-    data = np.ascontiguousarray(pixels).view(np.uint8).reshape(-1)
-    return store.types["sensor_msgs/msg/Image"](header=header(store, t_s, frame_id, seq), height=h, width=w,
-                                                encoding=encoding, is_bigendian=0, step=data.size // h, data=data)
-
-
-def _camera_info(store, t_s: float, frame_id: str, intrinsics, seq: int):
-    Info = store.types["sensor_msgs/msg/CameraInfo"]
-    K = intrinsics.K.reshape(-1)
-    P = np.concatenate([intrinsics.K, np.zeros((3, 1))], axis=1).reshape(-1)
-    names = ("D", "K", "R", "P") if "K" in Info.__dataclass_fields__ else ("d", "k", "r", "p")
-    values = (np.zeros(5), K, np.eye(3).reshape(-1), P)
-    roi = store.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    return Info(header=header(store, t_s, frame_id, seq), height=intrinsics.height, width=intrinsics.width,
-                distortion_model="plumb_bob", binning_x=0, binning_y=0, roi=roi,
-                **dict(zip(names, values)))
-
-
 def _imu_msg(store, t_s: float, accel, gyro, seq: int):
     types = store.types
     vec = types["geometry_msgs/msg/Vector3"]
@@ -94,7 +75,7 @@ def _small_messages(bag: _Bag, sequence):
     store, out = bag.store, []
     tf_type = "tf2_msgs/msg/TFMessage"
     TF = store.types[tf_type]
-    raw = getattr(sequence, "_gt_raw", None)
+    raw = getattr(sequence, "ground_truth_samples", None)
     if raw is not None:
         stamps, T_world_cam = raw
         T_world_kinect = T_world_cam @ inv_T(T_KINECT_OPTICAL)
@@ -123,17 +104,17 @@ def _frame_messages(bag: _Bag, sequence, depth_encoding: str, compressed: bool):
                                                                     format="rgb8; png compressed bgr8", data=png.reshape(-1))
             yield t_c, 2, "/camera/rgb/image_color/compressed", "sensor_msgs/msg/CompressedImage", colour
         else:
-            yield t_c, 2, "/camera/rgb/image_color", "sensor_msgs/msg/Image", _image(store, t_c, CAMERA_FRAME,
+            yield t_c, 2, "/camera/rgb/image_color", "sensor_msgs/msg/Image", image_msg(store, t_c, CAMERA_FRAME,
                                                                                        frame.rgb, "rgb8", i)
-        yield t_c, 3, "/camera/rgb/camera_info", "sensor_msgs/msg/CameraInfo", _camera_info(store, t_c, CAMERA_FRAME,
+        yield t_c, 3, "/camera/rgb/camera_info", "sensor_msgs/msg/CameraInfo", camera_info_msg(store, t_c, CAMERA_FRAME,
                                                                                              frame.intrinsics, i)
         if depth_encoding == "32FC1":
             depth = frame.depth_m.astype(np.float32)
         else:
             depth = np.round(np.clip(frame.depth_m, 0, 65.535) * 1000.0).astype(np.uint16)
-        yield t_d, 2, "/camera/depth/image", "sensor_msgs/msg/Image", _image(store, t_d, CAMERA_FRAME, depth,
+        yield t_d, 2, "/camera/depth/image", "sensor_msgs/msg/Image", image_msg(store, t_d, CAMERA_FRAME, depth,
                                                                              depth_encoding, i)
-        yield t_d, 3, "/camera/depth/camera_info", "sensor_msgs/msg/CameraInfo", _camera_info(
+        yield t_d, 3, "/camera/depth/camera_info", "sensor_msgs/msg/CameraInfo", camera_info_msg(
             store, t_d, CAMERA_FRAME, frame.intrinsics, i)
 
 
