@@ -33,7 +33,9 @@ class ImuConfig:
     """Noise densities (continuous time, per sqrt(Hz)), gravity (m/s^2; ``gravity_world``, the
     gravity vector in the world (field) frame when it is not ``(0, 0, -gravity)``: see
     :func:`estimate_gravity`), the camera-IMU extrinsics ``T_cam_imu`` (4, 4) (IMU frame ->
-    camera frame) and the prior sigmas of the first velocity and biases."""
+    camera frame), the prior sigmas of the first velocity and biases, and how far (deg, one
+    sigma per tilt axis) the run's graph may turn gravity's direction away from
+    ``gravity_vector()`` (``gravity_sigma_deg``; see :mod:`nap3d_graph.imu_pipeline`)."""
 
     accel_noise_density: float = 2.0e-3
     gyro_noise_density: float = 2.4e-4
@@ -46,12 +48,19 @@ class ImuConfig:
     accel_bias_prior_sigma: float = 0.05
     gyro_bias_prior_sigma: float = 0.005
     max_gap_s: float = 0.05
+    gravity_sigma_deg: float = 5.0
 
     def gravity_vector(self) -> np.ndarray:
         """Gravity (3,) in the world frame, m/s^2."""
         if self.gravity_world is not None:
             return np.asarray(self.gravity_world, dtype=float).reshape(3)
         return np.array([0.0, 0.0, -self.gravity])
+
+    def in_gravity_frame(self) -> "ImuConfig":
+        """This config in a world whose gravity is ``(0, 0, -g)`` (a navigation frame)."""
+        import dataclasses
+
+        return dataclasses.replace(self, gravity=float(np.linalg.norm(self.gravity_vector())), gravity_world=None)
 
     def params(self) -> gtsam.PreintegrationCombinedParams:
         params = imu_params(self.accel_noise_density, self.gyro_noise_density, self.accel_bias_rw,
@@ -126,6 +135,15 @@ class ImuStream:
         if imu is None:
             raise ValueError(f"{getattr(sequence, 'path', 'the sequence')}: no IMU samples (imu.txt)")
         return cls(imu["stamps"], imu["accel"], imu["gyro"], config)
+
+    def with_config(self, config: ImuConfig) -> "ImuStream":
+        """The same cleaned samples under another config (its gravity, say); the noise,
+        extrinsics and gap rule must be this one's."""
+        import copy
+
+        other = copy.copy(self)
+        other.config, other._params = config, config.params()
+        return other
 
     def covers(self, t0: float, t1: float) -> bool:
         return bool(self.stamps[0] <= t0 + self.config.max_gap_s and self.stamps[-1] >= t1 - self.config.max_gap_s)

@@ -9,8 +9,20 @@ between keyframes are predicted from the nearest earlier keyframe's state with t
 causal trajectory from each keyframe as it was known then). The biases are estimated and
 written out (``RunResult.imu_biases``).
 
+Gravity in the field's frame is refined in the graph. A field's frame is whatever its
+mapping gave it, so the graph's world is a gravity-aligned navigation frame N (gravity
+``(0, 0, -g)``), in which the states and the IMU factors live, and the field's frame is a
+variable ``M(0)`` = ``T_nav_field``, as the map anchor is on the odometry path: the NAP3D
+corrections measure ``between(M(0), X(k))`` = ``T_field_cam``. Its prior starts from the gravity
+given or estimated (``ImuConfig.gravity_vector()``, e.g. the accelerometer at the start) and
+lets its tilt move by ``ImuConfig.gravity_sigma_deg`` per axis, while its heading about gravity
+and its origin, which no IMU measurement can tell, are held (the gauge). Every trajectory the
+run writes is in the field's frame (``T_field_nav`` estimated then, for the causal one); the
+refined gravity is ``RunResult.gravity_world``.
+
 The "odometry alone" trajectory of an IMU run is the IMU dead-reckoned from the first
-state with the prior bias (zero): what the robot would have without NAP3D.
+state with the prior bias (zero) and the gravity as given: what the robot would have without
+NAP3D.
 """
 
 from __future__ import annotations
@@ -20,15 +32,15 @@ from dataclasses import dataclass
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import B, V, X
+from gtsam.symbol_shorthand import B, M, V, X
 
-from nap3d_graph.factors import imu_factor, pose_prior_factor
+from nap3d_graph.factors import imu_factor, noise_model
 
-from .conventions import T_to_pose3, pose3_to_T
+from .conventions import T_to_pose3, inv_T, pose3_to_T
 from .imu import ImuConfig, ImuStream
 from .pipeline import Pipeline
 
-__all__ = ["ImuOdometry", "ImuPipeline"]
+__all__ = ["ImuOdometry", "ImuPipeline", "gravity_aligned_frame"]
 
 log = logging.getLogger(__name__)
 
@@ -60,23 +72,73 @@ class ImuOdometry:
         return cls(stream, T_gt[0], velocity)
 
 
+def gravity_aligned_frame(g_field: np.ndarray) -> np.ndarray:
+    """``T_nav_field`` (4, 4): the smallest turn taking gravity as seen in the field's frame,
+    ``g_field`` (3,), to ``-z`` (a navigation frame's), with no offset."""
+    from scipy.spatial.transform import Rotation
+
+    down = np.asarray(g_field, dtype=float) / np.linalg.norm(g_field)
+    T_nav_field = np.eye(4)
+    T_nav_field[:3, :3] = Rotation.align_vectors([[0.0, 0.0, -1.0]], [down])[0].as_matrix()
+    return T_nav_field
+
+
 class ImuPipeline(Pipeline):
     """:class:`Pipeline` with IMU preintegration between keyframes (see the module docstring)."""
 
     supports_graph_window = False  # velocities and biases would need marginalising too
 
+    #: How firmly the gravity frame's heading (rad) and origin (m) are held: they are the
+    #: gauge of a gravity-aligned frame, which no IMU measurement can tell.
+    GAUGE_SIGMA = 1e-4
+
+    def __init__(self, sequence, field, odometry, config=None, correction_hook=None):
+        super().__init__(sequence, field, odometry, config, correction_hook)
+        if self.config.use_anchor:
+            raise ValueError("--anchor does not apply with --odom imu: the IMU path estimates the field's frame's "
+                             "tilt (its gravity) itself")
+
     def _start(self) -> None:
-        super()._start()
-        self.imu: ImuStream = self.odometry.stream
+        field_config = self.odometry.stream.config
+        self.g_field0 = field_config.gravity_vector()
+        self.T_nav_field0 = gravity_aligned_frame(self.g_field0)
+        # The states and the IMU factors live in the navigation frame (gravity -z).
+        self.imu: ImuStream = self.odometry.stream.with_config(field_config.in_gravity_frame())
+        super()._start()  # the gravity frame enters as the anchor M(0) (see _anchor_prior)
         t0 = float(self.sequence.timestamps[0])
-        self.nav_kf = gtsam.NavState(T_to_pose3(self.odometry.initial_pose()).rotation(),
-                                     T_to_pose3(self.odometry.initial_pose()).translation(),
-                                     np.asarray(self.odometry.velocity0, float))
+        T_nav_cam0 = self.T_nav_field0 @ self.odometry.initial_pose()
+        self.velocity0_nav = self.T_nav_field0[:3, :3] @ np.asarray(self.odometry.velocity0, float)
+        self.nav_kf = gtsam.NavState(T_to_pose3(T_nav_cam0), self.velocity0_nav)
         self.bias_kf = gtsam.imuBias.ConstantBias()
         self.t_kf = t0
-        self.kf_states: list[tuple[float, gtsam.NavState, gtsam.imuBias.ConstantBias]] = []  # online
-        self._dead_start = (t0, self.nav_kf)
+        # Each keyframe's state as known then, with the gravity frame's estimate then (causal).
+        self.kf_states: list[tuple[float, gtsam.NavState, gtsam.imuBias.ConstantBias, np.ndarray]] = []
+        # Dead reckoning for "odometry alone": in the field's frame with the gravity as given.
+        field_pose = T_to_pose3(self.odometry.initial_pose())
+        self._dead_start = (t0, gtsam.NavState(field_pose, np.asarray(self.odometry.velocity0, float)))
         self._notes: list[str] = []
+
+    def _anchored(self) -> bool:
+        return True
+
+    def _anchor_prior(self):
+        """``M(0)`` = ``T_nav_field``: tilt free by ``gravity_sigma_deg``, heading and origin held.
+        The prior's rotation is in the field's axes (GTSAM's right perturbation), where the
+        heading is the turn about gravity's direction."""
+        g_hat = self.g_field0 / np.linalg.norm(self.g_field0)
+        tilt = np.radians(self.odometry.stream.config.gravity_sigma_deg)
+        about_g = np.outer(g_hat, g_hat)
+        covariance = np.zeros((6, 6))
+        covariance[:3, :3] = tilt ** 2 * (np.eye(3) - about_g) + self.GAUGE_SIGMA ** 2 * about_g
+        covariance[3:, 3:] = self.GAUGE_SIGMA ** 2 * np.eye(3)
+        prior = gtsam.PriorFactorPose3(M(0), T_to_pose3(self.T_nav_field0), noise_model(covariance=covariance))
+        return prior, self.T_nav_field0
+
+    def _field_from_nav(self, values: gtsam.Values | None = None) -> np.ndarray:
+        """``T_field_nav`` (4, 4) as estimated in ``values`` (iSAM2's estimate now by default)."""
+        T_nav_field = (pose3_to_T(values.atPose3(M(0))) if values is not None
+                       else pose3_to_T(self.isam.calculateEstimatePose3(M(0))))
+        return inv_T(T_nav_field)
 
     def _odometry_needs_frames(self) -> bool:
         return False
@@ -104,18 +166,20 @@ class ImuPipeline(Pipeline):
         t = float(self.sequence.timestamps[i])
         cfg = self.imu.config
         if j == 0:
-            T0 = self.T_odom[0]
-            self._add_factor(pose_prior_factor(X(0), T0, rot_sigma_rad=self.config.prior_rot_sigma_rad,
-                                               trans_sigma_m=self.config.prior_trans_sigma_m))
-            self._add_factor(gtsam.PriorFactorVector(V(0), np.asarray(self.odometry.velocity0, float),
+            # The starting pose is known in the field's frame: a prior on between(M(0), X(0)).
+            T_field_cam0 = self.T_odom[0]
+            self._add_factor(gtsam.BetweenFactorPose3(
+                M(0), X(0), T_to_pose3(T_field_cam0),
+                noise_model(rot_sigma_rad=self.config.prior_rot_sigma_rad, trans_sigma_m=self.config.prior_trans_sigma_m)))
+            self._add_factor(gtsam.PriorFactorVector(V(0), self.velocity0_nav,
                                                      gtsam.noiseModel.Isotropic.Sigma(3, cfg.velocity_prior_sigma)))
             bias_sigmas = np.r_[[cfg.accel_bias_prior_sigma] * 3, [cfg.gyro_bias_prior_sigma] * 3]
             self._add_factor(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(),
                                                            gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
-            self.new_values.insert(X(0), T_to_pose3(T0))
-            self.new_values.insert(V(0), np.asarray(self.odometry.velocity0, float))
+            self.new_values.insert(X(0), self.nav_kf.pose())
+            self.new_values.insert(V(0), self.velocity0_nav)
             self.new_values.insert(B(0), gtsam.imuBias.ConstantBias())
-            self.T_pred = T0
+            self.T_pred = pose3_to_T(self.nav_kf.pose())
         else:
             pim = self.imu.preintegrate(self.t_kf, t, self.bias_kf)
             self._notes = self.imu.notes_between(self.t_kf, t)
@@ -143,8 +207,11 @@ class ImuPipeline(Pipeline):
         self.nav_kf = gtsam.NavState(estimate.atPose3(X(j)), estimate.atVector(V(j)))
         self.bias_kf = estimate.atConstantBias(B(j))
         self.t_kf = float(self.sequence.timestamps[self.keyframe_indices[-1]])
-        self.kf_states.append((self.t_kf, self.nav_kf, self.bias_kf))
-        return super()._finish_keyframe()
+        T_field_nav = self._field_from_nav(estimate)
+        self.kf_states.append((self.t_kf, self.nav_kf, self.bias_kf, T_field_nav))
+        record = super()._finish_keyframe()
+        self.T_last_kf_est = T_field_nav @ self.T_last_kf_est  # the causal pose, in the field's frame
+        return record
 
     def _velocity(self, i: int) -> np.ndarray | None:
         """Body twist (GTSAM order) at frame i: the gyro's rate and the velocity in the body."""
@@ -158,25 +225,30 @@ class ImuPipeline(Pipeline):
 
     # --- per-frame trajectories: predicted from keyframe states -----------------------------
 
-    def _frames_from_states(self, states: list[tuple[float, gtsam.NavState, object]], n: int) -> np.ndarray:
+    def _frames_from_states(self, states: list[tuple[float, gtsam.NavState, object, np.ndarray]],
+                            n: int) -> np.ndarray:
+        """(n, 4, 4) ``T_field_cam``: each frame predicted from the latest keyframe state at or
+        before it (navigation frame), taken into the field's frame with that state's
+        ``T_field_nav``."""
         stamps = np.asarray(self.sequence.timestamps[:n], dtype=float)
-        T = np.empty((n, 4, 4))
+        T_field_cam = np.empty((n, 4, 4))
         kf_times = np.array([s[0] for s in states])
         for i, t in enumerate(stamps):
             k = int(np.searchsorted(kf_times, t + 1e-9) - 1)
             if k < 0:
-                T[i] = self.T_odom[i]
+                T_field_cam[i] = self.T_odom[i]
                 continue
-            t_k, nav, bias = states[k]
-            T[i] = pose3_to_T(self._predict(t_k, nav, bias, float(t)).pose())
-        return T
+            t_k, nav, bias, T_field_nav = states[k]
+            T_field_cam[i] = T_field_nav @ pose3_to_T(self._predict(t_k, nav, bias, float(t)).pose())
+        return T_field_cam
 
     def _chain_between_keyframes(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
         estimate = self._final_values
+        T_field_nav = self._field_from_nav(estimate)
         states = []
         for j, idx in enumerate(self.keyframe_indices):
             nav = gtsam.NavState(estimate.atPose3(X(j)), estimate.atVector(V(j)))
-            states.append((float(self.sequence.timestamps[idx]), nav, estimate.atConstantBias(B(j))))
+            states.append((float(self.sequence.timestamps[idx]), nav, estimate.atConstantBias(B(j)), T_field_nav))
         return self._frames_from_states(states, n)
 
     def _chain_forward(self, n: int) -> np.ndarray:
@@ -190,6 +262,9 @@ class ImuPipeline(Pipeline):
         result = super()._finish(n)
         if self.keyframe_indices:
             values = self._final_values
+            g = float(np.linalg.norm(self.g_field0))
+            result.gravity_world = self._field_from_nav(values)[:3, :3] @ np.array([0.0, 0.0, -g])
+            result.gravity_world_prior = self.g_field0.copy()
             result.imu_biases = np.array([np.r_[values.atConstantBias(B(j)).accelerometer(),
                                                 values.atConstantBias(B(j)).gyroscope()]
                                           for j in range(len(self.keyframe_indices))])

@@ -171,10 +171,21 @@ class Pipeline:
         # and every successful correction (gated out or not) with its covariance.
         self.interval_odometry: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         self.measured_corrections: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        if self.config.use_anchor:
-            self._add_factor(anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
-                                                 self.config.anchor_trans_sigma_m))
-            self.new_values.insert(M(0), gtsam.Pose3())
+        if self._anchored():
+            factor, T_world_map0 = self._anchor_prior()
+            self._add_factor(factor)
+            self.new_values.insert(M(0), T_to_pose3(T_world_map0))
+
+    def _anchored(self) -> bool:
+        """Whether the graph has the field's frame as a variable ``M(0)`` (``T_world_map``):
+        the NAP3D corrections then tie a pose to it (``--anchor``; the IMU path's gravity frame)."""
+        return self.config.use_anchor
+
+    def _anchor_prior(self):
+        """The prior on ``M(0)`` and its starting value (4, 4): the field's frame is the world,
+        up to the anchor's sigmas."""
+        return anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
+                                   self.config.anchor_trans_sigma_m), np.eye(4)
 
     def _odometry_needs_frames(self) -> bool:
         return bool(getattr(self.odometry, "needs_frames", False))
@@ -300,7 +311,7 @@ class Pipeline:
             record.reason = f"frame unreadable: {getattr(self, '_frame_error', 'unknown error')}"
             return None
         T_render = self.T_pred
-        if self.config.use_anchor:
+        if self._anchored():
             T_render = inv_T(self._anchor_estimate()) @ self.T_pred  # the field's frame
         return KeyframeJob(i, frame, T_render, self._velocity(i), self._timing(), self.depth_scale.scale,
                            self._render_intrinsics(frame))
@@ -420,7 +431,7 @@ class Pipeline:
 
     def _gaussian_twin(self, key: int, correction: Correction):
         """The NAP3D factor without its robust kernel, for the final GNC solve."""
-        if self.config.use_anchor:
+        if self._anchored():
             return nap3d_anchor_factor(key, M(0), None, correction, robust=None)
         return nap3d_prior_factor(key, None, correction, robust=None)
 
@@ -430,7 +441,7 @@ class Pipeline:
         The gate is the innovation test against iSAM2's prediction: the joint marginal of
         the factor's variables through its Jacobians (``chi2_gate_isam2``)."""
         try:
-            if self.config.use_anchor:
+            if self._anchored():
                 factor = nap3d_anchor_factor(key, M(0), None, correction, robust=self.config.robust)
             else:
                 factor = nap3d_prior_factor(key, None, correction, robust=self.config.robust)

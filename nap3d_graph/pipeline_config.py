@@ -224,6 +224,8 @@ class RunResult:
     imu_biases: np.ndarray | None = None
     imu_bias_sigmas: np.ndarray | None = None
     imu_skipped: list = field(default_factory=list)
+    gravity_world: np.ndarray | None = None
+    gravity_world_prior: np.ndarray | None = None
 
     @property
     def num_accepted(self) -> int:

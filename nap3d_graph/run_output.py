@@ -22,6 +22,7 @@ import numpy as np
 
 from .datasets.tum import write_tum_trajectory
 from .evaluation.metrics import trajectory_metrics
+from .imu import gravity_angle_deg
 from .plots import plot_error_over_time, plot_top_view
 
 __all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary", "CORRECTION_COLUMNS",
@@ -201,6 +202,11 @@ class RunWriter:
             if result.imu_bias_sigmas is not None:
                 metrics["imu_bias_final"]["sigma"] = result.imu_bias_sigmas[-1].tolist()
             metrics["imu_samples_skipped_or_gaps"] = [{"t": t, "reason": r} for t, r in result.imu_skipped]
+        if getattr(result, "gravity_world", None) is not None:
+            metrics["gravity_world_m_s2"] = {"refined": np.round(result.gravity_world, 4).tolist(),
+                                             "given": np.round(result.gravity_world_prior, 4).tolist(),
+                                             "turned_deg": round(gravity_angle_deg(result.gravity_world,
+                                                                                   result.gravity_world_prior), 3)}
         (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
         plot_top_view(run / "trajectory_top_view.png", result)
         plot_error_over_time(run / "translation_error.png", result)

@@ -158,6 +158,10 @@ def test_run_without_ground_truth_reports_correction_statistics(walk, tmp_path, 
     metrics = json.loads((tmp_path / "latest" / "metrics.json").read_text())
     assert "no ATE" in metrics["ground_truth"] and "estimate" not in metrics
     assert metrics["corrections_accepted"] >= 5 and metrics["median_inliers"] > 30
+    # Gravity as the graph refined it, in the simulated z-up world: within a degree of -z.
+    gravity = metrics["gravity_world_m_s2"]
+    assert gravity["given"] == [0.0, 0.0, -9.81] and gravity["turned_deg"] < 1.0
+    assert np.degrees(np.arccos(-gravity["refined"][2] / np.linalg.norm(gravity["refined"]))) < 1.0
     # The corrected trajectory still starts where it was told and ends near the truth.
     _, T = read_tum_trajectory(tmp_path / "latest" / "estimate.txt")
     assert np.linalg.norm(T[-1][:3, 3] - SimSequence(sim).T_world_cam_gt[-1][:3, 3]) < 0.01

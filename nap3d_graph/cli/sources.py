@@ -40,16 +40,16 @@ def warn_guessed_camera(sequence) -> None:
 
 
 def _gravity(text: str):
-    """'auto', a magnitude (m/s^2) or a vector 'gx gy gz' (m/s^2, the field's frame)."""
+    """'check', 'auto', a magnitude (m/s^2) or a vector 'gx gy gz' (m/s^2, the field's frame)."""
     import argparse
 
-    if text.strip() == "auto":
-        return "auto"
+    if text.strip() in ("auto", "check"):
+        return text.strip()
     parts = text.replace(",", " ").split()
     try:
         values = [float(v) for v in parts]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a magnitude, 'auto' or 'gx gy gz', got {text!r}") from None
+        raise argparse.ArgumentTypeError(f"must be 'check', 'auto', a magnitude or 'gx gy gz', got {text!r}") from None
     if len(values) == 1 and values[0] > 0:
         return values[0]
     if len(values) == 3 and 1.0 < float(np.linalg.norm(values)) < 100.0:
@@ -103,11 +103,13 @@ def add_source_arguments(p) -> None:
                    "gyro bias walk rad/s^2/sqrt(Hz) (default: the simulator's, 2e-3 2.4e-4 1e-4 2e-6)")
     p.add_argument("--imu-extrinsics", metavar="'tx ty tz qx qy qz qw'", default=None,
                    help="T_cam_imu: the IMU frame in the camera frame (default identity, as simulated)")
-    p.add_argument("--gravity", type=_gravity, default=9.81, metavar="G|auto|'gx gy gz'",
-                   help="--odom imu: gravity in the field's frame. A magnitude (default 9.81 m/s^2) for a z-up world, "
-                   "'auto' to take its direction from the accelerometer over the first 0.5 s with the starting pose "
-                   "(a field's frame from COLMAP or nerfstudio, a y-down room), or the vector in m/s^2. With a "
-                   "magnitude the run warns when the accelerometer disagrees with z-up by more than 10 deg")
+    p.add_argument("--gravity", type=_gravity, default="check", metavar="check|auto|G|'gx gy gz'",
+                   help="--odom imu: gravity in the field's frame as the run's graph starts it; the graph then refines "
+                   "its tilt (a few degrees; the EKFs of compare keep it as given). 'check' (default): z-up (-9.81 "
+                   "m/s^2 along z), unless the accelerometer over the first 0.5 s, with the starting pose, puts it more "
+                   "than 10 deg away (a field's frame from COLMAP or nerfstudio, a y-down room): then the "
+                   "accelerometer's direction, said on the terminal. 'auto': always the accelerometer's direction. A "
+                   "magnitude (m/s^2): z-up, only warned about. Or the vector in m/s^2")
     p.add_argument("--timing", choices=("auto", "none"), default="auto",
                    help="auto: move each keyframe's depth to its colour's capture instant with the capture timing the "
                    "field records, or, for a field that records none (the oracle, nerfstudio), the timing estimated "
@@ -306,8 +308,9 @@ def _odometry(args, sequence, initial_pose):
 
 
 def _checked_gravity(args, odometry):
-    """The IMU config with gravity estimated (``--gravity auto``), or as given, after saying
-    when the accelerometer at the start disagrees with it by more than 10 degrees."""
+    """The IMU config with gravity estimated (``--gravity auto``, or ``check`` when the
+    accelerometer at the start disagrees with z-up by more than 10 degrees), or as given
+    (warned about in that case)."""
     import dataclasses
     import sys
 
@@ -318,13 +321,13 @@ def _checked_gravity(args, odometry):
         measured, spread = estimate_gravity(odometry.stream, odometry.T_world_cam0, config.gravity)
     except ValueError as exc:
         raise UsageError(str(exc)) from None
-    if args.gravity == "auto":
-        angle = gravity_angle_deg(measured, np.array([0.0, 0.0, -1.0]))
-        print(f"gravity from the accelerometer over the first 0.5 s: ({measured[0]:.2f}, {measured[1]:.2f}, "
-              f"{measured[2]:.2f}) m/s^2 in the field's frame, {angle:.1f} deg from -z (samples' spread "
-              f"{spread:.2f} m/s^2)")
-        return dataclasses.replace(config, gravity_world=tuple(float(v) for v in measured))
     angle = gravity_angle_deg(measured, config.gravity_vector())
+    if args.gravity == "auto" or (args.gravity == "check" and angle > 10.0):
+        from_z = gravity_angle_deg(measured, np.array([0.0, 0.0, -1.0]))
+        print(f"gravity from the accelerometer over the first 0.5 s: ({measured[0]:.2f}, {measured[1]:.2f}, "
+              f"{measured[2]:.2f}) m/s^2 in the field's frame, {from_z:.1f} deg from -z (samples' spread "
+              f"{spread:.2f} m/s^2); the graph refines its tilt")
+        return dataclasses.replace(config, gravity_world=tuple(float(v) for v in measured))
     if angle > 10.0:
         print(f"warning: the accelerometer at the start puts gravity {angle:.0f} deg from the one assumed "
               f"({config.gravity_vector().round(2).tolist()} m/s^2 in the field's frame): is the field's frame not "
