@@ -20,6 +20,13 @@ and its origin, which no IMU measurement can tell, are held (the gauge). Every t
 run writes is in the field's frame (``T_field_nav`` estimated then, for the causal one); the
 refined gravity is ``RunResult.gravity_world``.
 
+When corrections stop landing (the views left the field, say), the IMU alone drifts by metres
+within seconds. After ``FALLBACK_STREAK`` (3) keyframes refused in a row, the run says so and falls
+back on a visual odometry (``ImuOdometry.fallback``: ``run --fallback-odom``, dense by default)
+from that keyframe on: its increments chain the frames between keyframes and enter the graph as
+a between factor beside each IMU factor, until a correction is accepted again
+(``RunResult.fallback_intervals``).
+
 The "odometry alone" trajectory of an IMU run is the IMU dead-reckoned from the first
 state with the prior bias (zero) and the gravity as given: what the robot would have without
 NAP3D.
@@ -34,9 +41,9 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, M, V, X
 
-from nap3d_graph.factors import imu_factor, noise_model
+from nap3d_graph.factors import imu_factor, noise_model, odometry_factor
 
-from .conventions import T_to_pose3, inv_T, pose3_to_T
+from .conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T
 from .imu import ImuConfig, ImuStream
 from .pipeline import Pipeline
 
@@ -53,6 +60,8 @@ class ImuOdometry:
     T_world_cam0: np.ndarray
     velocity0: np.ndarray
     name: str = "imu"
+    #: A frame odometry (``increment``, ``prime``) the run falls back on when corrections stop.
+    fallback: object | None = None
 
     def initial_pose(self) -> np.ndarray:
         return np.asarray(self.T_world_cam0, dtype=float).copy()
@@ -117,6 +126,12 @@ class ImuPipeline(Pipeline):
         field_pose = T_to_pose3(self.odometry.initial_pose())
         self._dead_start = (t0, gtsam.NavState(field_pose, np.asarray(self.odometry.velocity0, float)))
         self._notes: list[str] = []
+        # The visual odometry fallback: the frame it started at (None: the IMU alone), its
+        # increments (frame -> T_prev_cur), and the frame spans it ran.
+        self._vo_since: int | None = None
+        self._vo_increments: dict[int, np.ndarray] = {}
+        self._refused_in_row = 0
+        self.fallback_intervals: list[list[int | None]] = []
 
     def _anchored(self) -> bool:
         return True
@@ -141,7 +156,7 @@ class ImuPipeline(Pipeline):
         return inv_T(T_nav_field)
 
     def _odometry_needs_frames(self) -> bool:
-        return False
+        return self._vo_since is not None  # the fallback reads every frame
 
     def _overlapping(self) -> bool:
         # The IMU keyframe state (nav_kf, bias_kf) is taken right after each correction.
@@ -159,6 +174,11 @@ class ImuPipeline(Pipeline):
         self.T_odom.append(pose3_to_T(dead.pose()))
         self.increments.append(np.linalg.inv(self.T_odom[-2]) @ self.T_odom[-1])
         self.dt_since_kf += float(self.sequence.timestamps[i] - self.sequence.timestamps[i - 1])
+        if self._vo_since is not None:
+            inc = self.odometry.fallback.increment(i, frame)
+            self._vo_increments[i] = inc.T_prev_cur
+            self.T_since_kf = self.T_since_kf @ inc.T_prev_cur
+            self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
 
     def _add_keyframe(self, i: int) -> None:
         j = len(self.keyframe_indices)
@@ -185,11 +205,21 @@ class ImuPipeline(Pipeline):
             self._notes = self.imu.notes_between(self.t_kf, t)
             self._add_factor(imu_factor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim))
             predicted = pim.predict(self.nav_kf, self.bias_kf)
-            self.T_pred = pose3_to_T(predicted.pose())
-            self.new_values.insert(X(j), predicted.pose())
-            self.new_values.insert(V(j), predicted.velocity())
+            pose, velocity = predicted.pose(), predicted.velocity()
+            if self._vo_since is not None:  # the fallback: its chain is the prediction and a factor
+                cov = self.cov_since_kf + self.config.drift_covariance(self.T_since_kf, self.dt_since_kf)
+                self._add_factor(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
+                self.interval_odometry[i] = (self.T_since_kf.copy(), cov.copy())
+                T_nav_kf = pose3_to_T(self.nav_kf.pose())
+                pose = T_to_pose3(T_nav_kf @ self.T_since_kf)
+                velocity = (pose.translation() - T_nav_kf[:3, 3]) / max(self.dt_since_kf, 1e-6)
+            self.T_pred = pose3_to_T(pose)
+            self.new_values.insert(X(j), pose)
+            self.new_values.insert(V(j), velocity)
             self.new_values.insert(B(j), self.bias_kf)
         self.dt_since_kf = 0.0
+        self.T_since_kf = np.eye(4)
+        self.cov_since_kf = np.zeros((6, 6))
         self._pending_record = self._keyframe_record(i, X(j), reason="; ".join(self._notes))
         self._update_isam()
 
@@ -197,9 +227,31 @@ class ImuPipeline(Pipeline):
         notes = self._pending_record.reason
         self._pending_record.reason = ""
         super()._correct_keyframe(i, frame)
+        record = self._pending_record
         if notes:  # the IMU notes of this interval stay with the keyframe's row
-            record = self._pending_record
             record.reason = f"{record.reason}; {notes}" if record.reason else notes
+        self._switch_motion(i, frame, record.accepted)
+
+    #: Keyframes refused in a row before the run falls back on the visual odometry (fewer than
+    #: the warning's REFUSAL_STREAK: the IMU alone drifts quadratically and faster).
+    FALLBACK_STREAK = 3
+
+    def _switch_motion(self, i: int, frame, accepted: bool) -> None:
+        """Fall back on the visual odometry after FALLBACK_STREAK refused keyframes (from
+        keyframe i, whose frame primes it); back to the IMU alone once a correction lands."""
+        self._refused_in_row = 0 if accepted else self._refused_in_row + 1
+        if accepted and self._vo_since is not None:
+            log.warning("a correction landed again at frame %d: back on the IMU alone between keyframes", i)
+            self.fallback_intervals[-1][1] = i
+            self._vo_since = None
+        elif (self._refused_in_row >= self.FALLBACK_STREAK and self._vo_since is None and frame is not None
+              and getattr(self.odometry, "fallback", None) is not None):
+            log.warning("the last %d keyframes (to frame %d) were refused: the IMU alone drifts by metres within "
+                        "seconds, so the run falls back on the visual odometry (%s) between keyframes until a "
+                        "correction lands", self._refused_in_row, i, getattr(self.odometry.fallback, "name", "vo"))
+            self.odometry.fallback.prime(frame)
+            self._vo_since = i
+            self.fallback_intervals.append([i, None])
 
     def _finish_keyframe(self):
         j = len(self.keyframe_indices) - 1
@@ -249,10 +301,22 @@ class ImuPipeline(Pipeline):
         for j, idx in enumerate(self.keyframe_indices):
             nav = gtsam.NavState(estimate.atPose3(X(j)), estimate.atVector(V(j)))
             states.append((float(self.sequence.timestamps[idx]), nav, estimate.atConstantBias(B(j)), T_field_nav))
-        return self._frames_from_states(states, n)
+        return self._with_fallback_chains(self._frames_from_states(states, n))
 
     def _chain_forward(self, n: int) -> np.ndarray:
-        return self._frames_from_states(self.kf_states, n)
+        T_field_cam = self._frames_from_states(self.kf_states, n)
+        for i in self._vo_increments:  # frames the fallback chained, as the run had them
+            if i < n:
+                T_field_cam[i] = self._online[i]
+        return T_field_cam
+
+    def _with_fallback_chains(self, T_field_cam: np.ndarray) -> np.ndarray:
+        """The frames the fallback chained, chained again from their keyframe's final pose."""
+        keyframes = set(self.keyframe_indices)
+        for i in sorted(self._vo_increments):
+            if i < len(T_field_cam) and i not in keyframes:
+                T_field_cam[i] = T_field_cam[i - 1] @ self._vo_increments[i]
+        return T_field_cam
 
     def _final_estimate(self) -> gtsam.Values:
         self._final_values = super()._final_estimate()
@@ -275,6 +339,7 @@ class ImuPipeline(Pipeline):
             except RuntimeError as exc:  # an ill-posed graph still has its estimate
                 log.warning("bias marginals not computed: %s", exc)
             result.imu_skipped = list(self.imu.skipped)
+        result.fallback_intervals = [[a, n - 1 if b is None else b] for a, b in self.fallback_intervals]
         return result
 
     def _final_graph(self) -> gtsam.NonlinearFactorGraph:

@@ -226,6 +226,7 @@ class RunResult:
     imu_skipped: list = field(default_factory=list)
     gravity_world: np.ndarray | None = None
     gravity_world_prior: np.ndarray | None = None
+    fallback_intervals: list = field(default_factory=list)
 
     @property
     def num_accepted(self) -> int:

@@ -202,6 +202,9 @@ class RunWriter:
             if result.imu_bias_sigmas is not None:
                 metrics["imu_bias_final"]["sigma"] = result.imu_bias_sigmas[-1].tolist()
             metrics["imu_samples_skipped_or_gaps"] = [{"t": t, "reason": r} for t, r in result.imu_skipped]
+        if getattr(result, "fallback_intervals", None):
+            metrics["vo_fallback"] = {"frame_intervals": result.fallback_intervals,
+                                      "frames": int(sum(b - a for a, b in result.fallback_intervals))}
         if getattr(result, "gravity_world", None) is not None:
             metrics["gravity_world_m_s2"] = {"refined": np.round(result.gravity_world, 4).tolist(),
                                              "given": np.round(result.gravity_world_prior, 4).tolist(),

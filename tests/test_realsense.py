@@ -5,6 +5,7 @@ import json
 
 import numpy as np
 import pytest
+import yaml
 
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.cli import main
@@ -158,6 +159,8 @@ def test_run_without_ground_truth_reports_correction_statistics(walk, tmp_path, 
     metrics = json.loads((tmp_path / "latest" / "metrics.json").read_text())
     assert "no ATE" in metrics["ground_truth"] and "estimate" not in metrics
     assert metrics["corrections_accepted"] >= 5 and metrics["median_inliers"] > 30
+    config = yaml.safe_load((tmp_path / "latest" / "config.yaml").read_text())
+    assert config["imu"]["fallback_odometry"] == "dense" and "vo_fallback" not in metrics  # never needed here
     # Gravity as the graph refined it, in the simulated z-up world: within a degree of -z.
     gravity = metrics["gravity_world_m_s2"]
     assert gravity["given"] == [0.0, 0.0, -9.81] and gravity["turned_deg"] < 1.0

@@ -70,6 +70,8 @@ def apply_run_config(args, parser, path: Path) -> None:
         values["gravity"] = tuple(float(v) for v in imu["gravity_world"])
     elif imu.get("gravity") is not None:
         values["gravity"] = float(imu["gravity"])
+    if imu.get("fallback_odometry") is not None:
+        values["fallback_odom"] = imu["fallback_odometry"]
     for dest, value in values.items():
         if hasattr(args, dest) and getattr(args, dest) == parser.get_default(dest):
             setattr(args, dest, value)

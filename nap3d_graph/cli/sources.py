@@ -110,6 +110,10 @@ def add_source_arguments(p) -> None:
                    "than 10 deg away (a field's frame from COLMAP or nerfstudio, a y-down room): then the "
                    "accelerometer's direction, said on the terminal. 'auto': always the accelerometer's direction. A "
                    "magnitude (m/s^2): z-up, only warned about. Or the vector in m/s^2")
+    p.add_argument("--fallback-odom", choices=("dense", "vo", "none"), default="dense",
+                   help="--odom imu: the frame odometry the run falls back on between keyframes after 3 keyframes "
+                   "refused in a row (the views left the field, say: the IMU alone then drifts by metres within "
+                   "seconds), until a correction lands again (default dense; none: the IMU alone)")
     p.add_argument("--timing", choices=("auto", "none"), default="auto",
                    help="auto: move each keyframe's depth to its colour's capture instant with the capture timing the "
                    "field records, or, for a field that records none (the oracle, nerfstudio), the timing estimated "
@@ -299,12 +303,27 @@ def _odometry(args, sequence, initial_pose):
             config = imu_config(args, getattr(sequence, "imu_config", None))
             odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
             config = _checked_gravity(args, odometry)
-            return odom_kind, ImuOdometry.from_sequence(sequence, config, initial_pose), ImuPipeline
+            odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
+            odometry.fallback = _fallback_odometry(getattr(args, "fallback_odom", "dense"), args.matcher)
+            return odom_kind, odometry, ImuPipeline
         odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma,
                                  initial_pose=initial_pose, matcher=args.matcher)
         return odom_kind, odometry, Pipeline
     except ValueError as exc:  # the data cannot give that odometry: say which and what to use
         raise UsageError(str(exc)) from None
+
+
+def _fallback_odometry(kind: str, matcher: str | None):
+    """The frame odometry an IMU run falls back on (None for 'none')."""
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.odometry import DenseVisualOdometry, VisualOdometry
+
+    if kind == "none":
+        return None
+    if kind == "dense":
+        return DenseVisualOdometry()
+    return VisualOdometry(config=AlignConfig(min_opacity=0.5) if matcher is None else
+                          AlignConfig(min_opacity=0.5, matcher=matcher))
 
 
 def _checked_gravity(args, odometry):
@@ -389,5 +408,6 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
               "seed": args.seed, "pipeline": {k: v for k, v in vars(config).items() if k != "align"},
               "align": vars(config.align)}
     if odom_kind == "imu":
-        record["imu"] = odometry.stream.config.to_dict()
+        record["imu"] = {**odometry.stream.config.to_dict(),
+                         "fallback_odometry": getattr(odometry.fallback, "name", "none")}
     return Prepared(sequence, field_obj, odometry, pipeline_class, config, record, name)
