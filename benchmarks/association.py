@@ -18,7 +18,7 @@ import numpy as np
 
 
 def main() -> None:
-    from nap3d_graph.datasets.tum import associate
+    from nap3d_graph.datasets.association import associate
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--frames", type=int, default=5000)

@@ -26,8 +26,8 @@ import numpy as np
 
 def sequences(cache: Path, workdir: Path, rooms) -> list[tuple[str, Path, object, dict | None]]:
     """(name, folder, field, timing override) of every sequence compared."""
-    from nap3d_graph.default_run import DEFAULT_SCENE_SEED, DEFAULT_TRAVERSE, embedded_default_inputs
     from nap3d_graph.fields import load_field
+    from nap3d_graph.run.default import DEFAULT_SCENE_SEED, DEFAULT_TRAVERSE, embedded_default_inputs
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     walk, field, _, _ = embedded_default_inputs(cache, progress=True, say=print)
@@ -51,9 +51,10 @@ def compare_one(folder: Path, field, path: str, out_dir: Path | None) -> dict:
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.estimators import stream_from_run
     from nap3d_graph.evaluation.compare import compare, comparison_rows, write_comparison
-    from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.pipeline import Pipeline, PipelineConfig
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
+    from nap3d_graph.run.pipeline import Pipeline
 
     seq = SimSequence(folder)
     config = PipelineConfig(progress=False)

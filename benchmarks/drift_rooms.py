@@ -25,13 +25,14 @@ import numpy as np
 
 def run_room(room: int, workdir: Path, steps: int) -> dict:
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.default_run import DEFAULT_MAPPING, DEFAULT_TRAVERSE
     from nap3d_graph.evaluation.metrics import trajectory_metrics
     from nap3d_graph.fields import load_field
     from nap3d_graph.fields.build import build_field, estimate_timing
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.pipeline import Pipeline, PipelineConfig
-    from nap3d_graph.run_output import keyframe_timing_summary
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.default import DEFAULT_MAPPING, DEFAULT_TRAVERSE
+    from nap3d_graph.run.output import keyframe_timing_summary
+    from nap3d_graph.run.pipeline import Pipeline
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     folders = {}
@@ -91,7 +92,7 @@ def pooled(per_room: dict, field: str) -> dict:
 
 
 def main(argv=None) -> None:
-    from nap3d_graph.default_run import DEFAULT_TRAIN_STEPS
+    from nap3d_graph.run.default import DEFAULT_TRAIN_STEPS
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--rooms", type=int, nargs="+", default=[31, 32, 33, 34])

@@ -151,7 +151,8 @@ def _verdict(key, value):
 def main(argv=None) -> int:
     args = parse_args(argv)
     from nap3d_graph.fields.evaluation import evaluate_field
-    from nap3d_graph.fields.training import TrainConfig, train_field
+    from nap3d_graph.fields.train_config import TrainConfig
+    from nap3d_graph.fields.training import train_field
 
     tmp = None
     workdir = args.workdir

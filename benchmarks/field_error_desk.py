@@ -30,7 +30,8 @@ def run_one(data: Path, field, matcher: str, field_sigma) -> dict:
     from nap3d_graph.evaluation.metrics import ate
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.pipeline import Pipeline, PipelineConfig
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.pipeline import Pipeline
 
     sequence = open_sequence(data, frames="0.5:1")
     odometry = make_odometry("vo", sequence, 0, 2e-3, 2e-3, matcher=matcher)

@@ -25,8 +25,9 @@ import numpy as np
 
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.odometry import make_odometry
-from nap3d_graph.pipeline import Pipeline, PipelineConfig
 from nap3d_graph.results import Alignment, Correction
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.sims.trajectories import ImagelessWalk
 
 CORRECTION_SIGMAS = np.r_[np.full(3, np.radians(0.5)), np.full(3, 0.01)]

@@ -38,8 +38,8 @@ def run_walk(seed: int, T_F_W: np.ndarray, folder: Path) -> dict:
     from nap3d_graph.conventions import pose_error
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.imu import ImuConfig, estimate_gravity, gravity_angle_deg
-    from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
-    from nap3d_graph.pipeline import PipelineConfig
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
     from nap3d_graph.sims.reframe import FieldInFrame, SequenceInFrame
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 

@@ -25,7 +25,8 @@ def walk_corrections(sequence, timing) -> dict:
     from nap3d_graph.conventions import inv_T, log_se3
     from nap3d_graph.evaluation.compare import correction_nees
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.pipeline import Pipeline, PipelineConfig
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.pipeline import Pipeline
 
     result = Pipeline(sequence, sequence.oracle_field(), make_odometry("recorded", sequence),
                       PipelineConfig(timing=timing)).run()

@@ -25,8 +25,9 @@ def keyframe_latency(field_arg: str, frames: int, iterations: int) -> dict:
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.pipeline import Pipeline, PipelineConfig
-    from nap3d_graph.run_output import keyframe_timing_summary
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.output import keyframe_timing_summary
+    from nap3d_graph.run.pipeline import Pipeline
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -42,7 +42,7 @@ def main() -> None:
 
     from nap3d_graph.datasets import RealSenseRecording
     from nap3d_graph.datasets.realsense_io import read_recording
-    from nap3d_graph.sims.realsense import write_realsense_recording
+    from nap3d_graph.datasets.realsense_sim import write_realsense_recording
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     with tempfile.TemporaryDirectory() as tmp:

@@ -26,7 +26,8 @@ from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields import load_field
 from nap3d_graph.odometry import make_odometry
-from nap3d_graph.pipeline import Pipeline, PipelineConfig
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.pipeline import Pipeline
 
 
 def ate_m(T: np.ndarray, T_gt: np.ndarray) -> float:

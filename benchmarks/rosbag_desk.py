@@ -122,7 +122,7 @@ def main() -> None:
         got = read_tum_trajectory(runs[ros1]["estimate"])
         runs[ros1]["written_bag_max_pose_difference_to_estimate_m"] = float(np.abs(poses[:, :3, 3] - got[1][:, :3, 3]).max())
         runs[ros1]["written_bag_stamps_equal"] = bool(np.allclose(stamps, got[0], atol=1e-6))
-        from nap3d_graph.viz import keyframe_entries
+        from nap3d_graph.run.viz import keyframe_entries
 
         entries = keyframe_entries(tmp / f"{ros1}.rrd")
         runs[ros1]["rerun_recording"] = {"mb": round((tmp / f"{ros1}.rrd").stat().st_size / 1e6, 1),

@@ -94,7 +94,7 @@ def factor_error_and_covariance(factor: gtsam.NonlinearFactor,
     """
     if not (hasattr(factor, "unwhitenedError") and hasattr(factor, "noiseModel")):
         raise TypeError(f"{type(factor).__name__} is not a NoiseModelFactor")
-    error = np.asarray(factor.unwhitenedError(values), dtype=float).reshape(-1)
+    error = np.asarray(factor.unwhitenedError(values), dtype=np.float64).reshape(-1)
     return error, np.asarray(base_gaussian(factor.noiseModel()).covariance(), dtype=float)
 
 
@@ -112,7 +112,7 @@ def mahalanobis_sq(factor: gtsam.NonlinearFactor, values: gtsam.Values) -> float
     if not (hasattr(factor, "unwhitenedError") and hasattr(factor, "noiseModel")):
         raise TypeError(f"{type(factor).__name__} is not a NoiseModelFactor")
     base = base_gaussian(factor.noiseModel())
-    error = np.asarray(factor.unwhitenedError(values), dtype=float).reshape(-1)
+    error = np.asarray(factor.unwhitenedError(values), dtype=np.float64).reshape(-1)
     if not np.all(np.isfinite(error)):
         return float("nan")
     return float(np.sum(np.square(base.whiten(error))))
@@ -197,7 +197,7 @@ def chi2_gate_with_marginal(factor_error_xi: np.ndarray, factor_cov: np.ndarray,
     return _decide(float(w @ w), threshold, "innovation")
 
 
-def error_jacobian(factor: gtsam.NonlinearFactor, values: gtsam.Values, step: float = 1e-6) -> np.ndarray:
+def error_jacobian(factor: gtsam.NoiseModelFactor, values: gtsam.Values, step: float = 1e-6) -> np.ndarray:
     """Jacobian (m, 6 * len(keys)) of ``factor.unwhitenedError`` w.r.t. the right
     perturbation (GTSAM retract) of each of its Pose3 variables, in ``factor.keys()`` order.
 
@@ -205,7 +205,7 @@ def error_jacobian(factor: gtsam.NonlinearFactor, values: gtsam.Values, step: fl
     and valid for any factor of Pose3 variables (a user's own included).
     """
     keys = list(factor.keys())
-    e0 = np.asarray(factor.unwhitenedError(values), dtype=float).reshape(-1)
+    e0 = np.asarray(factor.unwhitenedError(values), dtype=np.float64).reshape(-1)
     J = np.zeros((e0.size, 6 * len(keys)))
     for j, key in enumerate(keys):
         pose = values.atPose3(key)
@@ -216,12 +216,12 @@ def error_jacobian(factor: gtsam.NonlinearFactor, values: gtsam.Values, step: fl
             for sign in (1.0, -1.0):
                 moved = gtsam.Values(values)
                 moved.update(key, pose.retract(sign * d))
-                errors.append(np.asarray(factor.unwhitenedError(moved), dtype=float).reshape(-1))
+                errors.append(np.asarray(factor.unwhitenedError(moved), dtype=np.float64).reshape(-1))
             J[:, 6 * j + k] = (errors[0] - errors[1]) / (2 * step)
     return J
 
 
-def chi2_gate_isam2(factor: gtsam.NonlinearFactor, isam: gtsam.ISAM2, p: float = DEFAULT_GATE_P,
+def chi2_gate_isam2(factor: gtsam.NoiseModelFactor, isam: gtsam.ISAM2, p: float = DEFAULT_GATE_P,
                     dof: Optional[int] = 6) -> GateResult:
     """Gate a factor on Pose3 variables that iSAM2 already holds, before adding it.
 

@@ -123,6 +123,7 @@ def robustify(base: gtsam.noiseModel.Base, robust: Optional[str],
     k = DEFAULT_ROBUST_THRESHOLDS[kernel] if robust_threshold is None else float(robust_threshold)
     if not np.isfinite(k) or k <= 0.0:
         raise ValueError(f"robust_threshold must be finite and > 0, got {robust_threshold}")
+    estimator: gtsam.noiseModel.mEstimator.Base
     if kernel == "huber":
         estimator = gtsam.noiseModel.mEstimator.Huber.Create(k)
     else:

@@ -18,7 +18,7 @@ _LAZY = {
     "correct_pose": ("nap3d_graph.nap3d", "correct_pose"),
     "AlignConfig": ("nap3d_graph.nap3d", "AlignConfig"),
     "load_field": ("nap3d_graph.fields", "load_field"),
-    "DriftCorrector": ("nap3d_graph.live", "DriftCorrector"),
+    "DriftCorrector": ("nap3d_graph.run.live", "DriftCorrector"),
 }
 
 __all__ = ["Intrinsics", "RGBDFrame", "RenderedView", "Alignment", "Correction", *_LAZY]

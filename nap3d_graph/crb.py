@@ -17,7 +17,7 @@ import numpy as np
 from .camera import Intrinsics
 from .nap3d.config import AlignConfig
 from .nap3d.correspondences import Correspondences
-from .nap3d.refine import _point_jacobian, _reprojection_terms, _stack_rows, _variance_factors
+from .nap3d.refine import point_jacobian, reprojection_terms, stack_rows, variance_factors
 
 __all__ = ["cramer_rao_bound", "bound_sigmas"]
 
@@ -47,15 +47,15 @@ def cramer_rao_bound(T_real_rendered_true: np.ndarray, corr: Correspondences, in
     var_px = 2.0 * config.keypoint_sigma_px**2
     var_z = (config.depth_sigma_floor_m + config.depth_sigma_z2_per_m * z**2) ** 2 + config.render_depth_sigma_m**2
     var_z = np.where(edge, 1.0, var_z)
-    r_px, J_px = _reprojection_terms(p, corr.uv_real, intrinsics)
-    J_z = _point_jacobian(p)[:, 2, :]
+    r_px, J_px = reprojection_terms(p, corr.uv_real, intrinsics)
+    J_z = point_jacobian(p)[:, 2, :]
     if noise == "measured":
         r_z = z - corr.y[:, 2]
-        scale_px, scale_z = _variance_factors(r_px, r_z, grad, np.ones(len(p)), var_px, var_z, True, True)
+        scale_px, scale_z = variance_factors(r_px, r_z, grad, np.ones(len(p)), var_px, var_z, True, True)
         var_px, var_z = var_px * scale_px, var_z * scale_z
     elif noise != "nominal":
         raise ValueError(f"noise must be 'nominal' or 'measured', got {noise!r}")
-    _, J, W = _stack_rows(r_px, J_px, z - z, J_z, grad, var_px, var_z, True, True)
+    _, J, W = stack_rows(r_px, J_px, z - z, J_z, grad, var_px, var_z, True, True)
     fisher = np.einsum("nri,nrs,nsj->ij", J, W, J)
     try:
         bound = np.linalg.inv(fisher)

@@ -35,7 +35,7 @@ class ImuConfig:
     :func:`estimate_gravity`), the camera-IMU extrinsics ``T_cam_imu`` (4, 4) (IMU frame ->
     camera frame), the prior sigmas of the first velocity and biases, and how far (deg, one
     sigma per tilt axis) the run's graph may turn gravity's direction away from
-    ``gravity_vector()`` (``gravity_sigma_deg``; see :mod:`nap3d_graph.imu_pipeline`)."""
+    ``gravity_vector()`` (``gravity_sigma_deg``; see :mod:`nap3d_graph.run.imu`)."""
 
     accel_noise_density: float = 2.0e-3
     gyro_noise_density: float = 2.4e-4

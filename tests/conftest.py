@@ -25,6 +25,27 @@ def tum_path() -> Path:
 
 
 @pytest.fixture(scope="session")
+def sim_walk(tmp_path_factory):
+    """``sim_walk(frames, fps=6.0, seed=4, width=160, height=120, **settings) -> Path``: a
+    simulated walk through the hold-out room 11 (TUM layout, ideal capture timing unless
+    ``timing`` is given), written once per session for each distinct setting: tests that ask
+    for the same walk share one folder (read it with ``SimSequence``; do not write into it)."""
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    made: dict[tuple, Path] = {}
+
+    def make(frames: int, fps: float = 6.0, seed: int = 4, width: int = 160, height: int = 120, **settings) -> Path:
+        config = {"frames": frames, "fps": fps, "seed": seed, "width": width, "height": height, "scene_seed": 11,
+                  "timing": None, **settings}
+        key = tuple(sorted((k, repr(v)) for k, v in config.items()))
+        if key not in made:
+            made[key] = simulate_sequence(tmp_path_factory.mktemp("walk") / "walk", SimConfig(**config))
+        return made[key]
+
+    return make
+
+
+@pytest.fixture(scope="session")
 def room():
     """A hold-out procedural room (not the default one) and its oracle field."""
     from nap3d_graph.sims.scene import OracleField, make_scene

@@ -16,13 +16,11 @@ import pytest
 
 from nap3d_graph.cli import main
 from nap3d_graph.datasets import DatasetError, TumSequence, read_tum_trajectory
-from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
-    return simulate_sequence(tmp_path_factory.mktemp("cli") / "walk",
-                             SimConfig(frames=24, fps=6.0, width=160, height=120, scene_seed=11, seed=2, timing=None))
+def walk(sim_walk):
+    return sim_walk(24, seed=2)
 
 
 def _cli(capsys, *argv):
@@ -122,7 +120,7 @@ def test_frames_without_ground_truth_stay_in_the_run(tum_path, tmp_path, capsys)
 
 
 def test_run_folders_created_at_the_same_moment_never_collide(tmp_path):
-    from nap3d_graph.run_output import new_run_dir
+    from nap3d_graph.run.output import new_run_dir
 
     made, errors = [], []
     barrier = threading.Barrier(16)
@@ -143,7 +141,7 @@ def test_run_folders_created_at_the_same_moment_never_collide(tmp_path):
 
 
 def test_a_full_disk_mid_run_is_one_line_and_keeps_what_was_written(walk, tmp_path, capsys, monkeypatch):
-    from nap3d_graph.run_output import RunWriter
+    from nap3d_graph.run.output import RunWriter
 
     original = RunWriter.add_keyframe
     calls = {"n": 0}

@@ -23,20 +23,18 @@ from nap3d_graph.estimators import (
 from nap3d_graph.estimators.synthetic import synthetic_stream
 from nap3d_graph.evaluation.compare import compare, comparison_rows
 from nap3d_graph.imu import ImuConfig, ImuStream
-from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
 from nap3d_graph.odometry import make_odometry
-from nap3d_graph.pipeline import Pipeline, PipelineConfig
-from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
+from nap3d_graph.run.pipeline import Pipeline
 
 CONFIG = PipelineConfig(keyframe_every=5, render_width=None, render_height=None, progress=False)
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
+def walk(sim_walk):
     """A 60-frame traversal at 10 Hz with drifting odometry and a 200 Hz IMU."""
-    path = tmp_path_factory.mktemp("est") / "walk"
-    simulate_sequence(path, SimConfig(frames=60, fps=10.0, width=192, height=144, scene_seed=11, seed=4, timing=None))
-    return path
+    return sim_walk(60, fps=10.0, width=192, height=144)
 
 
 @pytest.fixture(scope="module")

@@ -12,11 +12,11 @@ import pytest
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence
 from nap3d_graph.odometry import make_odometry
-from nap3d_graph.pipeline import Pipeline, PipelineConfig
 from nap3d_graph.results import Correction
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.sims.faults import ScaledDepth
 from nap3d_graph.sims.sensors import OdometryNoise
-from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
 CONFIG = PipelineConfig(keyframe_every=3, render_width=None, render_height=None, odom_drift_m_per_s=0.03,
                         odom_drift_rad_per_s=0.02)
@@ -28,12 +28,9 @@ def ate(result) -> float:
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
-    path = tmp_path_factory.mktemp("faults") / "walk"
+def walk(sim_walk):
     drift = OdometryNoise(bias_init=(0.0, 0.0, 0.01, 0.025, 0.0, 0.01), heading_bias_rad_s=0.015)
-    simulate_sequence(path, SimConfig(frames=60, fps=6.0, width=192, height=144, scene_seed=11, seed=8,
-                                      odometry=drift, timing=None))
-    return SimSequence(path)
+    return SimSequence(sim_walk(60, seed=8, width=192, height=144, odometry=drift))
 
 
 @pytest.fixture(scope="module")
@@ -131,7 +128,7 @@ def test_a_frame_whose_metre_is_off_is_aligned_in_one_pass(walk):
     own pass: the same correction as aligning the frame with its depth divided by the scale
     from scratch (what runs did before, repeating the render and the matching), once."""
     from nap3d_graph import correct_pose
-    from nap3d_graph.keyframe_correction import KeyframeJob, measure_keyframe
+    from nap3d_graph.run.keyframe import KeyframeJob, measure_keyframe
 
     i = 12
     frame = ScaledDepth(walk, {i: 1.035})[i]

@@ -45,9 +45,8 @@ def test_every_subcommand_starts_in_a_fresh_process():
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
-    return simulate_sequence(tmp_path_factory.mktemp("first_user") / "walk",
-                             SimConfig(frames=24, fps=6.0, width=160, height=120, scene_seed=11, seed=2, timing=None))
+def walk(sim_walk):
+    return sim_walk(24, seed=2)
 
 
 def test_export_nerfstudio_runs_in_a_fresh_process(walk, tmp_path):
@@ -227,7 +226,8 @@ def test_a_streak_of_refusals_is_said_during_the_run(walk, caplog):
     goes (once), not only in its summary."""
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.pipeline import Pipeline, PipelineConfig
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.pipeline import Pipeline
     from nap3d_graph.sims.scene import OracleField, make_scene
 
     seq = SimSequence(walk)

@@ -10,10 +10,9 @@ import pytest
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import SimSequence
 from nap3d_graph.imu import ImuConfig, estimate_gravity, gravity_angle_deg
-from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
-from nap3d_graph.pipeline import PipelineConfig
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
 from nap3d_graph.sims.reframe import FieldInFrame, SequenceInFrame
-from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
 # The field's frame: the simulated z-up world turned 90 deg about x (its gravity along +y,
 # a y-down room as a camera-based mapping might leave it).
@@ -21,10 +20,8 @@ T_F_W = np.array([[1.0, 0, 0, 0.3], [0, 0, -1, 0.1], [0, 1, 0, -0.2], [0, 0, 0, 
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
-    path = simulate_sequence(tmp_path_factory.mktemp("gravity") / "walk",
-                             SimConfig(frames=40, fps=10.0, width=160, height=120, scene_seed=11, seed=4, timing=None))
-    return SimSequence(path)
+def walk(sim_walk):
+    return SimSequence(sim_walk(40, fps=10.0))
 
 
 def test_gravity_is_found_in_the_fields_frame(walk):

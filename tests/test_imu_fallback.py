@@ -10,10 +10,9 @@ import pytest
 from nap3d_graph.camera import RenderedView
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import SimSequence
-from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
 from nap3d_graph.odometry import DenseVisualOdometry
-from nap3d_graph.pipeline import PipelineConfig
-from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
 
 
 class _PartlyMapped:
@@ -32,10 +31,8 @@ class _PartlyMapped:
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
-    path = simulate_sequence(tmp_path_factory.mktemp("fallback") / "walk",
-                             SimConfig(frames=90, fps=10.0, width=160, height=120, scene_seed=11, seed=4, timing=None))
-    return SimSequence(path)
+def walk(sim_walk):
+    return SimSequence(sim_walk(90, fps=10.0))
 
 
 def _run(walk, fallback):

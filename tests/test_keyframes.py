@@ -10,8 +10,8 @@ import pytest
 from nap3d_graph.camera import sharpness
 from nap3d_graph.datasets import SimSequence
 from nap3d_graph.odometry import make_odometry
-from nap3d_graph.pipeline import Pipeline, PipelineConfig
-from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.pipeline import Pipeline
 
 
 class _Blurred:
@@ -36,10 +36,8 @@ class _Blurred:
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
-    path = simulate_sequence(tmp_path_factory.mktemp("keyframes") / "walk",
-                             SimConfig(frames=33, fps=6.0, width=192, height=144, scene_seed=11, seed=4, timing=None))
-    return SimSequence(path)
+def walk(sim_walk):
+    return SimSequence(sim_walk(33, width=192, height=144))
 
 
 def test_sharpness_ranks_a_blurred_frame_below_its_sharp_self(walk):

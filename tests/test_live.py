@@ -7,19 +7,17 @@ import pytest
 
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence
-from nap3d_graph.live import DriftCorrector
 from nap3d_graph.odometry import make_odometry
-from nap3d_graph.pipeline import Pipeline, PipelineConfig
-from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.live import DriftCorrector
+from nap3d_graph.run.pipeline import Pipeline
 
 CONFIG = PipelineConfig(keyframe_every=4, render_width=None, render_height=None)
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
-    path = simulate_sequence(tmp_path_factory.mktemp("live") / "walk",
-                             SimConfig(frames=21, fps=6.0, width=160, height=120, scene_seed=11, seed=4, timing=None))
-    return SimSequence(path)
+def walk(sim_walk):
+    return SimSequence(sim_walk(21))
 
 
 def test_frame_at_a_time_equals_the_batch_run(walk):

@@ -9,13 +9,14 @@ import subprocess
 import numpy as np
 import pytest
 
-from nap3d_graph.conventions import exp_se3, pose_error
+from nap3d_graph.conventions import compose_covariance, exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence, TumSequence, read_tum_trajectory
 from nap3d_graph.odometry import make_odometry
-from nap3d_graph.pipeline import Pipeline, PipelineConfig, compose_covariance
 from nap3d_graph.results import Correction
-from nap3d_graph.run_output import write_results
-from nap3d_graph.sims.sensors import OdometryNoise
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.output import write_results
+from nap3d_graph.run.pipeline import Pipeline
+from nap3d_graph.sims.sensors import CameraTiming, OdometryNoise
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
 
@@ -33,22 +34,16 @@ DRIFT = OdometryNoise(bias_init=(0.0, 0.0, 0.01, 0.03, 0.0, 0.01), heading_bias_
 
 
 @pytest.fixture(scope="module")
-def walk(tmp_path_factory):
+def walk(sim_walk):
     """A 48-frame traversal of a room with strongly drifting odometry, seen by a camera that
     takes colour and depth at one instant (the graph's logic is what these tests check)."""
-    path = tmp_path_factory.mktemp("pipe") / "walk"
-    simulate_sequence(path, SimConfig(frames=48, fps=6.0, width=192, height=144, scene_seed=11, seed=4,
-                                      odometry=DRIFT, timing=None))
-    return path
+    return sim_walk(48, width=192, height=144, odometry=DRIFT)
 
 
 @pytest.fixture(scope="module")
-def kinect_walk(tmp_path_factory):
+def kinect_walk(sim_walk):
     """The same walk seen by the Kinect-like camera: depth captured 30 ms before its colour."""
-    path = tmp_path_factory.mktemp("pipe") / "kinect_walk"
-    simulate_sequence(path, SimConfig(frames=48, fps=6.0, width=192, height=144, scene_seed=11, seed=4,
-                                      odometry=DRIFT))
-    return path
+    return sim_walk(48, width=192, height=144, odometry=DRIFT, timing=CameraTiming())
 
 
 # The drift model says what this odometry does: 3 cm/s and 0.02 rad/s of bias, moving or not.
@@ -293,7 +288,6 @@ def test_a_capture_timing_the_data_cannot_tell_is_not_applied(tmp_path, caplog):
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.fields.build import estimate_timing
     from nap3d_graph.sims.sensors import DepthNoise
-    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     ideal = SimConfig(frames=12, seed=5, width=160, height=120, timing=None, exposure=None,
                       depth=DepthNoise(flying_fraction=0.0))

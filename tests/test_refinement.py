@@ -13,12 +13,12 @@ from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correspondences import Correspondences
 from nap3d_graph.nap3d.refine import (
     _intrinsics_jacobian,
-    _point_jacobian,
-    _reprojection_terms,
-    _stack_rows,
     _with_intrinsics_delta,
     consensus_cost,
+    point_jacobian,
     refine_pose,
+    reprojection_terms,
+    stack_rows,
 )
 
 K = Intrinsics(262.5, 260.0, 159.5, 121.0, 320, 240)
@@ -40,8 +40,8 @@ def test_point_and_reprojection_jacobians_match_finite_differences():
     x = _points(rng, 20)
     T = exp_se3([0.05, -0.03, 0.02, 0.1, -0.05, 0.08])
     p = x @ T[:3, :3].T + T[:3, 3]
-    J_point = _point_jacobian(p)
-    res0, J_pix = _reprojection_terms(p, np.zeros((20, 2)), K)
+    J_point = point_jacobian(p)
+    res0, J_pix = reprojection_terms(p, np.zeros((20, 2)), K)
     eps = 1e-6
     for k in range(6):
         d = np.zeros(6)
@@ -49,8 +49,8 @@ def test_point_and_reprojection_jacobians_match_finite_differences():
         p_plus, p_minus = _moved(T, x, d), _moved(T, x, -d)
         numeric_point = (p_plus - p_minus) / (2 * eps)
         np.testing.assert_allclose(J_point[:, :, k], numeric_point, atol=1e-7)
-        r_plus, _ = _reprojection_terms(p_plus, np.zeros((20, 2)), K)
-        r_minus, _ = _reprojection_terms(p_minus, np.zeros((20, 2)), K)
+        r_plus, _ = reprojection_terms(p_plus, np.zeros((20, 2)), K)
+        r_minus, _ = reprojection_terms(p_minus, np.zeros((20, 2)), K)
         np.testing.assert_allclose(J_pix[:, :, k], (r_plus - r_minus) / (2 * eps), rtol=1e-5, atol=1e-5)
     # The residual itself is the projection minus the keypoint.
     uv, _ = project(p, K)
@@ -65,8 +65,8 @@ def test_intrinsics_jacobian_matches_finite_differences():
     for k in range(4):
         d = np.zeros(4)
         d[k] = eps
-        r_plus, _ = _reprojection_terms(p, np.zeros((15, 2)), _with_intrinsics_delta(K, d))
-        r_minus, _ = _reprojection_terms(p, np.zeros((15, 2)), _with_intrinsics_delta(K, -d))
+        r_plus, _ = reprojection_terms(p, np.zeros((15, 2)), _with_intrinsics_delta(K, d))
+        r_minus, _ = reprojection_terms(p, np.zeros((15, 2)), _with_intrinsics_delta(K, -d))
         np.testing.assert_allclose(J[:, :, k], (r_plus - r_minus) / (2 * eps), rtol=1e-6, atol=1e-8)
 
 
@@ -95,7 +95,7 @@ def test_stacked_rows_whiten_the_correlated_pixel_and_depth_noise():
         n_uv = rng.normal(size=2) * np.sqrt(var_px)
         samples.append(np.r_[n_uv, g[0] @ n_uv + rng.normal() * np.sqrt(var_z)])
     samples = np.array(samples)
-    r, _, W = _stack_rows(samples[:, :2], np.zeros((len(samples), 2, 6)), samples[:, 2], np.zeros((len(samples), 6)),
+    r, _, W = stack_rows(samples[:, :2], np.zeros((len(samples), 2, 6)), samples[:, 2], np.zeros((len(samples), 6)),
                           np.repeat(g, len(samples), 0), var_px, np.full(len(samples), var_z), True, True)
     whitened = np.einsum("ni,nij,nj->n", r, W, r)
     assert np.mean(whitened) == pytest.approx(3.0, rel=0.03)

@@ -112,7 +112,7 @@ def test_a_scene_with_several_sequences_asks_which(tmp_path):
 def _simulated_kinect(folder, offset_m: float):
     """A simulated Kinect v1 at 320x240: colour f = 262.5 (525 at 640), its centre 4 and 3 px
     off the depth camera's (f = 292.5), ``offset_m`` beside it; poses of the depth camera."""
-    from nap3d_graph.sims.sevenscenes import simulate_sevenscenes
+    from nap3d_graph.datasets.sevenscenes_sim import simulate_sevenscenes
 
     colour = NOMINAL_COLOUR_CAMERA.scaled(320, 240)
     colour = Intrinsics(colour.fx, colour.fy, colour.cx + 4.0, colour.cy - 3.0, 320, 240)

@@ -86,3 +86,27 @@ def test_cross_recording_study_corrects_one_recording_with_anothers_map(tmp_path
     assert main(["study", str(recording), "--map", str(recording), "--query", str(query),
                  "--out", str(tmp_path / "y")]) == 2
     assert "--map and --query go together" in capsys.readouterr().err
+
+
+def test_a_study_is_reproduced_from_its_config(recording, tmp_path, capsys):
+    """study --config CONFIG.yaml: the recording, frames and settings it wrote come back; flags
+    given beside it win; the study's figures are identical."""
+    import yaml
+
+    from nap3d_graph.cli import main
+
+    first, again = tmp_path / "first", tmp_path / "again"
+    assert main(["study", str(recording), "--out", str(first), "--model", "splat", "--scenarios", "2",
+                 "--odom", "noisy", "--keyframe-every", "4", "--split", "0.4", "--seed", "3"]) == 0
+    config = yaml.safe_load((first / "config.yaml").read_text())
+    assert config["study"]["split"] == 0.4 and config["study"]["odometries"] == ["noisy"]
+    assert main(["study", "--config", str(first / "config.yaml"), "--out", str(again)]) == 0
+    a, b = (json.loads((folder / "summary.json").read_text()) for folder in (first, again))
+    assert a["runs"]["noisy"]["ate_estimate_m"] == b["runs"]["noisy"]["ate_estimate_m"]
+    assert a["eval_k"] == b["eval_k"] and a["train_frames"] == b["train_frames"] == "0:0.4"
+    # A flag beside the file overrides it.
+    other = tmp_path / "other"
+    assert main(["study", "--config", str(first / "config.yaml"), "--out", str(other), "--keyframe-every", "6"]) == 0
+    assert json.loads((other / "summary.json").read_text())["config"]["keyframe_every"] == 6
+    assert main(["study", "--config", str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "x")]) == 2
+    assert "file not found" in capsys.readouterr().err

@@ -17,7 +17,7 @@ def sim_dir(tmp_path_factory):
 
 def test_run_writes_a_rerun_recording_with_every_keyframe(sim_dir, tmp_path):
     from nap3d_graph.cli import main
-    from nap3d_graph.viz import keyframe_entries
+    from nap3d_graph.run.viz import keyframe_entries
 
     rrd = tmp_path / "run.rrd"
     assert main(["run", "--traj", "sim", "--data", str(sim_dir), "--field", "oracle", "--odom", "noisy",

@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-from nap3d_graph.run_output import refusal_hint_for
+from nap3d_graph.run.output import refusal_hint_for
 
 from .common import StopOnSignal, UsageError, writable_dir
 from .sources import add_source_arguments, prepare
@@ -53,7 +53,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from nap3d_graph.run_output import RunWriter
+    from nap3d_graph.run.output import RunWriter
 
     t0 = time.perf_counter()
     if args.config is not None:
@@ -70,7 +70,7 @@ def run(args) -> int:
     pipeline = prepared.pipeline()
     recorder, on_keyframe = None, writer.add_keyframe
     if args.viz is not None:
-        from nap3d_graph.viz import RunRecorder
+        from nap3d_graph.run.viz import RunRecorder
 
         recorder = RunRecorder(args.viz, prepared.name, getattr(prepared.sequence, "intrinsics", None))
 
@@ -92,7 +92,7 @@ def run(args) -> int:
         print(f"rerun recording: {args.viz}" + (" (open it with: rerun " + str(args.viz) + ")"
                                                  if args.viz != "spawn" else ""))
     if args.write_bag is not None:
-        from nap3d_graph.run_bag import write_run_bag
+        from nap3d_graph.run.bag import write_run_bag
 
         world = getattr(prepared.sequence, "world_frame", None) or "world"
         write_run_bag(args.write_bag, result, world_frame=world)
@@ -111,7 +111,7 @@ def run(args) -> int:
 
 def _check_bag_path(path: Path) -> None:
     from nap3d_graph.datasets import DatasetError
-    from nap3d_graph.run_bag import check_bag_path
+    from nap3d_graph.run.bag import check_bag_path
 
     try:
         check_bag_path(path)
@@ -120,7 +120,7 @@ def _check_bag_path(path: Path) -> None:
 
 
 def _check_viz(target: str) -> None:
-    from nap3d_graph.viz import VizError, check_viz_target
+    from nap3d_graph.run.viz import VizError, check_viz_target
 
     try:
         check_viz_target(target)

@@ -1,6 +1,6 @@
 """``run --config config.yaml``: a run reproduced from the configuration another run wrote.
 
-Every run writes ``config.yaml`` (:mod:`nap3d_graph.run_output`): the options it was given,
+Every run writes ``config.yaml`` (:mod:`nap3d_graph.run.output`): the options it was given,
 the pipeline's and the alignment's settings as they were resolved. Reading it back sets each
 option the file knows, unless the command line gives that option a value other than its
 default (flags override the file); settings with no flag (the depth-scale check's tolerance,

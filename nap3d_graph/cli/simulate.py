@@ -64,7 +64,7 @@ def run(args) -> int:
         out = simulate_sequence(args.out, config, progress=True)
     print(f"wrote {args.frames} frames ({args.path}, room {args.scene_seed}, seed {args.seed}) to {out}")
     if args.realsense is not None:
-        from nap3d_graph.sims.realsense import write_realsense_recording
+        from nap3d_graph.datasets.realsense_sim import write_realsense_recording
 
         recording = write_realsense_recording(out, args.realsense, seed=args.seed, progress=True)
         print(f"wrote the RealSense recording {recording} and {recording.with_suffix('.yaml')}; run it with: "

@@ -1,5 +1,5 @@
 """What ``run`` and ``compare`` share: the data source, field, odometry and keyframe options,
-and turning them into a ready :class:`~nap3d_graph.pipeline.Pipeline` (or its IMU variant)."""
+and turning them into a ready :class:`~nap3d_graph.run.pipeline.Pipeline` (or its IMU variant)."""
 
 from __future__ import annotations
 
@@ -66,8 +66,8 @@ def add_source_arguments(p) -> None:
     import argparse
 
     from nap3d_graph.datasets import SOURCES
-    from nap3d_graph.default_run import DEFAULT_TRAIN_STEPS
-    from nap3d_graph.pipeline_config import PipelineConfig
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.default import DEFAULT_TRAIN_STEPS
 
     p.add_argument("--traj", choices=tuple(SOURCES), default="sim",
                    help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder), "
@@ -231,9 +231,10 @@ def imu_config(args, base=None):
 
 def _inputs(args):
     """(sequence folder, field, field description, run name) from the arguments."""
+    from nap3d_graph.cache import default_cache_dir
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.default_run import default_cache_dir, embedded_default_inputs
     from nap3d_graph.fields import resolve_field
+    from nap3d_graph.run.default import embedded_default_inputs
 
     if args.data is None:
         if args.traj != "sim":
@@ -287,7 +288,7 @@ def _realsense_data(args) -> Path:
 
 def _odometry(args, sequence, initial_pose):
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.pipeline import Pipeline
+    from nap3d_graph.run.pipeline import Pipeline
 
     if args.odom:
         odom_kind = args.odom
@@ -298,7 +299,7 @@ def _odometry(args, sequence, initial_pose):
         odom_kind = "recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy"
     try:
         if odom_kind == "imu":
-            from nap3d_graph.imu_pipeline import ImuOdometry, ImuPipeline
+            from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
 
             config = imu_config(args, getattr(sequence, "imu_config", None))
             odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
@@ -359,8 +360,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.pipeline import PipelineConfig
-    from nap3d_graph.pipeline_config import with_field_error
+    from nap3d_graph.run.config import PipelineConfig, with_field_error
 
     from .run_config import with_overrides
 

@@ -37,13 +37,49 @@ def add_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     add_matcher_argument(p, RUN_MATCHER)
     p.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    p.add_argument("--config", type=Path, metavar="CONFIG.yaml",
+                   help="reproduce a study from the config.yaml it wrote: its recordings, frames and settings, "
+                   "except the options given here (--out is always given)")
     add_topics_argument(p)
+    p.set_defaults(parser=p)
     p.set_defaults(func=run)
+
+
+#: config.yaml key -> study option (argparse dest); the settings are under "study".
+_RECORDINGS = {"data": "data", "map": "map_data", "map_frames": "map_frames", "query": "query",
+               "query_frames": "query_frames"}
+_SETTINGS = {"split": "split", "model": "model", "train_steps": "train_steps", "keyframe_every": "keyframe_every",
+             "eval_k_scenarios": "scenarios", "eval_k_full": "eval_k_full", "seed": "seed", "matcher": "matcher",
+             "topics": "topics"}
+
+
+def _apply_config(args, path: Path) -> None:
+    """Set every option the command line left at its default from a study's config.yaml."""
+    import yaml
+
+    try:
+        config = yaml.safe_load(Path(path).read_text())
+    except FileNotFoundError:
+        raise UsageError(f"--config {path}: file not found") from None
+    except (OSError, yaml.YAMLError) as exc:
+        raise UsageError(f"--config {path}: not a readable YAML file ({str(exc).splitlines()[0]})") from None
+    if not isinstance(config, dict) or not isinstance(config.get("study"), dict):
+        raise UsageError(f"--config {path}: not a study's config.yaml (no 'study' section)")
+    values = {dest: config.get(key) for key, dest in _RECORDINGS.items()}
+    values = {k: (Path(v) if k in ("data", "map_data", "query") and v is not None else v) for k, v in values.items()}
+    values.update({dest: config["study"][key] for key, dest in _SETTINGS.items() if key in config["study"]})
+    if "odometries" in config["study"]:
+        values["odom"] = ",".join(config["study"]["odometries"])
+    for dest, value in values.items():
+        if getattr(args, dest) == args.parser.get_default(dest):
+            setattr(args, dest, value)
 
 
 def run(args) -> int:
     from nap3d_graph.evaluation.study import StudyConfig, run_study
 
+    if args.config is not None:
+        _apply_config(args, args.config)
     if not 0.05 <= args.split <= 0.95:
         raise UsageError(f"--split must be in [0.05, 0.95], got {args.split}")
     odometries = tuple(o.strip() for o in args.odom.split(",") if o.strip())
@@ -65,5 +101,5 @@ def run(args) -> int:
     else:
         run_study(args.data, args.out, config)
     print((args.out / "summary.md").read_text())
-    print(f"study in {args.out}/ (summary.md, summary.json, field.pt, runs/, eval_k/)")
+    print(f"study in {args.out}/ (summary.md, summary.json, config.yaml, field.pt, runs/, eval_k/)")
     return 0

@@ -9,11 +9,13 @@ ROS 1 ``.bag`` or a ROS 2 bag folder (read with ``rosbags``).
 
 from __future__ import annotations
 
+from nap3d_graph.datasets.errors import DatasetError
+from nap3d_graph.datasets.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
+
 from .realsense import RealSenseConfig, RealSenseRecording
 from .rosbag import BagTopics, RosbagSequence, is_rosbag
 from .sevenscenes import SevenScenesSequence, is_sevenscenes_folder
 from .sim import SimSequence
-from .tum import DatasetError, TumSequence, read_tum_trajectory, write_tum_trajectory
 
 __all__ = [
     "SOURCES",

@@ -232,7 +232,7 @@ class SevenScenesSequence(GroundTruthLookup):
     def _registration_cache(self) -> Path | None:
         if self.cache_dir is False:
             return None
-        from nap3d_graph.default_run import default_cache_dir
+        from nap3d_graph.cache import default_cache_dir
 
         base = Path(self.cache_dir) if self.cache_dir else default_cache_dir()
         return base / "registration" / f"7scenes_{self.recording_id}_v{_REGISTRATION_VERSION}.json"

@@ -14,7 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .tum import DatasetError, TumSequence, interpolate_poses, read_tum_trajectory
+from nap3d_graph.datasets.association import interpolate_poses
+from nap3d_graph.datasets.errors import DatasetError
+from nap3d_graph.datasets.tum import TumSequence, read_tum_trajectory
 
 __all__ = ["SimSequence"]
 

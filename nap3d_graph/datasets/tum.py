@@ -38,17 +38,12 @@ from .errors import DatasetError
 from .frames import frame_index, parse_frame_range
 
 __all__ = [
-    "DatasetError",
     "TumSequence",
     "read_tum_trajectory",
     "write_tum_trajectory",
     "read_file_list",
-    "associate",
-    "ASSOCIATION_METHODS",
-    "interpolate_poses",
     "tum_intrinsics_for",
     "TUM_DEPTH_SCALE",
-    "GT_MAX_GAP_S",
 ]
 
 logger = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
 """The factor graph on the stream: iSAM2 (causal and final) and batch Levenberg-Marquardt.
 
-The graph is the drift-correction run's (:mod:`nap3d_graph.pipeline`): a pose per keyframe
+The graph is the drift-correction run's (:mod:`nap3d_graph.run.pipeline`): a pose per keyframe
 (and, on the IMU path, a velocity and a bias: ``CombinedImuFactor`` between keyframes), a
 prior on the first, the interval odometry as between factors, and each NAP3D correction as a
 Huber-robust pose prior with its covariance.

@@ -49,7 +49,7 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
     from nap3d_graph.conventions import inv_T, pose_error
     from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.nap3d.correct import _resize_frame, render_safely
+    from nap3d_graph.nap3d.correct import render_safely, resize_frame
 
     from .eval_k import at_colour_instant
     from .perturb import random_perturbation
@@ -70,7 +70,7 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
         T_est = T_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)
         frame = at_colour_instant(sequence, index, config.timing)
         if config.render_size is not None and tuple(config.render_size) != frame.intrinsics.shape[::-1]:
-            frame = _resize_frame(frame, *config.render_size)
+            frame = resize_frame(frame, *config.render_size)
         t_unc, r_unc = pose_error(T_est, T_gt)
         base = {"trial": trial, "frame_index": index, "uncorrected_trans_m": t_unc, "uncorrected_rot_deg": r_unc}
         view, reason = render_safely(field, T_est, frame.intrinsics)

@@ -47,6 +47,18 @@ class StudyConfig:
             raise ValueError(f"split must be in [0.05, 0.95], got {self.split}")
 
 
+def _write_config(path: Path, data, query, map_frames, query_frames, config: StudyConfig) -> None:
+    """What the study was given, as ``study --config`` reads it back."""
+    import yaml
+
+    settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(config).items() if k != "progress"}
+    record = {"data": None if query is not None else str(Path(data).resolve()),
+              "map": str(Path(data).resolve()) if query is not None else None, "map_frames": map_frames,
+              "query": None if query is None else str(Path(query).resolve()), "query_frames": query_frames,
+              "study": settings}
+    path.write_text(yaml.safe_dump(record, sort_keys=False))
+
+
 def _stage(name: str, progress: bool) -> None:
     if progress:
         print(f"== {name}", flush=True)
@@ -74,6 +86,7 @@ def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = No
         train_frames, test_frames, test_data = map_frames, query_frames, query  # None: all frames
     summary: dict = {"data": str(data), "train_frames": train_frames or "all", "test_frames": test_frames or "all",
                      "config": asdict(config)}
+    _write_config(out / "config.yaml", data, query, map_frames, query_frames, config)
     if query is not None:
         summary["query"] = str(query)
 
@@ -111,7 +124,7 @@ def shared_world_check(field, sequence, config: StudyConfig, frames: int = 6) ->
     from nap3d_graph.conventions import pose_error
     from nap3d_graph.fields.field_error import measure_frame
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.pipeline import PipelineConfig
+    from nap3d_graph.run.config import PipelineConfig
 
     run_config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=config.matcher))
     T_gt = sequence.T_world_cam_gt
@@ -150,8 +163,9 @@ def _field_summary(report: dict) -> dict:
 def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) -> dict:
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.pipeline import Pipeline, PipelineConfig
-    from nap3d_graph.run_output import write_results
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.output import write_results
+    from nap3d_graph.run.pipeline import Pipeline
 
     odometry = make_odometry(odom, sequence, config.seed, matcher=config.matcher)
     pipeline_config = PipelineConfig(keyframe_every=config.keyframe_every, progress=config.progress,

@@ -8,7 +8,7 @@ import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RenderedView
 
-__all__ = ["RadianceField", "FieldError"]
+__all__ = ["RadianceField", "FieldError", "field_sigmas"]
 
 
 class FieldError(ValueError):
@@ -27,3 +27,10 @@ class RadianceField(Protocol):
     def bounds(self) -> np.ndarray: ...
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView: ...
+
+
+def field_sigmas(field) -> tuple[float, float]:
+    """``(sigma_m, sigma_rad)`` the field records (:func:`measure_field_error`), or zeros for a
+    field that records none (the exact oracle, nerfstudio models, older checkpoints)."""
+    error = (getattr(field, "meta", None) or {}).get("field_error") or {}
+    return float(error.get("sigma_m", 0.0) or 0.0), float(error.get("sigma_rad", 0.0) or 0.0)

@@ -86,7 +86,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
-    ``eval_frames``: training frames and held-out frames (:func:`~nap3d_graph.fields.training.split_posed_frames`).
+    ``eval_frames``: training frames and held-out frames (:func:`~nap3d_graph.fields.training_data.split_posed_frames`).
     ``voxel_size_m``: the model's voxel (default: the model's own). ``timing``: ``"auto"``
     (estimate it), ``None`` (use the stamps as they are) or a dict. ``render_size``: the
     held-out evaluation renders at this size (the pipeline's; the frames' own when they are
@@ -187,7 +187,8 @@ def _build_splat(sequence, train_idx, voxel_size_m, timing, progress):
 
 
 def _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device, progress):
-    from .training import TrainConfig, train_field
+    from .train_config import TrainConfig
+    from .training import train_field
 
     config = TrainConfig(every=every, eval_frames=0, seed=seed, device=device)
     if steps is not None:

@@ -25,19 +25,12 @@ import numpy as np
 
 from ..conventions import inv_T, log_se3
 
-__all__ = ["measure_field_error", "measure_frame", "field_sigmas", "sigma_for_median_nees", "twist_at"]
+__all__ = ["measure_field_error", "measure_frame", "sigma_for_median_nees", "twist_at"]
 
 log = logging.getLogger(__name__)
 
 #: Median of a chi-square with 3 degrees of freedom.
 _CHI2_3_MEDIAN = 2.366
-
-
-def field_sigmas(field) -> tuple[float, float]:
-    """``(sigma_m, sigma_rad)`` the field records (:func:`measure_field_error`), or zeros for a
-    field that records none (the exact oracle, nerfstudio models, older checkpoints)."""
-    error = (getattr(field, "meta", None) or {}).get("field_error") or {}
-    return float(error.get("sigma_m", 0.0) or 0.0), float(error.get("sigma_rad", 0.0) or 0.0)
 
 
 def twist_at(sequence, i: int) -> np.ndarray | None:
@@ -54,12 +47,12 @@ def twist_at(sequence, i: int) -> np.ndarray | None:
 def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, timing: dict | None = None,
                   render_size: tuple[int, int] | None = (320, 240), with_twist: bool = True):
     """Frame ``i`` of a posed ``sequence`` measured as a run measures a keyframe
-    (:func:`~nap3d_graph.keyframe_correction.measure_keyframe`, ``run_config`` a
+    (:func:`~nap3d_graph.run.keyframe.measure_keyframe`, ``run_config`` a
     PipelineConfig) from a render at ``T_render``: the field's error, a training pose's
     refinement and a recording's shared world frame are all checked this way. The render is
     at ``render_size`` (the frame's own when None or larger); ``with_twist``: move depth to the
     colour's instant with the ground truth's motion (when ``timing`` says how)."""
-    from ..keyframe_correction import KeyframeJob, measure_keyframe
+    from nap3d_graph.run.keyframe import KeyframeJob, measure_keyframe
 
     frame = sequence[int(i)]
     K = frame.intrinsics
@@ -101,8 +94,9 @@ def measure_field_error(field, sequence, indices, timing: dict | None = None, al
     ``perturbation``: (metres, radians) per axis of the Gaussian offset of each render from
     the true pose.
     """
+    from nap3d_graph.run.config import PipelineConfig
+
     from ..conventions import exp_se3
-    from ..pipeline_config import PipelineConfig
 
     config = PipelineConfig(field_sigma_m=0.0, **({"align": align} if align is not None else {}))
     errors, covariances, failed = [], [], 0

@@ -45,18 +45,15 @@ import torch.nn.functional as F
 
 from .base import FieldError
 from .checkpoint import load_state, meta_json
-from .grid_render import GridRenderer, RenderConfig, pixel_directions, torch_threads
+from .grid_render import GridRenderer, RenderConfig
 
 __all__ = [
     "GridField",
-    "RenderConfig",
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_VERSION",
     "DENSITY_SHIFT",
     "default_device",
-    "pixel_directions",
     "trilinear_corners",
-    "torch_threads",
 ]
 
 log = logging.getLogger(__name__)

@@ -8,7 +8,6 @@ import contextlib
 import math
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -16,9 +15,6 @@ import torch
 from nap3d_graph.camera import Intrinsics, RenderedView
 
 from .base import FieldError
-
-if TYPE_CHECKING:
-    from .grid import GridField
 
 __all__ = ["GridRenderer", "RenderConfig", "pixel_directions", "torch_threads"]
 
@@ -399,7 +395,7 @@ def _smooth_cells(corners_z: torch.Tensor, corners_a: torch.Tensor, cfg: RenderC
     return opaque & (spread < cfg.smooth_max_spread_m) & (twist < cfg.smooth_max_twist_m)
 
 
-def _median_depth(t, dt, tau, n, field: GridField, origin, dirs, refine: int, tau0=None):
+def _median_depth(t, dt, tau, n, field: GridRenderer, origin, dirs, refine: int, tau0=None):
     """Median termination depth and opacity from samples.
 
     t, dt, tau: (N, S) sample positions (z-depth), their interval lengths (in t) and optical

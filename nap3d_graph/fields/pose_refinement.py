@@ -100,8 +100,9 @@ def refine_training_poses(sequence, train_idx, timing: dict | None = None,
     with ``corrections`` ``{frame index: D (4, 4)}`` (refined pose = input pose @ D; use
     :class:`PoseCorrectedSequence` to build with them) and a report of each round (median
     correction, frames measured, the measurements' extra sigma)."""
+    from nap3d_graph.run.config import PipelineConfig
+
     from ..nap3d.config import AlignConfig
-    from ..pipeline_config import PipelineConfig
     from .field_error import measure_frame
     from .splat import build_splat_field
 

@@ -31,93 +31,25 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import replace
 from typing import Callable, Sequence
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..camera import DEPTH_SIGMA_Z2_PER_M
+from nap3d_graph.fields.grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, trilinear_corners
+from nap3d_graph.fields.grid_render import torch_threads
+
 from .base import FieldError
 from .evaluation import evaluate_field, oracle_for, psnr
-from .grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, torch_threads, trilinear_corners
 from .lazy_adam import LazyAdam
-from .training_data import (
-    TrainingRays,
-    _ray_poses,
-    scene_bounds_from_depth,
-    splat_init,
-    split_frames,
-    split_posed_frames,
-)
+from .train_config import TrainConfig
+from .training_data import TrainingRays, ray_poses, scene_bounds_from_depth, splat_init, split_posed_frames
 
-__all__ = [
-    "TrainConfig",
-    "TrainingRays",
-    "train_field",
-    "split_frames",
-    "split_posed_frames",
-    "splat_init",
-    "scene_bounds_from_depth",
-]
+__all__ = ["train_field"]
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class TrainConfig:
-    """Training settings; every field has a default that works for a room-sized scene.
-
-    Geometry: ``voxel_size_m`` (density grid; colour is ``color_voxel_ratio`` times finer),
-    ``coarse_voxel_size_m`` (an optional first stage on a coarser grid, for
-    ``coarse_fraction`` of the budget; off by default since ``init_from_depth`` starts the
-    grid from the back-projected depth). Budget: ``minutes`` of optimisation
-    (loading and evaluation not counted), or ``max_steps`` if set. Frames: every ``every``-th
-    frame is used for training; ``eval_frames`` held-out frames are evaluated.
-    Sampling: ``rays_per_step``, ``free_samples`` and ``window_samples`` per ray; the window
-    half-width is ``max(window_min_m, window_sigmas * depth_sigma_z2 * z^2)``.
-    ``threads``: torch CPU threads during training (1: see ``grid.torch_threads``; None keeps
-    torch's setting).
-    """
-
-    voxel_size_m: float = 0.03
-    color_voxel_ratio: float = 1.5
-    coarse_voxel_size_m: float | None = None
-    coarse_fraction: float = 0.2
-    minutes: float = 5.0
-    max_steps: int | None = None
-    every: int = 1
-    eval_frames: int = 8
-    seed: int = 0
-    rays_per_step: int = 4096
-    patch_size: int = 8
-    free_samples: int = 8
-    window_samples: int = 16
-    window_min_m: float = 0.04
-    window_sigmas: float = 3.0
-    depth_sigma_z2: float = DEPTH_SIGMA_Z2_PER_M
-    min_depth_m: float = 0.1
-    max_depth_m: float = 8.0
-    bounds_margin_m: float = 0.15
-    lr_density: float = 1.0
-    lr_color: float = 0.1
-    lr_final_ratio: float = 0.1
-    weight_rgb: float = 1.0
-    weight_window: float = 1.0
-    weight_near: float = 5.0
-    weight_empty: float = 1.0
-    weight_opacity: float = 0.01
-    color_weight_eps: float = 2e-3
-    init_from_depth: bool = True
-    init_density_raw: float = 14.0
-    init_min_weight: float = 1.0
-    init_stride: int = 2
-    device: str | None = None
-    threads: int | None = 1
-
-    def to_dict(self) -> dict:
-        return asdict(self)
 
 
 # --- frames, rays and bounds ------------------------------------------------------------------
@@ -310,7 +242,7 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
 
     started = time.perf_counter()
     rays = TrainingRays.from_sequence(sequence, train_idx, config, device, progress=progress, timing=timing)
-    bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), _ray_poses(rays),
+    bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), ray_poses(rays),
                                      rays.intrinsics, margin_m=config.bounds_margin_m)
     load_seconds = time.perf_counter() - started
     log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), rays.num_valid, bounds.round(2).tolist())

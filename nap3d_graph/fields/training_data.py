@@ -13,14 +13,15 @@ import torch
 
 from nap3d_graph.camera import Intrinsics, backproject_depth, valid_depth_mask
 from nap3d_graph.conventions import transform_points
+from nap3d_graph.fields.grid import GridField, trilinear_corners
+from nap3d_graph.fields.grid_render import pixel_directions
 
 from .base import FieldError
-from .grid import GridField, pixel_directions, trilinear_corners
 
 if TYPE_CHECKING:
-    from .training import TrainConfig
+    from .train_config import TrainConfig
 
-__all__ = ["TrainingRays", "split_frames", "split_posed_frames", "scene_bounds_from_depth", "splat_init"]
+__all__ = ["TrainingRays", "ray_poses", "split_frames", "split_posed_frames", "scene_bounds_from_depth", "splat_init"]
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +135,7 @@ def split_posed_frames(sequence, every: int = 1, eval_frames: int = 8) -> tuple[
     return posed[train], posed[held]
 
 
-def _ray_poses(rays: TrainingRays) -> np.ndarray:
+def ray_poses(rays: TrainingRays) -> np.ndarray:
     T = np.tile(np.eye(4), (rays.num_frames, 1, 1))
     T[:, :3, :3] = rays.R_world_cam.cpu().numpy()
     T[:, :3, 3] = rays.t_world_cam

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from ..camera import DEPTH_SIGMA_Z2_PER_M
@@ -11,7 +12,10 @@ from .matching import MATCHERS, NN_SEARCHES
 XFEAT_INFLATION = 1.46
 XFEAT_PLAIN_INFLATION = 1.74
 
-__all__ = ["AlignConfig", "MATCHER_NOISE"]
+__all__ = ["AlignConfig", "MATCHER_NOISE", "FROM_MATCHER"]
+
+#: A noise setting left to the matcher's own value (``MATCHER_NOISE``).
+FROM_MATCHER = math.nan
 
 _SIFT_NOISE = {
     "keypoint_sigma_px": 0.7,
@@ -115,8 +119,8 @@ class AlignConfig:
         translation.
     cross_covariance_scale: the refined covariance's rotation-translation cross terms are
         multiplied by it (1 for SIFT; 0 for XFeat, whose errors are far less coupled than its
-        residuals say). Every noise field left None takes its matcher's value from
-        ``MATCHER_NOISE``.
+        residuals say). Every noise field left unset (``FROM_MATCHER``, NaN; None is taken
+        as unset too) takes its matcher's value from ``MATCHER_NOISE``.
     """
 
     method: str = "refined"
@@ -135,7 +139,7 @@ class AlignConfig:
     min_opacity: float = 0.5
     min_depth_m: float = 0.1
     max_depth_m: float = 10.0
-    keypoint_sigma_px: float | None = None
+    keypoint_sigma_px: float = FROM_MATCHER
     depth_sigma_floor_m: float = 0.002
     depth_sigma_z2_per_m: float = DEPTH_SIGMA_Z2_PER_M
     render_depth_sigma_m: float = 0.005
@@ -148,15 +152,15 @@ class AlignConfig:
     refine_iterations: int = 8
     huber_k: float = 2.5
     covariance: str = "hessian"
-    covariance_inflation: float | None = None
-    covariance_inflation_per_px: float | None = None
-    covariance_inflation_per_octave: float | None = None
-    plain_covariance_inflation: float | None = None
-    plain_covariance_inflation_per_px: float | None = None
-    plain_covariance_inflation_per_octave: float | None = None
-    rotation_inflation: float | None = None
-    cross_covariance_scale: float | None = None
-    plain_rotation_inflation: float | None = None
+    covariance_inflation: float = FROM_MATCHER
+    covariance_inflation_per_px: float = FROM_MATCHER
+    covariance_inflation_per_octave: float = FROM_MATCHER
+    plain_covariance_inflation: float = FROM_MATCHER
+    plain_covariance_inflation_per_px: float = FROM_MATCHER
+    plain_covariance_inflation_per_octave: float = FROM_MATCHER
+    rotation_inflation: float = FROM_MATCHER
+    cross_covariance_scale: float = FROM_MATCHER
+    plain_rotation_inflation: float = FROM_MATCHER
     estimate_intrinsics: bool | str = "auto"
     auto_intrinsics_min_gain: float = 18.5
     auto_intrinsics_min_consensus: float = 1.2
@@ -173,7 +177,7 @@ class AlignConfig:
             raise ValueError(f"AlignConfig.nn_search must be 'exact' or 'flann', got {self.nn_search!r}")
         # The matcher's own noise model wherever the caller left a value unset.
         for name, value in MATCHER_NOISE[self.matcher].items():
-            if getattr(self, name) is None:
+            if getattr(self, name) is None or math.isnan(getattr(self, name)):
                 object.__setattr__(self, name, value)
         if self.min_inliers < 3 or self.min_matches < 3:
             raise ValueError("min_matches and min_inliers must be at least 3")

@@ -21,7 +21,7 @@ from .align import align_views
 from .config import AlignConfig
 from .matching import detect_features
 
-__all__ = ["correct_pose", "render_safely"]
+__all__ = ["correct_pose", "render_safely", "resize_frame"]
 
 log = logging.getLogger(__name__)
 
@@ -74,7 +74,7 @@ def correct_pose(
     # The real frame is the same every round: resize it and detect its features once.
     real = frame
     if intrinsics.shape != frame.intrinsics.shape:
-        real = _resize_frame(frame, intrinsics.width, intrinsics.height)
+        real = resize_frame(frame, intrinsics.width, intrinsics.height)
     # The real frame's features while the first render is made: the two do not depend on each
     # other, and OpenCV and torch both release the GIL, so the second core takes one of them.
     detecting = _detector().submit(_timed_detect, real.rgb, config)
@@ -128,7 +128,7 @@ def _detector() -> ThreadPoolExecutor:
     return _DETECTOR[1]
 
 
-def _resize_frame(frame: RGBDFrame, width: int, height: int) -> RGBDFrame:
+def resize_frame(frame: RGBDFrame, width: int, height: int) -> RGBDFrame:
     """The frame at another resolution (area for colour, nearest for depth)."""
     import cv2
 

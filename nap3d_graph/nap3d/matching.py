@@ -139,12 +139,12 @@ def detect_features(rgb: np.ndarray, max_features: int = 0, mask: np.ndarray | N
 def _detect_sift(rgb: np.ndarray, max_features: int, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
     import cv2
 
-    sift = cv2.SIFT_create(nfeatures=max_features)
+    sift = cv2.SIFT.create(nfeatures=max_features)
     mask_u8 = None if mask is None else np.asarray(mask, dtype=np.uint8) * 255
     keypoints, descriptors = sift.detectAndCompute(_to_gray(rgb), mask_u8)
     if descriptors is None or not keypoints:
         return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
-    return cv2.KeyPoint_convert(keypoints).astype(float), descriptors.astype(np.float32)
+    return np.asarray(cv2.KeyPoint.convert(keypoints), dtype=float), descriptors.astype(np.float32)
 
 
 @contextlib.contextmanager
@@ -206,6 +206,7 @@ def _knn(desc_query: np.ndarray, desc_train: np.ndarray, nn_search: str, checks:
     """The two nearest train descriptors of every query descriptor (OpenCV DMatch lists)."""
     import cv2
 
+    engine: cv2.DescriptorMatcher
     if nn_search == "exact":
         engine = cv2.BFMatcher(cv2.NORM_L2)
     elif nn_search == "flann":

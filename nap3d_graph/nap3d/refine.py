@@ -16,13 +16,14 @@ from ..conventions import exp_se3, make_T, skew
 from .config import AlignConfig
 from .correspondences import Correspondences
 
-__all__ = ["refine_pose", "plain_covariance", "consensus_cost"]
+__all__ = ["refine_pose", "plain_covariance", "consensus_cost", "point_jacobian", "reprojection_terms", "stack_rows",
+           "variance_factors"]
 
 
 # --- refinement and covariance -------------------------------------------------------------------
 
 
-def _point_jacobian(p: np.ndarray) -> np.ndarray:
+def point_jacobian(p: np.ndarray) -> np.ndarray:
     """d p / d delta (N, 3, 6) for the right perturbation of the real camera pose."""
     J = np.zeros((len(p), 3, 6))
     J[:, :, :3] = skew(p)
@@ -30,7 +31,7 @@ def _point_jacobian(p: np.ndarray) -> np.ndarray:
     return J
 
 
-def _reprojection_terms(p: np.ndarray, uv: np.ndarray, K: Intrinsics):
+def reprojection_terms(p: np.ndarray, uv: np.ndarray, K: Intrinsics):
     """Residuals (N, 2) pixels and Jacobians (N, 2, 6) of projecting p into the real image."""
     z = p[:, 2]
     res = np.stack([K.fx * p[:, 0] / z + K.cx - uv[:, 0], K.fy * p[:, 1] / z + K.cy - uv[:, 1]], axis=1)
@@ -39,7 +40,7 @@ def _reprojection_terms(p: np.ndarray, uv: np.ndarray, K: Intrinsics):
     Jproj[:, 0, 2] = -K.fx * p[:, 0] / z**2
     Jproj[:, 1, 1] = K.fy / z
     Jproj[:, 1, 2] = -K.fy * p[:, 1] / z**2
-    return res, Jproj @ _point_jacobian(p)
+    return res, Jproj @ point_jacobian(p)
 
 
 def _huber_weights(r_norm: np.ndarray, k: float) -> np.ndarray:
@@ -101,13 +102,13 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
         p = x @ T[:3, :3].T + T[:3, 3]
         if np.any(p[:, 2] <= 1e-6):
             return None
-        r_px, J_px = _reprojection_terms(p, uv, _with_intrinsics_delta(intrinsics, d_K))
+        r_px, J_px = reprojection_terms(p, uv, _with_intrinsics_delta(intrinsics, d_K))
         r_z = p[:, 2] - z_real
-        J_z = _point_jacobian(p)[:, 2, :]
+        J_z = point_jacobian(p)[:, 2, :]
         if calibrate:
             J_px = np.concatenate([J_px, _intrinsics_jacobian(p)], axis=2)
             J_z = np.concatenate([J_z, np.zeros((n, 4))], axis=1)
-        r, J, W = _stack_rows(r_px, J_px, r_z, J_z, grad, var_px0 * scale_px, var_z0 * scale_z,
+        r, J, W = stack_rows(r_px, J_px, r_z, J_z, grad, var_px0 * scale_px, var_z0 * scale_z,
                               use_reprojection, use_depth)
         norm_sq = np.einsum("ni,nij,nj->n", r, W, r)
         rob = _huber_weights(np.sqrt(norm_sq / rows), config.huber_k)
@@ -126,7 +127,7 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
         # T_true <- T_true Exp(delta)  <=>  T_real_rendered <- Exp(-delta) T_real_rendered
         T = exp_se3(-delta) @ T
         if iteration in (1, 3):
-            scale_px, scale_z = _variance_factors(r_px, r_z, grad, rob, var_px0, var_z0, use_reprojection,
+            scale_px, scale_z = variance_factors(r_px, r_z, grad, rob, var_px0, var_z0, use_reprojection,
                                                   use_depth)
         elif iteration > 3 and np.linalg.norm(delta) < 1e-10:
             break
@@ -166,18 +167,18 @@ def consensus_cost(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsi
     edge = ~np.all(np.isfinite(grad), axis=1)
     grad = np.where(edge[:, None], 0.0, grad)
     var_z0 = np.where(edge, 1.0, var_z0)
-    r_px, J_px = _reprojection_terms(p, corr.uv_real, intrinsics)
+    r_px, J_px = reprojection_terms(p, corr.uv_real, intrinsics)
     r_z = p[:, 2] - z_real
-    J_z = _point_jacobian(p)[:, 2, :]
+    J_z = point_jacobian(p)[:, 2, :]
     var_px = 2.0 * config.keypoint_sigma_px**2 * scale_px
-    r, _, W = _stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z0 * scale_z, True, use_depth)
+    r, _, W = stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z0 * scale_z, True, use_depth)
     r2 = np.einsum("ni,nij,nj->n", r, W, r)
     # The same tail probability as the 3-row threshold, for 2 rows when the depth is left out.
     threshold = config.inlier_chi2 if use_depth else float(chi2.ppf(chi2.cdf(config.inlier_chi2, 3), 2))
     return float(np.sum(np.minimum(r2, threshold))), int(np.sum(r2 < threshold))
 
 
-def _stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use_depth):
+def stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use_depth):
     """Residuals (N, m), Jacobians (N, m, 6) and information matrices (N, m, m) per
     correspondence, m = 3 (pixels + depth), 2 (pixels) or 1 (depth)."""
     n = len(r_z)
@@ -194,7 +195,7 @@ def _stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use
     return r_z[:, None], J_z[:, None], (1.0 / var)[:, None, None]
 
 
-def _variance_factors(r_px, r_z, grad, rob, var_px0, var_z0, use_reprojection, use_depth):
+def variance_factors(r_px, r_z, grad, rob, var_px0, var_z0, use_reprojection, use_depth):
     """Variance factors (pixel, depth) from the robust-weighted residuals.
 
     The depth factor uses the depth residual *conditioned* on the pixel residual
@@ -240,7 +241,7 @@ def plain_covariance(R, t, x, y, weights, s_xy, s_z) -> np.ndarray:
     """
     p = x @ R.T + t
     e = p - y
-    J = _point_jacobian(p)
+    J = point_jacobian(p)
     w = np.asarray(weights, dtype=float)
     w = w / w.mean()
     n = len(x)

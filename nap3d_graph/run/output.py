@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .datasets.tum import write_tum_trajectory
-from .evaluation.metrics import trajectory_metrics
-from .imu import gravity_angle_deg
-from .plots import plot_error_over_time, plot_top_view
+from nap3d_graph.datasets.tum import write_tum_trajectory
+from nap3d_graph.evaluation.metrics import trajectory_metrics
+from nap3d_graph.imu import gravity_angle_deg
+from nap3d_graph.plots import plot_error_over_time, plot_top_view
 
 __all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary", "CORRECTION_COLUMNS",
            "refusal_reasons"]

@@ -1,6 +1,6 @@
 """The drift-correction run with an IMU between keyframes (``run --odom imu``).
 
-The graph of :class:`~nap3d_graph.pipeline.Pipeline`, with the odometry between keyframes
+The graph of :class:`~nap3d_graph.run.pipeline.Pipeline`, with the odometry between keyframes
 replaced by IMU preintegration: each keyframe has a pose ``X(k)``, a world-frame velocity
 ``V(k)`` and an IMU bias ``B(k)``; consecutive keyframes are tied by a ``CombinedImuFactor``
 (GTSAM's preintegration, bias random walk inside); priors hold the first pose, velocity and
@@ -41,11 +41,10 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, M, V, X
 
+from nap3d_graph.conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T
 from nap3d_graph.factors import imu_factor, noise_model, odometry_factor
-
-from .conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T
-from .imu import ImuConfig, ImuStream
-from .pipeline import Pipeline
+from nap3d_graph.imu import ImuConfig, ImuStream
+from nap3d_graph.run.pipeline import Pipeline
 
 __all__ = ["ImuOdometry", "ImuPipeline", "gravity_aligned_frame"]
 
@@ -224,10 +223,10 @@ class ImuPipeline(Pipeline):
         self._update_isam()
 
     def _correct_keyframe(self, i: int, frame) -> None:
-        notes = self._pending_record.reason
-        self._pending_record.reason = ""
+        notes = self._pending().reason
+        self._pending().reason = ""
         super()._correct_keyframe(i, frame)
-        record = self._pending_record
+        record = self._pending()
         if notes:  # the IMU notes of this interval stay with the keyframe's row
             record.reason = f"{record.reason}; {notes}" if record.reason else notes
         self._switch_motion(i, frame, record.accepted)
@@ -277,7 +276,7 @@ class ImuPipeline(Pipeline):
 
     # --- per-frame trajectories: predicted from keyframe states -----------------------------
 
-    def _frames_from_states(self, states: list[tuple[float, gtsam.NavState, object, np.ndarray]],
+    def _frames_from_states(self, states: list[tuple[float, gtsam.NavState, gtsam.imuBias.ConstantBias, np.ndarray]],
                             n: int) -> np.ndarray:
         """(n, 4, 4) ``T_field_cam``: each frame predicted from the latest keyframe state at or
         before it (navigation frame), taken into the field's frame with that state's

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .conventions import inv_T
+from nap3d_graph.conventions import inv_T
 
 __all__ = ["chain_from_nearest_keyframe"]
 

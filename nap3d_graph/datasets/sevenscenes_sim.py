@@ -21,9 +21,8 @@ from nap3d_graph.datasets.sevenscenes import (
     SEVENSCENES_FPS,
     write_sevenscenes_frame,
 )
-
-from .scene import make_scene
-from .trajectories import make_trajectory
+from nap3d_graph.sims.scene import make_scene
+from nap3d_graph.sims.trajectories import make_trajectory
 
 __all__ = ["simulate_sevenscenes"]
 
@@ -50,7 +49,7 @@ def simulate_sevenscenes(out_dir, frames: int = 40, scene_seed: int = 11, seed: 
         write_sevenscenes_frame(out, int(k), np.round(rgb01 * 255).astype(np.uint8), depth_m, T_world_depth)
     if write_intrinsics:
         np.savetxt(out / "camera-intrinsics.txt", depth.K, fmt="%.18e")
-    (out / "sim.json").write_text(json.dumps({"generator": "nap3d_graph.sims.sevenscenes", "scene_seed": scene_seed,
+    (out / "sim.json").write_text(json.dumps({"generator": "nap3d_graph.datasets.sevenscenes_sim", "scene_seed": scene_seed,
                                               "seed": seed, "frames": frames, "frame_step": frame_step,
                                               "colour": colour.to_dict(), "depth": depth.to_dict(),
                                               "T_colour_depth": T_colour_depth.tolist()}, indent=1))

@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .datasets.errors import DatasetError
-from .datasets.rosbag_msgs import header, make_typestore, pose_msg, stamp_ns, transform_msg
+from nap3d_graph.datasets.errors import DatasetError
+from nap3d_graph.datasets.rosbag_msgs import header, make_typestore, pose_msg, stamp_ns, transform_msg
 
 __all__ = ["write_run_bag", "check_bag_path", "RUN_BAG_TOPICS", "CAUSAL_FRAME", "SMOOTHED_FRAME"]
 
@@ -44,13 +44,14 @@ def check_bag_path(path) -> Path:
 
 def _writer(path: Path):
     if path.suffix == ".bag":
-        from rosbags.rosbag1 import Writer
+        from rosbags.rosbag1 import Writer as Ros1Writer
 
-        return 1, Writer(path)
-    from rosbags.rosbag2 import StoragePlugin, Writer
+        return 1, Ros1Writer(path)
+    from rosbags.rosbag2 import StoragePlugin
+    from rosbags.rosbag2 import Writer as Ros2Writer
 
     plugin = StoragePlugin.MCAP if path.suffix == ".mcap" else StoragePlugin.SQLITE3
-    return 2, Writer(path, version=9, storage_plugin=plugin)
+    return 2, Ros2Writer(path, version=9, storage_plugin=plugin)
 
 
 def _path_msg(store, stamps, T, upto: int, world: str, seq: int):
@@ -59,7 +60,7 @@ def _path_msg(store, stamps, T, upto: int, world: str, seq: int):
 
 
 def write_run_bag(path, result, world_frame: str = "world") -> Path:
-    """Write ``result`` (a :class:`~nap3d_graph.pipeline_config.RunResult`) to ``path``."""
+    """Write ``result`` (a :class:`~nap3d_graph.run.config.RunResult`) to ``path``."""
     path = Path(path)
     ros, writer = _writer(path)
     store = make_typestore(ros)

@@ -13,10 +13,9 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
-import os
 from pathlib import Path
 
-__all__ = ["DEFAULT_SCENE_SEED", "DEFAULT_MAPPING", "DEFAULT_TRAVERSE", "DEFAULT_TRAIN_STEPS", "default_cache_dir",
+__all__ = ["DEFAULT_SCENE_SEED", "DEFAULT_MAPPING", "DEFAULT_TRAVERSE", "DEFAULT_TRAIN_STEPS",
            "embedded_default_inputs"]
 
 log = logging.getLogger(__name__)
@@ -26,11 +25,6 @@ DEFAULT_MAPPING = {"frames": 240, "seed": 1, "path": "mapping", "width": 320, "h
 DEFAULT_TRAVERSE = {"frames": 240, "seed": 2, "path": "traverse", "width": 320, "height": 240}
 #: About two minutes of training on the 2-core reference machine.
 DEFAULT_TRAIN_STEPS = 1200
-
-
-def default_cache_dir() -> Path:
-    """``$NAP3D_GRAPH_CACHE`` or ``~/.cache/nap3d-graph``."""
-    return Path(os.environ.get("NAP3D_GRAPH_CACHE", Path.home() / ".cache" / "nap3d-graph"))
 
 
 def _key(d: dict) -> str:

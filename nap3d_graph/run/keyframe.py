@@ -13,13 +13,14 @@ import dataclasses
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from .camera import Intrinsics, RGBDFrame, warp_depth
-from .conventions import exp_se3
-from .nap3d.correct import correct_pose
-from .results import Correction
+from nap3d_graph.camera import Intrinsics, RGBDFrame, warp_depth
+from nap3d_graph.conventions import exp_se3
+from nap3d_graph.nap3d.correct import correct_pose
+from nap3d_graph.results import Correction
 
 __all__ = ["KeyframeJob", "measure_keyframe", "at_colour_time", "CorrectionWorker", "DepthScaleTracker"]
 
@@ -73,7 +74,7 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         align = dataclasses.replace(align, rescale_depth=True)
     correction = correct_pose(frame, field, job.T_render, iterations=config.correction_iterations,
                               config=align, render_intrinsics=job.render_intrinsics)
-    if twist is not None and correction.success:
+    if twist is not None and job.timing is not None and correction.success:
         # Measured at the colour's instant: move it to the frame's stamp.
         shift = exp_se3(-twist * job.timing["colour_offset_s"])
         correction = dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
@@ -127,7 +128,7 @@ class CorrectionWorker:
     def __init__(self, field, config):
         self.field, self.config = field, config
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="nap3d-correction")
-        self._flight: tuple[object, Future] | None = None
+        self._flight: tuple[Any, Future] | None = None
 
     def submit(self, tag, job: KeyframeJob) -> None:
         """Start measuring ``job``; ``tag`` comes back with its result. One in flight only:
@@ -144,9 +145,11 @@ class CorrectionWorker:
         """A measurement is in flight and done."""
         return self._flight is not None and self._flight[1].done()
 
-    def take(self) -> tuple[object, Correction, float]:
+    def take(self) -> tuple[Any, Correction, float]:
         """``(tag, correction, seconds waited)`` of the measurement in flight, waiting for it
         if it is not done (an exception it raised is raised here)."""
+        if self._flight is None:
+            raise RuntimeError("no correction in flight; submit() one first")
         tag, future = self._flight
         self._flight = None
         t0 = time.perf_counter()

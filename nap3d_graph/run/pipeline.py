@@ -22,6 +22,8 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import M, X
 
+from nap3d_graph.camera import Intrinsics
+from nap3d_graph.conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T, pose_error
 from nap3d_graph.factors import (
     anchor_prior_factor,
     chi2_gate_isam2,
@@ -30,16 +32,14 @@ from nap3d_graph.factors import (
     odometry_factor,
     pose_prior_factor,
 )
+from nap3d_graph.results import Correction
+from nap3d_graph.run.config import PipelineConfig, with_field_error
+from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
+from nap3d_graph.run.records import KeyframeRecord, RunResult
+from nap3d_graph.run.solve import gnc_solve, isam2_params, rebuilt_isam2
+from nap3d_graph.run.trajectory import chain_from_nearest_keyframe
 
-from .camera import Intrinsics
-from .conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T, pose_error
-from .graph_solve import gnc_solve, isam2_params, rebuilt_isam2
-from .keyframe_correction import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
-from .pipeline_config import KeyframeRecord, PipelineConfig, RunResult, with_field_error
-from .results import Correction
-from .trajectory import chain_from_nearest_keyframe
-
-__all__ = ["PipelineConfig", "Pipeline", "KeyframeRecord", "RunResult", "compose_covariance"]
+__all__ = ["Pipeline"]
 
 log = logging.getLogger(__name__)
 
@@ -109,7 +109,7 @@ class Pipeline:
     def step(self, i: int, worker: CorrectionWorker | None = None, on_keyframe=None) -> None:
         """Frame i (after frames 0..i-1; ``_start`` first): its odometry, and when it is a
         keyframe, its node, its correction and the solve. ``run`` is this over the sequence;
-        :class:`nap3d_graph.live.DriftCorrector` calls it a frame at a time."""
+        :class:`nap3d_graph.run.live.DriftCorrector` calls it a frame at a time."""
         frame = self._read_frame(i) if self._odometry_needs_frames() or self._wants_sharpness(i) else None
         if i > 0:
             self._propagate_odometry(i, frame)
@@ -150,11 +150,14 @@ class Pipeline:
         self.dt_since_kf = 0.0
         self.keyframe_indices: list[int] = []
         self.records: list[KeyframeRecord] = []
-        self.T_last_kf_est: np.ndarray | None = None
+        self.T_last_kf_est: np.ndarray = self.T_odom[0]  # frame 0 is always a keyframe: set there
         self.T_pred = self.T_odom[0]
         self._pending_record: KeyframeRecord | None = None
         self._online: list[np.ndarray] = []  # each frame's pose as known at that frame (causal)
-        self.last_correction = self.last_factor = None  # the latest keyframe's (a live caller reads them)
+        # The latest keyframe's correction and factor (a live caller reads them).
+        self.last_correction: Correction | None = None
+        self.last_factor: gtsam.NonlinearFactor | None = None
+        self._streak: tuple[str | None, int] = (None, 0)  # the current run of refusals for one reason
         self.last_correction_frame = -1
         self._trained = self._trained_timestamps()
         self._due_since: int | None = None  # the frame a keyframe fell due at, while its window is open
@@ -266,7 +269,7 @@ class Pipeline:
         """The frame's sharpness (NaN without a frame or a window), kept for the reference."""
         if frame is None or self.config.keyframe_window <= 1:
             return float("nan")
-        from .camera import sharpness
+        from nap3d_graph.camera import sharpness
 
         value = sharpness(frame.rgb)
         self._sharpness_since_kf.append(value)
@@ -298,12 +301,18 @@ class Pipeline:
         """Measure the pending keyframe's correction and give it to the graph, now."""
         job = self._job(i, frame)
         if job is not None:
-            self._apply_correction(self._pending_record, i, measure_keyframe(job, self.field, self.config),
-                                   job.T_render)
+            self._apply_correction(self._pending(), i, measure_keyframe(job, self.field, self.config), job.T_render)
+
+    def _pending(self) -> KeyframeRecord:
+        """The record of the keyframe being measured (between ``_add_keyframe`` and
+        ``_finish_keyframe`` / ``_launch``)."""
+        if self._pending_record is None:
+            raise RuntimeError("no keyframe is pending: _add_keyframe comes first")
+        return self._pending_record
 
     def _job(self, i: int, frame) -> KeyframeJob | None:
         """What measuring keyframe i needs, or None (the reason recorded) when it cannot be."""
-        record = self._pending_record
+        record = self._pending()
         if self.field is None:
             record.reason = "no field"
             return None
@@ -319,7 +328,7 @@ class Pipeline:
     def _launch(self, worker: CorrectionWorker, i: int, frame, on_keyframe) -> None:
         """Overlapped run: hand keyframe i's measurement to the worker and go on; until it
         lands, the keyframe is known by its prediction."""
-        record, job = self._pending_record, self._job(i, frame)
+        record, job = self._pending(), self._job(i, frame)
         self._pending_record = None
         self.T_last_kf_est = pose3_to_T(self.isam.calculateEstimatePose3(record.key))
         if job is None:  # nothing to measure: the keyframe is done (its reason recorded)
@@ -354,13 +363,13 @@ class Pipeline:
         """Warn (once per streak) when the last REFUSAL_STREAK keyframes were all refused for
         the same reason: the run then goes on on its odometry alone, and the user should know
         it now, not from the summary."""
-        from .run_output import refusal_hint_for, refusal_kind
+        from nap3d_graph.run.output import refusal_hint_for, refusal_kind
 
         if record.accepted:
             self._streak = (None, 0)
             return
         kind = refusal_kind(record.reason)
-        previous, count = getattr(self, "_streak", (None, 0))
+        previous, count = self._streak
         count = count + 1 if kind == previous else 1
         self._streak = (kind, count)
         if count == self.REFUSAL_STREAK:
@@ -418,7 +427,7 @@ class Pipeline:
 
     def _velocity(self, i: int) -> np.ndarray | None:
         """Body twist per second (GTSAM order) of the odometry's last step before frame i."""
-        from .conventions import log_se3
+        from nap3d_graph.conventions import log_se3
 
         if i < 1:
             return None
@@ -514,7 +523,7 @@ class Pipeline:
 
     def _rebuild_isam(self, why: str) -> None:
         """After a failed iSAM2 update (its state is then undefined): a fresh iSAM2 from
-        everything it was given (:func:`~nap3d_graph.graph_solve.rebuilt_isam2`)."""
+        everything it was given (:func:`~nap3d_graph.run.solve.rebuilt_isam2`)."""
         log.warning("iSAM2 update failed (%s); rebuilding it from the %d factors so far", why, self._graph_all.size())
         self.isam = rebuilt_isam2(self.isam, self._graph_all, self._values_all, self.config.relinearize_threshold)
         self.isam_rebuilds = getattr(self, "isam_rebuilds", 0) + 1

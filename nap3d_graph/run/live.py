@@ -1,6 +1,6 @@
 """Drift correction a frame at a time, for a loop that owns its camera and its odometry.
 
-``DriftCorrector`` is the run of :class:`~nap3d_graph.pipeline.Pipeline` without a recorded
+``DriftCorrector`` is the run of :class:`~nap3d_graph.run.pipeline.Pipeline` without a recorded
 sequence: each call to :meth:`DriftCorrector.add_frame` gives one RGB-D frame with its
 stamp and the odometry's increment since the previous frame, and returns the pose estimate
 now, and, at a keyframe, the NAP3D correction and the GTSAM factor it put in the graph (or
@@ -21,11 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import Intrinsics, RGBDFrame
-from .conventions import as_T, rigid_transform_problem
-from .odometry import Increment
-from .pipeline import Pipeline, PipelineConfig
-from .pipeline_config import KeyframeRecord, RunResult
+from nap3d_graph.camera import Intrinsics, RGBDFrame
+from nap3d_graph.conventions import as_T, rigid_transform_problem
+from nap3d_graph.odometry import Increment
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.pipeline import Pipeline
+from nap3d_graph.run.records import KeyframeRecord, RunResult
 
 __all__ = ["DriftCorrector", "LiveUpdate"]
 
@@ -87,6 +88,8 @@ class _GivenOdometry:
 
     def increment(self, i: int, frame) -> Increment:
         inc, self.next = self.next, None
+        if inc is None:
+            raise RuntimeError("add_frame gives each frame its increment before the run steps")
         return inc
 
 

@@ -1,0 +1,75 @@
+"""What a drift-correction run gives back: one :class:`KeyframeRecord` per keyframe and the
+:class:`RunResult` (:class:`~nap3d_graph.run.pipeline.Pipeline` writes both)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["KeyframeRecord", "RunResult"]
+
+
+@dataclass
+class KeyframeRecord:
+    """What happened at one keyframe (one row of corrections.csv)."""
+
+    frame_index: int
+    timestamp: float
+    key: int
+    matches: int = 0
+    inliers: int = 0
+    iterations: int = 0
+    accepted: bool = False
+    reason: str = ""
+    gate_d2: float = float("nan")
+    correction_m: float = float("nan")
+    correction_deg: float = float("nan")
+    timings_s: dict = field(default_factory=dict)
+    trained_frame: bool = False
+    why: str = "every"  # why a keyframe here: every (due), distance, angle, first, doubt
+    sharpness: float = float("nan")
+    postponed: int = 0  # frames it was taken after it was due (keyframe_window)
+    depth_scale: float = float("nan")
+
+
+@dataclass
+class RunResult:
+    """Per-frame trajectories (N, 4, 4) at ``timestamps`` (N,) and per-keyframe records.
+
+    ``T_world_cam_estimate``: the smoothed trajectory (every correction, past and future,
+    used). ``T_world_cam_online``: the causal one, what a robot had at each frame: each
+    keyframe as iSAM2 knew it right after its own correction, the frames after it chained
+    with the odometry. ``partial``: the run was stopped before its last frame.
+    """
+
+    timestamps: np.ndarray
+    T_world_cam_estimate: np.ndarray
+    T_world_cam_odometry: np.ndarray
+    T_world_cam_gt: np.ndarray | None
+    keyframes: list[KeyframeRecord]
+    keyframe_indices: list[int]
+    T_world_map: np.ndarray | None = None
+    wall_time_s: float = 0.0
+    T_world_cam_online: np.ndarray | None = None
+    partial: bool = False
+    gnc_outliers: list = field(default_factory=list)
+    gnc_recovered: list = field(default_factory=list)
+    depth_scale: float = 1.0
+    interval_odometry: dict = field(default_factory=dict)
+    corrections: dict = field(default_factory=dict)
+    increments: list = field(default_factory=list)
+    imu_biases: np.ndarray | None = None
+    imu_bias_sigmas: np.ndarray | None = None
+    imu_skipped: list = field(default_factory=list)
+    gravity_world: np.ndarray | None = None
+    gravity_world_prior: np.ndarray | None = None
+    fallback_intervals: list = field(default_factory=list)
+
+    @property
+    def num_accepted(self) -> int:
+        return sum(k.accepted for k in self.keyframes)
+
+    @property
+    def num_rejected(self) -> int:
+        return len(self.keyframes) - self.num_accepted

@@ -1,0 +1,178 @@
+"""The package's import graph, read from the source (every import, the lazy ones inside
+functions too; ``if TYPE_CHECKING:`` blocks aside): no cycle between modules; no cycle through
+``factors`` or ``sims`` taken as wholes (they sit beside the package and are installed under
+it); no private name imported from another module; no module re-exporting names another
+defines (a package's ``__init__`` is its public surface and may)."""
+
+import ast
+from collections import defaultdict
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: folder -> the import name it is installed as (pyproject's package-dir)
+FOLDERS = {"nap3d_graph": "nap3d_graph", "factors": "nap3d_graph.factors", "sims": "nap3d_graph.sims"}
+
+
+def _modules() -> dict[str, Path]:
+    modules = {}
+    for folder, name in FOLDERS.items():
+        for path in (ROOT / folder).rglob("*.py"):
+            parts = list(path.relative_to(ROOT / folder).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            modules[".".join([*name.split("."), *parts])] = path
+    return modules
+
+
+MODULES = _modules()
+
+
+def _is_type_checking(node: ast.If) -> bool:
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
+def _imports(tree: ast.AST):
+    """Every Import / ImportFrom node, outside ``if TYPE_CHECKING:`` blocks."""
+    stack = [tree]
+    while stack:
+        node = stack.pop()
+        if isinstance(node, ast.If) and _is_type_checking(node):
+            stack.extend(node.orelse)
+            continue
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node
+        stack.extend(ast.iter_child_nodes(node))
+
+
+def _absolute(module: str, node: ast.ImportFrom) -> str:
+    if not node.level:
+        return node.module or ""
+    package = module.split(".") if MODULES[module].name == "__init__.py" else module.split(".")[:-1]
+    base = package[: len(package) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _graph():
+    """module -> {module it imports}, and the names each ImportFrom takes, per module."""
+    edges, taken = defaultdict(set), []
+    for module, path in MODULES.items():
+        for node in _imports(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets = [alias.name for alias in node.names]
+            else:
+                source = _absolute(module, node)
+                targets = [source] + [f"{source}.{alias.name}" for alias in node.names]
+                if source in MODULES:
+                    taken.append((module, source, [alias.name for alias in node.names]))
+            edges[module] |= {t for t in targets if t in MODULES and t != module}
+    return edges, taken
+
+
+def _cycles(edges: dict) -> list[list[str]]:
+    """Strongly connected components with more than one node (Tarjan, iterative)."""
+    index, low, on_stack, stack, out, counter = {}, {}, set(), [], [], [0]
+    nodes = set(edges) | {n for targets in edges.values() for n in targets}
+
+    def visit(root):
+        work = [(root, iter(sorted(edges.get(root, ()))))]
+        index[root] = low[root] = counter[0]
+        counter[0] += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is None:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[node])
+                if low[node] == index[node]:
+                    component = []
+                    while True:
+                        member = stack.pop()
+                        on_stack.discard(member)
+                        component.append(member)
+                        if member == node:
+                            break
+                    if len(component) > 1:
+                        out.append(sorted(component))
+            elif child not in index:
+                index[child] = low[child] = counter[0]
+                counter[0] += 1
+                stack.append(child)
+                on_stack.add(child)
+                work.append((child, iter(sorted(edges.get(child, ())))))
+            elif child in on_stack:
+                low[node] = min(low[node], index[child])
+
+    for node in sorted(nodes):
+        if node not in index:
+            visit(node)
+    return out
+
+
+@pytest.fixture(scope="module")
+def graph():
+    return _graph()
+
+
+def test_the_reader_sees_the_whole_package(graph):
+    edges, _ = graph
+    assert len(MODULES) > 100 and "nap3d_graph.run.pipeline" in MODULES and "nap3d_graph.factors.gate" in MODULES
+    # A known edge, through a relative import: the run builds its factors.
+    assert "nap3d_graph.factors" in edges["nap3d_graph.run.pipeline"]
+
+
+def test_no_import_cycle_between_modules(graph):
+    edges, _ = graph
+    assert _cycles(edges) == []
+    # The check finds one when there is one.
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_cycle_through_factors_or_sims_as_wholes(graph):
+    edges, _ = graph
+
+    def whole(module):
+        for name in ("nap3d_graph.factors", "nap3d_graph.sims"):
+            if module == name or module.startswith(name + "."):
+                return name
+        return module
+
+    collapsed = defaultdict(set)
+    for module, targets in edges.items():
+        collapsed[whole(module)] |= {whole(t) for t in targets if whole(t) != whole(module)}
+    assert _cycles(collapsed) == []
+
+
+def test_no_private_name_crosses_modules(graph):
+    _, taken = graph
+    crossing = [(module, source, name) for module, source, names in taken for name in names
+                if name.startswith("_") and not name.startswith("__")]
+    assert crossing == []
+
+
+def test_no_module_re_exports_another_modules_names():
+    offenders = {}
+    for module, path in MODULES.items():
+        if path.name == "__init__.py":
+            continue
+        tree = ast.parse(path.read_text())
+        defined, exported = set(), []
+        for node in tree.body:
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                defined.add(node.name)
+            elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                for target in targets:
+                    names = target.elts if isinstance(target, ast.Tuple) else [target]
+                    defined |= {n.id for n in names if isinstance(n, ast.Name)}
+                    if isinstance(target, ast.Name) and target.id == "__all__":
+                        exported = [e.value for e in node.value.elts]
+        if missing := [name for name in exported if name not in defined]:
+            offenders[module] = missing
+    assert offenders == {}
