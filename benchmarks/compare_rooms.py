@@ -53,14 +53,14 @@ def compare_one(folder: Path, field, path: str, out_dir: Path | None) -> dict:
     from nap3d_graph.evaluation.compare import compare, comparison_rows, write_comparison
     from nap3d_graph.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
-    from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
+    from nap3d_graph.run.imu import ImuOdometry
     from nap3d_graph.run.pipeline import Pipeline
 
     seq = SimSequence(folder)
     config = PipelineConfig(progress=False)
     if path == "imu":
         odometry = ImuOdometry.from_sequence(seq)
-        result = ImuPipeline(seq, field, odometry, config).run()
+        result = Pipeline(seq, field, odometry, config).run()
         stream = stream_from_run(result, seq, config, imu=odometry.stream, velocity0=odometry.velocity0)
     else:
         result = Pipeline(seq, field, make_odometry("recorded", seq), config).run()

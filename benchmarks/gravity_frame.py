@@ -39,7 +39,8 @@ def run_walk(seed: int, T_F_W: np.ndarray, folder: Path) -> dict:
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.imu import ImuConfig, estimate_gravity, gravity_angle_deg
     from nap3d_graph.run.config import PipelineConfig
-    from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
+    from nap3d_graph.run.imu import ImuOdometry
+    from nap3d_graph.run.pipeline import Pipeline
     from nap3d_graph.sims.reframe import FieldInFrame, SequenceInFrame
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
@@ -60,7 +61,7 @@ def run_walk(seed: int, T_F_W: np.ndarray, folder: Path) -> dict:
             "accel_held": ImuConfig(gravity_world=tuple(g_accel), gravity_sigma_deg=1e-3),
             "z_up_refined": ImuConfig()}
     for name, imu_config in ways.items():
-        result = ImuPipeline(seq, field, ImuOdometry.from_sequence(seq, imu_config), config).run()
+        result = Pipeline(seq, field, ImuOdometry.from_sequence(seq, imu_config), config).run()
         errors = [pose_error(a, b)[0] for a, b in zip(result.T_world_cam_estimate, seq.T_world_cam_gt)]
         row[name] = {"ate_m": float(np.sqrt(np.mean(np.square(errors)))), "accepted": result.num_accepted,
                      "keyframes": len(result.keyframes),

@@ -25,7 +25,7 @@ from nap3d_graph.evaluation.compare import compare, comparison_rows
 from nap3d_graph.imu import ImuConfig, ImuStream
 from nap3d_graph.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
-from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
+from nap3d_graph.run.imu import ImuOdometry
 from nap3d_graph.run.pipeline import Pipeline
 
 CONFIG = PipelineConfig(keyframe_every=5, render_width=None, render_height=None, progress=False)
@@ -48,7 +48,7 @@ def odometry_run(walk):
 def imu_run(walk):
     seq = SimSequence(walk)
     odometry = ImuOdometry.from_sequence(seq)
-    result = ImuPipeline(seq, seq.oracle_field(), odometry, CONFIG).run()
+    result = Pipeline(seq, seq.oracle_field(), odometry, CONFIG).run()
     return seq, result, stream_from_run(result, seq, CONFIG, imu=odometry.stream, velocity0=odometry.velocity0)
 
 
@@ -197,7 +197,7 @@ def test_imu_gaps_and_nan_samples_are_recorded_skips(walk):
     odometry = ImuOdometry.from_sequence(seq)
     reasons = [r for _, r in odometry.stream.skipped]
     assert any("non-finite" in r for r in reasons) and any(re.search(r"IMU gap of 0\.1[56]\d s", r) for r in reasons)
-    result = ImuPipeline(seq, seq.oracle_field(), odometry, CONFIG).run()
+    result = Pipeline(seq, seq.oracle_field(), odometry, CONFIG).run()
     noted = [k for k in result.keyframes if "IMU gap" in k.reason or "non-finite" in k.reason]
     assert noted and result.imu_skipped
     assert np.all(np.isfinite(result.T_world_cam_estimate))
@@ -309,9 +309,9 @@ def test_imu_run_survives_a_failed_isam2_update(walk, monkeypatch):
 
     monkeypatch.setattr(gtsam, "ISAM2", Flaky)
     odometry = ImuOdometry.from_sequence(seq)
-    pipeline = ImuPipeline(seq, seq.oracle_field(), odometry, CONFIG)
+    pipeline = Pipeline(seq, seq.oracle_field(), odometry, CONFIG)
     result = pipeline.run()
-    assert pipeline.isam_rebuilds == 1
+    assert pipeline.graph.rebuilds == 1
     assert result.num_accepted >= 0.8 * len(result.keyframes)
     errors = [np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(result.T_world_cam_estimate, result.T_world_cam_gt)]
     assert np.sqrt(np.mean(np.square(errors))) < 0.01

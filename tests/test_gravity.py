@@ -11,7 +11,8 @@ from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import SimSequence
 from nap3d_graph.imu import ImuConfig, estimate_gravity, gravity_angle_deg
 from nap3d_graph.run.config import PipelineConfig
-from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
+from nap3d_graph.run.imu import ImuOdometry
+from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.sims.reframe import FieldInFrame, SequenceInFrame
 
 # The field's frame: the simulated z-up world turned 90 deg about x (its gravity along +y,
@@ -38,7 +39,7 @@ def test_gravity_is_found_in_the_fields_frame(walk):
 def ate(seq, field, config, imu_config):
     """(ATE m, accepted corrections, RunResult) of the IMU path with ``imu_config``."""
     odometry = ImuOdometry.from_sequence(seq, imu_config)
-    result = ImuPipeline(seq, field, odometry, config).run()
+    result = Pipeline(seq, field, odometry, config).run()
     error = np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(result.T_world_cam_estimate, seq.T_world_cam_gt)]))
     return error, result.num_accepted, result
 

@@ -12,7 +12,8 @@ from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import SimSequence
 from nap3d_graph.odometry import DenseVisualOdometry
 from nap3d_graph.run.config import PipelineConfig
-from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
+from nap3d_graph.run.imu import ImuOdometry
+from nap3d_graph.run.pipeline import Pipeline
 
 
 class _PartlyMapped:
@@ -39,7 +40,7 @@ def _run(walk, fallback):
     odometry = ImuOdometry.from_sequence(walk)
     odometry.fallback = fallback
     config = PipelineConfig(keyframe_every=4, render_width=None, render_height=None, progress=False)
-    result = ImuPipeline(walk, _PartlyMapped(walk, mapped=30), odometry, config).run()
+    result = Pipeline(walk, _PartlyMapped(walk, mapped=30), odometry, config).run()
     errors = lambda T: np.array([pose_error(a, b)[0] for a, b in zip(T, walk.T_world_cam_gt)])  # noqa: E731
     return result, errors(result.T_world_cam_estimate), errors(result.T_world_cam_online)
 
@@ -73,7 +74,7 @@ def test_the_fallback_hands_back_to_the_imu_when_corrections_land_again(walk, ca
     odometry.fallback = DenseVisualOdometry()
     config = PipelineConfig(keyframe_every=4, render_width=None, render_height=None, progress=False)
     with caplog.at_level(logging.WARNING, logger="nap3d_graph"):
-        result = ImuPipeline(walk, _Gap(walk), odometry, config).run()
+        result = Pipeline(walk, _Gap(walk), odometry, config).run()
     (start, end), = result.fallback_intervals
     landed_after = [k.frame_index for k in result.keyframes if k.accepted and k.frame_index > start]
     assert end == landed_after[0] < len(walk) - 1

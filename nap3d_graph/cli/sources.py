@@ -1,5 +1,5 @@
 """What ``run`` and ``compare`` share: the data source, field, odometry and keyframe options,
-and turning them into a ready :class:`~nap3d_graph.run.pipeline.Pipeline` (or its IMU variant)."""
+and turning them into a ready :class:`~nap3d_graph.run.pipeline.Pipeline`."""
 
 from __future__ import annotations
 
@@ -178,13 +178,14 @@ class Prepared:
     sequence: object
     field: object
     odometry: object
-    pipeline_class: type
     config: object
     record: dict
     name: str
 
     def pipeline(self):
-        return self.pipeline_class(self.sequence, self.field, self.odometry, self.config)
+        from nap3d_graph.run.pipeline import Pipeline
+
+        return Pipeline(self.sequence, self.field, self.odometry, self.config)
 
 
 def _timing(args, field_obj, sequence) -> dict | None:
@@ -287,8 +288,9 @@ def _realsense_data(args) -> Path:
 
 
 def _odometry(args, sequence, initial_pose):
+    """``(kind, odometry)``: the motion source the options and the data call for (the run's
+    motion model follows from it: an IMU's preintegration, or a frame odometry's increments)."""
     from nap3d_graph.odometry import make_odometry
-    from nap3d_graph.run.pipeline import Pipeline
 
     if args.odom:
         odom_kind = args.odom
@@ -299,17 +301,17 @@ def _odometry(args, sequence, initial_pose):
         odom_kind = "recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy"
     try:
         if odom_kind == "imu":
-            from nap3d_graph.run.imu import ImuOdometry, ImuPipeline
+            from nap3d_graph.run.imu import ImuOdometry
 
             config = imu_config(args, getattr(sequence, "imu_config", None))
             odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
             config = _checked_gravity(args, odometry)
             odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
             odometry.fallback = _fallback_odometry(getattr(args, "fallback_odom", "dense"), args.matcher)
-            return odom_kind, odometry, ImuPipeline
+            return odom_kind, odometry
         odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma,
                                  initial_pose=initial_pose, matcher=args.matcher)
-        return odom_kind, odometry, Pipeline
+        return odom_kind, odometry
     except ValueError as exc:  # the data cannot give that odometry: say which and what to use
         raise UsageError(str(exc)) from None
 
@@ -379,7 +381,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     trained_on = warn_trained_frames(field_obj, sequence, "frames of this run")
     warn_depth_units(sequence)
     warn_guessed_camera(sequence)
-    odom_kind, odometry, pipeline_class = _odometry(args, sequence, initial_pose)
+    odom_kind, odometry = _odometry(args, sequence, initial_pose)
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
     if args.graph_window and (odom_kind == "imu" or use_anchor):
@@ -410,4 +412,4 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     if odom_kind == "imu":
         record["imu"] = {**odometry.stream.config.to_dict(),
                          "fallback_odometry": getattr(odometry.fallback, "name", "none")}
-    return Prepared(sequence, field_obj, odometry, pipeline_class, config, record, name)
+    return Prepared(sequence, field_obj, odometry, config, record, name)

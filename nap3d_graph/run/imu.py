@@ -1,7 +1,7 @@
-"""The drift-correction run with an IMU between keyframes (``run --odom imu``).
+"""The IMU between keyframes (``run --odom imu``): a motion model for the run.
 
-The graph of :class:`~nap3d_graph.run.pipeline.Pipeline`, with the odometry between keyframes
-replaced by IMU preintegration: each keyframe has a pose ``X(k)``, a world-frame velocity
+:class:`ImuMotion` is what :class:`~nap3d_graph.run.pipeline.Pipeline` moves by when its
+odometry is an :class:`ImuOdometry` (:mod:`nap3d_graph.run.motion`): each keyframe has a pose ``X(k)``, a world-frame velocity
 ``V(k)`` and an IMU bias ``B(k)``; consecutive keyframes are tied by a ``CombinedImuFactor``
 (GTSAM's preintegration, bias random walk inside); priors hold the first pose, velocity and
 bias; the NAP3D corrections are gated and added exactly as on the odometry path. Frames
@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -44,9 +45,11 @@ from gtsam.symbol_shorthand import B, M, V, X
 from nap3d_graph.conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T
 from nap3d_graph.factors import imu_factor, noise_model, odometry_factor
 from nap3d_graph.imu import ImuConfig, ImuStream
-from nap3d_graph.run.pipeline import Pipeline
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.graph import KeyframeGraph
+from nap3d_graph.run.records import RunResult
 
-__all__ = ["ImuOdometry", "ImuPipeline", "gravity_aligned_frame"]
+__all__ = ["ImuOdometry", "ImuMotion", "gravity_aligned_frame"]
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +63,7 @@ class ImuOdometry:
     velocity0: np.ndarray
     name: str = "imu"
     #: A frame odometry (``increment``, ``prime``) the run falls back on when corrections stop.
-    fallback: object | None = None
+    fallback: Any = None
 
     def initial_pose(self) -> np.ndarray:
         return np.asarray(self.T_world_cam0, dtype=float).copy()
@@ -91,51 +94,62 @@ def gravity_aligned_frame(g_field: np.ndarray) -> np.ndarray:
     return T_nav_field
 
 
-class ImuPipeline(Pipeline):
-    """:class:`Pipeline` with IMU preintegration between keyframes (see the module docstring)."""
+class ImuMotion:
+    """IMU preintegration between keyframes, as the run's motion model (see the module
+    docstring and :mod:`nap3d_graph.run.motion`)."""
 
-    supports_graph_window = False  # velocities and biases would need marginalising too
+    allows_overlap = False  # the keyframe's IMU state is taken right after its correction
+    allows_graph_window = False  # velocities and biases would need marginalising too
 
     #: How firmly the gravity frame's heading (rad) and origin (m) are held: they are the
     #: gauge of a gravity-aligned frame, which no IMU measurement can tell.
     GAUGE_SIGMA = 1e-4
 
-    def __init__(self, sequence, field, odometry, config=None, correction_hook=None):
-        super().__init__(sequence, field, odometry, config, correction_hook)
-        if self.config.use_anchor:
-            raise ValueError("--anchor does not apply with --odom imu: the IMU path estimates the field's frame's "
-                             "tilt (its gravity) itself")
+    #: Keyframes refused in a row before the run falls back on the visual odometry (fewer than
+    #: the run's warning streak: the IMU alone drifts quadratically and faster).
+    FALLBACK_STREAK = 3
 
-    def _start(self) -> None:
-        field_config = self.odometry.stream.config
+    def __init__(self, odometry: ImuOdometry, config: PipelineConfig, t0: float):
+        self.odometry, self.config = odometry, config
+        self.name = odometry.name
+        field_config = odometry.stream.config
         self.g_field0 = field_config.gravity_vector()
         self.T_nav_field0 = gravity_aligned_frame(self.g_field0)
         # The states and the IMU factors live in the navigation frame (gravity -z).
-        self.imu: ImuStream = self.odometry.stream.with_config(field_config.in_gravity_frame())
-        super()._start()  # the gravity frame enters as the anchor M(0) (see _anchor_prior)
-        t0 = float(self.sequence.timestamps[0])
-        T_nav_cam0 = self.T_nav_field0 @ self.odometry.initial_pose()
-        self.velocity0_nav = self.T_nav_field0[:3, :3] @ np.asarray(self.odometry.velocity0, float)
+        self.imu: ImuStream = odometry.stream.with_config(field_config.in_gravity_frame())
+        T_nav_cam0 = self.T_nav_field0 @ odometry.initial_pose()
+        self.velocity0_nav = self.T_nav_field0[:3, :3] @ np.asarray(odometry.velocity0, float)
         self.nav_kf = gtsam.NavState(T_to_pose3(T_nav_cam0), self.velocity0_nav)
         self.bias_kf = gtsam.imuBias.ConstantBias()
         self.t_kf = t0
         # Each keyframe's state as known then, with the gravity frame's estimate then (causal).
         self.kf_states: list[tuple[float, gtsam.NavState, gtsam.imuBias.ConstantBias, np.ndarray]] = []
         # Dead reckoning for "odometry alone": in the field's frame with the gravity as given.
-        field_pose = T_to_pose3(self.odometry.initial_pose())
-        self._dead_start = (t0, gtsam.NavState(field_pose, np.asarray(self.odometry.velocity0, float)))
+        self._dead_start = (t0, gtsam.NavState(T_to_pose3(odometry.initial_pose()),
+                                               np.asarray(odometry.velocity0, float)))
+        self.T_odom: list[np.ndarray] = [odometry.initial_pose()]
+        self.increments: list[np.ndarray] = [np.eye(4)]
         self._notes: list[str] = []
-        # The visual odometry fallback: the frame it started at (None: the IMU alone), its
-        # increments (frame -> T_prev_cur), and the frame spans it ran.
+        self.dt_since_kf = 0.0
+        self.T_last_kf = self.T_odom[0]  # the latest keyframe's estimate in the field's frame
+        # The visual odometry fallback: its chain since the last keyframe, the frame it started
+        # at (None: the IMU alone), its increments (frame -> T_prev_cur), and the spans it ran.
+        self.T_since_kf = np.eye(4)
+        self.cov_since_kf = np.zeros((6, 6))
         self._vo_since: int | None = None
         self._vo_increments: dict[int, np.ndarray] = {}
         self._refused_in_row = 0
         self.fallback_intervals: list[list[int | None]] = []
 
-    def _anchored(self) -> bool:
-        return True
+    @property
+    def needs_frames(self) -> bool:
+        return self._vo_since is not None  # the fallback reads every frame
 
-    def _anchor_prior(self):
+    @property
+    def doubted(self) -> bool:
+        return False
+
+    def anchor_prior(self) -> tuple[gtsam.NonlinearFactor, np.ndarray]:
         """``M(0)`` = ``T_nav_field``: tilt free by ``gravity_sigma_deg``, heading and origin held.
         The prior's rotation is in the field's axes (GTSAM's right perturbation), where the
         heading is the turn about gravity's direction."""
@@ -148,127 +162,116 @@ class ImuPipeline(Pipeline):
         prior = gtsam.PriorFactorPose3(M(0), T_to_pose3(self.T_nav_field0), noise_model(covariance=covariance))
         return prior, self.T_nav_field0
 
-    def _field_from_nav(self, values: gtsam.Values | None = None) -> np.ndarray:
-        """``T_field_nav`` (4, 4) as estimated in ``values`` (iSAM2's estimate now by default)."""
-        T_nav_field = (pose3_to_T(values.atPose3(M(0))) if values is not None
-                       else pose3_to_T(self.isam.calculateEstimatePose3(M(0))))
-        return inv_T(T_nav_field)
+    def prime(self, frame) -> None:
+        pass  # the fallback is primed when it starts
 
-    def _odometry_needs_frames(self) -> bool:
-        return self._vo_since is not None  # the fallback reads every frame
-
-    def _overlapping(self) -> bool:
-        # The IMU keyframe state (nav_kf, bias_kf) is taken right after each correction.
-        return False
+    @staticmethod
+    def _field_from_nav(values: gtsam.Values) -> np.ndarray:
+        """``T_field_nav`` (4, 4) as estimated in ``values``."""
+        return inv_T(pose3_to_T(values.atPose3(M(0))))
 
     def _predict(self, t_from: float, nav: gtsam.NavState, bias, t_to: float) -> gtsam.NavState:
         if t_to <= t_from:
             return nav
         return self.imu.preintegrate(t_from, t_to, bias).predict(nav, bias)
 
-    def _propagate_odometry(self, i: int, frame) -> None:
-        t = float(self.sequence.timestamps[i])
+    def frame(self, i: int, frame, t: float, dt: float) -> None:
         # Dead reckoning from the start with the prior bias: the IMU alone, for comparison.
         dead = self._predict(self._dead_start[0], self._dead_start[1], gtsam.imuBias.ConstantBias(), t)
         self.T_odom.append(pose3_to_T(dead.pose()))
         self.increments.append(np.linalg.inv(self.T_odom[-2]) @ self.T_odom[-1])
-        self.dt_since_kf += float(self.sequence.timestamps[i] - self.sequence.timestamps[i - 1])
+        self.dt_since_kf += dt
         if self._vo_since is not None:
             inc = self.odometry.fallback.increment(i, frame)
             self._vo_increments[i] = inc.T_prev_cur
             self.T_since_kf = self.T_since_kf @ inc.T_prev_cur
             self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
 
-    def _add_keyframe(self, i: int) -> None:
-        j = len(self.keyframe_indices)
-        self.keyframe_indices.append(i)
-        t = float(self.sequence.timestamps[i])
+    def since_keyframe(self) -> np.ndarray:
+        return self.T_since_kf
+
+    def add_keyframe(self, graph: KeyframeGraph, j: int, i: int, t: float):
+        """Keyframe ``j`` (frame ``i`` at ``t``): its pose, velocity and bias, tied to the last
+        keyframe's by a ``CombinedImuFactor`` (and the fallback's between factor while it runs),
+        or, the first, held by priors. Returns the prediction (navigation frame) and the
+        fallback's interval ``(T_prev_kf_kf, covariance)`` when it ran (else None)."""
         cfg = self.imu.config
+        interval = None
+        self._notes = []
         if j == 0:
             # The starting pose is known in the field's frame: a prior on between(M(0), X(0)).
-            T_field_cam0 = self.T_odom[0]
-            self._add_factor(gtsam.BetweenFactorPose3(
-                M(0), X(0), T_to_pose3(T_field_cam0),
+            graph.add(gtsam.BetweenFactorPose3(
+                M(0), X(0), T_to_pose3(self.T_odom[0]),
                 noise_model(rot_sigma_rad=self.config.prior_rot_sigma_rad, trans_sigma_m=self.config.prior_trans_sigma_m)))
-            self._add_factor(gtsam.PriorFactorVector(V(0), self.velocity0_nav,
-                                                     gtsam.noiseModel.Isotropic.Sigma(3, cfg.velocity_prior_sigma)))
+            graph.add(gtsam.PriorFactorVector(V(0), self.velocity0_nav,
+                                              gtsam.noiseModel.Isotropic.Sigma(3, cfg.velocity_prior_sigma)))
             bias_sigmas = np.r_[[cfg.accel_bias_prior_sigma] * 3, [cfg.gyro_bias_prior_sigma] * 3]
-            self._add_factor(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(),
-                                                           gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
-            self.new_values.insert(X(0), self.nav_kf.pose())
-            self.new_values.insert(V(0), self.velocity0_nav)
-            self.new_values.insert(B(0), gtsam.imuBias.ConstantBias())
-            self.T_pred = pose3_to_T(self.nav_kf.pose())
+            graph.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(),
+                                                    gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
+            pose, velocity = self.nav_kf.pose(), self.velocity0_nav
         else:
             pim = self.imu.preintegrate(self.t_kf, t, self.bias_kf)
             self._notes = self.imu.notes_between(self.t_kf, t)
-            self._add_factor(imu_factor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim))
+            graph.add(imu_factor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim))
             predicted = pim.predict(self.nav_kf, self.bias_kf)
             pose, velocity = predicted.pose(), predicted.velocity()
             if self._vo_since is not None:  # the fallback: its chain is the prediction and a factor
                 cov = self.cov_since_kf + self.config.drift_covariance(self.T_since_kf, self.dt_since_kf)
-                self._add_factor(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
-                self.interval_odometry[i] = (self.T_since_kf.copy(), cov.copy())
+                graph.add(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
+                interval = (self.T_since_kf.copy(), cov.copy())
                 T_nav_kf = pose3_to_T(self.nav_kf.pose())
                 pose = T_to_pose3(T_nav_kf @ self.T_since_kf)
                 velocity = (pose.translation() - T_nav_kf[:3, 3]) / max(self.dt_since_kf, 1e-6)
-            self.T_pred = pose3_to_T(pose)
-            self.new_values.insert(X(j), pose)
-            self.new_values.insert(V(j), velocity)
-            self.new_values.insert(B(j), self.bias_kf)
+        graph.insert(X(j), pose)
+        graph.insert(V(j), velocity)
+        graph.insert(B(j), self.bias_kf if j else gtsam.imuBias.ConstantBias())
         self.dt_since_kf = 0.0
         self.T_since_kf = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
-        self._pending_record = self._keyframe_record(i, X(j), reason="; ".join(self._notes))
-        self._update_isam()
+        return pose3_to_T(pose), interval
 
-    def _correct_keyframe(self, i: int, frame) -> None:
-        notes = self._pending().reason
-        self._pending().reason = ""
-        super()._correct_keyframe(i, frame)
-        record = self._pending()
-        if notes:  # the IMU notes of this interval stay with the keyframe's row
-            record.reason = f"{record.reason}; {notes}" if record.reason else notes
-        self._switch_motion(i, frame, record.accepted)
+    def interval_notes(self) -> str:
+        """The IMU's skipped samples and bridged gaps in the interval that ended at the keyframe."""
+        return "; ".join(self._notes)
 
-    #: Keyframes refused in a row before the run falls back on the visual odometry (fewer than
-    #: the warning's REFUSAL_STREAK: the IMU alone drifts quadratically and faster).
-    FALLBACK_STREAK = 3
-
-    def _switch_motion(self, i: int, frame, accepted: bool) -> None:
+    def after_correction(self, i: int, frame, accepted: bool) -> None:
         """Fall back on the visual odometry after FALLBACK_STREAK refused keyframes (from
         keyframe i, whose frame primes it); back to the IMU alone once a correction lands."""
         self._refused_in_row = 0 if accepted else self._refused_in_row + 1
+        fallback = self.odometry.fallback
         if accepted and self._vo_since is not None:
             log.warning("a correction landed again at frame %d: back on the IMU alone between keyframes", i)
             self.fallback_intervals[-1][1] = i
             self._vo_since = None
         elif (self._refused_in_row >= self.FALLBACK_STREAK and self._vo_since is None and frame is not None
-              and getattr(self.odometry, "fallback", None) is not None):
+              and fallback is not None):
             log.warning("the last %d keyframes (to frame %d) were refused: the IMU alone drifts by metres within "
                         "seconds, so the run falls back on the visual odometry (%s) between keyframes until a "
-                        "correction lands", self._refused_in_row, i, getattr(self.odometry.fallback, "name", "vo"))
-            self.odometry.fallback.prime(frame)
+                        "correction lands", self._refused_in_row, i, getattr(fallback, "name", "vo"))
+            fallback.prime(frame)
             self._vo_since = i
             self.fallback_intervals.append([i, None])
 
-    def _finish_keyframe(self):
-        j = len(self.keyframe_indices) - 1
-        estimate = self.isam.calculateEstimate()
+    def keyframe_estimated(self, graph: KeyframeGraph, j: int, t: float) -> np.ndarray:
+        """Keyframe j's state after its correction: the IMU predicts the next frames from it."""
+        estimate = graph.estimate()
         self.nav_kf = gtsam.NavState(estimate.atPose3(X(j)), estimate.atVector(V(j)))
         self.bias_kf = estimate.atConstantBias(B(j))
-        self.t_kf = float(self.sequence.timestamps[self.keyframe_indices[-1]])
+        self.t_kf = t
         T_field_nav = self._field_from_nav(estimate)
         self.kf_states.append((self.t_kf, self.nav_kf, self.bias_kf, T_field_nav))
-        record = super()._finish_keyframe()
-        self.T_last_kf_est = T_field_nav @ self.T_last_kf_est  # the causal pose, in the field's frame
-        return record
+        self.T_last_kf = T_field_nav @ pose3_to_T(estimate.atPose3(X(j)))  # the causal pose, field's frame
+        return self.T_last_kf
 
-    def _velocity(self, i: int) -> np.ndarray | None:
+    def causal_pose(self) -> np.ndarray:
+        """The last keyframe's estimate and the fallback's chain since (identity on the IMU alone:
+        the frames between keyframes are predicted at the end, :meth:`causal`)."""
+        return self.T_last_kf @ self.T_since_kf
+
+    def twist(self, i: int, t: float, dt: float) -> np.ndarray | None:
         """Body twist (GTSAM order) at frame i: the gyro's rate and the velocity in the body."""
         if not self.kf_states:
             return None
-        t = float(self.sequence.timestamps[i])
         k = int(np.clip(np.searchsorted(self.imu.stamps, t) - 1, 0, len(self.imu.stamps) - 1))
         nav = self._predict(self.t_kf, self.nav_kf, self.bias_kf, t)
         v_body = nav.pose().rotation().matrix().T @ nav.velocity()
@@ -277,12 +280,11 @@ class ImuPipeline(Pipeline):
     # --- per-frame trajectories: predicted from keyframe states -----------------------------
 
     def _frames_from_states(self, states: list[tuple[float, gtsam.NavState, gtsam.imuBias.ConstantBias, np.ndarray]],
-                            n: int) -> np.ndarray:
+                            stamps: np.ndarray) -> np.ndarray:
         """(n, 4, 4) ``T_field_cam``: each frame predicted from the latest keyframe state at or
         before it (navigation frame), taken into the field's frame with that state's
         ``T_field_nav``."""
-        stamps = np.asarray(self.sequence.timestamps[:n], dtype=float)
-        T_field_cam = np.empty((n, 4, 4))
+        T_field_cam = np.empty((len(stamps), 4, 4))
         kf_times = np.array([s[0] for s in states])
         for i, t in enumerate(stamps):
             k = int(np.searchsorted(kf_times, t + 1e-9) - 1)
@@ -293,58 +295,44 @@ class ImuPipeline(Pipeline):
             T_field_cam[i] = T_field_nav @ pose3_to_T(self._predict(t_k, nav, bias, float(t)).pose())
         return T_field_cam
 
-    def _chain_between_keyframes(self, T_kf: dict[int, np.ndarray], n: int) -> np.ndarray:
-        estimate = self._final_values
-        T_field_nav = self._field_from_nav(estimate)
+    def smoothed(self, values: gtsam.Values, T_kf: dict[int, np.ndarray], keyframe_indices: list[int],
+                 stamps: np.ndarray) -> np.ndarray:
+        T_field_nav = self._field_from_nav(values)
         states = []
-        for j, idx in enumerate(self.keyframe_indices):
-            nav = gtsam.NavState(estimate.atPose3(X(j)), estimate.atVector(V(j)))
-            states.append((float(self.sequence.timestamps[idx]), nav, estimate.atConstantBias(B(j)), T_field_nav))
-        return self._with_fallback_chains(self._frames_from_states(states, n))
-
-    def _chain_forward(self, n: int) -> np.ndarray:
-        T_field_cam = self._frames_from_states(self.kf_states, n)
-        for i in self._vo_increments:  # frames the fallback chained, as the run had them
-            if i < n:
-                T_field_cam[i] = self._online[i]
-        return T_field_cam
-
-    def _with_fallback_chains(self, T_field_cam: np.ndarray) -> np.ndarray:
-        """The frames the fallback chained, chained again from their keyframe's final pose."""
-        keyframes = set(self.keyframe_indices)
+        for j, idx in enumerate(keyframe_indices):
+            nav = gtsam.NavState(values.atPose3(X(j)), values.atVector(V(j)))
+            states.append((float(stamps[idx]) if idx < len(stamps) else float("inf"), nav,
+                           values.atConstantBias(B(j)), T_field_nav))
+        T_field_cam = self._frames_from_states(states, stamps)
+        # The frames the fallback chained, chained again from their keyframe's final pose.
+        keyframes = set(keyframe_indices)
         for i in sorted(self._vo_increments):
             if i < len(T_field_cam) and i not in keyframes:
                 T_field_cam[i] = T_field_cam[i - 1] @ self._vo_increments[i]
         return T_field_cam
 
-    def _final_estimate(self) -> gtsam.Values:
-        self._final_values = super()._final_estimate()
-        return self._final_values
+    def causal(self, online: list[np.ndarray], stamps: np.ndarray) -> np.ndarray:
+        T_field_cam = self._frames_from_states(self.kf_states, stamps)
+        for i in self._vo_increments:  # frames the fallback chained, as the run had them
+            if i < len(stamps):
+                T_field_cam[i] = online[i]
+        return T_field_cam
 
-    def _finish(self, n: int):
-        result = super()._finish(n)
-        if self.keyframe_indices:
-            values = self._final_values
-            g = float(np.linalg.norm(self.g_field0))
-            result.gravity_world = self._field_from_nav(values)[:3, :3] @ np.array([0.0, 0.0, -g])
-            result.gravity_world_prior = self.g_field0.copy()
-            result.imu_biases = np.array([np.r_[values.atConstantBias(B(j)).accelerometer(),
-                                                values.atConstantBias(B(j)).gyroscope()]
-                                          for j in range(len(self.keyframe_indices))])
-            try:
-                marginals = gtsam.Marginals(self._final_graph(), values)
-                result.imu_bias_sigmas = np.array([np.sqrt(np.diag(marginals.marginalCovariance(B(j))))
-                                                   for j in range(len(self.keyframe_indices))])
-            except RuntimeError as exc:  # an ill-posed graph still has its estimate
-                log.warning("bias marginals not computed: %s", exc)
-            result.imu_skipped = list(self.imu.skipped)
+    def finish(self, values: gtsam.Values, graph: KeyframeGraph, accepted: set[int], keyframe_indices: list[int],
+               result: RunResult) -> None:
+        """The refined gravity, the biases and their sigmas, the IMU's notes, the fallback's spans."""
+        n = len(result.timestamps)
+        g = float(np.linalg.norm(self.g_field0))
+        result.gravity_world = self._field_from_nav(values)[:3, :3] @ np.array([0.0, 0.0, -g])
+        result.gravity_world_prior = self.g_field0.copy()
+        result.imu_biases = np.array([np.r_[values.atConstantBias(B(j)).accelerometer(),
+                                            values.atConstantBias(B(j)).gyroscope()]
+                                      for j in range(len(keyframe_indices))])
+        try:
+            marginals = gtsam.Marginals(graph.accepted_graph(accepted), values)
+            result.imu_bias_sigmas = np.array([np.sqrt(np.diag(marginals.marginalCovariance(B(j))))
+                                               for j in range(len(keyframe_indices))])
+        except RuntimeError as exc:  # an ill-posed graph still has its estimate
+            log.warning("bias marginals not computed: %s", exc)
+        result.imu_skipped = list(self.imu.skipped)
         result.fallback_intervals = [[a, n - 1 if b is None else b] for a, b in self.fallback_intervals]
-        return result
-
-    def _final_graph(self) -> gtsam.NonlinearFactorGraph:
-        graph = gtsam.NonlinearFactorGraph()
-        accepted = {r.frame_index for r in self.records if r.accepted}
-        for factor, is_nap3d, frame in self.factor_log:
-            if not is_nap3d or frame in accepted:
-                graph.add(factor)
-        return graph

@@ -1,0 +1,186 @@
+"""How the run moves between keyframes: a motion model handed to the run.
+
+A motion model keeps the motion since the last keyframe, puts the first pose's prior and each
+keyframe's motion factor into the :class:`~nap3d_graph.run.graph.KeyframeGraph` (with the
+keyframe's starting value: the prediction), and chains every frame's pose from the keyframes'.
+Two exist: :class:`OdometryMotion` (a frame odometry: the increments composed into a
+``BetweenFactorPose3``, covariance propagated, plus the drift the per-frame sigmas cannot
+describe) and :class:`~nap3d_graph.run.imu.ImuMotion` (IMU preintegration). The run
+(:class:`~nap3d_graph.run.pipeline.Pipeline`) calls, per frame, :meth:`frame`; per keyframe
+:meth:`add_keyframe`, then (after the correction) :meth:`after_correction` and
+:meth:`keyframe_estimated`; at its end :meth:`smoothed`, :meth:`causal` and :meth:`finish`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import gtsam
+import numpy as np
+from gtsam.symbol_shorthand import X
+
+from nap3d_graph.conventions import T_to_pose3, compose_covariance, log_se3
+from nap3d_graph.factors import odometry_factor, pose_prior_factor
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.graph import KeyframeGraph
+from nap3d_graph.run.records import RunResult
+from nap3d_graph.run.trajectory import chain_from_nearest_keyframe
+
+__all__ = ["MotionModel", "Odometry", "OdometryMotion"]
+
+
+class Odometry(Protocol):
+    """A frame odometry (:mod:`nap3d_graph.odometry`): where it starts and each frame's step
+    ``increment(i, frame) -> Increment`` (``T_prev_cur``, ``covariance``, ``ok``). Optional:
+    ``needs_frames`` (it reads the images), ``prime(frame)`` (given frame 0 first)."""
+
+    def initial_pose(self) -> np.ndarray: ...
+
+    def increment(self, i: int, frame: Any) -> Any: ...
+
+
+class MotionModel(Protocol):
+    """What the run asks of its motion between keyframes (see the module docstring)."""
+
+    name: str
+    allows_overlap: bool
+    allows_graph_window: bool
+    T_odom: list[np.ndarray]
+    increments: list[np.ndarray]
+
+    @property
+    def needs_frames(self) -> bool: ...
+
+    @property
+    def doubted(self) -> bool: ...
+
+    def anchor_prior(self) -> tuple[gtsam.NonlinearFactor, np.ndarray] | None: ...
+
+    def prime(self, frame) -> None: ...
+
+    def frame(self, i: int, frame, t: float, dt: float) -> None: ...
+
+    def since_keyframe(self) -> np.ndarray: ...
+
+    def add_keyframe(self, graph: KeyframeGraph, j: int, i: int, t: float
+                     ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]: ...
+
+    def after_correction(self, i: int, frame, accepted: bool) -> None: ...
+
+    def interval_notes(self) -> str: ...
+
+    def keyframe_estimated(self, graph: KeyframeGraph, j: int, t: float) -> np.ndarray: ...
+
+    def causal_pose(self) -> np.ndarray: ...
+
+    def twist(self, i: int, t: float, dt: float) -> np.ndarray | None: ...
+
+    def smoothed(self, values: gtsam.Values, T_kf: dict[int, np.ndarray], keyframe_indices: list[int],
+                 stamps: np.ndarray) -> np.ndarray: ...
+
+    def causal(self, online: list[np.ndarray], stamps: np.ndarray) -> np.ndarray: ...
+
+    def finish(self, values: gtsam.Values, graph: KeyframeGraph, accepted: set[int], keyframe_indices: list[int],
+               result: RunResult) -> None: ...
+
+
+class OdometryMotion:
+    """A frame odometry between keyframes. Each keyframe's factor is the increments since the
+    last one composed, their covariances propagated (``compose_covariance``), plus
+    ``PipelineConfig.drift_covariance`` of the interval; frames are chained from the keyframes
+    with the increments."""
+
+    allows_overlap = True
+    allows_graph_window = True
+
+    def __init__(self, odometry: Odometry, config: PipelineConfig):
+        self.odometry, self.config = odometry, config
+        self.name = str(getattr(odometry, "name", "odometry"))
+        self.T_odom: list[np.ndarray] = [odometry.initial_pose()]
+        self.increments: list[np.ndarray] = [np.eye(4)]
+        self.T_since_kf = np.eye(4)
+        self.cov_since_kf = np.zeros((6, 6))
+        self.dt_since_kf = 0.0
+        self.T_last_kf = self.T_odom[0]  # the latest keyframe's estimate (frame 0 is always one)
+        self._doubted = False
+
+    @property
+    def needs_frames(self) -> bool:
+        return bool(getattr(self.odometry, "needs_frames", False))
+
+    @property
+    def doubted(self) -> bool:
+        """Whether the odometry guessed a step since the last keyframe (visual odometry lost)."""
+        return self._doubted
+
+    def anchor_prior(self) -> None:
+        return None  # the world is the odometry's; --anchor puts the field's frame in it
+
+    def prime(self, frame) -> None:
+        if hasattr(self.odometry, "prime"):
+            self.odometry.prime(frame)
+
+    def frame(self, i: int, frame, t: float, dt: float) -> None:
+        inc = self.odometry.increment(i, frame)
+        self._doubted = self._doubted or not getattr(inc, "ok", True)
+        self.increments.append(inc.T_prev_cur)
+        self.T_odom.append(self.T_odom[-1] @ inc.T_prev_cur)
+        self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
+        self.T_since_kf = self.T_since_kf @ inc.T_prev_cur
+        self.dt_since_kf += dt
+
+    def since_keyframe(self) -> np.ndarray:
+        """(4, 4) ``T_kf_cam``: the motion since the last keyframe."""
+        return self.T_since_kf
+
+    def add_keyframe(self, graph: KeyframeGraph, j: int, i: int, t: float):
+        """Keyframe ``j`` (frame ``i``) enters with its prior (the first) or its odometry factor;
+        returns its prediction (4, 4) and the interval's ``(T_prev_kf_kf, covariance)`` (None
+        for the first)."""
+        interval = None
+        if j == 0:
+            T_pred = self.T_odom[0]
+            graph.add(pose_prior_factor(X(0), T_pred, rot_sigma_rad=self.config.prior_rot_sigma_rad,
+                                        trans_sigma_m=self.config.prior_trans_sigma_m))
+        else:
+            cov = self.cov_since_kf + self.config.drift_covariance(self.T_since_kf, self.dt_since_kf)
+            graph.add(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
+            interval = (self.T_since_kf.copy(), cov.copy())
+            T_pred = self.T_last_kf @ self.T_since_kf
+        graph.insert(X(j), T_to_pose3(T_pred))
+        self.T_since_kf = np.eye(4)
+        self.cov_since_kf = np.zeros((6, 6))
+        self.dt_since_kf = 0.0
+        self._doubted = False
+        return T_pred, interval
+
+    def after_correction(self, i: int, frame, accepted: bool) -> None:
+        pass
+
+    def interval_notes(self) -> str:
+        return ""
+
+    def keyframe_estimated(self, graph: KeyframeGraph, j: int, t: float) -> np.ndarray:
+        """The keyframe's estimate after its correction: the causal chain starts there."""
+        self.T_last_kf = graph.pose(X(j))
+        return self.T_last_kf
+
+    def causal_pose(self) -> np.ndarray:
+        """(4, 4) the latest frame as known now: the last keyframe's estimate and the odometry since."""
+        return self.T_last_kf @ self.T_since_kf
+
+    def twist(self, i: int, t: float, dt: float) -> np.ndarray | None:
+        """Body twist per second (GTSAM order) of the odometry's last step into frame i (``dt``
+        seconds long)."""
+        if i < 1 or i >= len(self.increments):
+            return None
+        return log_se3(self.increments[i]) / dt if dt > 0 else None
+
+    def smoothed(self, values, T_kf, keyframe_indices, stamps) -> np.ndarray:
+        return chain_from_nearest_keyframe(T_kf, self.increments, len(stamps))
+
+    def causal(self, online: list[np.ndarray], stamps: np.ndarray) -> np.ndarray:
+        return np.stack(online[:len(stamps)])
+
+    def finish(self, values, graph, accepted, keyframe_indices, result) -> None:
+        pass
