@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics
-from nap3d_graph.conventions import T_to_tum
+from nap3d_graph.datasets.trajectory import Trajectory
 
 from .scene import make_scene
 from .sensors import (
@@ -95,11 +95,6 @@ def _write_list(path: Path, header: str, stamps: np.ndarray, folder: str) -> Non
     lines = [f"# {header}", "# file: simulated by nap3d-graph", "# timestamp filename"]
     lines += [f"{t:.6f} {folder}/{t:.6f}.png" for t in stamps]
     path.write_text("\n".join(lines) + "\n")
-
-
-def _write_tum(path: Path, stamps: np.ndarray, T: np.ndarray, header: str) -> None:
-    rows = np.column_stack([stamps, T_to_tum(T)])
-    np.savetxt(path, rows, fmt=["%.6f"] + ["%.9f"] * 7, header=f"{header}\ntimestamp tx ty tz qx qy qz qw")
 
 
 def _render_and_write(job) -> None:
@@ -235,11 +230,11 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     gt_rel = np.arange(start - 0.05, duration + 0.05, 1.0 / _GT_RATE_HZ) + 0.0037
     gt_rel = np.clip(np.union1d(gt_rel, t_rel), start, duration)
     gt_rel = np.unique(np.round(gt_rel, 6))
-    _write_tum(out / "groundtruth.txt", TIME_ORIGIN_S + gt_rel, trajectory.poses(gt_rel),
+    Trajectory(TIME_ORIGIN_S + gt_rel, trajectory.poses(gt_rel)).write_tum(out / "groundtruth.txt",
                "ground truth trajectory (simulated), T_world_cam, OpenCV camera, world +Z up")
 
     T_odom, _ = drifting_odometry(T_gt, rgb_stamps, config.odometry, odom_rng)
-    _write_tum(out / "odometry.txt", rgb_stamps, T_odom, "drifting odometry (simulated), T_world_cam")
+    Trajectory(rgb_stamps, T_odom).write_tum(out / "odometry.txt", header="drifting odometry (simulated), T_world_cam")
 
     imu = simulate_imu(trajectory, 0.0, duration, config.imu, imu_rng)
     imu_rows = np.column_stack([TIME_ORIGIN_S + imu["stamps"], imu["accel"], imu["gyro"]])

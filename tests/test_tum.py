@@ -288,3 +288,34 @@ def test_evo_ape_cli_reads_written_files(seq, tmp_path):
     rmse = re.search(r"rmse\s+([0-9.]+)", result.stdout)
     assert rmse is not None, result.stdout
     assert float(rmse.group(1)) == pytest.approx(0.01, abs=1e-6)
+
+
+def test_a_trajectory_travels_with_its_unknown_poses_and_round_trips(tmp_path):
+    """Trajectory: TUM out and back to the file's precision, unknown poses refused or left
+    out, rigid-and-ordered check, evo's type from the known poses only."""
+    from nap3d_graph.conventions import exp_se3
+    from nap3d_graph.datasets import Trajectory
+
+    rng = np.random.default_rng(0)
+    T = np.stack([exp_se3(rng.normal(0, 0.3, 6)) for _ in range(5)])
+    trajectory = Trajectory(np.arange(5) * 0.1 + 100.0, T).check()
+    back = Trajectory.read_tum(trajectory.write_tum(tmp_path / "t.txt", header="a test"))
+    np.testing.assert_allclose(back.T_world_cam, T, atol=2e-8)
+    np.testing.assert_allclose(back.stamps, trajectory.stamps, atol=1e-6)
+    assert (tmp_path / "t.txt").read_text().startswith("# a test\n# timestamp tx ty tz qx qy qz qw\n")
+    T_gaps = T.copy()
+    T_gaps[2] = np.nan
+    gaps = Trajectory(trajectory.stamps, T_gaps)
+    assert gaps.valid.tolist() == [True, True, False, True, True]
+    with pytest.raises(DatasetError, match="non-finite"):
+        gaps.write_tum(tmp_path / "refused.txt")
+    assert len(Trajectory.read_tum(gaps.write_tum(tmp_path / "kept.txt", skip_unknown=True))) == 4
+    assert gaps.to_evo().num_poses == 4
+    not_rigid = T.copy()
+    not_rigid[1, :3, :3] *= 1.1
+    with pytest.raises(DatasetError, match="not rigid"):
+        Trajectory(trajectory.stamps, not_rigid).check()
+    with pytest.raises(DatasetError, match="strictly increase"):
+        Trajectory(trajectory.stamps[::-1], T).check()
+    with pytest.raises(DatasetError, match=r"\(N, 4, 4\)"):
+        Trajectory(trajectory.stamps, T[:3])

@@ -10,7 +10,8 @@ ROS 1 ``.bag`` or a ROS 2 bag folder (read with ``rosbags``).
 from __future__ import annotations
 
 from nap3d_graph.datasets.errors import DatasetError
-from nap3d_graph.datasets.tum import TumSequence, read_tum_trajectory, write_tum_trajectory
+from nap3d_graph.datasets.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
+from nap3d_graph.datasets.tum import TumSequence
 
 from .realsense import RealSenseConfig, RealSenseRecording
 from .rosbag import BagTopics, RosbagSequence, is_rosbag
@@ -18,6 +19,7 @@ from .sevenscenes import SevenScenesSequence, is_sevenscenes_folder
 from .sim import SimSequence
 
 __all__ = [
+    "Trajectory",
     "SOURCES",
     "source_of",
     "open_sequence",

@@ -177,7 +177,7 @@ class RealSenseRecording(GroundTruthLookup):
 
     def _attach_ground_truth(self, gt_path: Path) -> None:
         from .association import interpolate_poses
-        from .tum import read_tum_trajectory
+        from .trajectory import read_tum_trajectory
 
         if not gt_path.is_file():
             raise DatasetError(f"{gt_path}: no such ground-truth file")

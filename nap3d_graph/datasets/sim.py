@@ -16,7 +16,8 @@ import numpy as np
 
 from nap3d_graph.datasets.association import interpolate_poses
 from nap3d_graph.datasets.errors import DatasetError
-from nap3d_graph.datasets.tum import TumSequence, read_tum_trajectory
+from nap3d_graph.datasets.trajectory import read_tum_trajectory
+from nap3d_graph.datasets.tum import TumSequence
 
 __all__ = ["SimSequence"]
 

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from pathlib import Path
 from typing import Iterator
 
@@ -25,7 +24,6 @@ import cv2
 import numpy as np
 
 from ..camera import CameraError, Intrinsics, RGBDFrame
-from ..conventions import T_to_tum, tum_to_T
 from .association import (
     ASSOCIATION_METHODS,
     GT_MAX_GAP_S,
@@ -36,11 +34,11 @@ from .association import (
 )
 from .errors import DatasetError
 from .frames import frame_index, parse_frame_range
+from .text import data_lines, parse_float
+from .trajectory import read_tum_trajectory
 
 __all__ = [
     "TumSequence",
-    "read_tum_trajectory",
-    "write_tum_trajectory",
     "read_file_list",
     "tum_intrinsics_for",
     "TUM_DEPTH_SCALE",
@@ -66,31 +64,6 @@ _TUM_DEFAULT_CAMERA = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 # --- text files ---------------------------------------------------------------------------
 
 
-def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
-    """(line number, fields) of every non-empty, non-comment line; fields split on blanks/commas."""
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise DatasetError(f"{path}: file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot read ({exc})") from None
-    for number, line in enumerate(text.splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        yield number, line.replace(",", " ").split()
-
-
-def _parse_float(path: Path, number: int, token: str) -> float:
-    try:
-        value = float(token)
-    except ValueError:
-        raise DatasetError(f"{path}:{number}: {token!r} is not a number") from None
-    if not math.isfinite(value):
-        raise DatasetError(f"{path}:{number}: non-finite value {token!r}")
-    return value
-
-
 def read_file_list(path) -> tuple[np.ndarray, list[str]]:
     """Read a TUM ``rgb.txt`` / ``depth.txt``: lines ``timestamp filename``, ``#`` comments.
 
@@ -99,58 +72,12 @@ def read_file_list(path) -> tuple[np.ndarray, list[str]]:
     """
     path = Path(path)
     stamps, names = [], []
-    for number, fields in _data_lines(path):
+    for number, fields in data_lines(path):
         if len(fields) < 2:
             raise DatasetError(f"{path}:{number}: expected 'timestamp filename', got {' '.join(fields)!r}")
-        stamps.append(_parse_float(path, number, fields[0]))
+        stamps.append(parse_float(path, number, fields[0]))
         names.append(" ".join(fields[1:]))
     return np.asarray(stamps, dtype=float), names
-
-
-def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory file (``timestamp tx ty tz qx qy qz qw``, ``#`` comments).
-
-    Returns ``(timestamps (N,), T_world_cam (N, 4, 4))`` in file order.
-    """
-    path = Path(path)
-    rows = []
-    for number, fields in _data_lines(path):
-        if len(fields) != 8:
-            raise DatasetError(
-                f"{path}:{number}: expected 8 columns 'timestamp tx ty tz qx qy qz qw', got {len(fields)}"
-            )
-        row = [_parse_float(path, number, token) for token in fields]
-        if np.linalg.norm(row[4:8]) < 1e-6:
-            raise DatasetError(f"{path}:{number}: quaternion has zero norm")
-        rows.append(row)
-    if not rows:
-        raise DatasetError(f"{path}: no poses in trajectory file")
-    mat = np.asarray(rows, dtype=float)
-    return mat[:, 0].copy(), tum_to_T(mat[:, 1:8])
-
-
-def write_tum_trajectory(
-    path, timestamps: np.ndarray, T_world_cam: np.ndarray, header: str | None = None
-) -> None:
-    """Write poses as a TUM trajectory file that ``evo_ape tum`` reads.
-
-    timestamps: (N,) seconds. T_world_cam: (N, 4, 4) camera-to-world poses. Time is written
-    with 6 decimals (microseconds, as TUM does), translations and quaternions with 9.
-    """
-    path = Path(path)
-    timestamps = np.asarray(timestamps, dtype=float).reshape(-1)
-    T_world_cam = np.asarray(T_world_cam, dtype=float)
-    if T_world_cam.ndim != 3 or T_world_cam.shape[1:] != (4, 4) or len(T_world_cam) != len(timestamps):
-        raise DatasetError(
-            f"{path}: need timestamps (N,) and T_world_cam (N, 4, 4), got {timestamps.shape} "
-            f"and {T_world_cam.shape}"
-        )
-    if not (np.all(np.isfinite(timestamps)) and np.all(np.isfinite(T_world_cam))):
-        raise DatasetError(f"{path}: refusing to write non-finite timestamps or poses")
-    rows = np.concatenate([timestamps[:, None], T_to_tum(T_world_cam)], axis=1)
-    header = header if header is not None else "timestamp tx ty tz qx qy qz qw"
-    # evo reads with a single-space delimiter: no trailing blanks, one space between columns.
-    np.savetxt(path, rows, fmt=["%.6f"] + ["%.9f"] * 7, delimiter=" ", header=header, comments="# ")
 
 
 # --- intrinsics -----------------------------------------------------------------------------

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import chi2
 
-from nap3d_graph.conventions import T_to_tum, inv_T, log_se3
+from nap3d_graph.conventions import inv_T, log_se3
+from nap3d_graph.datasets.trajectory import Trajectory
 
 from .metrics import ate, rpe
 
@@ -135,8 +136,8 @@ def write_comparison(out_dir: str | Path, stream, results, rows: list[dict], met
     stamps = np.asarray(stream.timestamps)
     trajectories = _trajectories(results)
     for name, T in trajectories.items():
-        _write_tum(out / "trajectories" / f"{name}.txt", stamps, T)
-    _write_tum(out / "groundtruth.txt", stamps, stream.T_world_cam_gt)
+        Trajectory(stamps, T).write_tum(out / "trajectories" / f"{name}.txt", skip_unknown=True)
+    Trajectory(stamps, stream.T_world_cam_gt).write_tum(out / "groundtruth.txt", skip_unknown=True)
     _plot(out, stamps, stream.T_world_cam_gt, trajectories)
     return out
 
@@ -145,12 +146,6 @@ def _json_default(value):
     if isinstance(value, (np.floating, np.integer)):
         return value.item()
     raise TypeError(f"not JSON: {type(value).__name__}")
-
-
-def _write_tum(path: Path, stamps: np.ndarray, T: np.ndarray) -> None:
-    posed = np.all(np.isfinite(T), axis=(1, 2))
-    rows = np.column_stack([stamps[posed], np.array([T_to_tum(P) for P in T[posed]]).reshape(-1, 7)])
-    np.savetxt(path, rows, fmt="%.6f", header="timestamp tx ty tz qx qy qz qw")
 
 
 def _plot(out: Path, stamps, T_gt, trajectories: dict) -> None:

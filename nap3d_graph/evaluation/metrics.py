@@ -10,10 +10,10 @@ __all__ = ["to_evo", "ate", "rpe", "trajectory_metrics"]
 
 
 def to_evo(timestamps: np.ndarray, T_world_cam: np.ndarray):
-    """An evo ``PoseTrajectory3D`` from stamps (N,) and poses (N, 4, 4)."""
-    from evo.core.trajectory import PoseTrajectory3D
+    """An evo ``PoseTrajectory3D`` from stamps (N,) and poses (N, 4, 4) (:meth:`Trajectory.to_evo`)."""
+    from nap3d_graph.datasets.trajectory import Trajectory
 
-    return PoseTrajectory3D(poses_se3=[np.asarray(T) for T in T_world_cam], timestamps=np.asarray(timestamps))
+    return Trajectory(timestamps, T_world_cam).to_evo()
 
 
 def _stats(metric) -> dict:

@@ -21,10 +21,10 @@ from gtsam.symbol_shorthand import X
 
 from nap3d_graph.conventions import T_to_pose3, compose_covariance, log_se3
 from nap3d_graph.factors import odometry_factor, pose_prior_factor
+from nap3d_graph.run.chain import chain_from_nearest_keyframe
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.records import RunResult
-from nap3d_graph.run.trajectory import chain_from_nearest_keyframe
 
 __all__ = ["MotionModel", "Odometry", "OdometryMotion"]
 

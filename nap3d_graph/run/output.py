@@ -20,7 +20,6 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.datasets.tum import write_tum_trajectory
 from nap3d_graph.evaluation.metrics import trajectory_metrics
 from nap3d_graph.imu import gravity_angle_deg
 from nap3d_graph.plots import plot_error_over_time, plot_top_view
@@ -165,11 +164,11 @@ class RunWriter:
         metrics and moves ``latest`` here."""
         self.close()
         run = self.dir
-        write_tum_trajectory(run / "estimate.txt", result.timestamps, result.T_world_cam_estimate)
-        write_tum_trajectory(run / "odometry.txt", result.timestamps, result.T_world_cam_odometry)
-        online = getattr(result, "T_world_cam_online", None)
-        if online is not None:
-            write_tum_trajectory(run / "estimate_online.txt", result.timestamps, online)
+        written = result.trajectories()
+        for name in ("estimate", "odometry", "estimate_online"):
+            if name in written:
+                written[name].write_tum(run / f"{name}.txt")
+        online = result.T_world_cam_online
         metrics: dict = {
             "partial": bool(partial),
             "frames": int(len(result.timestamps)),
@@ -187,7 +186,7 @@ class RunWriter:
         if result.T_world_cam_gt is not None:
             posed = np.all(np.isfinite(result.T_world_cam_gt), axis=(1, 2))
             if posed.any():
-                write_tum_trajectory(run / "groundtruth.txt", result.timestamps[posed], result.T_world_cam_gt[posed])
+                written["groundtruth"].write_tum(run / "groundtruth.txt", skip_unknown=True)
             if posed.sum() >= 2:
                 metrics.update(trajectory_metrics(result.timestamps, result.T_world_cam_gt, trajectories))
             metrics["frames_without_ground_truth"] = int((~posed).sum())

@@ -4,8 +4,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from nap3d_graph.datasets.trajectory import Trajectory
 
 __all__ = ["KeyframeRecord", "RunResult"]
 
@@ -65,6 +69,20 @@ class RunResult:
     gravity_world: np.ndarray | None = None
     gravity_world_prior: np.ndarray | None = None
     fallback_intervals: list = field(default_factory=list)
+
+    def trajectories(self) -> dict[str, Trajectory]:
+        """The run's trajectories as :class:`~nap3d_graph.datasets.trajectory.Trajectory`:
+        ``estimate`` (smoothed), ``estimate_online`` (causal), ``odometry`` and, when there is
+        one, ``groundtruth`` (NaN where the frames have none)."""
+        from nap3d_graph.datasets.trajectory import Trajectory
+
+        out = {"estimate": Trajectory(self.timestamps, self.T_world_cam_estimate),
+               "odometry": Trajectory(self.timestamps, self.T_world_cam_odometry)}
+        if self.T_world_cam_online is not None:
+            out["estimate_online"] = Trajectory(self.timestamps, self.T_world_cam_online)
+        if self.T_world_cam_gt is not None:
+            out["groundtruth"] = Trajectory(self.timestamps, self.T_world_cam_gt)
+        return out
 
     @property
     def num_accepted(self) -> int:
