@@ -188,7 +188,7 @@ class Prepared:
         return Pipeline(self.sequence, self.field, self.odometry, self.config)
 
 
-def _timing(args, field_obj, sequence) -> dict | None:
+def _timing(args, field_obj, sequence):
     """The capture timing to compensate with: the field's, else estimated from the sequence."""
     if args.timing == "none" or field_obj is None:
         return None
@@ -199,7 +199,7 @@ def _timing(args, field_obj, sequence) -> dict | None:
     timing = estimate_timing(sequence)
     if timing is not None:
         print(f"capture timing estimated from this sequence's ground truth (the field records none): depth "
-              f"{timing['depth_offset_s'] * 1000:+.0f} ms from its stamp, colour {timing['colour_offset_s'] * 1000:+.0f} ms")
+              f"{timing.depth_offset_s * 1000:+.0f} ms from its stamp, colour {timing.colour_offset_s * 1000:+.0f} ms")
     return timing
 
 
@@ -407,7 +407,9 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
               "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
               "initial_pose": None if initial_pose is None else initial_pose.tolist(),
               "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
-              "seed": args.seed, "pipeline": {k: v for k, v in vars(config).items() if k != "align"},
+              "seed": args.seed,
+              "pipeline": {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in vars(config).items()
+                           if k != "align"},
               "align": vars(config.align)}
     if odom_kind == "imu":
         record["imu"] = {**odometry.stream.config.to_dict(),

@@ -29,9 +29,43 @@ from ..camera import backproject_depth, project
 from ..conventions import inv_T, transform_points
 from .errors import DatasetError
 
-__all__ = ["DepthTiming", "depth_agreement_mm", "frame_pairs", "estimate_depth_timing", "multiview_agreement_mm"]
+__all__ = ["CaptureTiming", "DepthTiming", "depth_agreement_mm", "frame_pairs", "estimate_depth_timing", "multiview_agreement_mm"]
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CaptureTiming:
+    """When a recording's colour and depth were captured, against their stamps, and its depth's
+    scale: what a run moves each keyframe's depth by (to its colour's instant) and what a field
+    is built with. ``depth_offset_s`` / ``colour_offset_s``: add to the depth / colour stamps to
+    get the capture instants on the ground truth's clock; ``depth_scale``: multiply the sensor's
+    depth by it. The agreement figures (mm) say how well the frames agree with it
+    (``agreement_mm``), at the depth stamps as they are and at the colour stamps, over
+    ``pairs`` frame pairs. Stored as a dict (a field's ``meta["timing"]``, reports, config
+    files): :meth:`to_dict` and :meth:`of`."""
+
+    depth_offset_s: float = 0.0
+    colour_offset_s: float = 0.0
+    depth_scale: float = 1.0
+    agreement_mm: float = float("nan")
+    agreement_at_depth_stamps_mm: float = float("nan")
+    agreement_at_colour_stamps_mm: float = float("nan")
+    pairs: int = 0
+
+    def to_dict(self) -> dict:
+        return {k: (float(v) if isinstance(v, (float, np.floating)) else int(v)) for k, v in asdict(self).items()}
+
+    @classmethod
+    def of(cls, value: "CaptureTiming | dict | None") -> "CaptureTiming | None":
+        """``value`` as a CaptureTiming: a dict as stored (unknown keys ignored, missing ones at
+        their defaults), a CaptureTiming as it is, None (or an empty dict) as None."""
+        if value is None or isinstance(value, CaptureTiming):
+            return value
+        if not value:
+            return None
+        known = {f for f in cls.__dataclass_fields__}
+        return cls(**{k: v for k, v in dict(value).items() if k in known})
 
 
 @dataclass

@@ -46,6 +46,7 @@ import numpy as np
 from nap3d_graph.baselines.pnp import pnp_from_correspondences
 from nap3d_graph.camera import RenderedView, RGBDFrame, backproject_depth
 from nap3d_graph.conventions import inv_T, log_se3, pose_error, transform_points
+from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences, view_features
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correct import correct_pose, render_safely
@@ -96,7 +97,7 @@ class EvalKConfig:
     #: :func:`~nap3d_graph.fields.build.estimate_timing` gives): each scenario's depth is moved
     #: to its colour's capture instant with the ground-truth motion, so that the scenario
     #: measures the correction and not the sensor's colour/depth asynchrony. None: as stamped.
-    timing: dict | None = None
+    timing: CaptureTiming | None = None
 
     def __post_init__(self) -> None:
         unknown = set(self.methods) - set(METHODS)
@@ -250,31 +251,32 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
     return summary
 
 
-def capture_timing(field_obj, sequence) -> dict | None:
+def capture_timing(field_obj, sequence) -> CaptureTiming | None:
     """The capture timing the field records, else the one estimated from ``sequence``'s
     ground truth (None when neither is known)."""
     from nap3d_graph.fields.build import estimate_timing
 
     recorded = (getattr(field_obj, "meta", None) or {}).get("timing")
-    return recorded or estimate_timing(sequence)
+    return CaptureTiming.of(recorded) or estimate_timing(sequence)
 
 
-def at_colour_instant(sequence, index: int, timing: dict | None) -> RGBDFrame:
+def at_colour_instant(sequence, index: int, timing: CaptureTiming | None) -> RGBDFrame:
     """Frame ``index`` with its depth warped (and scaled) to its colour's capture instant by
     the ground-truth motion between the two instants; as it is without ``timing``, without a
     depth stamp, or where the ground truth does not cover both instants."""
+    timing = CaptureTiming.of(timing)
     from nap3d_graph.camera import warp_depth
 
     frame = sequence[index]
     if not timing or frame.depth_timestamp is None or getattr(sequence, "ground_truth_at", None) is None:
         return frame
-    t_depth = frame.depth_timestamp + timing.get("depth_offset_s", 0.0)
-    t_colour = frame.timestamp + timing.get("colour_offset_s", 0.0)
+    t_depth = frame.depth_timestamp + timing.depth_offset_s
+    t_colour = frame.timestamp + timing.colour_offset_s
     T_world_colour, T_world_depth = sequence.ground_truth_at(np.array([t_colour, t_depth]))
     if not (np.all(np.isfinite(T_world_colour)) and np.all(np.isfinite(T_world_depth))):
         return frame
     T_colour_depth = np.linalg.inv(T_world_colour) @ T_world_depth
-    depth = warp_depth(frame.depth_m, frame.intrinsics, T_colour_depth, timing.get("depth_scale", 1.0))
+    depth = warp_depth(frame.depth_m, frame.intrinsics, T_colour_depth, timing.depth_scale)
     return frame.with_depth(depth)
 
 
@@ -332,8 +334,7 @@ def summarise(rows: list[dict], config: EvalKConfig) -> dict:
                        "shift": config.shift, "grid_stride": config.grid_stride, "matcher": config.align.matcher,
                        "failures": "scored as the uncorrected pose's error",
                        "capture_timing": None if config.timing is None else {
-                           k: config.timing[k] for k in ("depth_offset_s", "colour_offset_s", "depth_scale")
-                           if k in config.timing}},
+                           k: CaptureTiming.of(config.timing).to_dict()[k] for k in ("depth_offset_s", "colour_offset_s", "depth_scale")}},
             "methods": {m: METHODS[m] for m in config.methods},
             "pairs": {p: {"pnp_side": a, "nap3d_side": b} for p, a, b in PAIRS
                       if a in config.methods and b in config.methods},

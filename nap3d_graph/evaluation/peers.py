@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.datasets.depth_timing import CaptureTiming
+
 log = logging.getLogger(__name__)
 
 __all__ = ["PeersConfig", "run_bench_peers"]
@@ -37,7 +39,7 @@ class PeersConfig:
     render_size: tuple[int, int] | None = (320, 240)
     methods: tuple[str, ...] = ("nap3d-plain", "nap3d-refined", "nap3d-iter", "pnp-ransac", "gicp", "dense-rgbd",
                                 "photometric")
-    timing: dict | None = None
+    timing: CaptureTiming | None = None
     matcher: str = "sift"
 
 
@@ -121,7 +123,7 @@ def summarise(rows: list[dict], config: PeersConfig) -> dict:
                        "max_rot_deg": config.max_rot_deg, "render_size": config.render_size,
                        "matcher": config.matcher,
                        "capture_timing": None if not config.timing else
-                       {k: config.timing.get(k) for k in ("depth_offset_s", "colour_offset_s", "depth_scale")},
+                       {k: CaptureTiming.of(config.timing).to_dict()[k] for k in ("depth_offset_s", "colour_offset_s", "depth_scale")},
                        "failures": "scored as the uncorrected pose's error"},
             "methods": methods, "crb_trans_mm": _stats(bound)}
 

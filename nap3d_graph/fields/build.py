@@ -20,6 +20,8 @@ from __future__ import annotations
 import logging
 import time
 
+from nap3d_graph.datasets.depth_timing import CaptureTiming
+
 from .base import FieldError
 from .evaluation import evaluate_field, oracle_for
 
@@ -31,10 +33,10 @@ MODELS = ("splat", "grid")
 DEFAULT_MODEL = "grid"
 
 
-def estimate_timing(sequence) -> dict | None:
-    """``{"depth_offset_s", "colour_offset_s", "depth_scale", ...}`` of a sequence with depth
-    stamps and ground truth (see :mod:`nap3d_graph.datasets.depth_timing`), or None when it
-    cannot be estimated (no ground truth, too few frames)."""
+def estimate_timing(sequence) -> CaptureTiming | None:
+    """The capture timing of a sequence with depth stamps and ground truth (see
+    :mod:`nap3d_graph.datasets.depth_timing`), or None when it cannot be estimated (no ground
+    truth, too few frames) or the data cannot tell it."""
     from nap3d_graph.datasets import DatasetError
     from nap3d_graph.datasets.depth_timing import estimate_colour_offset, estimate_depth_timing
 
@@ -54,9 +56,8 @@ def estimate_timing(sequence) -> dict | None:
     except DatasetError as exc:
         log.warning("colour timing not estimated (%s); using the stamps as they are", exc)
         return None
-    return {"depth_offset_s": depth.offset_s, "colour_offset_s": colour_offset, "depth_scale": depth.scale,
-            "agreement_mm": depth.agreement_mm, "agreement_at_depth_stamps_mm": depth.at_depth_stamps_mm,
-            "agreement_at_colour_stamps_mm": depth.at_colour_stamps_mm, "pairs": depth.pairs}
+    return CaptureTiming(depth.offset_s, colour_offset, depth.scale, depth.agreement_mm, depth.at_depth_stamps_mm,
+                         depth.at_colour_stamps_mm, depth.pairs)
 
 
 #: An estimated depth offset is used only when it makes the frames agree better than (by 2%)
@@ -104,8 +105,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
         raise FieldError(f"unknown field model {model!r}; choose from {', '.join(MODELS)}")
     started = time.perf_counter()
     train_idx, held_idx = split_posed_frames(sequence, every, eval_frames)
-    if timing == "auto":
-        timing = estimate_timing(sequence)
+    timing = estimate_timing(sequence) if timing == "auto" else CaptureTiming.of(timing)
     timing_seconds = time.perf_counter() - started
     refinement = None
     if refine_poses > 0:
@@ -116,7 +116,8 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     else:
         field, report = _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device,
                                     progress)
-    field.meta.update({"model": model, "timing": timing, "source": str(getattr(sequence, "path", "")),
+    stored_timing = None if timing is None else timing.to_dict()
+    field.meta.update({"model": model, "timing": stored_timing, "source": str(getattr(sequence, "path", "")),
                        "frame_range": list(getattr(sequence, "frame_range", (0, len(sequence)))),
                        "train_frames": [int(i) for i in train_idx],
                        "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx],
@@ -125,7 +126,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     if render_size is not None and (render_size[0] > K.width or render_size[1] > K.height):
         render_size = None  # never evaluate above the frames' own resolution
     held = evaluate_field(field, sequence, held_idx, oracle, size=render_size, timing=timing) if len(held_idx) else None
-    report.update({"model": model, "timing": timing, "timing_seconds": round(timing_seconds, 2),
+    report.update({"model": model, "timing": stored_timing, "timing_seconds": round(timing_seconds, 2),
                    "train_frames": int(len(train_idx)), "held_out": held})
     if refinement is not None:
         report["pose_refinement"] = refinement
@@ -148,7 +149,7 @@ def _refined(sequence, train_idx, timing, rounds, matcher, render_size, progress
     config = PoseRefinementConfig(rounds=rounds, matcher=matcher, render_size=render_size)
     corrections, report = refine_training_poses(sequence, train_idx, timing, config, progress)
     refined = PoseCorrectedSequence(sequence, corrections)
-    offset = (timing or {}).get("depth_offset_s", 0.0)
+    offset = timing.depth_offset_s if timing is not None else 0.0
     if getattr(sequence, "ground_truth_at", None) is not None and getattr(sequence, "depth_timestamps", None) is not None:
         report["agreement_before_mm"] = round(multiview_agreement_mm(sequence, offset), 3)
         report["agreement_after_mm"] = round(multiview_agreement_mm(refined, offset), 3)
@@ -177,9 +178,9 @@ def _build_splat(sequence, train_idx, voxel_size_m, timing, progress):
     from .splat import SplatConfig, build_splat_field
 
     config = SplatConfig() if voxel_size_m is None else SplatConfig(voxel_size_m=voxel_size_m)
-    timing = timing or {}
-    field, report = build_splat_field(sequence, train_idx, config, timing.get("depth_offset_s", 0.0),
-                                      timing.get("colour_offset_s", 0.0), timing.get("depth_scale", 1.0),
+    timing = timing or CaptureTiming()
+    field, report = build_splat_field(sequence, train_idx, config, timing.depth_offset_s, timing.colour_offset_s,
+                                      timing.depth_scale,
                                       progress=progress)
     report["config"] = config.to_dict()
     report["train_seconds"] = report["build_seconds"]

@@ -29,6 +29,8 @@ from typing import Sequence
 
 import numpy as np
 
+from nap3d_graph.datasets.depth_timing import CaptureTiming
+
 __all__ = ["evaluate_field", "psnr", "oracle_for", "affine_fit_psnr"]
 
 log = logging.getLogger(__name__)
@@ -82,20 +84,21 @@ def _poses(sequence, indices, timing):
     at = getattr(sequence, "ground_truth_at", None)
     if timing is None or at is None:
         return poses, poses, 1.0
-    T_colour = at(np.asarray(sequence.timestamps)[indices] + timing.get("colour_offset_s", 0.0))
-    T_depth = at(np.asarray(sequence.depth_timestamps)[indices] + timing.get("depth_offset_s", 0.0))
-    return T_colour, T_depth, float(timing.get("depth_scale", 1.0))
+    T_colour = at(np.asarray(sequence.timestamps)[indices] + timing.colour_offset_s)
+    T_depth = at(np.asarray(sequence.depth_timestamps)[indices] + timing.depth_offset_s)
+    return T_colour, T_depth, float(timing.depth_scale)
 
 
 def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: tuple[int, int] | None = None,
-                   timing: dict | None = None) -> dict:
+                   timing: CaptureTiming | None = None) -> dict:
     """Held-out metrics of any field on frames ``indices`` of a posed ``sequence``.
 
     ``size``: (width, height) the field renders at (frames are downscaled to it; default the
     sequence's own). ``oracle``: the simulator's exact field, the depth reference when given.
-    ``timing``: ``{"depth_offset_s", "colour_offset_s", "depth_scale"}`` of a real recording.
+    ``timing``: the :class:`~nap3d_graph.datasets.depth_timing.CaptureTiming` of a real recording.
     Returns a dict (see the module docstring) with a ``per_frame`` list.
     """
+    timing = CaptureTiming.of(timing)
     import cv2
 
     if getattr(sequence, "T_world_cam_gt", None) is None:
@@ -156,7 +159,7 @@ def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: t
         "opacity_on_surfaces": float(np.mean(np.concatenate(opac))) if opac else None,
         "unit_check": _unit_check(x, y),
         "render_seconds": float(np.median(secs)) if secs else None,
-        "timing": timing,
+        "timing": None if timing is None else timing.to_dict(),
         "per_frame": per_frame,
     }
 

@@ -23,6 +23,8 @@ import logging
 
 import numpy as np
 
+from nap3d_graph.datasets.depth_timing import CaptureTiming
+
 from ..conventions import inv_T, log_se3
 
 __all__ = ["measure_field_error", "measure_frame", "sigma_for_median_nees", "twist_at"]
@@ -44,7 +46,7 @@ def twist_at(sequence, i: int) -> np.ndarray | None:
     return log_se3(inv_T(T[a]) @ T[b]) / dt if dt > 0 else None
 
 
-def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, timing: dict | None = None,
+def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, timing: CaptureTiming | None = None,
                   render_size: tuple[int, int] | None = (320, 240), with_twist: bool = True):
     """Frame ``i`` of a posed ``sequence`` measured as a run measures a keyframe
     (:func:`~nap3d_graph.run.keyframe.measure_keyframe`, ``run_config`` a
@@ -52,6 +54,7 @@ def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, tim
     refinement and a recording's shared world frame are all checked this way. The render is
     at ``render_size`` (the frame's own when None or larger); ``with_twist``: move depth to the
     colour's instant with the ground truth's motion (when ``timing`` says how)."""
+    timing = CaptureTiming.of(timing)
     from nap3d_graph.run.keyframe import KeyframeJob, measure_keyframe
 
     frame = sequence[int(i)]
@@ -59,7 +62,7 @@ def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, tim
     if render_size is not None and render_size[0] < K.width:
         K = K.scaled(*render_size)
     twist = twist_at(sequence, int(i)) if with_twist else None
-    job = KeyframeJob(int(i), frame, T_render, twist, timing or None, float((timing or {}).get("depth_scale", 1.0)), K)
+    job = KeyframeJob(int(i), frame, T_render, twist, timing, timing.depth_scale if timing is not None else 1.0, K)
     return measure_keyframe(job, field, run_config)
 
 
@@ -81,7 +84,7 @@ def sigma_for_median_nees(errors: np.ndarray, covariances: np.ndarray) -> float:
     return hi
 
 
-def measure_field_error(field, sequence, indices, timing: dict | None = None, align=None,
+def measure_field_error(field, sequence, indices, timing: CaptureTiming | None = None, align=None,
                         render_size: tuple[int, int] | None = (320, 240), min_frames: int = 5,
                         perturbation: tuple[float, float] = (0.02, 0.0175), seed: int = 0) -> dict:
     """The field's error on frames ``indices`` of ``sequence`` (not built from them): a dict

@@ -25,6 +25,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nap3d_graph.datasets.depth_timing import CaptureTiming
+
 from ..conventions import exp_se3, inv_T, log_se3
 
 __all__ = ["PoseRefinementConfig", "refine_training_poses", "PoseCorrectedSequence"]
@@ -94,12 +96,13 @@ def _spread_sigma(residuals: np.ndarray, covariances: np.ndarray, prior_var: flo
     return sigma_for_median_nees(residuals, covariances + prior_var * np.eye(3))
 
 
-def refine_training_poses(sequence, train_idx, timing: dict | None = None,
+def refine_training_poses(sequence, train_idx, timing: CaptureTiming | None = None,
                           config: PoseRefinementConfig | None = None, progress: bool = False):
     """Refined poses of frames ``train_idx`` of a posed ``sequence``: ``(corrections, report)``
     with ``corrections`` ``{frame index: D (4, 4)}`` (refined pose = input pose @ D; use
     :class:`PoseCorrectedSequence` to build with them) and a report of each round (median
     correction, frames measured, the measurements' extra sigma)."""
+    timing = CaptureTiming.of(timing)
     from nap3d_graph.run.config import PipelineConfig
 
     from ..nap3d.config import AlignConfig
@@ -107,7 +110,7 @@ def refine_training_poses(sequence, train_idx, timing: dict | None = None,
     from .splat import build_splat_field
 
     config = config or PoseRefinementConfig()
-    timing = timing or {}
+    fold_timing = timing or CaptureTiming()
     train_idx = np.asarray(train_idx, dtype=int)
     folds = [train_idx[0::2], train_idx[1::2]]
     T_in = np.asarray(sequence.T_world_cam_gt, dtype=float)
@@ -119,9 +122,9 @@ def refine_training_poses(sequence, train_idx, timing: dict | None = None,
         current = PoseCorrectedSequence(sequence, corrections)
         measured: dict[int, tuple[np.ndarray, np.ndarray]] = {}
         for a, b in ((0, 1), (1, 0)):
-            fold_map, _ = build_splat_field(current, folds[a], depth_offset_s=timing.get("depth_offset_s", 0.0),
-                                            colour_offset_s=timing.get("colour_offset_s", 0.0),
-                                            depth_scale=timing.get("depth_scale", 1.0), progress=progress)
+            fold_map, _ = build_splat_field(current, folds[a], depth_offset_s=fold_timing.depth_offset_s,
+                                            colour_offset_s=fold_timing.colour_offset_s,
+                                            depth_scale=fold_timing.depth_scale, progress=progress)
             for i in folds[b]:
                 c = measure_frame(current, int(i), fold_map, current.T_world_cam_gt[i], run_config, timing,
                                   config.render_size)

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.fields.grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, trilinear_corners
 from nap3d_graph.fields.grid_render import torch_threads
 
@@ -198,7 +199,7 @@ def train_field(
     oracle=None,
     snapshot_seconds: Sequence[float] = (),
     callback: Callable[[dict], None] | None = None,
-    timing: dict | None = None,
+    timing: CaptureTiming | None = None,
 ) -> tuple[GridField, dict]:
     """Train a grid field on a posed RGB-D ``sequence``; returns ``(field, report)``.
 

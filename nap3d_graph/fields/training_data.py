@@ -13,6 +13,7 @@ import torch
 
 from nap3d_graph.camera import Intrinsics, backproject_depth, valid_depth_mask
 from nap3d_graph.conventions import transform_points
+from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.fields.grid import GridField, trilinear_corners
 from nap3d_graph.fields.grid_render import pixel_directions
 
@@ -70,11 +71,12 @@ class TrainingRays:
 
     @classmethod
     def from_sequence(cls, sequence, indices: Sequence[int], config: TrainConfig, device,
-                      progress: bool = False, timing: dict | None = None) -> "TrainingRays":
+                      progress: bool = False, timing: CaptureTiming | None = None) -> "TrainingRays":
         """Frames ``indices`` as training rays. With ``timing`` (``depth_offset_s``,
         ``colour_offset_s``, ``depth_scale``: see :mod:`nap3d_graph.datasets.depth_timing`)
         each frame's depth is scaled and moved from the pose at its capture time to the pose
         at the colour's, so both images of a ray see the same instant."""
+        timing = CaptureTiming.of(timing)
         from tqdm import tqdm
 
         from nap3d_graph.camera import warp_depth
@@ -84,8 +86,8 @@ class TrainingRays:
         T_colour = T_depth = poses[np.asarray(indices, dtype=int)]
         if timing is not None and getattr(sequence, "ground_truth_at", None) is not None:
             idx = np.asarray(indices, dtype=int)
-            T_colour = sequence.ground_truth_at(np.asarray(sequence.timestamps)[idx] + timing["colour_offset_s"])
-            T_depth = sequence.ground_truth_at(np.asarray(sequence.depth_timestamps)[idx] + timing["depth_offset_s"])
+            T_colour = sequence.ground_truth_at(np.asarray(sequence.timestamps)[idx] + timing.colour_offset_s)
+            T_depth = sequence.ground_truth_at(np.asarray(sequence.depth_timestamps)[idx] + timing.depth_offset_s)
             bad = ~(np.all(np.isfinite(T_colour), axis=(1, 2)) & np.all(np.isfinite(T_depth), axis=(1, 2)))
             T_colour = np.where(bad[:, None, None], poses[idx], T_colour)
             T_depth = np.where(bad[:, None, None], poses[idx], T_depth)
@@ -101,7 +103,7 @@ class TrainingRays:
             rgb[k] = frame.rgb
             d = np.nan_to_num(frame.depth_m, nan=0.0)
             if timing is not None:
-                d = warp_depth(d, intrinsics, inv_T(T_colour[k]) @ T_depth[k], timing.get("depth_scale", 1.0))
+                d = warp_depth(d, intrinsics, inv_T(T_colour[k]) @ T_depth[k], timing.depth_scale)
             d[~valid_depth_mask(d, config.min_depth_m, config.max_depth_m)] = 0.0
             depth[k] = d
         T = np.asarray(T_colour)

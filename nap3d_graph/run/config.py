@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.nap3d.config import AlignConfig
 
 __all__ = ["PipelineConfig", "with_field_error"]
@@ -100,7 +101,7 @@ class PipelineConfig:
     prior_trans_sigma_m: float = 1e-3
     relinearize_threshold: float = 1e-3
     compensate_timing: bool = True
-    timing: dict | None = None
+    timing: CaptureTiming | dict | None = None
     final_gnc: bool = True
     gnc_p: float = 0.997
     depth_scale_check: bool = True

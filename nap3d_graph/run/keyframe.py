@@ -19,6 +19,7 @@ import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RGBDFrame, warp_depth
 from nap3d_graph.conventions import exp_se3
+from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.nap3d.correct import correct_pose
 from nap3d_graph.results import Correction
 
@@ -29,7 +30,7 @@ __all__ = ["KeyframeJob", "measure_keyframe", "at_colour_time", "CorrectionWorke
 class KeyframeJob:
     """Everything one measurement needs. frame: the keyframe as read; T_render: (4, 4) the
     pose to render at (the field's frame); twist: (6,) body twist per second (GTSAM order)
-    of the camera at the frame, or None; timing: the capture timing (``depth_offset_s``,
+    of the camera at the frame, or None; timing: the :class:`~nap3d_graph.datasets.depth_timing.CaptureTiming` (``depth_offset_s``,
     ``colour_offset_s``) or None; depth_scale: the run's current factor on the sensor's
     depth; render_intrinsics: the virtual camera of the render."""
 
@@ -37,12 +38,12 @@ class KeyframeJob:
     frame: RGBDFrame
     T_render: np.ndarray
     twist: np.ndarray | None
-    timing: dict | None
+    timing: CaptureTiming | None
     depth_scale: float
     render_intrinsics: Intrinsics
 
 
-def at_colour_time(frame: RGBDFrame, timing: dict | None, twist: np.ndarray | None, depth_scale: float):
+def at_colour_time(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, depth_scale: float):
     """``(frame, twist_used)``: the frame with its depth (scaled by ``depth_scale``) moved to
     its colour's capture instant along ``twist``; as it is (only scaled) and ``None`` when the
     capture timing, the twist or the depth stamp is unknown."""
@@ -50,7 +51,7 @@ def at_colour_time(frame: RGBDFrame, timing: dict | None, twist: np.ndarray | No
         if depth_scale != 1.0:
             frame = frame.with_depth(frame.depth_m * np.float32(depth_scale))
         return frame, None
-    dt = (frame.depth_timestamp + timing["depth_offset_s"]) - (frame.timestamp + timing["colour_offset_s"])
+    dt = (frame.depth_timestamp + timing.depth_offset_s) - (frame.timestamp + timing.colour_offset_s)
     depth = warp_depth(frame.depth_m, frame.intrinsics, exp_se3(twist * dt), depth_scale)
     return frame.with_depth(depth), twist
 
@@ -76,7 +77,7 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
                               config=align, render_intrinsics=job.render_intrinsics)
     if twist is not None and job.timing is not None and correction.success:
         # Measured at the colour's instant: move it to the frame's stamp.
-        shift = exp_se3(-twist * job.timing["colour_offset_s"])
+        shift = exp_se3(-twist * job.timing.colour_offset_s)
         correction = dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
     field_cov = config.field_covariance()
     if correction.success and field_cov is not None:

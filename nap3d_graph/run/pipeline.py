@@ -25,6 +25,7 @@ from gtsam.symbol_shorthand import M, X
 
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T, pose_error
+from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.factors import anchor_prior_factor
 from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig, with_field_error
@@ -175,8 +176,8 @@ class Pipeline:
         self._due_since: int | None = None  # the frame a keyframe fell due at, while its window is open
         self._due_why = ""
         self._sharpness_since_kf: list[float] = []
-        timing = self._timing() or {}
-        self.depth_scale = DepthScaleTracker(float(timing.get("depth_scale", 1.0)), self.config)
+        timing = self._timing()
+        self.depth_scale = DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, self.config)
         # The measurement stream, for estimators compared on the same inputs
         # (nap3d_graph.estimators): each keyframe interval's odometry as its factor has it,
         # and every successful correction (gated out or not) with its covariance.
@@ -394,12 +395,13 @@ class Pipeline:
     def _overlapping(self) -> bool:
         return bool(self.config.overlap) and self.field is not None and self.motion.allows_overlap
 
-    def _timing(self) -> dict | None:
+    def _timing(self) -> CaptureTiming | None:
+        """The capture timing the run compensates: the config's, else the field's (None: off)."""
         if not self.config.compensate_timing:
             return None
         if self.config.timing is not None:
-            return self.config.timing
-        return (getattr(self.field, "meta", None) or {}).get("timing")
+            return CaptureTiming.of(self.config.timing)
+        return CaptureTiming.of((getattr(self.field, "meta", None) or {}).get("timing"))
 
     def _velocity(self, i: int) -> np.ndarray | None:
         """Body twist per second (GTSAM order) of the camera at frame i, by the motion model."""
