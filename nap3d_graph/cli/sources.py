@@ -316,6 +316,16 @@ def _odometry(args, sequence, initial_pose):
         raise UsageError(str(exc)) from None
 
 
+def chosen_matcher(name: str, sequence) -> str:
+    """The matcher for this data (``--matcher auto``: said on the terminal, with why)."""
+    from nap3d_graph.nap3d.matching import choose_matcher
+
+    chosen, why = choose_matcher(name, sequence)
+    if chosen != name:
+        print(f"matcher: {chosen} ({why}; --matcher sets it)")
+    return chosen
+
+
 def _fallback_odometry(kind: str, matcher: str | None):
     """The frame odometry an IMU run falls back on (None for 'none')."""
     from nap3d_graph.nap3d.config import AlignConfig
@@ -381,6 +391,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     trained_on = warn_trained_frames(field_obj, sequence, "frames of this run")
     warn_depth_units(sequence)
     warn_guessed_camera(sequence)
+    args.matcher = chosen_matcher(args.matcher, sequence)
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")

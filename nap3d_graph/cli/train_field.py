@@ -90,9 +90,10 @@ def run(args) -> int:
         torch.set_num_threads(args.threads)
     sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses, topics=args.topics)
     warn_depth_units(sequence)
-    from .sources import warn_guessed_camera
+    from .sources import chosen_matcher, warn_guessed_camera
 
     warn_guessed_camera(sequence)
+    args.matcher = chosen_matcher(args.matcher, sequence)
     field, report = build_field(sequence, args.model, steps=args.steps, minutes=args.minutes, every=args.every,
                                 eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
                                 timing="auto" if args.timing == "auto" else None, device=args.device,

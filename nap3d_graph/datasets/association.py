@@ -247,6 +247,8 @@ class GroundTruthLookup:
 
     T_world_cam_gt: np.ndarray | None
     _gt_raw: tuple[np.ndarray, np.ndarray] | None
+    #: Written by nap3d-graph's simulator (a room it rendered), not recorded by a camera.
+    simulated: bool = False
 
     @property
     def has_gt(self) -> np.ndarray:

@@ -41,7 +41,8 @@ D435I_T_DEPTH_IMU = np.array([[1.0, 0.0, 0.0, 0.00552], [0.0, 1.0, 0.0, -0.0051]
 class RealSenseConfig:
     """What a recording does not store. ``T_depth_imu`` (4, 4): the IMU frame in the depth
     camera's; noise densities as :class:`~nap3d_graph.imu.ImuConfig` (BMI055, as the D435i's
-    and D455's); ``max_difference``: how far (s) a depth frame may be from its colour frame."""
+    and D455's); ``max_difference``: how far (s) a depth frame may be from its colour frame;
+    ``simulated``: the recording was written by the simulator (``simulate --realsense``)."""
 
     T_depth_imu: np.ndarray = field(default_factory=lambda: D435I_T_DEPTH_IMU.copy())
     accel_noise_density: float = 2.0e-3
@@ -50,6 +51,7 @@ class RealSenseConfig:
     gyro_bias_rw: float = 2.0e-6
     gravity: float = 9.81
     max_difference: float = 0.02
+    simulated: bool = False  # written by simulate --realsense
 
     @classmethod
     def load(cls, path) -> "RealSenseConfig":
@@ -125,6 +127,7 @@ class RealSenseRecording(GroundTruthLookup):
         self._pair(raw)
         self.imu = self._imu(raw)
         self.imu_config = self.config.imu_config(self.T_colour_depth)
+        self.simulated = bool(self.config.simulated)
         self.T_world_cam_gt = None
         self._gt_raw = None
         if groundtruth is not None:

@@ -60,5 +60,5 @@ def write_realsense_recording(sim_dir, out_path, baseline_m: float = 0.015, dept
     imu = ImuConfig()
     RealSenseConfig(T_depth_imu=T_depth_colour, accel_noise_density=imu.accel_noise_density,
                     gyro_noise_density=imu.gyro_noise_density, accel_bias_rw=imu.accel_bias_rw,
-                    gyro_bias_rw=imu.gyro_bias_rw).save(out.with_suffix(".yaml"))
+                    gyro_bias_rw=imu.gyro_bias_rw, simulated=True).save(out.with_suffix(".yaml"))
     return out

@@ -31,6 +31,8 @@ class SimSequence(TumSequence):
     and :meth:`oracle_field`. Same constructor as :class:`TumSequence`.
     """
 
+    simulated = True
+
     def __init__(self, path, *args, **kwargs):
         folder = Path(path)
         scene_path = folder / "scene.json"

@@ -18,12 +18,14 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 __all__ = ["StudyConfig", "run_study", "summary_markdown"]
+
+from nap3d_graph.nap3d.matching import choose_matcher
 
 log = logging.getLogger(__name__)
 
@@ -38,7 +40,7 @@ class StudyConfig:
     eval_k_scenarios: int = 40
     eval_k_full: bool = False
     seed: int = 0
-    matcher: str = "sift"
+    matcher: str = "auto"  # choose_matcher's choice by the recording the field is built from
     progress: bool = True
     topics: str | None = None  # ROS bags: which topics to read (BagTopics' text)
 
@@ -92,6 +94,11 @@ def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = No
 
     _stage(f"1/{2 + len(config.odometries)} field ({config.model}) on frames {train_frames or 'all'}", config.progress)
     train = open_sequence(data, frames=train_frames, topics=config.topics)
+    matcher, why = choose_matcher(config.matcher, train)
+    if matcher != config.matcher:
+        log.info("matcher: %s (%s)", matcher, why)
+        config = replace(config, matcher=matcher)
+        summary["config"]["matcher"] = matcher
     field, report = build_field(train, config.model, steps=config.train_steps, seed=config.seed,
                                 progress=config.progress, matcher=config.matcher)
     field.save(out / "field.pt")
@@ -126,7 +133,7 @@ def shared_world_check(field, sequence, config: StudyConfig, frames: int = 6) ->
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.run.config import PipelineConfig
 
-    run_config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=config.matcher))
+    run_config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=choose_matcher(config.matcher, sequence)[0]))
     T_gt = sequence.T_world_cam_gt
     if T_gt is None:
         return {"shared": None, "why": "the query has no ground truth"}
