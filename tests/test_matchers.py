@@ -110,3 +110,19 @@ def test_subpixel_refinement_sharpens_xfeat_matches(pairs):
     config = AlignConfig(matcher="xfeat", subpixel=True)
     errors = [pose_error(align_views(f, v, config).corrected_pose(T_est), T_gt)[0] for f, v, T_gt, T_est in pairs]
     assert np.median(errors) < 0.003
+
+
+def test_auto_chooses_xfeat_on_a_cameras_recording_and_sift_on_the_simulators(tum_path, tmp_path):
+    from types import SimpleNamespace
+
+    from nap3d_graph.datasets import RealSenseRecording, SimSequence, TumSequence
+    from nap3d_graph.nap3d.matching import choose_matcher
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    assert choose_matcher("auto", TumSequence(tum_path))[0] == "xfeat"  # real fr1/xyz, 640x480
+    assert choose_matcher("sift", TumSequence(tum_path)) == ("sift", "as given")
+    sim = SimSequence(simulate_sequence(tmp_path / "sim", SimConfig(frames=3, width=320, height=240, seed=1)))
+    assert sim.simulated and choose_matcher("auto", sim)[0] == "sift"
+    small = SimpleNamespace(intrinsics=SimpleNamespace(width=160), simulated=False)
+    assert choose_matcher("auto", small) == ("sift", "auto: frames 160 px wide, too small for XFeat")
+    assert RealSenseRecording.simulated is False  # a camera's, unless its sidecar says the simulator wrote it

@@ -78,6 +78,7 @@ def test_simulated_recording_holds_every_frame_and_imu_sample(walk):
     sim, noisy, _ = walk
     seq = SimSequence(sim)
     rec = RealSenseRecording(noisy, groundtruth=sim / "groundtruth.txt")
+    assert rec.simulated  # its sidecar says the simulator wrote it (the run's matcher follows)
     assert len(rec) == len(seq) and rec.intrinsics == seq.intrinsics
     np.testing.assert_allclose(rec.timestamps, seq.timestamps, atol=1e-6)
     np.testing.assert_allclose(rec.T_world_cam_gt, seq.T_world_cam_gt, atol=1e-6)
