@@ -10,6 +10,7 @@ ROS 1 ``.bag`` or a ROS 2 bag folder (read with ``rosbags``).
 from __future__ import annotations
 
 from nap3d_graph.datasets.errors import DatasetError
+from nap3d_graph.datasets.protocol import Sequence
 from nap3d_graph.datasets.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 from nap3d_graph.datasets.tum import TumSequence
 
@@ -19,6 +20,7 @@ from .sevenscenes import SevenScenesSequence, is_sevenscenes_folder
 from .sim import SimSequence
 
 __all__ = [
+    "Sequence",
     "Trajectory",
     "SOURCES",
     "source_of",

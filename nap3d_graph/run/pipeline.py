@@ -26,6 +26,7 @@ from gtsam.symbol_shorthand import M, X
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T, pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
 from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig, with_field_error
@@ -51,7 +52,9 @@ def motion_model(odometry, config: PipelineConfig, t0: float) -> MotionModel:
 class Pipeline:
     """One drift-correction run over a sequence.
 
-    sequence: ``len``, ``seq[i] -> RGBDFrame``, ``timestamps``, ``T_world_cam_gt`` (or None).
+    sequence: a :class:`~nap3d_graph.datasets.protocol.Sequence`, or anything the run can read
+        frames from (:class:`~nap3d_graph.datasets.protocol.FrameSource`: ``len``,
+        ``seq[i] -> RGBDFrame``, ``timestamps``, ``T_world_cam_gt``; a live caller's sequence).
     field: anything with ``render(T_world_cam, intrinsics)`` (None: odometry only).
     odometry: a frame odometry (``initial_pose()``, ``increment(i, frame)``), or an
         :class:`~nap3d_graph.run.imu.ImuOdometry`: its motion model (:func:`motion_model`)
@@ -60,7 +63,8 @@ class Pipeline:
         gate (tests use it to inject a wrong correction).
     """
 
-    def __init__(self, sequence, field, odometry, config: PipelineConfig | None = None, correction_hook=None):
+    def __init__(self, sequence: FrameSource, field, odometry, config: PipelineConfig | None = None,
+                 correction_hook=None):
         self.sequence = sequence
         self.field = field
         self.odometry = odometry
