@@ -35,6 +35,7 @@ from nap3d_graph.run.imu import ImuMotion, ImuOdometry
 from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
 from nap3d_graph.run.records import KeyframeRecord, RunResult
+from nap3d_graph.run.selection import KeyframeSelector
 
 __all__ = ["Pipeline", "motion_model"]
 
@@ -125,11 +126,12 @@ class Pipeline:
         """Frame i (after frames 0..i-1; ``_start`` first): its odometry, and when it is a
         keyframe, its node, its correction and the solve. ``run`` is this over the sequence;
         :class:`nap3d_graph.run.live.DriftCorrector` calls it a frame at a time."""
-        frame = self._read_frame(i) if self.motion.needs_frames or self._wants_sharpness(i) else None
+        frame = self._read_frame(i) if self.motion.needs_frames or self.selector.reads_every_frame else None
         if i > 0:
             t = float(self.sequence.timestamps[i])
             self.motion.frame(i, frame, t, t - float(self.sequence.timestamps[i - 1]))
-        keyframe = self._is_keyframe(i, frame)
+        last = self.keyframe_indices[-1] if self.keyframe_indices else None
+        keyframe = self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe())
         if worker is not None and (worker.ready() or (worker.busy and keyframe)):
             self._land(worker, on_keyframe)  # a late correction enters the graph now
         if keyframe:
@@ -177,9 +179,7 @@ class Pipeline:
         self._streak: tuple[str | None, int] = (None, 0)  # the current run of refusals for one reason
         self.last_correction_frame = -1
         self._trained = self._trained_timestamps()
-        self._due_since: int | None = None  # the frame a keyframe fell due at, while its window is open
-        self._due_why = ""
-        self._sharpness_since_kf: list[float] = []
+        self.selector = KeyframeSelector(self.config)
         timing = self._timing()
         self.depth_scale = DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, self.config)
         # The measurement stream, for estimators compared on the same inputs
@@ -208,63 +208,12 @@ class Pipeline:
             self.motion.prime(frame)
         return frame
 
-    def _keyframe_due(self, i: int) -> str:
-        """Why frame i is due to be a keyframe ("" when it is not)."""
-        if not self.keyframe_indices:
-            return "first" if i == 0 else ""
-        if self.config.keyframe_on_doubt and self.motion.doubted:
-            return "doubt"
-        last = self.keyframe_indices[-1]
-        if i - last >= self.config.keyframe_every:
-            return "every"
-        moved_m, turned_deg = pose_error(self.motion.since_keyframe(), np.eye(4))
-        if self.config.keyframe_distance_m > 0 and moved_m >= self.config.keyframe_distance_m:
-            return "distance"
-        return "angle" if self.config.keyframe_angle_deg > 0 and turned_deg >= self.config.keyframe_angle_deg else ""
-
-    def _wants_sharpness(self, i: int) -> bool:
-        """Whether frame i must be read for its sharpness: with a keyframe window, every frame
-        is (the frames since the last keyframe are the reference a due one is judged by)."""
-        return self.config.keyframe_window > 1
-
-    def _is_keyframe(self, i: int, frame=None) -> bool:
-        """Frame i is a keyframe: it is due (``_keyframe_due``) and, with a keyframe window,
-        sharp enough or the window's last frame. Records why on ``self._keyframe_why``."""
-        if self._due_since is None:
-            why = self._keyframe_due(i)
-            if not why:
-                self._note_sharpness(frame)
-                return False
-            self._due_since, self._due_why = i, why
-        sharpness = self._note_sharpness(frame)
-        waited = i - self._due_since
-        window = self.config.keyframe_window
-        if window > 1 and waited < window - 1 and self._due_why != "first":
-            recent = self._sharpness_since_kf[:-1]
-            reference = float(np.median(recent)) if recent else sharpness
-            if not sharpness >= self.config.keyframe_sharpness_fraction * reference:
-                return False  # blurred: a sharper one may follow within the window
-        self._keyframe_why = (self._due_why, sharpness, waited)
-        self._due_since = None
-        return True
-
     def _keyframe_record(self, i: int, key: int, **extra) -> KeyframeRecord:
         """The record of keyframe i (why it is one, its sharpness); starts the next interval."""
-        why, sharp, waited = getattr(self, "_keyframe_why", ("first", float("nan"), 0))
-        self._sharpness_since_kf = []
+        why, sharp, waited = self.selector.take()
         trained = bool(self._trained[i]) if i < len(self._trained) else False  # a live run's frames: unknown
         return KeyframeRecord(i, float(self.sequence.timestamps[i]), key, trained_frame=trained,
                               why=why, sharpness=sharp, postponed=waited, **extra)
-
-    def _note_sharpness(self, frame) -> float:
-        """The frame's sharpness (NaN without a frame or a window), kept for the reference."""
-        if frame is None or self.config.keyframe_window <= 1:
-            return float("nan")
-        from nap3d_graph.camera import sharpness
-
-        value = sharpness(frame.rgb)
-        self._sharpness_since_kf.append(value)
-        return value
 
     def _add_keyframe(self, i: int) -> None:
         """The keyframe's pose enters iSAM2 with its motion factor: that is the prediction."""
