@@ -45,8 +45,8 @@ class DrawnCorrections(Pipeline):
         T_measured = T_true @ exp_se3(rng.normal(0.0, CORRECTION_SIGMAS))
         covariance = np.diag(CORRECTION_SIGMAS**2)
         alignment = Alignment(covariance=covariance, num_matches=200, num_inliers=150, success=True)
-        correction = Correction(self.T_pred, T_measured, covariance, alignment, 1, True)
-        self._apply_correction(self._pending_record, i, correction, self.T_pred)
+        correction = Correction(self.T_world_kf_pred, T_measured, covariance, alignment, 1, True)
+        self._apply_correction(self._pending_record, i, correction, self.T_world_kf_pred)
 
 
 def rss_mb() -> float:

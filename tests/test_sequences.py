@@ -4,8 +4,14 @@ builders and the evaluations can read any source without probing it."""
 import numpy as np
 import pytest
 
-from nap3d_graph.datasets import RealSenseRecording, RosbagSequence, Sequence, SevenScenesSequence, SimSequence
-from nap3d_graph.datasets import TumSequence
+from nap3d_graph.datasets import (
+    RealSenseRecording,
+    RosbagSequence,
+    Sequence,
+    SevenScenesSequence,
+    SimSequence,
+    TumSequence,
+)
 from nap3d_graph.datasets.protocol import SEQUENCE_ATTRIBUTES
 
 

@@ -127,14 +127,14 @@ class ImuMotion:
         # Dead reckoning for "odometry alone": in the field's frame with the gravity as given.
         self._dead_start = (t0, gtsam.NavState(T_to_pose3(odometry.initial_pose()),
                                                np.asarray(odometry.velocity0, float)))
-        self.T_odom: list[np.ndarray] = [odometry.initial_pose()]
+        self.T_world_cam_odom: list[np.ndarray] = [odometry.initial_pose()]
         self.increments: list[np.ndarray] = [np.eye(4)]
         self._notes: list[str] = []
         self.dt_since_kf = 0.0
-        self.T_last_kf = self.T_odom[0]  # the latest keyframe's estimate in the field's frame
+        self.T_world_kf = self.T_world_cam_odom[0]  # the latest keyframe's estimate in the field's frame
         # The visual odometry fallback: its chain since the last keyframe, the frame it started
         # at (None: the IMU alone), its increments (frame -> T_prev_cur), and the spans it ran.
-        self.T_since_kf = np.eye(4)
+        self.T_kf_cam = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
         self._vo_since: int | None = None
         self._vo_increments: dict[int, np.ndarray] = {}
@@ -178,17 +178,17 @@ class ImuMotion:
     def frame(self, i: int, frame, t: float, dt: float) -> None:
         # Dead reckoning from the start with the prior bias: the IMU alone, for comparison.
         dead = self._predict(self._dead_start[0], self._dead_start[1], gtsam.imuBias.ConstantBias(), t)
-        self.T_odom.append(pose3_to_T(dead.pose()))
-        self.increments.append(np.linalg.inv(self.T_odom[-2]) @ self.T_odom[-1])
+        self.T_world_cam_odom.append(pose3_to_T(dead.pose()))
+        self.increments.append(np.linalg.inv(self.T_world_cam_odom[-2]) @ self.T_world_cam_odom[-1])
         self.dt_since_kf += dt
         if self._vo_since is not None:
             inc = self.odometry.fallback.increment(i, frame)
             self._vo_increments[i] = inc.T_prev_cur
-            self.T_since_kf = self.T_since_kf @ inc.T_prev_cur
+            self.T_kf_cam = self.T_kf_cam @ inc.T_prev_cur
             self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
 
     def since_keyframe(self) -> np.ndarray:
-        return self.T_since_kf
+        return self.T_kf_cam
 
     def add_keyframe(self, graph: KeyframeGraph, j: int, i: int, t: float):
         """Keyframe ``j`` (frame ``i`` at ``t``): its pose, velocity and bias, tied to the last
@@ -201,7 +201,7 @@ class ImuMotion:
         if j == 0:
             # The starting pose is known in the field's frame: a prior on between(M(0), X(0)).
             graph.add(gtsam.BetweenFactorPose3(
-                M(0), X(0), T_to_pose3(self.T_odom[0]),
+                M(0), X(0), T_to_pose3(self.T_world_cam_odom[0]),
                 noise_model(rot_sigma_rad=self.config.prior_rot_sigma_rad, trans_sigma_m=self.config.prior_trans_sigma_m)))
             graph.add(gtsam.PriorFactorVector(V(0), self.velocity0_nav,
                                               gtsam.noiseModel.Isotropic.Sigma(3, cfg.velocity_prior_sigma)))
@@ -216,17 +216,17 @@ class ImuMotion:
             predicted = pim.predict(self.nav_kf, self.bias_kf)
             pose, velocity = predicted.pose(), predicted.velocity()
             if self._vo_since is not None:  # the fallback: its chain is the prediction and a factor
-                cov = self.cov_since_kf + self.config.drift_covariance(self.T_since_kf, self.dt_since_kf)
-                graph.add(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
-                interval = (self.T_since_kf.copy(), cov.copy())
+                cov = self.cov_since_kf + self.config.drift_covariance(self.T_kf_cam, self.dt_since_kf)
+                graph.add(odometry_factor(X(j - 1), X(j), self.T_kf_cam, cov))
+                interval = (self.T_kf_cam.copy(), cov.copy())
                 T_nav_kf = pose3_to_T(self.nav_kf.pose())
-                pose = T_to_pose3(T_nav_kf @ self.T_since_kf)
+                pose = T_to_pose3(T_nav_kf @ self.T_kf_cam)
                 velocity = (pose.translation() - T_nav_kf[:3, 3]) / max(self.dt_since_kf, 1e-6)
         graph.insert(X(j), pose)
         graph.insert(V(j), velocity)
         graph.insert(B(j), self.bias_kf if j else gtsam.imuBias.ConstantBias())
         self.dt_since_kf = 0.0
-        self.T_since_kf = np.eye(4)
+        self.T_kf_cam = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
         return pose3_to_T(pose), interval
 
@@ -260,13 +260,13 @@ class ImuMotion:
         self.t_kf = t
         T_field_nav = self._field_from_nav(estimate)
         self.kf_states.append((self.t_kf, self.nav_kf, self.bias_kf, T_field_nav))
-        self.T_last_kf = T_field_nav @ pose3_to_T(estimate.atPose3(X(j)))  # the causal pose, field's frame
-        return self.T_last_kf
+        self.T_world_kf = T_field_nav @ pose3_to_T(estimate.atPose3(X(j)))  # the causal pose, field's frame
+        return self.T_world_kf
 
     def causal_pose(self) -> np.ndarray:
         """The last keyframe's estimate and the fallback's chain since (identity on the IMU alone:
         the frames between keyframes are predicted at the end, :meth:`causal`)."""
-        return self.T_last_kf @ self.T_since_kf
+        return self.T_world_kf @ self.T_kf_cam
 
     def twist(self, i: int, t: float, dt: float) -> np.ndarray | None:
         """Body twist (GTSAM order) at frame i: the gyro's rate and the velocity in the body."""
@@ -289,13 +289,13 @@ class ImuMotion:
         for i, t in enumerate(stamps):
             k = int(np.searchsorted(kf_times, t + 1e-9) - 1)
             if k < 0:
-                T_field_cam[i] = self.T_odom[i]
+                T_field_cam[i] = self.T_world_cam_odom[i]
                 continue
             t_k, nav, bias, T_field_nav = states[k]
             T_field_cam[i] = T_field_nav @ pose3_to_T(self._predict(t_k, nav, bias, float(t)).pose())
         return T_field_cam
 
-    def smoothed(self, values: gtsam.Values, T_kf: dict[int, np.ndarray], keyframe_indices: list[int],
+    def smoothed(self, values: gtsam.Values, T_world_kf_by_frame: dict[int, np.ndarray], keyframe_indices: list[int],
                  stamps: np.ndarray) -> np.ndarray:
         T_field_nav = self._field_from_nav(values)
         states = []

@@ -28,7 +28,7 @@ __all__ = ["KeyframeJob", "measure_keyframe", "at_colour_time", "CorrectionWorke
 
 @dataclass(frozen=True)
 class KeyframeJob:
-    """Everything one measurement needs. frame: the keyframe as read; T_render: (4, 4) the
+    """Everything one measurement needs. frame: the keyframe as read; T_field_cam_render: (4, 4) the
     pose to render at (the field's frame); twist: (6,) body twist per second (GTSAM order)
     of the camera at the frame, or None; timing: the :class:`~nap3d_graph.datasets.depth_timing.CaptureTiming` (``depth_offset_s``,
     ``colour_offset_s``) or None; depth_scale: the run's current factor on the sensor's
@@ -36,7 +36,7 @@ class KeyframeJob:
 
     frame_index: int
     frame: RGBDFrame
-    T_render: np.ndarray
+    T_field_cam_render: np.ndarray
     twist: np.ndarray | None
     timing: CaptureTiming | None
     depth_scale: float
@@ -73,7 +73,7 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     align = config.align
     if config.depth_scale_check and not align.rescale_depth:
         align = dataclasses.replace(align, rescale_depth=True)
-    correction = correct_pose(frame, field, job.T_render, iterations=config.correction_iterations,
+    correction = correct_pose(frame, field, job.T_field_cam_render, iterations=config.correction_iterations,
                               config=align, render_intrinsics=job.render_intrinsics)
     if twist is not None and job.timing is not None and correction.success:
         # Measured at the colour's instant: move it to the frame's stamp.

@@ -45,7 +45,7 @@ class MotionModel(Protocol):
     name: str
     allows_overlap: bool
     allows_graph_window: bool
-    T_odom: list[np.ndarray]
+    T_world_cam_odom: list[np.ndarray]
     increments: list[np.ndarray]
 
     @property
@@ -75,7 +75,7 @@ class MotionModel(Protocol):
 
     def twist(self, i: int, t: float, dt: float) -> np.ndarray | None: ...
 
-    def smoothed(self, values: gtsam.Values, T_kf: dict[int, np.ndarray], keyframe_indices: list[int],
+    def smoothed(self, values: gtsam.Values, T_world_kf_by_frame: dict[int, np.ndarray], keyframe_indices: list[int],
                  stamps: np.ndarray) -> np.ndarray: ...
 
     def causal(self, online: list[np.ndarray], stamps: np.ndarray) -> np.ndarray: ...
@@ -96,12 +96,12 @@ class OdometryMotion:
     def __init__(self, odometry: Odometry, config: PipelineConfig):
         self.odometry, self.config = odometry, config
         self.name = str(getattr(odometry, "name", "odometry"))
-        self.T_odom: list[np.ndarray] = [odometry.initial_pose()]
+        self.T_world_cam_odom: list[np.ndarray] = [odometry.initial_pose()]
         self.increments: list[np.ndarray] = [np.eye(4)]
-        self.T_since_kf = np.eye(4)
+        self.T_kf_cam = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
         self.dt_since_kf = 0.0
-        self.T_last_kf = self.T_odom[0]  # the latest keyframe's estimate (frame 0 is always one)
+        self.T_world_kf = self.T_world_cam_odom[0]  # the latest keyframe's estimate (frame 0 is always one)
         self._doubted = False
 
     @property
@@ -124,14 +124,14 @@ class OdometryMotion:
         inc = self.odometry.increment(i, frame)
         self._doubted = self._doubted or not getattr(inc, "ok", True)
         self.increments.append(inc.T_prev_cur)
-        self.T_odom.append(self.T_odom[-1] @ inc.T_prev_cur)
+        self.T_world_cam_odom.append(self.T_world_cam_odom[-1] @ inc.T_prev_cur)
         self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
-        self.T_since_kf = self.T_since_kf @ inc.T_prev_cur
+        self.T_kf_cam = self.T_kf_cam @ inc.T_prev_cur
         self.dt_since_kf += dt
 
     def since_keyframe(self) -> np.ndarray:
         """(4, 4) ``T_kf_cam``: the motion since the last keyframe."""
-        return self.T_since_kf
+        return self.T_kf_cam
 
     def add_keyframe(self, graph: KeyframeGraph, j: int, i: int, t: float):
         """Keyframe ``j`` (frame ``i``) enters with its prior (the first) or its odometry factor;
@@ -139,20 +139,20 @@ class OdometryMotion:
         for the first)."""
         interval = None
         if j == 0:
-            T_pred = self.T_odom[0]
-            graph.add(pose_prior_factor(X(0), T_pred, rot_sigma_rad=self.config.prior_rot_sigma_rad,
+            T_world_kf_pred = self.T_world_cam_odom[0]
+            graph.add(pose_prior_factor(X(0), T_world_kf_pred, rot_sigma_rad=self.config.prior_rot_sigma_rad,
                                         trans_sigma_m=self.config.prior_trans_sigma_m))
         else:
-            cov = self.cov_since_kf + self.config.drift_covariance(self.T_since_kf, self.dt_since_kf)
-            graph.add(odometry_factor(X(j - 1), X(j), self.T_since_kf, cov))
-            interval = (self.T_since_kf.copy(), cov.copy())
-            T_pred = self.T_last_kf @ self.T_since_kf
-        graph.insert(X(j), T_to_pose3(T_pred))
-        self.T_since_kf = np.eye(4)
+            cov = self.cov_since_kf + self.config.drift_covariance(self.T_kf_cam, self.dt_since_kf)
+            graph.add(odometry_factor(X(j - 1), X(j), self.T_kf_cam, cov))
+            interval = (self.T_kf_cam.copy(), cov.copy())
+            T_world_kf_pred = self.T_world_kf @ self.T_kf_cam
+        graph.insert(X(j), T_to_pose3(T_world_kf_pred))
+        self.T_kf_cam = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
         self.dt_since_kf = 0.0
         self._doubted = False
-        return T_pred, interval
+        return T_world_kf_pred, interval
 
     def after_correction(self, i: int, frame, accepted: bool) -> None:
         pass
@@ -162,12 +162,12 @@ class OdometryMotion:
 
     def keyframe_estimated(self, graph: KeyframeGraph, j: int, t: float) -> np.ndarray:
         """The keyframe's estimate after its correction: the causal chain starts there."""
-        self.T_last_kf = graph.pose(X(j))
-        return self.T_last_kf
+        self.T_world_kf = graph.pose(X(j))
+        return self.T_world_kf
 
     def causal_pose(self) -> np.ndarray:
         """(4, 4) the latest frame as known now: the last keyframe's estimate and the odometry since."""
-        return self.T_last_kf @ self.T_since_kf
+        return self.T_world_kf @ self.T_kf_cam
 
     def twist(self, i: int, t: float, dt: float) -> np.ndarray | None:
         """Body twist per second (GTSAM order) of the odometry's last step into frame i (``dt``
@@ -176,8 +176,8 @@ class OdometryMotion:
             return None
         return log_se3(self.increments[i]) / dt if dt > 0 else None
 
-    def smoothed(self, values, T_kf, keyframe_indices, stamps) -> np.ndarray:
-        return chain_from_nearest_keyframe(T_kf, self.increments, len(stamps))
+    def smoothed(self, values, T_world_kf_by_frame, keyframe_indices, stamps) -> np.ndarray:
+        return chain_from_nearest_keyframe(T_world_kf_by_frame, self.increments, len(stamps))
 
     def causal(self, online: list[np.ndarray], stamps: np.ndarray) -> np.ndarray:
         return np.stack(online[:len(stamps)])

@@ -153,9 +153,9 @@ class Pipeline:
         return np.array(self._online[-1])
 
     @property
-    def T_odom(self) -> list[np.ndarray]:
+    def T_world_cam_odom(self) -> list[np.ndarray]:
         """Each frame's pose by the motion source alone (odometry, or the IMU dead-reckoned)."""
-        return self.motion.T_odom
+        return self.motion.T_world_cam_odom
 
     @property
     def isam_rebuilds(self) -> int:
@@ -170,7 +170,7 @@ class Pipeline:
         self.graph = KeyframeGraph(self.config, self.anchored)
         self.keyframe_indices: list[int] = []
         self.records: list[KeyframeRecord] = []
-        self.T_pred = self.motion.T_odom[0]
+        self.T_world_kf_pred = self.motion.T_world_cam_odom[0]
         self._pending_record: KeyframeRecord | None = None
         self._online: list[np.ndarray] = []  # each frame's pose as known at that frame (causal)
         # The latest keyframe's correction and factor (a live caller reads them).
@@ -219,7 +219,7 @@ class Pipeline:
         """The keyframe's pose enters iSAM2 with its motion factor: that is the prediction."""
         j = len(self.keyframe_indices)
         self.keyframe_indices.append(i)
-        self.T_pred, interval = self.motion.add_keyframe(self.graph, j, i, float(self.sequence.timestamps[i]))
+        self.T_world_kf_pred, interval = self.motion.add_keyframe(self.graph, j, i, float(self.sequence.timestamps[i]))
         if interval is not None:
             self.interval_odometry[i] = interval
         self._pending_record = self._keyframe_record(i, X(j))
@@ -231,7 +231,7 @@ class Pipeline:
         record = self._pending()
         job = self._job(i, frame)
         if job is not None:
-            self._apply_correction(record, i, measure_keyframe(job, self.field, self.config), job.T_render)
+            self._apply_correction(record, i, measure_keyframe(job, self.field, self.config), job.T_field_cam_render)
         if notes := self.motion.interval_notes():
             record.reason = f"{record.reason}; {notes}" if record.reason else notes
         self.motion.after_correction(i, frame, record.accepted)
@@ -252,10 +252,10 @@ class Pipeline:
         if frame is None:
             record.reason = f"frame unreadable: {getattr(self, '_frame_error', 'unknown error')}"
             return None
-        T_render = self.T_pred
+        T_field_cam_render = self.T_world_kf_pred
         if self.anchored:
-            T_render = inv_T(self.graph.anchor()) @ self.T_pred  # the field's frame
-        return KeyframeJob(i, frame, T_render, self._velocity(i), self._timing(), self.depth_scale.scale,
+            T_field_cam_render = inv_T(self.graph.anchor()) @ self.T_world_kf_pred  # the field's frame
+        return KeyframeJob(i, frame, T_field_cam_render, self._velocity(i), self._timing(), self.depth_scale.scale,
                            self._render_intrinsics(frame))
 
     def _launch(self, worker: CorrectionWorker, i: int, frame, on_keyframe) -> None:
@@ -269,25 +269,25 @@ class Pipeline:
             if on_keyframe is not None:
                 on_keyframe(record)
             return
-        worker.submit((record, job.T_render), job)
+        worker.submit((record, job.T_field_cam_render), job)
 
     def _land(self, worker: CorrectionWorker, on_keyframe) -> None:
         """Overlapped run: the measurement in flight (waited for if need be) enters the graph
         at its keyframe, and the latest keyframe's estimate is refreshed."""
-        (record, T_render), correction, waited_s = worker.take()
-        self._apply_correction(record, record.frame_index, correction, T_render)
+        (record, T_field_cam_render), correction, waited_s = worker.take()
+        self._apply_correction(record, record.frame_index, correction, T_field_cam_render)
         record.timings_s["wait"] = round(waited_s, 5)
-        record.timings_s["landed_frame"] = len(self.motion.T_odom) - 1
+        record.timings_s["landed_frame"] = len(self.motion.T_world_cam_odom) - 1
         j = len(self.keyframe_indices) - 1
         self.motion.keyframe_estimated(self.graph, j, float(self.sequence.timestamps[self.keyframe_indices[j]]))
         self.records.append(record)
         if on_keyframe is not None:
             on_keyframe(record)
 
-    def _apply_correction(self, record: KeyframeRecord, i: int, correction: Correction, T_render) -> None:
+    def _apply_correction(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render) -> None:
         """The graph half (:meth:`_gate_and_add`), and a warning while the run goes when
         corrections keep failing for one reason."""
-        self._gate_and_add(record, i, correction, T_render)
+        self._gate_and_add(record, i, correction, T_field_cam_render)
         self._watch_refusals(record)
 
     #: Consecutive keyframes refused for one reason before the run says so.
@@ -311,7 +311,7 @@ class Pipeline:
                         "odometry alone until corrections land again. %s", count, record.frame_index, kind,
                         refusal_hint_for(kind))
 
-    def _gate_and_add(self, record: KeyframeRecord, i: int, correction: Correction, T_render) -> None:
+    def _gate_and_add(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render) -> None:
         """The graph half: depth-scale check, gate, factor (see the module docstring)."""
         if correction.success and self.config.depth_scale_check:
             correction = self.depth_scale.check(correction, record)
@@ -327,7 +327,7 @@ class Pipeline:
         if not correction.success:
             record.reason = correction.reason
             return
-        record.correction_m, record.correction_deg = pose_error(correction.T_world_cam_corrected, T_render)
+        record.correction_m, record.correction_deg = pose_error(correction.T_world_cam_corrected, T_field_cam_render)
         if not self.graph.has(record.key):
             record.reason = "keyframe left the graph window before its correction landed"
             return
@@ -393,17 +393,17 @@ class Pipeline:
         T_gt = None if self.sequence.T_world_cam_gt is None else np.asarray(self.sequence.T_world_cam_gt[:n])
         stamps = np.asarray(self.sequence.timestamps[:n], dtype=float)
         if not self.keyframe_indices:  # stopped before the first keyframe: odometry is all there is
-            T_odom = np.stack(self.motion.T_odom[:n])
-            return RunResult(stamps, T_odom, T_odom, T_gt, [], [], T_world_cam_online=T_odom)
+            T_world_cam_odom = np.stack(self.motion.T_world_cam_odom[:n])
+            return RunResult(stamps, T_world_cam_odom, T_world_cam_odom, T_gt, [], [], T_world_cam_online=T_world_cam_odom)
         accepted = {r.frame_index for r in self.records if r.accepted}
         estimate = self.graph.final_estimate(accepted)
         frozen = self.graph.frozen
-        T_kf = {idx: frozen[j] if j in frozen else pose3_to_T(estimate.atPose3(X(j)))
+        T_world_kf_by_frame = {idx: frozen[j] if j in frozen else pose3_to_T(estimate.atPose3(X(j)))
                 for j, idx in enumerate(self.keyframe_indices)}
-        T_est = self.motion.smoothed(estimate, T_kf, self.keyframe_indices, stamps)
+        T_est = self.motion.smoothed(estimate, T_world_kf_by_frame, self.keyframe_indices, stamps)
         T_online = self.motion.causal(self._online, stamps)
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
-        result = RunResult(stamps, T_est, np.stack(self.motion.T_odom[:n]), T_gt, self.records,
+        result = RunResult(stamps, T_est, np.stack(self.motion.T_world_cam_odom[:n]), T_gt, self.records,
                            list(self.keyframe_indices), T_map, T_world_cam_online=T_online,
                            gnc_outliers=list(self.graph.gnc_outliers), gnc_recovered=list(self.graph.gnc_recovered),
                            depth_scale=self.depth_scale.scale, interval_odometry=dict(self.interval_odometry),

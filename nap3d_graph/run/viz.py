@@ -83,7 +83,7 @@ class RunRecorder:
         self.stream.set_time("frame", sequence=int(frame_index))
         self.stream.set_time("capture_time", timestamp=float(timestamp))
 
-    def keyframe(self, record, correction=None, T_render=None) -> None:
+    def keyframe(self, record, correction=None, T_field_cam_render=None) -> None:
         """One keyframe: its images, matches, status, covariance and camera (``correction``:
         its :class:`~nap3d_graph.results.Correction`, or None when none was measured)."""
         self._at(record.frame_index, record.timestamp)
