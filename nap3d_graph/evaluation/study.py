@@ -181,7 +181,8 @@ def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) ->
     pipeline_config = pipeline.config  # with the field's measured error resolved
     result = pipeline.run()
     record = {"study": True, "odometry": odom, "data": str(sequence.path), "frame_range": list(sequence.frame_range),
-              "pipeline": {k: v for k, v in vars(pipeline_config).items() if k != "align"},
+              "pipeline": {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in vars(pipeline_config).items()
+                           if k != "align"},
               "align": vars(pipeline_config.align)}
     run_dir, metrics = write_results(result, folder, record, odom)
     inliers = [k.inliers for k in result.keyframes if k.inliers]
