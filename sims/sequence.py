@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics
-from nap3d_graph.datasets.trajectory import Trajectory
+from nap3d_graph.trajectory import Trajectory
 
 from .scene import make_scene
 from .sensors import (

@@ -149,6 +149,24 @@ def test_no_cycle_through_factors_or_sims_as_wholes(graph):
     assert _cycles(collapsed) == []
 
 
+def test_no_subpackage_imports_sims_or_factors_back(graph):
+    """Taken a subpackage at a time (``nap3d_graph.datasets.*`` one node), no cycle goes
+    through ``sims`` or ``factors``: what they use of the package never uses them."""
+    edges, _ = graph
+
+    def subpackage(module):
+        parts = module.split(".")
+        return ".".join(parts[:2]) if len(parts) > 2 or module in MODULES and MODULES[module].name == "__init__.py" \
+            else module
+
+    collapsed = defaultdict(set)
+    for module, targets in edges.items():
+        collapsed[subpackage(module)] |= {subpackage(t) for t in targets if subpackage(t) != subpackage(module)}
+    tangled = [cycle for cycle in _cycles(collapsed)
+               if {"nap3d_graph.sims", "nap3d_graph.factors"} & set(cycle)]
+    assert tangled == []
+
+
 def test_no_private_name_crosses_modules(graph):
     _, taken = graph
     crossing = [(module, source, name) for module, source, names in taken for name in names

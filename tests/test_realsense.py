@@ -11,9 +11,9 @@ from nap3d_graph.camera import Intrinsics
 from nap3d_graph.cli import main
 from nap3d_graph.conventions import T_to_tum
 from nap3d_graph.datasets import RealSenseRecording, SimSequence, open_sequence, read_tum_trajectory
-from nap3d_graph.datasets.errors import DatasetError
 from nap3d_graph.datasets.realsense_io import RecordingWriter, StreamIntrinsics, read_recording
 from nap3d_graph.datasets.realsense_sim import write_realsense_recording
+from nap3d_graph.errors import DatasetError
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
 SMALL = StreamIntrinsics(64, 48, 52.0, 51.0, 31.5, 23.5)

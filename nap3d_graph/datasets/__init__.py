@@ -9,10 +9,10 @@ ROS 1 ``.bag`` or a ROS 2 bag folder (read with ``rosbags``).
 
 from __future__ import annotations
 
-from nap3d_graph.datasets.errors import DatasetError
 from nap3d_graph.datasets.protocol import Sequence
-from nap3d_graph.datasets.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 from nap3d_graph.datasets.tum import TumSequence
+from nap3d_graph.errors import DatasetError
+from nap3d_graph.trajectory import Trajectory, read_tum_trajectory, write_tum_trajectory
 
 from .realsense import RealSenseConfig, RealSenseRecording
 from .rosbag import BagTopics, RosbagSequence, is_rosbag

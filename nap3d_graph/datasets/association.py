@@ -14,7 +14,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from .errors import DatasetError
+from nap3d_graph.errors import DatasetError
 
 __all__ = ["ASSOCIATION_METHODS", "GT_MAX_GAP_S", "associate", "estimate_stream_offset", "interpolate_poses", "pair_streams",
            "GroundTruthLookup"]

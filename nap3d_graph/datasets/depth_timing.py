@@ -25,9 +25,10 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from nap3d_graph.errors import DatasetError
+
 from ..camera import backproject_depth, project
 from ..conventions import inv_T, transform_points
-from .errors import DatasetError
 
 __all__ = ["CaptureTiming", "DepthTiming", "depth_agreement_mm", "frame_pairs", "estimate_depth_timing", "multiview_agreement_mm"]
 

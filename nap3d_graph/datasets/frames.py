@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 
-from .errors import DatasetError
+from nap3d_graph.errors import DatasetError
 
 log = logging.getLogger(__name__)
 

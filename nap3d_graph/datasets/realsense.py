@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.errors import DatasetError
+
 from .association import GroundTruthLookup
-from .errors import DatasetError
 from .frames import parse_frame_range
 
 __all__ = ["RealSenseRecording", "RealSenseConfig", "capture_live", "D435I_T_DEPTH_IMU"]
@@ -179,8 +180,9 @@ class RealSenseRecording(GroundTruthLookup):
         return {"stamps": g_t[inside], "accel": accel, "gyro": g_xyz[inside].astype(float)}
 
     def _attach_ground_truth(self, gt_path: Path) -> None:
+        from nap3d_graph.trajectory import read_tum_trajectory
+
         from .association import interpolate_poses
-        from .trajectory import read_tum_trajectory
 
         if not gt_path.is_file():
             raise DatasetError(f"{gt_path}: no such ground-truth file")

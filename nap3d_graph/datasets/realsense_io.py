@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DatasetError
+from nap3d_graph.errors import DatasetError
 
 __all__ = ["import_pyrealsense2", "RawRecording", "read_recording", "RecordingWriter", "StreamIntrinsics"]
 

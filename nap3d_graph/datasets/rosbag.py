@@ -33,8 +33,9 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.errors import DatasetError
+
 from .association import GroundTruthLookup, pair_streams
-from .errors import DatasetError
 from .frames import frame_index, parse_frame_range
 from .rosbag_msgs import camera_info_arrays, decode_colour, decode_depth_m, pose_to_T, stamp_s, transform_to_T
 from .tf_tree import TfTree

@@ -17,7 +17,7 @@ import math
 import cv2
 import numpy as np
 
-from .errors import DatasetError
+from nap3d_graph.errors import DatasetError
 
 __all__ = [
     "COLOUR_ENCODINGS",

@@ -20,7 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .errors import DatasetError
+from nap3d_graph.errors import DatasetError
+
 from .rosbag_msgs import camera_info_msg, header, image_msg, make_typestore, stamp_ns, transform_msg
 
 __all__ = ["write_sequence_bag", "T_KINECT_OPTICAL", "CAMERA_FRAME"]

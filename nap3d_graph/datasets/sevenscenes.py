@@ -31,9 +31,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from nap3d_graph.errors import DatasetError
+
 from ..camera import Intrinsics, RGBDFrame
 from .association import GroundTruthLookup
-from .errors import DatasetError
 from .frames import frame_index, parse_frame_range
 from .registration import DepthColourRegistration, estimate_registration, register_depth_to_colour
 

@@ -13,8 +13,9 @@ from collections import defaultdict
 
 import numpy as np
 
+from nap3d_graph.errors import DatasetError
+
 from .association import GT_MAX_GAP_S, interpolate_poses
-from .errors import DatasetError
 
 __all__ = ["TfTree"]
 

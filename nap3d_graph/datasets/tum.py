@@ -23,6 +23,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from nap3d_graph.errors import DatasetError
+from nap3d_graph.textfiles import data_lines, parse_float
+from nap3d_graph.trajectory import read_tum_trajectory
+
 from ..camera import CameraError, Intrinsics, RGBDFrame
 from .association import (
     ASSOCIATION_METHODS,
@@ -32,10 +36,7 @@ from .association import (
     interpolate_poses,
     pair_streams,
 )
-from .errors import DatasetError
 from .frames import frame_index, parse_frame_range
-from .text import data_lines, parse_float
-from .trajectory import read_tum_trajectory
 
 __all__ = [
     "TumSequence",

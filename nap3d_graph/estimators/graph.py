@@ -24,8 +24,9 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
-from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T
+from nap3d_graph.conventions import T_to_pose3, pose3_to_T
 from nap3d_graph.factors import chi2_gate_isam2, imu_factor, noise_model, odometry_factor
+from nap3d_graph.run.chain import chain_from_nearest_keyframe
 
 __all__ = ["GraphModel", "Isam2Estimator", "BatchLM"]
 
@@ -100,23 +101,17 @@ class GraphModel:
 
     def frames(self, states: list, n: int) -> np.ndarray:
         """Every frame's pose (n, 4, 4) from the keyframe states: on the odometry path from
-        the nearest keyframe (the increments forwards or backwards, as the run writes it), on
-        the IMU path predicted forward from the keyframe at or before it."""
-        s, kf = self.stream, np.asarray(self.stream.keyframes[:len(states)])
-        T = np.empty((n, 4, 4))
+        the nearest keyframe, the increments forwards or backwards (the run's own chaining,
+        :func:`~nap3d_graph.run.chain.chain_from_nearest_keyframe`), on the IMU path predicted
+        forward from the keyframe at or before it."""
+        kf = np.asarray(self.stream.keyframes[:len(states)])
+        if self.imu is None:
+            return chain_from_nearest_keyframe({int(k): states[j] for j, k in enumerate(kf)}, self.stream.increments, n)
+        T_world_cam = np.empty((n, 4, 4))
         for i in range(n):
-            if self.imu is not None:
-                j = max(int(np.searchsorted(kf, i, side="right")) - 1, 0)
-                T[i] = self.predict(states[j], int(kf[j]), i)
-                continue
-            j = int(np.argmin(np.abs(kf - i)))
-            pose = states[j]
-            for m in range(int(kf[j]) + 1, i + 1):
-                pose = pose @ s.increments[m]
-            for m in range(int(kf[j]), i, -1):
-                pose = pose @ inv_T(s.increments[m])
-            T[i] = pose
-        return T
+            j = max(int(np.searchsorted(kf, i, side="right")) - 1, 0)
+            T_world_cam[i] = self.predict(states[j], int(kf[j]), i)
+        return T_world_cam
 
     def predict(self, state, i_from: int, i_to: int) -> np.ndarray:
         """Pose of frame ``i_to`` predicted from the state at frame ``i_from`` (not before it)."""

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from nap3d_graph.conventions import inv_T, log_se3
-from nap3d_graph.datasets.trajectory import Trajectory
+from nap3d_graph.trajectory import Trajectory
 
 from .metrics import ate, rpe
 

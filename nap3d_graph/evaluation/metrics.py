@@ -11,7 +11,7 @@ __all__ = ["to_evo", "ate", "rpe", "trajectory_metrics"]
 
 def to_evo(timestamps: np.ndarray, T_world_cam: np.ndarray):
     """An evo ``PoseTrajectory3D`` from stamps (N,) and poses (N, 4, 4) (:meth:`Trajectory.to_evo`)."""
-    from nap3d_graph.datasets.trajectory import Trajectory
+    from nap3d_graph.trajectory import Trajectory
 
     return Trajectory(timestamps, T_world_cam).to_evo()
 

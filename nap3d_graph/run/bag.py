@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.datasets.errors import DatasetError
 from nap3d_graph.datasets.rosbag_msgs import header, make_typestore, pose_msg, stamp_ns, transform_msg
+from nap3d_graph.errors import DatasetError
 
 __all__ = ["write_run_bag", "check_bag_path", "RUN_BAG_TOPICS", "CAUSAL_FRAME", "SMOOTHED_FRAME"]
 

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from nap3d_graph.datasets.trajectory import Trajectory
+    from nap3d_graph.trajectory import Trajectory
 
 __all__ = ["KeyframeRecord", "RunResult"]
 
@@ -71,10 +71,10 @@ class RunResult:
     fallback_intervals: list = field(default_factory=list)
 
     def trajectories(self) -> dict[str, Trajectory]:
-        """The run's trajectories as :class:`~nap3d_graph.datasets.trajectory.Trajectory`:
+        """The run's trajectories as :class:`~nap3d_graph.trajectory.Trajectory`:
         ``estimate`` (smoothed), ``estimate_online`` (causal), ``odometry`` and, when there is
         one, ``groundtruth`` (NaN where the frames have none)."""
-        from nap3d_graph.datasets.trajectory import Trajectory
+        from nap3d_graph.trajectory import Trajectory
 
         out = {"estimate": Trajectory(self.timestamps, self.T_world_cam_estimate),
                "odometry": Trajectory(self.timestamps, self.T_world_cam_odometry)}

@@ -7,7 +7,7 @@ import math
 from pathlib import Path
 from typing import Iterator
 
-from nap3d_graph.datasets.errors import DatasetError
+from nap3d_graph.errors import DatasetError
 
 __all__ = ["data_lines", "parse_float"]
 

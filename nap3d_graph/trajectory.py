@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.conventions import T_to_tum, tum_to_T
-from nap3d_graph.datasets.errors import DatasetError
-from nap3d_graph.datasets.text import data_lines, parse_float
+from nap3d_graph.errors import DatasetError
+from nap3d_graph.textfiles import data_lines, parse_float
 
 __all__ = ["Trajectory", "read_tum_trajectory", "write_tum_trajectory"]
 
