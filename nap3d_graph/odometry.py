@@ -15,7 +15,8 @@ velocity model with a large covariance, so the run continues.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -32,12 +33,14 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Increment:
-    """``T_prev_cur`` (4, 4) and its covariance (6, 6); ``ok`` False when it was guessed."""
+    """``T_prev_cur`` (4, 4) and its covariance (6, 6); ``ok`` False when it was guessed;
+    ``timings_s``: seconds per stage of the step (the visual odometries say where it went)."""
 
     T_prev_cur: np.ndarray
     covariance: np.ndarray
     ok: bool = True
     reason: str = ""
+    timings_s: dict = field(default_factory=dict)
 
 
 def _diag_cov(rot_sigma_rad: float, trans_sigma_m: float) -> np.ndarray:
@@ -175,14 +178,15 @@ class VisualOdometry:
         opacity = np.isfinite(prev.depth_m) & (prev.depth_m > 0)
         view = RenderedView(prev.rgb, np.nan_to_num(prev.depth_m), opacity.astype(np.float32), prev.intrinsics)
         a = align_views(frame, view, self.config)
+        timings = dict(a.timings_s)
         if not a.success:
             log.info("VO failed at frame %d (%s); constant-velocity guess", i, a.reason)
-            return Increment(self._last_good.copy(), self._fallback_cov, False, a.reason)
+            return Increment(self._last_good.copy(), self._fallback_cov, False, a.reason, timings)
         # T_real_rendered maps frame i-1's camera into frame i's: T_cur_prev.
         T_prev_cur = inv_T(a.T_real_rendered)
         covariance = self._step_covariance(a, T_prev_cur)
         self._last_good = T_prev_cur
-        return Increment(T_prev_cur, covariance)
+        return Increment(T_prev_cur, covariance, timings_s=timings)
 
     def _step_covariance(self, alignment, T_prev_cur: np.ndarray) -> np.ndarray:
         from .conventions import log_se3
@@ -276,11 +280,23 @@ class DenseVisualOdometry:
         if frame is None or self._previous is None:
             self._previous = None if frame is None else self._frame(frame)
             return Increment(self._last_good.copy(), self._fallback_cov, False, "no frame")
+        clock = time.perf_counter()
+        timings: dict[str, float] = {}
+
+        def lap(stage: str) -> None:
+            nonlocal clock
+            now = time.perf_counter()
+            timings[stage] = now - clock
+            clock = now
+
         prev, cur = self._previous, self._frame(frame)
         self._previous = cur
+        lap("resize")
         try:
             self._odometry.prepareFrames(prev[0], cur[0])
+            lap("pyramid")
             ok, T_cur_prev = self._odometry.compute(prev[0], cur[0], np.eye(4))
+            lap("solve")
         except cv2.error as exc:
             ok, reason = False, f"cv2.Odometry failed: {str(exc).splitlines()[0]}"
         else:
@@ -290,6 +306,7 @@ class DenseVisualOdometry:
             T_prev_cur = inv_T(T_cur_prev)
             residual = self._depth_residual(prev, cur, T_cur_prev)
             guess = self._depth_residual(prev, cur, inv_T(self._last_good))
+            lap("check")
             if np.linalg.norm(T_prev_cur[:3, 3]) > self.max_step_m:
                 reason = f"dense odometry step of {np.linalg.norm(T_prev_cur[:3, 3]):.2f} m (diverged)"
             elif residual > self.max_depth_residual_m or residual > guess + 0.005:
@@ -298,9 +315,9 @@ class DenseVisualOdometry:
             else:
                 surprise = log_se3(inv_T(self._last_good) @ T_prev_cur)  # against constant velocity
                 self._last_good = T_prev_cur
-                return Increment(T_prev_cur, self._step_cov + np.diag(surprise**2))
+                return Increment(T_prev_cur, self._step_cov + np.diag(surprise**2), timings_s=timings)
         log.info("dense VO failed at frame %d (%s); constant-velocity guess", i, reason)
-        return Increment(self._last_good.copy(), self._fallback_cov, False, reason)
+        return Increment(self._last_good.copy(), self._fallback_cov, False, reason, timings)
 
 
 def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-3, trans_sigma_m: float = 2e-3,
