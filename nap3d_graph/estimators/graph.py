@@ -25,8 +25,11 @@ import numpy as np
 from gtsam.symbol_shorthand import B, V, X
 
 from nap3d_graph.conventions import T_to_pose3, pose3_to_T
-from nap3d_graph.factors import chi2_gate_isam2, imu_factor, noise_model, odometry_factor
+from nap3d_graph.factors import imu_factor, nap3d_prior_factor, odometry_factor
+from nap3d_graph.results import Alignment, Correction
 from nap3d_graph.run.chain import chain_from_nearest_keyframe
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.graph import KeyframeGraph
 
 __all__ = ["GraphModel", "Isam2Estimator", "BatchLM"]
 
@@ -77,17 +80,24 @@ class GraphModel:
         values.insert(B(j), bias)
         return graph, values
 
-    def correction(self, j: int):
-        """Keyframe j's NAP3D factor, or None (no correction, or an unusable covariance)."""
+    def measured(self, j: int) -> Correction | None:
+        """Keyframe j's NAP3D correction as the run measured it (None: there was none)."""
         i = self.stream.keyframes[j]
         if i not in self.stream.corrections:
             return None
-        Z, R = self.stream.corrections[i]
+        Z, R = (np.asarray(a, float) for a in self.stream.corrections[i])
+        return Correction(Z, Z, R, Alignment(covariance=R, success=True), 1, True)
+
+    def correction(self, j: int):
+        """Keyframe j's NAP3D factor (the run's: ``nap3d_prior_factor``), or None (no correction,
+        or an unusable covariance)."""
+        correction = self.measured(j)
+        if correction is None:
+            return None
         try:
-            return gtsam.PriorFactorPose3(X(j), T_to_pose3(np.asarray(Z, float)),
-                                          noise_model(covariance=np.asarray(R, float), robust=self.robust))
+            return nap3d_prior_factor(X(j), None, correction, robust=self.robust)
         except ValueError as exc:
-            log.warning("correction at frame %d not usable: %s", i, exc)
+            log.warning("correction at frame %d not usable: %s", self.stream.keyframes[j], exc)
             return None
 
     def state(self, values: gtsam.Values, j: int):
@@ -129,7 +139,9 @@ class GraphModel:
 
 
 class Isam2Estimator:
-    """The run's iSAM2 graph on the stream, reported causal and final."""
+    """The run's iSAM2 graph on the stream, reported causal and final: the run's own
+    :class:`~nap3d_graph.run.graph.KeyframeGraph` (its updates, its gate, its rebuild after a
+    failed update) fed with the stream's factors."""
 
     name = "isam2"
     reports = ("causal", "final")
@@ -140,27 +152,34 @@ class Isam2Estimator:
 
     def start(self, stream) -> None:
         self.stream, self.model = stream, GraphModel(stream, self.robust)
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.relinearize_threshold)  # millimetre corrections (as the run)
-        self.isam = gtsam.ISAM2(params)
+        config = PipelineConfig(relinearize_threshold=self.relinearize_threshold, gate_p=stream.gate_p,
+                                robust=self.robust)
+        self.graph = KeyframeGraph(config, anchored=False)
         self.accepted: list[int] = []
         self.gate_d2: dict[int, float] = {}
         self.states: list = []  # each keyframe's state right after its own update (causal)
-        graph, values = self.model.first()
-        self.isam.update(graph, values)
+        self._add(*self.model.first())
         self._keyframe_done(0)
+
+    @property
+    def isam(self) -> gtsam.ISAM2:
+        return self.graph.isam
+
+    def _add(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        for k in range(graph.size()):
+            self.graph.add(graph.at(k))
+        self.graph.new_values.insert(values)
+        self.graph.update()
 
     def _keyframe_done(self, j: int) -> None:
         i = self.stream.keyframes[j]
-        factor = self.model.correction(j)
-        if factor is not None:
-            gate = chi2_gate_isam2(factor, self.isam, p=self.stream.gate_p)
-            self.gate_d2[i] = gate.d2
-            if gate.accepted:
-                graph = gtsam.NonlinearFactorGraph()
-                graph.add(factor)
-                self.isam.update(graph, gtsam.Values())
-                self.isam.update()  # a correction can move the pose far from its linearisation
+        correction = self.model.measured(j)
+        if correction is not None:
+            factor, gate = self.graph.gated_correction(X(j), correction, i)
+            if gate is not None:
+                self.gate_d2[i] = gate.d2
+            if factor is not None:
+                self.graph.update(extra_step=True)  # a correction can move the pose far from its linearisation
                 self.accepted.append(i)
         estimate = self.isam.calculateEstimate()
         self.states.append(self.model.state(estimate, j))
@@ -173,8 +192,7 @@ class Isam2Estimator:
         if j is None or j == 0:
             self._between(i)
             return
-        graph, values = self.model.motion(j, self.states[-1])
-        self.isam.update(graph, values)
+        self._add(*self.model.motion(j, self.states[-1]))
         self._keyframe_done(j)
 
     def _between(self, i: int) -> None:
