@@ -38,9 +38,9 @@ def stage_timings(width: int, height: int, repeats: int) -> dict:
     config = AlignConfig()
     rows = []
     for i in range(repeats):
-        T_gt = traj.T_world_cam(2.0 + 16.0 * i / max(repeats - 1, 1))
-        frame = sensor_frame(scene, T_gt, K, rng)
-        view = field.render(T_gt @ random_perturbation(rng), K)
+        T_world_cam_gt = traj.T_world_cam(2.0 + 16.0 * i / max(repeats - 1, 1))
+        frame = sensor_frame(scene, T_world_cam_gt, K, rng)
+        view = field.render(T_world_cam_gt @ random_perturbation(rng), K)
         t = {}
         t0 = time.perf_counter()
         fr = detect_features(frame.rgb, matcher=config.matcher)

@@ -51,14 +51,14 @@ def nees_trials(room: int, settings: dict, method: str, trials: int, seed: int, 
     config = AlignConfig(method=method, matcher=matcher)
     values, failures = [], 0
     while len(values) < trials:
-        T_gt = traj.T_world_cam(rng.uniform(0, 20))
-        frame = sensor_frame(scene, T_gt, K, rng)
-        T_est = T_gt @ random_perturbation(rng, settings["max_trans_m"], settings["max_rot_deg"])
-        c = correct_pose(frame, field, T_est, iterations=settings["rounds"], config=config)
+        T_world_cam_gt = traj.T_world_cam(rng.uniform(0, 20))
+        frame = sensor_frame(scene, T_world_cam_gt, K, rng)
+        T_world_cam_est = T_world_cam_gt @ random_perturbation(rng, settings["max_trans_m"], settings["max_rot_deg"])
+        c = correct_pose(frame, field, T_world_cam_est, iterations=settings["rounds"], config=config)
         if not c.success:
             failures += 1
             continue
-        e = log_se3(inv_T(c.T_world_cam_corrected) @ T_gt)
+        e = log_se3(inv_T(c.T_world_cam_corrected) @ T_world_cam_gt)
         P = c.covariance
         values.append([e @ np.linalg.solve(P, e), e[:3] @ np.linalg.solve(P[:3, :3], e[:3]),
                        e[3:] @ np.linalg.solve(P[3:, 3:], e[3:]), np.linalg.norm(e[3:])])

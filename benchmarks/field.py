@@ -101,13 +101,13 @@ def nap3d_check(field, sequence, indices, seed: int) -> dict:
         dT = np.eye(4)
         dT[:3, :3] = exp_so3(axis / np.linalg.norm(axis) * np.radians(3.0))
         dT[:3, 3] = direction / np.linalg.norm(direction) * 0.05
-        T_est = T_true @ dT
-        view = field.render(T_est, sequence.intrinsics)
+        T_world_cam_est = T_true @ dT
+        view = field.render(T_world_cam_est, sequence.intrinsics)
         alignment = align_views(sequence[i], view)
         row = {"frame": int(i), "inliers": int(alignment.num_inliers), "matches": int(alignment.num_matches),
                "success": bool(alignment.success), "reason": alignment.reason}
         if alignment.success:
-            T_corr = T_est @ inv_T(alignment.T_real_rendered)
+            T_corr = T_world_cam_est @ inv_T(alignment.T_real_rendered)
             t_err, r_err = pose_error(T_corr, T_true)
             row.update({"corrected_err_cm": 100 * t_err, "corrected_err_deg": r_err})
         rows.append(row)

@@ -32,9 +32,9 @@ def _stream(trajectory, samples, config):
     from nap3d_graph.imu import ImuStream
 
     stamps = np.arange(0.0, DURATION_S + 1e-9, 1.0 / EVAL_HZ)
-    T_gt = trajectory.poses(stamps)
-    stream = MeasurementStream(stamps, [np.eye(4)] * len(stamps), [0], {}, {}, T_gt[0], np.eye(6) * 1e-24,
-                               T_world_cam_gt=T_gt)
+    T_world_cam_gt = trajectory.poses(stamps)
+    stream = MeasurementStream(stamps, [np.eye(4)] * len(stamps), [0], {}, {}, T_world_cam_gt[0], np.eye(6) * 1e-24,
+                               T_world_cam_gt=T_world_cam_gt)
     stream.imu = ImuStream(samples["stamps"], samples["accel"], samples["gyro"], config)
     stream.velocity0 = trajectory.velocity_world(0.0)
     return stream

@@ -80,15 +80,15 @@ def scenarios(sequence, field, config_base, n: int, seed: int, timing: dict | No
     rows = {name: [] for name in variants}
     for _ in range(n):
         i = int(rng.integers(len(sequence)))
-        T_gt = sequence.T_world_cam_gt[i]
-        T_est = T_gt @ random_perturbation(rng)
+        T_world_cam_gt = sequence.T_world_cam_gt[i]
+        T_world_cam_est = T_world_cam_gt @ random_perturbation(rng)
         frame = at_colour_instant(sequence, i, timing)  # depth at its colour's instant, as Evaluation K does
-        view, _ = render_safely(field, T_est, frame.intrinsics)
+        view, _ = render_safely(field, T_world_cam_est, frame.intrinsics)
         corr = None if view is None else prepare_correspondences(frame, view, config_base)[0]
         for name, config in variants.items():
             result = None if corr is None else align_correspondences(corr, frame.intrinsics, config)
             ok = result is not None and result.success
-            t, r = pose_error(result.corrected_pose(T_est) if ok else T_est, T_gt)
+            t, r = pose_error(result.corrected_pose(T_world_cam_est) if ok else T_world_cam_est, T_world_cam_gt)
             mean_opacity = float(np.mean(corr.opacity[result.inlier_mask])) if ok else None
             rows[name].append({"frame": i, "success": ok, "trans_err_m": t, "rot_err_deg": r,
                                "inlier_mean_opacity": mean_opacity})

@@ -30,8 +30,8 @@ from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pipeline import Pipeline
 
 
-def ate_m(T: np.ndarray, T_gt: np.ndarray) -> float:
-    return float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(T, T_gt)])))
+def ate_m(T: np.ndarray, T_world_cam_gt: np.ndarray) -> float:
+    return float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(T, T_world_cam_gt)])))
 
 
 def stage_ms(records, key: str) -> dict | None:
@@ -46,13 +46,13 @@ def run(sequence, field, overlap: bool, keyframe_every: int) -> dict:
     t0 = time.perf_counter()
     result = Pipeline(sequence, field, make_odometry("dense", sequence), config).run()
     wall_s = time.perf_counter() - t0
-    T_gt = result.T_world_cam_gt
+    T_world_cam_gt = result.T_world_cam_gt
     late = [r.timings_s["landed_frame"] - r.frame_index for r in result.keyframes if "landed_frame" in r.timings_s]
     return {
         "overlap": overlap, "keyframe_every": keyframe_every, "frames": len(sequence), "wall_s": wall_s,
         "frames_per_s": len(sequence) / wall_s,
-        "ate_m": ate_m(result.T_world_cam_estimate, T_gt), "causal_ate_m": ate_m(result.T_world_cam_online, T_gt),
-        "odometry_ate_m": ate_m(result.T_world_cam_odometry, T_gt),
+        "ate_m": ate_m(result.T_world_cam_estimate, T_world_cam_gt), "causal_ate_m": ate_m(result.T_world_cam_online, T_world_cam_gt),
+        "odometry_ate_m": ate_m(result.T_world_cam_odometry, T_world_cam_gt),
         "keyframes": len(result.keyframes), "accepted": result.num_accepted,
         # Keyframes measured twice: the depth's scale fit said the metre is off by more than
         # AlignConfig.scale_tolerance, so the frame was aligned again with its depth rescaled.

@@ -66,19 +66,19 @@ def build_map(folder: Path):
 
 def main(data: Path = DATA) -> dict:
     frames = read_frames(data)
-    T_gt = read_poses(data, [f.timestamp for f in frames])
+    T_world_cam_gt = read_poses(data, [f.timestamp for f in frames])
     field = build_map(data)
     run = list(range(1, len(frames), 2))  # frames the map was not built from
     isam = gtsam.ISAM2()
     bias = exp_se3([0.0, 0.004, 0.0, 0.004, 0.0, 0.002])  # the odometry's drift per frame
-    T_odom = T_gt[run[0]]
+    T_odom = T_world_cam_gt[run[0]]
     results = {"accepted": 0, "refused": 0}
     for k, i in enumerate(run):
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if k == 0:
             graph.add(pose_prior_factor(X(0), T_odom, rot_sigma_rad=0.01, trans_sigma_m=0.02))  # where it starts
         else:
-            step = inv_T(T_gt[run[k - 1]]) @ T_gt[i] @ bias
+            step = inv_T(T_world_cam_gt[run[k - 1]]) @ T_world_cam_gt[i] @ bias
             T_odom = T_odom @ step
             graph.add(odometry_factor(X(k - 1), X(k), step, np.diag([3e-3**2] * 3 + [5e-3**2] * 3)))
         estimate_now = T_odom if k == 0 else isam.calculateEstimatePose3(X(k - 1)).matrix() @ step
@@ -106,8 +106,8 @@ def main(data: Path = DATA) -> dict:
             results["refused"] += 1
             print(f"frame {i}: no correction ({correction.reason})")
     last = len(run) - 1
-    results["odometry_error_m"] = pose_error(T_odom, T_gt[run[last]])[0]
-    results["estimate_error_m"] = pose_error(isam.calculateEstimatePose3(X(last)).matrix(), T_gt[run[last]])[0]
+    results["odometry_error_m"] = pose_error(T_odom, T_world_cam_gt[run[last]])[0]
+    results["estimate_error_m"] = pose_error(isam.calculateEstimatePose3(X(last)).matrix(), T_world_cam_gt[run[last]])[0]
     print(f"last frame: odometry {results['odometry_error_m'] * 1000:.1f} mm off, with NAP3D "
           f"{results['estimate_error_m'] * 1000:.1f} mm off ({results['accepted']} corrections accepted)")
     return results

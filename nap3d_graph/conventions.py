@@ -159,10 +159,10 @@ def log_se3(T: np.ndarray) -> np.ndarray:
     return np.asarray(gtsam.Pose3.Logmap(T_to_pose3(T)))
 
 
-def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
+def pose_error(T_world_cam_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:
     """Translation error (m) and rotation error (deg) between two poses of the same frame."""
-    dT = inv_T(T_true) @ np.asarray(T_est, dtype=float)
-    return float(np.linalg.norm(T_est[:3, 3] - T_true[:3, 3])), float(rotation_angle_deg(dT[:3, :3]))
+    dT = inv_T(T_true) @ np.asarray(T_world_cam_est, dtype=float)
+    return float(np.linalg.norm(T_world_cam_est[:3, 3] - T_true[:3, 3])), float(rotation_angle_deg(dT[:3, :3]))
 
 
 # --- gtsam ------------------------------------------------------------------------------

@@ -60,17 +60,17 @@ def error_axis_floor(errors_cm: list[np.ndarray]) -> float:
     return float(0.5 * np.percentile(positive, 2)) if positive.size else 1e-3
 
 
-def plot_trajectories(path: Path, trajectories: dict, T_gt: np.ndarray | None = None, markers: dict | None = None,
+def plot_trajectories(path: Path, trajectories: dict, T_world_cam_gt: np.ndarray | None = None, markers: dict | None = None,
                       title: str = "trajectories") -> Path:
     """Trajectories ``{name: (N, 4, 4)}`` (and the ground truth) in the plane they span most
     (:func:`view_axes`); ``markers``: ``{label: (points (M, 3), style, colour)}``."""
     plt = _pyplot()
-    reference = T_gt[:, :3, 3] if T_gt is not None else next(iter(trajectories.values()))[:, :3, 3]
+    reference = T_world_cam_gt[:, :3, 3] if T_world_cam_gt is not None else next(iter(trajectories.values()))[:, :3, 3]
     a, b = view_axes(reference)
     fig, ax = plt.subplots(figsize=(6.5, 5.5))
-    if T_gt is not None:
-        posed = np.all(np.isfinite(T_gt), axis=(1, 2))
-        ax.plot(T_gt[posed, a, 3], T_gt[posed, b, 3], "-", color=COLOURS["ground truth"], lw=2.2, label="ground truth")
+    if T_world_cam_gt is not None:
+        posed = np.all(np.isfinite(T_world_cam_gt), axis=(1, 2))
+        ax.plot(T_world_cam_gt[posed, a, 3], T_world_cam_gt[posed, b, 3], "-", color=COLOURS["ground truth"], lw=2.2, label="ground truth")
     for name, T in trajectories.items():
         ax.plot(T[:, a, 3], T[:, b, 3], "-", color=colour_of(name), lw=1.3, label=name)
     for label, (points, style, colour) in (markers or {}).items():
@@ -88,17 +88,17 @@ def plot_trajectories(path: Path, trajectories: dict, T_gt: np.ndarray | None = 
     return path
 
 
-def plot_errors(path: Path, t: np.ndarray, trajectories: dict, T_gt: np.ndarray, markers: dict | None = None,
+def plot_errors(path: Path, t: np.ndarray, trajectories: dict, T_world_cam_gt: np.ndarray, markers: dict | None = None,
                 title: str = "translation error") -> Path:
-    """Translation error (cm, log axis) of each trajectory against ``T_gt`` over time ``t``;
+    """Translation error (cm, log axis) of each trajectory against ``T_world_cam_gt`` over time ``t``;
     ``markers``: ``{label: (times (M,), errors_cm (M,), style, colour)}``."""
     plt = _pyplot()
-    posed = np.all(np.isfinite(T_gt), axis=(1, 2))
+    posed = np.all(np.isfinite(T_world_cam_gt), axis=(1, 2))
     fig, ax = plt.subplots(figsize=(7.5, 3.8))
     curves = []
     for name, T in trajectories.items():
         err = np.full(len(t), np.nan)
-        err[posed] = np.linalg.norm(T[posed, :3, 3] - T_gt[posed, :3, 3], axis=1) * 100
+        err[posed] = np.linalg.norm(T[posed, :3, 3] - T_world_cam_gt[posed, :3, 3], axis=1) * 100
         curves.append(err)
         ax.plot(t, err, lw=1.2, color=colour_of(name), label=name)
     for label, (times, errors, style, colour) in (markers or {}).items():

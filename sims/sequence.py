@@ -191,7 +191,7 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
 
     t_rel = np.arange(config.frames) / config.fps
     rgb_stamps = TIME_ORIGIN_S + t_rel
-    T_gt = trajectory.poses(t_rel)
+    T_world_cam_gt = trajectory.poses(t_rel)
     timing = config.timing
     if timing is None:  # an ideal camera: both images at the frame instant, stamps a little apart
         depth_capture_rel = t_rel
@@ -233,7 +233,7 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     Trajectory(TIME_ORIGIN_S + gt_rel, trajectory.poses(gt_rel)).write_tum(out / "groundtruth.txt",
                "ground truth trajectory (simulated), T_world_cam, OpenCV camera, world +Z up")
 
-    T_odom, _ = drifting_odometry(T_gt, rgb_stamps, config.odometry, odom_rng)
+    T_odom, _ = drifting_odometry(T_world_cam_gt, rgb_stamps, config.odometry, odom_rng)
     Trajectory(rgb_stamps, T_odom).write_tum(out / "odometry.txt", header="drifting odometry (simulated), T_world_cam")
 
     imu = simulate_imu(trajectory, 0.0, duration, config.imu, imu_rng)

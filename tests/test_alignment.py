@@ -112,31 +112,31 @@ def test_sample_depth_subpixel_and_edges():
 
 @pytest.fixture(scope="module")
 def scenarios(room):
-    """(frame, T_gt, T_est) triples in the hold-out room at 320x240."""
+    """(frame, T_world_cam_gt, T_world_cam_est) triples in the hold-out room at 320x240."""
     scene, _ = room
     K = default_intrinsics(320, 240)
     traj = make_trajectory("traverse", scene, np.random.default_rng(0), 20.0)
     rng = np.random.default_rng(5)
     out = []
     for _ in range(8):
-        T_gt = traj.T_world_cam(rng.uniform(0, 20))
-        out.append((sensor_frame(scene, T_gt, K, rng), T_gt, T_gt @ random_perturbation(rng)))
+        T_world_cam_gt = traj.T_world_cam(rng.uniform(0, 20))
+        out.append((sensor_frame(scene, T_world_cam_gt, K, rng), T_world_cam_gt, T_world_cam_gt @ random_perturbation(rng)))
     return out
 
 
 def test_align_views_corrects_perturbed_pose(room, scenarios):
     _, field = room
     errors = {"refined": [], "plain": [], "pnp": []}
-    for frame, T_gt, T_est in scenarios:
-        view = field.render(T_est, frame.intrinsics)
+    for frame, T_world_cam_gt, T_world_cam_est in scenarios:
+        view = field.render(T_world_cam_est, frame.intrinsics)
         for method in ("refined", "plain"):
             a = align_views(frame, view, AlignConfig(method=method))
             assert a.success, a.reason
             assert a.num_inliers >= 30 and a.num_inliers <= a.num_matches
-            errors[method].append(pose_error(a.corrected_pose(T_est), T_gt))
+            errors[method].append(pose_error(a.corrected_pose(T_world_cam_est), T_world_cam_gt))
         p = pnp_align(frame, view)
         assert p.success
-        errors["pnp"].append(pose_error(p.corrected_pose(T_est), T_gt))
+        errors["pnp"].append(pose_error(p.corrected_pose(T_world_cam_est), T_world_cam_gt))
     med = {k: np.median(np.array(v), axis=0) for k, v in errors.items()}
     # From +-10 cm / +-5 deg down to millimetres.
     assert med["refined"][0] < 0.003 and med["refined"][1] < 0.06
@@ -149,13 +149,13 @@ def test_align_views_corrects_perturbed_pose(room, scenarios):
 def test_correct_pose_iterates_and_improves(room, scenarios):
     _, field = room
     one, three = [], []
-    for frame, T_gt, T_est in scenarios[:5]:
-        c1 = correct_pose(frame, field, T_est, iterations=1)
-        c3 = correct_pose(frame, field, T_est, iterations=3)
+    for frame, T_world_cam_gt, T_world_cam_est in scenarios[:5]:
+        c1 = correct_pose(frame, field, T_world_cam_est, iterations=1)
+        c3 = correct_pose(frame, field, T_world_cam_est, iterations=3)
         assert c1.success and c3.success and c1.iterations == 1 and 2 <= c3.iterations <= 3
         assert c3.covariance.shape == (6, 6) and np.all(np.linalg.eigvalsh(c3.covariance) > 0)
-        one.append(pose_error(c1.T_world_cam_corrected, T_gt)[0])
-        three.append(pose_error(c3.T_world_cam_corrected, T_gt)[0])
+        one.append(pose_error(c1.T_world_cam_corrected, T_world_cam_gt)[0])
+        three.append(pose_error(c3.T_world_cam_corrected, T_world_cam_gt)[0])
     assert np.median(three) < np.median(one)
     assert np.median(three) < 0.0015
 
@@ -179,7 +179,7 @@ def test_alignment_does_not_depend_on_what_ran_before(room, scenarios):
     """The same pairs aligned in two orders, with other code disturbing OpenCV's and the C
     library's random state in between, give bit-identical results."""
     _, field = room
-    pairs = [(frame, field.render(T_est, frame.intrinsics)) for frame, _, T_est in scenarios[:4]]
+    pairs = [(frame, field.render(T_world_cam_est, frame.intrinsics)) for frame, _, T_world_cam_est in scenarios[:4]]
 
     def run(order):
         out = {}
@@ -225,13 +225,13 @@ def test_covariance_is_honest_nees(room, case):
     config = AlignConfig(method=settings["method"])
     nees = []
     while len(nees) < 100:
-        T_gt = traj.T_world_cam(rng.uniform(0, 20))
-        frame = sensor_frame(scene, T_gt, K, rng)
-        T_est = T_gt @ random_perturbation(rng, settings["max_trans_m"], settings["max_rot_deg"])
-        c = correct_pose(frame, field, T_est, iterations=settings["rounds"], config=config)
+        T_world_cam_gt = traj.T_world_cam(rng.uniform(0, 20))
+        frame = sensor_frame(scene, T_world_cam_gt, K, rng)
+        T_world_cam_est = T_world_cam_gt @ random_perturbation(rng, settings["max_trans_m"], settings["max_rot_deg"])
+        c = correct_pose(frame, field, T_world_cam_est, iterations=settings["rounds"], config=config)
         if not c.success:
             continue
-        e = log_se3(inv_T(c.T_world_cam_corrected) @ T_gt)
+        e = log_se3(inv_T(c.T_world_cam_corrected) @ T_world_cam_gt)
         P = c.covariance
         nees.append([e @ np.linalg.solve(P, e), e[:3] @ np.linalg.solve(P[:3, :3], e[:3]),
                      e[3:] @ np.linalg.solve(P[3:, 3:], e[3:])])
@@ -249,9 +249,9 @@ def _blank_view(K, depth=2.0):
 
 def test_bad_input_returns_reasons(room, scenarios):
     _, field = room
-    frame, T_gt, T_est = scenarios[0]
+    frame, T_world_cam_gt, T_world_cam_est = scenarios[0]
     K = frame.intrinsics
-    view = field.render(T_est, K)
+    view = field.render(T_world_cam_est, K)
     blank = align_views(RGBDFrame(np.zeros((K.height, K.width, 3), np.uint8), frame.depth_m, K), view)
     assert not blank.success and "no keypoints in the real image" in blank.reason
     assert "no keypoints in the rendered view" in align_views(frame, _blank_view(K)).reason
@@ -277,16 +277,16 @@ def test_bad_input_returns_reasons(room, scenarios):
         def render(self, T, K):
             raise RuntimeError("GPU fell off")
 
-    c = correct_pose(frame, BrokenField(), T_est)
+    c = correct_pose(frame, BrokenField(), T_world_cam_est)
     assert not c.success and "render failed" in c.reason
-    np.testing.assert_array_equal(c.T_world_cam_corrected, T_est)
+    np.testing.assert_array_equal(c.T_world_cam_corrected, T_world_cam_est)
 
     class EmptyField:
         def render(self, T, K):
             return RenderedView(np.zeros((K.height, K.width, 3), np.uint8), np.zeros(K.shape, np.float32),
                                 np.zeros(K.shape, np.float32), K)
 
-    assert "low opacity" in correct_pose(frame, EmptyField(), T_est).reason
+    assert "low opacity" in correct_pose(frame, EmptyField(), T_world_cam_est).reason
     with pytest.raises(ValueError, match="method"):
         AlignConfig(method="magic")
 
@@ -318,18 +318,18 @@ def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
 
     _, field = room
     errors, plain_errors = [], []  # a failed fit scores the uncorrected error, as in Evaluation K
-    for frame, T_gt, T_est in scenarios[:5]:
+    for frame, T_world_cam_gt, T_world_cam_est in scenarios[:5]:
         K_true = frame.intrinsics
         given = frame.with_intrinsics(K_true.shifted(1.10, 10.0))
-        view = field.render(T_est, K_true)
+        view = field.render(T_world_cam_est, K_true)
         corr, _ = prepare_correspondences(given, view)
         a = align_correspondences(corr, given.intrinsics, AlignConfig(estimate_intrinsics=True))
         b = align_correspondences(corr, given.intrinsics, AlignConfig(estimate_intrinsics=False))
         auto = align_correspondences(corr, given.intrinsics, AlignConfig())  # the default: "auto"
         assert auto.diagnostics["intrinsics_model"] == "calibrated" and "intrinsics" in auto.diagnostics
         assert a.success
-        errors.append(pose_error(a.corrected_pose(T_est), T_gt)[0])
-        plain_errors.append(pose_error(b.corrected_pose(T_est) if b.success else T_est, T_gt)[0])
+        errors.append(pose_error(a.corrected_pose(T_world_cam_est), T_world_cam_gt)[0])
+        plain_errors.append(pose_error(b.corrected_pose(T_world_cam_est) if b.success else T_world_cam_est, T_world_cam_gt)[0])
         # The focal length comes back (the principal point trades off against rotation and
         # is held by its prior: it is the pose that matters).
         sub = corr.__class__(corr.x[a.inlier_mask], corr.y[a.inlier_mask], corr.uv_real[a.inlier_mask],

@@ -116,8 +116,8 @@ def nap3d_case():
 
 
 def test_prior_factor_is_zero_at_corrected_pose(nap3d_case):
-    T_est, T_true, C, alignment = nap3d_case
-    factor = nap3d_prior_factor(X(3), T_est, alignment)
+    T_world_cam_est, T_true, C, alignment = nap3d_case
+    factor = nap3d_prior_factor(X(3), T_world_cam_est, alignment)
     assert isinstance(factor, gtsam.PriorFactorPose3)
     assert isinstance(factor.noiseModel(), gtsam.noiseModel.Robust)  # huber by default
     np.testing.assert_allclose(factor.prior().matrix(), T_true, atol=1e-12)
@@ -126,7 +126,7 @@ def test_prior_factor_is_zero_at_corrected_pose(nap3d_case):
     assert factor.error(v) == pytest.approx(0.0, abs=1e-12)
     np.testing.assert_allclose(base_gaussian(factor.noiseModel()).covariance(), C, rtol=1e-10, atol=1e-18)
     # The same pose from a Correction, which carries its corrected pose itself.
-    correction = Correction(T_world_cam_est=T_est, T_world_cam_corrected=T_true, covariance=C,
+    correction = Correction(T_world_cam_est=T_world_cam_est, T_world_cam_corrected=T_true, covariance=C,
                             alignment=alignment, iterations=2, success=True)
     factor_c = nap3d_prior_factor(X(3), None, correction, robust=None)
     np.testing.assert_allclose(factor_c.prior().matrix(), T_true, atol=1e-12)
@@ -134,9 +134,9 @@ def test_prior_factor_is_zero_at_corrected_pose(nap3d_case):
 
 
 def test_prior_factor_jacobian_matches_numerical(nap3d_case):
-    T_est, _, _, alignment = nap3d_case
-    factor = nap3d_prior_factor(X(0), T_est, alignment, robust=None)
-    x = gtsam.Pose3(T_est)  # away from the measurement: a non-trivial Jacobian
+    T_world_cam_est, _, _, alignment = nap3d_case
+    factor = nap3d_prior_factor(X(0), T_world_cam_est, alignment, robust=None)
+    x = gtsam.Pose3(T_world_cam_est)  # away from the measurement: a non-trivial Jacobian
     (H,), e = unwhitened_jacobian(factor, vals((X(0), x)))
     H_num = numericalDerivative11(lambda p: factor.unwhitenedError(vals((X(0), p))), x, 1e-6)
     np.testing.assert_allclose(H, H_num, atol=1e-6)
@@ -146,7 +146,7 @@ def test_prior_factor_jacobian_matches_numerical(nap3d_case):
 
 def test_prior_factor_matches_custom_factor(nap3d_case):
     """Same linearisation as a CustomFactor with error Logmap(measured^-1 x)."""
-    T_est, T_true, C, alignment = nap3d_case
+    T_world_cam_est, T_true, C, alignment = nap3d_case
     measured = gtsam.Pose3(T_true)
     noise = noise_model(covariance=C)
 
@@ -161,8 +161,8 @@ def test_prior_factor_matches_custom_factor(nap3d_case):
         return error
 
     custom = gtsam.CustomFactor(noise, [X(0)], error_func)
-    builtin = nap3d_prior_factor(X(0), T_est, alignment, robust=None)
-    for x in (gtsam.Pose3(T_est), gtsam.Pose3(T_true @ exp_se3([0.3, -0.2, 0.1, 1.0, 0.5, -0.7]))):
+    builtin = nap3d_prior_factor(X(0), T_world_cam_est, alignment, robust=None)
+    for x in (gtsam.Pose3(T_world_cam_est), gtsam.Pose3(T_true @ exp_se3([0.3, -0.2, 0.1, 1.0, 0.5, -0.7]))):
         v = vals((X(0), x))
         A_c, b_c = custom.linearize(v).jacobian()
         A_b, b_b = builtin.linearize(v).jacobian()
@@ -211,22 +211,22 @@ def test_default_huber_keeps_gaussian_inliers_of_a_pose_at_full_weight():
 
 
 def test_prior_factor_rejects_failed_or_bad_results(nap3d_case):
-    T_est, T_true, C, alignment = nap3d_case
+    T_world_cam_est, T_true, C, alignment = nap3d_case
     with pytest.raises(ValueError, match="too few matches"):
-        nap3d_prior_factor(X(0), T_est, Alignment.failure("too few matches"))
+        nap3d_prior_factor(X(0), T_world_cam_est, Alignment.failure("too few matches"))
     bad_cov = Alignment(T_real_rendered=alignment.T_real_rendered, covariance=np.full((6, 6), np.nan),
                         success=True)
     with pytest.raises(ValueError, match="non-finite"):
-        nap3d_prior_factor(X(0), T_est, bad_cov)
+        nap3d_prior_factor(X(0), T_world_cam_est, bad_cov)
     not_pd = Alignment(T_real_rendered=alignment.T_real_rendered, covariance=-np.eye(6), success=True)
     with pytest.raises(ValueError, match="positive definite"):
-        nap3d_prior_factor(X(0), T_est, not_pd)
-    failed = Correction(T_world_cam_est=T_est, T_world_cam_corrected=T_true, covariance=C,
+        nap3d_prior_factor(X(0), T_world_cam_est, not_pd)
+    failed = Correction(T_world_cam_est=T_world_cam_est, T_world_cam_corrected=T_true, covariance=C,
                         alignment=alignment, success=False, reason="gated out")
     with pytest.raises(ValueError, match="gated out"):
-        nap3d_prior_factor(X(0), T_est, failed)
+        nap3d_prior_factor(X(0), T_world_cam_est, failed)
     with pytest.raises(TypeError):
-        nap3d_prior_factor(X(0), T_est, "not a result")
+        nap3d_prior_factor(X(0), T_world_cam_est, "not a result")
 
 
 # --- anchor ----------------------------------------------------------------------------

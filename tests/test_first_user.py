@@ -110,11 +110,11 @@ def test_default_run_works_when_ground_truth_misses_the_last_frame(walk, tmp_pat
     rc = main(["run", "--traj", "tum", "--data", str(data), "--field", str(walk), "--out", str(tmp_path / "out")])
     assert rc == 0, capsys.readouterr().err
     assert "1 of 24 frames have no ground truth; --odom noisy carries the odometry across them" in caplog.text
-    stamps, T_est = read_tum_trajectory(tmp_path / "out" / "latest" / "estimate.txt")
-    gt_stamps, T_gt = read_tum_trajectory(tmp_path / "out" / "latest" / "groundtruth.txt")
-    assert len(stamps) == 24 and len(gt_stamps) == 23 and np.all(np.isfinite(T_est))
+    stamps, T_world_cam_est = read_tum_trajectory(tmp_path / "out" / "latest" / "estimate.txt")
+    gt_stamps, T_world_cam_gt = read_tum_trajectory(tmp_path / "out" / "latest" / "groundtruth.txt")
+    assert len(stamps) == 24 and len(gt_stamps) == 23 and np.all(np.isfinite(T_world_cam_est))
     # The corrected run still follows the truth where it is known.
-    errors = [pose_error(T_est[k], T_gt[k])[0] for k in range(23)]
+    errors = [pose_error(T_world_cam_est[k], T_world_cam_gt[k])[0] for k in range(23)]
     assert np.median(errors) < 0.02
 
 
@@ -215,10 +215,10 @@ def test_correct_pose_takes_a_gtsam_pose3(walk):
     from nap3d_graph.datasets import SimSequence
 
     seq = SimSequence(walk)
-    T_gt = seq.T_world_cam_gt[6]
-    T_est = T_gt @ exp_se3([0.01, -0.01, 0.0, 0.02, -0.01, 0.01])
-    correction = correct_pose(seq[6], seq.oracle_field(), gtsam.Pose3(T_est), iterations=2)
-    assert correction.success and pose_error(correction.T_world_cam_corrected, T_gt)[0] < 0.005
+    T_world_cam_gt = seq.T_world_cam_gt[6]
+    T_world_cam_est = T_world_cam_gt @ exp_se3([0.01, -0.01, 0.0, 0.02, -0.01, 0.01])
+    correction = correct_pose(seq[6], seq.oracle_field(), gtsam.Pose3(T_world_cam_est), iterations=2)
+    assert correction.success and pose_error(correction.T_world_cam_corrected, T_world_cam_gt)[0] < 0.005
 
 
 def test_a_streak_of_refusals_is_said_during_the_run(walk, caplog):

@@ -17,7 +17,7 @@ from nap3d_graph.sims.trajectories import make_trajectory
 
 @pytest.fixture(scope="module")
 def pairs(room):
-    """(frame, view, T_gt, T_est) in the hold-out room at 320x240, +-3 cm / 1.5 deg off (a
+    """(frame, view, T_world_cam_gt, T_world_cam_est) in the hold-out room at 320x240, +-3 cm / 1.5 deg off (a
     keyframe's prediction)."""
     scene, field = room
     K = default_intrinsics(320, 240)
@@ -25,10 +25,10 @@ def pairs(room):
     rng = np.random.default_rng(11)
     out = []
     for _ in range(6):
-        T_gt = traj.T_world_cam(rng.uniform(0, 20))
-        T_est = T_gt @ random_perturbation(rng, 0.03, 1.5)
-        frame = sensor_frame(scene, T_gt, K, rng)
-        out.append((frame, field.render(T_est, K), T_gt, T_est))
+        T_world_cam_gt = traj.T_world_cam(rng.uniform(0, 20))
+        T_world_cam_est = T_world_cam_gt @ random_perturbation(rng, 0.03, 1.5)
+        frame = sensor_frame(scene, T_world_cam_gt, K, rng)
+        out.append((frame, field.render(T_world_cam_est, K), T_world_cam_gt, T_world_cam_est))
     return out
 
 
@@ -43,20 +43,20 @@ BOUNDS = {"sift": (0.003, 0.1, 100), "xfeat": (0.004, 0.1, 300), "xfeat-lighterg
 def test_each_matcher_recovers_a_perturbed_pose_deterministically(pairs, matcher):
     config = AlignConfig(matcher=matcher)
     errors, inliers = [], []
-    for frame, view, T_gt, T_est in pairs:
+    for frame, view, T_world_cam_gt, T_world_cam_est in pairs:
         a = align_views(frame, view, config)
         assert a.success, (matcher, a.reason)
         again = align_views(frame, view, config)
         np.testing.assert_array_equal(a.T_real_rendered, again.T_real_rendered)
         np.testing.assert_array_equal(a.covariance, again.covariance)
-        errors.append(pose_error(a.corrected_pose(T_est), T_gt))
+        errors.append(pose_error(a.corrected_pose(T_world_cam_est), T_world_cam_gt))
         inliers.append(a.num_inliers)
     trans, rot = np.median(np.array(errors), axis=0)
     max_trans, max_rot, min_inliers = BOUNDS[matcher]
     assert trans < max_trans and rot < max_rot, (matcher, trans, rot)
     assert np.median(inliers) >= min_inliers, (matcher, inliers)
     # Every correction is at least 5x better than the prediction it started from.
-    before = np.median([pose_error(T_est, T_gt)[0] for _, _, T_gt, T_est in pairs])
+    before = np.median([pose_error(T_world_cam_est, T_world_cam_gt)[0] for _, _, T_world_cam_gt, T_world_cam_est in pairs])
     assert trans < before / 5
 
 
@@ -83,13 +83,13 @@ def test_features_of_two_matchers_are_not_paired(pairs):
     assert len(masked) > 50 and masked.uv[:, 0].max() < 160.5 and masked.descriptors.shape[1] == 64
 
 
-def _pixel_errors(frame, view, matches, T_gt, T_est):
+def _pixel_errors(frame, view, matches, T_world_cam_gt, T_world_cam_est):
     """Where each match's rendered pixel truly lies in the real image, against its real pixel."""
     K = frame.intrinsics
     uv = matches.uv_b
     z = view.depth_m[np.rint(uv[:, 1]).astype(int), np.rint(uv[:, 0]).astype(int)]
     x = np.stack([(uv[:, 0] - K.cx) / K.fx * z, (uv[:, 1] - K.cy) / K.fy * z, z], axis=1)
-    T_real_rendered = inv_T(T_gt) @ T_est
+    T_real_rendered = inv_T(T_world_cam_gt) @ T_world_cam_est
     y = x @ T_real_rendered[:3, :3].T + T_real_rendered[:3, 3]
     projected = np.stack([K.fx * y[:, 0] / y[:, 2] + K.cx, K.fy * y[:, 1] / y[:, 2] + K.cy], axis=1)
     return np.linalg.norm(projected - matches.uv_a, axis=1)
@@ -97,18 +97,18 @@ def _pixel_errors(frame, view, matches, T_gt, T_est):
 
 def test_subpixel_refinement_sharpens_xfeat_matches(pairs):
     before, after = [], []
-    for frame, view, T_gt, T_est in pairs:
+    for frame, view, T_world_cam_gt, T_world_cam_est in pairs:
         matches = match_features(detect_features(frame.rgb, matcher="xfeat"),
                                  detect_features(view.rgb, matcher="xfeat", mask=view.opacity > 0.5))
         refined = refine_matches_subpixel(frame.rgb, view.rgb, matches)
         assert np.array_equal(refined.uv_b, matches.uv_b) and len(refined) == len(matches)
-        before.append(_pixel_errors(frame, view, matches, T_gt, T_est))
-        after.append(_pixel_errors(frame, view, refined, T_gt, T_est))
+        before.append(_pixel_errors(frame, view, matches, T_world_cam_gt, T_world_cam_est))
+        after.append(_pixel_errors(frame, view, refined, T_world_cam_gt, T_world_cam_est))
     before, after = np.concatenate(before), np.concatenate(after)
     # XFeat places a keypoint to about a pixel; tracking the render's patch, to a fifth of one.
     assert np.median(before) > 0.8 and np.median(after) < 0.3
     config = AlignConfig(matcher="xfeat", subpixel=True)
-    errors = [pose_error(align_views(f, v, config).corrected_pose(T_est), T_gt)[0] for f, v, T_gt, T_est in pairs]
+    errors = [pose_error(align_views(f, v, config).corrected_pose(T_world_cam_est), T_world_cam_gt)[0] for f, v, T_world_cam_gt, T_world_cam_est in pairs]
     assert np.median(errors) < 0.003
 
 

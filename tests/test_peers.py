@@ -28,12 +28,12 @@ def perturbed_frames(room):
     traj = make_trajectory("traverse", scene, rng, 20.0)
     out = []
     for k in range(4):
-        T_gt = traj.T_world_cam(2.0 + 4 * k)
-        frame = sensor_frame(scene, T_gt, K, rng)
+        T_world_cam_gt = traj.T_world_cam(2.0 + 4 * k)
+        frame = sensor_frame(scene, T_world_cam_gt, K, rng)
         d = rng.normal(size=6)
         d[:3] *= np.radians(1.0) / np.linalg.norm(d[:3])
         d[3:] *= 0.02 / np.linalg.norm(d[3:])
-        out.append((frame, T_gt, T_gt @ exp_se3(d)))
+        out.append((frame, T_world_cam_gt, T_world_cam_gt @ exp_se3(d)))
     return field, out
 
 
@@ -44,14 +44,14 @@ ANY_FIELD_PEERS = tuple(name for name in PEERS if name != "photometric")
 def test_every_peer_recovers_a_small_perturbation(perturbed_frames):
     field, frames = perturbed_frames
     errors = {name: [] for name in ANY_FIELD_PEERS}
-    for frame, T_gt, T_est in frames:
-        results, corr = run_peers(frame, field.render(T_est, frame.intrinsics), ANY_FIELD_PEERS, field=field,
-                                  T_world_cam_est=T_est)
+    for frame, T_world_cam_gt, T_world_cam_est in frames:
+        results, corr = run_peers(frame, field.render(T_world_cam_est, frame.intrinsics), ANY_FIELD_PEERS, field=field,
+                                  T_world_cam_est=T_world_cam_est)
         assert corr is not None and set(results) == set(ANY_FIELD_PEERS)
         for name, a in results.items():
             assert a.success, (name, a.reason)
             assert a.method == name and a.timings_s["total"] > 0
-            errors[name].append(pose_error(a.corrected_pose(T_est), T_gt))
+            errors[name].append(pose_error(a.corrected_pose(T_world_cam_est), T_world_cam_gt))
     for name, e in errors.items():
         t_mm, r_deg = np.array(e)[:, 0] * 1000, np.array(e)[:, 1]
         # From 20 mm / 1 deg off to a few millimetres: a stated bound per method.
@@ -80,24 +80,24 @@ def grid_room(tmp_path_factory):
     traj = make_trajectory("traverse", scene, rng, 20.0)
     frames = []
     for k in range(4):
-        T_gt = traj.T_world_cam(2.0 + 4 * k)
+        T_world_cam_gt = traj.T_world_cam(2.0 + 4 * k)
         d = rng.normal(size=6)
         d[:3] *= np.radians(1.0) / np.linalg.norm(d[:3])
         d[3:] *= 0.02 / np.linalg.norm(d[3:])
-        frames.append((sensor_frame(scene, T_gt, K, rng), T_gt, T_gt @ exp_se3(d)))
+        frames.append((sensor_frame(scene, T_world_cam_gt, K, rng), T_world_cam_gt, T_world_cam_gt @ exp_se3(d)))
     return field, frames
 
 
 def test_photometric_peer_recovers_a_small_perturbation_through_the_grid_field(grid_room):
     field, frames = grid_room
     errors = []
-    for frame, T_gt, T_est in frames:
-        results, _ = run_peers(frame, field.render(T_est, frame.intrinsics), ("photometric",), field=field,
-                               T_world_cam_est=T_est)
+    for frame, T_world_cam_gt, T_world_cam_est in frames:
+        results, _ = run_peers(frame, field.render(T_world_cam_est, frame.intrinsics), ("photometric",), field=field,
+                               T_world_cam_est=T_world_cam_est)
         a = results["photometric"]
         assert a.success, a.reason
         assert not np.isfinite(a.covariance).any()  # iNeRF has no covariance
-        errors.append(pose_error(a.corrected_pose(T_est), T_gt))
+        errors.append(pose_error(a.corrected_pose(T_world_cam_est), T_world_cam_gt))
     t_mm, r_deg = np.array(errors)[:, 0] * 1000, np.array(errors)[:, 1]
     print("photometric errors (mm, deg):", np.round(t_mm, 2), np.round(r_deg, 3))
     # From 20 mm / 1 deg off. Colour alone pins the rotation well and the translation weakly on
@@ -109,20 +109,20 @@ def test_photometric_peer_recovers_a_small_perturbation_through_the_grid_field(g
 
 def test_photometric_peer_refuses_a_field_it_cannot_differentiate(perturbed_frames):
     field, frames = perturbed_frames
-    frame, _, T_est = frames[0]
-    results, _ = run_peers(frame, field.render(T_est, frame.intrinsics), ("photometric",), field=field,
-                           T_world_cam_est=T_est)
+    frame, _, T_world_cam_est = frames[0]
+    results, _ = run_peers(frame, field.render(T_world_cam_est, frame.intrinsics), ("photometric",), field=field,
+                           T_world_cam_est=T_world_cam_est)
     assert not results["photometric"].success
     assert "differentiable grid field" in results["photometric"].reason
-    results, _ = run_peers(frame, field.render(T_est, frame.intrinsics), ("photometric",))
+    results, _ = run_peers(frame, field.render(T_world_cam_est, frame.intrinsics), ("photometric",))
     assert "needs the field and the believed pose" in results["photometric"].reason
 
 
 def test_run_peers_refuses_an_unknown_method(perturbed_frames):
     field, frames = perturbed_frames
-    frame, _, T_est = frames[0]
+    frame, _, T_world_cam_est = frames[0]
     with pytest.raises(ValueError, match="unknown method"):
-        run_peers(frame, field.render(T_est, frame.intrinsics), ("nap3d", "icp"))
+        run_peers(frame, field.render(T_world_cam_est, frame.intrinsics), ("nap3d", "icp"))
 
 
 def test_cramer_rao_bound_matches_the_monte_carlo_scatter_of_the_refinement():
@@ -148,9 +148,9 @@ def test_cramer_rao_bound_matches_the_monte_carlo_scatter_of_the_refinement():
     for _ in range(600):
         uv, z = uv_true + rng.normal(0, sigma_px, (n, 2)), z_true + rng.normal(0, sigma_z)
         R, t, _, _ = refine_pose(T_true[:3, :3], T_true[:3, 3], corr(uv, z), K, config)
-        T_est = np.eye(4)
-        T_est[:3, :3], T_est[:3, 3] = R, t
-        errors.append(log_se3(T_true @ inv_T(T_est)))
+        T_world_cam_est = np.eye(4)
+        T_world_cam_est[:3, :3], T_world_cam_est[:3, 3] = R, t
+        errors.append(log_se3(T_true @ inv_T(T_world_cam_est)))
     scatter = np.cov(np.array(errors).T)
     for block, bound_sigma in zip((slice(0, 3), slice(3, 6)), bound_sigmas(bound)):
         ratio = np.sqrt(np.trace(scatter[block, block])) / bound_sigma
@@ -208,7 +208,7 @@ def test_depth_in_millimetres_is_named_as_such(perturbed_frames):
     from nap3d_graph import align_views
 
     field, frames = perturbed_frames
-    frame, _, T_est = frames[0]
+    frame, _, T_world_cam_est = frames[0]
     in_mm = frame.with_depth(frame.depth_m * np.float32(1000.0))
-    a = align_views(in_mm, field.render(T_est, frame.intrinsics))
+    a = align_views(in_mm, field.render(T_world_cam_est, frame.intrinsics))
     assert not a.success and "looks like millimetres" in a.reason, a.reason

@@ -131,8 +131,8 @@ def test_refined_covariance_matches_monte_carlo_scatter():
         corr = _synthetic_correspondences(rng, T_rr, config)
         start = exp_se3(rng.normal(size=6) * 0.002) @ T_rr
         R, t, cov, _ = refine_pose(start[:3, :3], start[:3, 3], corr, K, config)
-        # Error of the corrected pose T_est inv(T_rr_estimated) against the true one
-        # T_est inv(T_rr), as a right perturbation: log(T_rr_estimated inv(T_rr)).
+        # Error of the corrected pose T_world_cam_est inv(T_rr_estimated) against the true one
+        # T_world_cam_est inv(T_rr), as a right perturbation: log(T_rr_estimated inv(T_rr)).
         e = log_se3(make_T(R, t) @ inv_T(T_rr))
         nees6.append(e @ np.linalg.solve(cov, e))
         nees_rot.append(e[:3] @ np.linalg.solve(cov[:3, :3], e[:3]))

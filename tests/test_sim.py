@@ -96,12 +96,12 @@ def test_odometry_drift_statistics_match_config(scene):
     """Increment errors have the configured white sigma; the bias makes drift grow."""
     traj = make_trajectory("traverse", scene, np.random.default_rng(0), 60.0)
     stamps = np.arange(0, 60.0, 1 / 15)
-    T_gt = traj.poses(stamps)
+    T_world_cam_gt = traj.poses(stamps)
     white = OdometryNoise(rot_sigma_rad=3e-3, trans_sigma_m=5e-3, bias_init=(0,) * 6, bias_walk=0.0,
                           heading_bias_rad_s=0.0)
-    T_odom, xi = drifting_odometry(T_gt, stamps, white, np.random.default_rng(1))
+    T_odom, xi = drifting_odometry(T_world_cam_gt, stamps, white, np.random.default_rng(1))
     # Recover the errors from the poses alone: inc_gt^-1 inc_odom = Exp(xi).
-    measured = np.array([log_se3(inv_T(inv_T(T_gt[k]) @ T_gt[k + 1]) @ inv_T(T_odom[k]) @ T_odom[k + 1])
+    measured = np.array([log_se3(inv_T(inv_T(T_world_cam_gt[k]) @ T_world_cam_gt[k + 1]) @ inv_T(T_odom[k]) @ T_odom[k + 1])
                          for k in range(len(stamps) - 1)])
     np.testing.assert_allclose(measured, xi, atol=1e-8)
     np.testing.assert_allclose(measured.std(axis=0), white.sigmas, rtol=0.08)
@@ -110,36 +110,36 @@ def test_odometry_drift_statistics_match_config(scene):
     # rotation error per second about camera z.
     rolled = OdometryNoise(rot_sigma_rad=1e-3, trans_sigma_m=1e-3, bias_init=(0, 0, 0.01, 0, 0, 0), bias_walk=0.0,
                            heading_bias_rad_s=0.0)
-    _, xi_b = drifting_odometry(T_gt, stamps, rolled, np.random.default_rng(2))
+    _, xi_b = drifting_odometry(T_world_cam_gt, stamps, rolled, np.random.default_rng(2))
     assert xi_b[:, 2].mean() * 15 == pytest.approx(0.01, rel=0.1)
     # A heading bias turns the odometry about gravity: after 60 s its heading (the forward
     # axis projected on the floor) is off by bias x time, while the camera's tilt is not.
     heading = OdometryNoise(rot_sigma_rad=0.0, trans_sigma_m=0.0, bias_init=(0,) * 6, bias_walk=0.0,
                             heading_bias_rad_s=0.004)
-    T_h, _ = drifting_odometry(T_gt, stamps, heading, np.random.default_rng(2))
+    T_h, _ = drifting_odometry(T_world_cam_gt, stamps, heading, np.random.default_rng(2))
 
     def floor_heading(T):
         forward = T[:3, :3] @ np.array([0.0, 0.0, 1.0])
         return np.arctan2(forward[1], forward[0])
 
-    turned = np.angle(np.exp(1j * (floor_heading(T_h[-1]) - floor_heading(T_gt[-1]))))
+    turned = np.angle(np.exp(1j * (floor_heading(T_h[-1]) - floor_heading(T_world_cam_gt[-1]))))
     assert turned == pytest.approx(0.004 * stamps[-1], rel=0.02)
     tilt = lambda T: np.arcsin(np.clip((T[:3, :3] @ [0.0, 0.0, 1.0])[2], -1, 1))  # noqa: E731
-    assert abs(tilt(T_h[-1]) - tilt(T_gt[-1])) < 1e-6
+    assert abs(tilt(T_h[-1]) - tilt(T_world_cam_gt[-1])) < 1e-6
     # ... and it bends the path: at the same rate, a roll about the optical axis barely moves
     # the camera's position (measured: 0.75 cm RMS over the minute against 23 cm).
     roll_only = OdometryNoise(rot_sigma_rad=0.0, trans_sigma_m=0.0, bias_init=(0, 0, 0.004, 0, 0, 0), bias_walk=0.0,
                               heading_bias_rad_s=0.0)
-    T_r, _ = drifting_odometry(T_gt, stamps, roll_only, np.random.default_rng(2))
+    T_r, _ = drifting_odometry(T_world_cam_gt, stamps, roll_only, np.random.default_rng(2))
 
     def rms(T):
-        return np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(T, T_gt)]))
+        return np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(T, T_world_cam_gt)]))
 
     assert rms(T_h) > 10 * rms(T_r) and rms(T_h) > 0.1
     # Drift grows: the end-point error is far above the start.
-    T_d, _ = drifting_odometry(T_gt, stamps, OdometryNoise(), np.random.default_rng(3))
-    early = pose_error(T_d[30], T_gt[30])[0]
-    late = pose_error(T_d[-1], T_gt[-1])[0]
+    T_d, _ = drifting_odometry(T_world_cam_gt, stamps, OdometryNoise(), np.random.default_rng(3))
+    early = pose_error(T_d[30], T_world_cam_gt[30])[0]
+    late = pose_error(T_d[-1], T_world_cam_gt[-1])[0]
     assert late > 5 * early and late > 0.05
 
 

@@ -64,10 +64,10 @@ def test_reads_as_plain_tum_sequence(tum, sim_dir):
 def test_ground_truth_at_frames_is_exact(tum, sim_dir):
     # The writer includes the exact frame instants in groundtruth.txt: interpolation there
     # returns those rows.
-    stamps_gt, T_gt = read_tum_trajectory(sim_dir / "groundtruth.txt")
+    stamps_gt, T_world_cam_gt = read_tum_trajectory(sim_dir / "groundtruth.txt")
     rows = np.searchsorted(stamps_gt, tum.timestamps)
     assert np.array_equal(stamps_gt[rows], tum.timestamps)
-    assert np.allclose(tum.T_world_cam_gt, T_gt[rows], rtol=0, atol=1e-6)
+    assert np.allclose(tum.T_world_cam_gt, T_world_cam_gt[rows], rtol=0, atol=1e-6)
     # Ground truth really is the rendering pose: re-rendering it gives the written colour
     # up to the image noise (sigma 0.01, i.e. ~2.5 grey levels).
     scene = Scene.load(sim_dir / "scene.json")

@@ -125,14 +125,14 @@ def test_indexing_and_iteration(seq):
 
 
 def test_ground_truth_interpolated_to_rgb_stamps(seq, raw_gt):
-    stamps_gt, T_gt = raw_gt
-    assert stamps_gt.shape == (238,) and T_gt.shape == (238, 4, 4)
+    stamps_gt, T_world_cam_gt = raw_gt
+    assert stamps_gt.shape == (238,) and T_world_cam_gt.shape == (238, 4, 4)
     T = seq.T_world_cam_gt
     assert T.shape == (12, 4, 4) and np.all(np.isfinite(T))
     nearest = np.abs(stamps_gt[None, :] - seq.timestamps[:, None]).argmin(axis=1)
     assert np.abs(stamps_gt[nearest] - seq.timestamps).max() < 0.0051  # 100 Hz ground truth
-    dist_mm = 1000 * np.linalg.norm(T[:, :3, 3] - T_gt[nearest, :3, 3], axis=1)
-    angle_deg = rotation_angle_deg(np.swapaxes(T[:, :3, :3], 1, 2) @ T_gt[nearest, :3, :3])
+    dist_mm = 1000 * np.linalg.norm(T[:, :3, 3] - T_world_cam_gt[nearest, :3, 3], axis=1)
+    angle_deg = rotation_angle_deg(np.swapaxes(T[:, :3, :3], 1, 2) @ T_world_cam_gt[nearest, :3, :3])
     assert dist_mm.max() < 3.0  # <= 5 ms of motion at fr1/xyz's ~0.4 m/s
     assert angle_deg.max() < 0.3
     assert np.allclose(T[:, :3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2), np.eye(3), atol=1e-9)

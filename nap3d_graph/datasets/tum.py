@@ -273,10 +273,10 @@ class TumSequence(GroundTruthLookup):
         no pose; ``has_gt`` says which, and a warning says how many."""
         if not gt_path.is_file():
             return
-        stamps_gt, T_gt = read_tum_trajectory(gt_path)
-        self._gt_raw = (stamps_gt, T_gt)
+        stamps_gt, T_world_cam_gt = read_tum_trajectory(gt_path)
+        self._gt_raw = (stamps_gt, T_world_cam_gt)
         try:
-            T = interpolate_poses(stamps_gt, T_gt, self.timestamps)
+            T = interpolate_poses(stamps_gt, T_world_cam_gt, self.timestamps)
         except DatasetError as exc:
             raise DatasetError(f"{gt_path}: {exc}") from None
         keep = np.all(np.isfinite(T), axis=(1, 2))

@@ -118,8 +118,8 @@ def run_estimator(estimator, stream: MeasurementStream) -> EstimatorResult:
 def stream_from_run(result, sequence, config, imu=None, velocity0=None) -> MeasurementStream:
     """The stream a reference :class:`~nap3d_graph.run.pipeline.Pipeline` run measured."""
     P0 = np.diag([config.prior_rot_sigma_rad**2] * 3 + [config.prior_trans_sigma_m**2] * 3)
-    T_gt = None if getattr(sequence, "T_world_cam_gt", None) is None else np.asarray(sequence.T_world_cam_gt)[
+    T_world_cam_gt = None if getattr(sequence, "T_world_cam_gt", None) is None else np.asarray(sequence.T_world_cam_gt)[
         :len(result.timestamps)]
     return MeasurementStream(np.asarray(result.timestamps), list(result.increments), list(result.keyframe_indices),
                              dict(result.interval_odometry), dict(result.corrections),
-                             np.asarray(result.T_world_cam_odometry[0]), P0, config.gate_p, imu, velocity0, T_gt)
+                             np.asarray(result.T_world_cam_odometry[0]), P0, config.gate_p, imu, velocity0, T_world_cam_gt)

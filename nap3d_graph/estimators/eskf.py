@@ -84,8 +84,8 @@ class ErrorStateEKF(_PoseCorrections):
         self._start_corrections(stream)
         self.kf = KalmanFilter(dim_x=6, dim_z=6)
         self.kf.P = np.asarray(stream.P0, float).copy()
-        self.T_kf = np.asarray(stream.T_world_cam0, float).copy()
-        self.T = self.T_kf.copy()
+        self.T_world_kf = np.asarray(stream.T_world_cam0, float).copy()
+        self.T = self.T_world_kf.copy()
         self.at_keyframe = True
 
     def step(self, i: int) -> None:
@@ -96,13 +96,13 @@ class ErrorStateEKF(_PoseCorrections):
             return
         T_int, Q = s.interval_odometry[i]
         self.kf.predict(F=adjoint(inv_T(T_int)), Q=np.asarray(Q, float))
-        self.T_kf = self.T_kf @ T_int
-        dx = self._correct(i, self.T_kf, np.eye(6))
+        self.T_world_kf = self.T_world_kf @ T_int
+        dx = self._correct(i, self.T_world_kf, np.eye(6))
         if dx is not None:
-            self.T_kf = self.T_kf @ exp_se3(dx)
+            self.T_world_kf = self.T_world_kf @ exp_se3(dx)
             G = np.eye(6) - 0.5 * _ad_se3(dx)
             self.kf.P = G @ self.kf.P @ G.T
-        self.T = self.T_kf.copy()
+        self.T = self.T_world_kf.copy()
         self.at_keyframe = True
 
     def current(self):

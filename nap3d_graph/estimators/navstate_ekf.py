@@ -4,7 +4,7 @@ The filter's state is a ``NavState`` (attitude, position, velocity: 9-dim, GTSAM
 order ``[rotation, position, velocity]``, right perturbation); it has no bias states, so the
 IMU is fed with the prior bias (zero) and the unknown bias has to live in the process noise:
 the accelerometer and gyroscope densities are inflated by the prior bias sigma over the
-keyframe interval (``density^2 + sigma_b^2 * T_kf``: a constant bias acting for ``T_kf``
+keyframe interval (``density^2 + sigma_b^2 * T_world_kf``: a constant bias acting for ``T_world_kf``
 seconds moves the velocity as much as white noise of that density would). Without it the
 filter believes its IMU, refuses the first correction the bias has pushed off, and never
 recovers. It is the reason to compare it with the bias-estimating filter and graph.

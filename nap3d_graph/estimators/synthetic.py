@@ -45,17 +45,17 @@ def synthetic_stream(n_frames: int, fps: float = 15.0, keyframe_every: int = 5, 
     rng = np.random.default_rng(seed)
     stamps = np.arange(n_frames) / fps
     trajectory = _trajectory(float(stamps[-1]) + 1.0, rotate)
-    T_gt = trajectory.poses(stamps)
+    T_world_cam_gt = trajectory.poses(stamps)
     rot_on = 1.0 if rotate else 0.0
     Q = np.diag([odom_rot_sigma**2 * rot_on] * 3 + [odom_trans_sigma**2] * 3)
     R = np.diag([corr_rot_sigma**2] * 3 + [corr_trans_sigma**2] * 3)
     P0 = np.diag([prior_rot_sigma**2 * rot_on] * 3 + [prior_trans_sigma**2] * 3)
     noise_Q = np.sqrt(np.diag(Q))
     noise_R = np.sqrt(np.diag(R)) * np.r_[[rot_on] * 3, [1.0] * 3]
-    T0 = T_gt[0] @ exp_se3(rng.normal(size=6) * np.sqrt(np.diag(P0)))
+    T0 = T_world_cam_gt[0] @ exp_se3(rng.normal(size=6) * np.sqrt(np.diag(P0)))
     increments = [np.eye(4)]
     for i in range(1, n_frames):
-        increments.append(inv_T(T_gt[i - 1]) @ T_gt[i] @ exp_se3(rng.normal(size=6) * noise_Q))
+        increments.append(inv_T(T_world_cam_gt[i - 1]) @ T_world_cam_gt[i] @ exp_se3(rng.normal(size=6) * noise_Q))
     keyframes = list(range(0, n_frames, keyframe_every))
     interval, corrections = {}, {}
     for a, b in zip(keyframes[:-1], keyframes[1:]):
@@ -65,9 +65,9 @@ def synthetic_stream(n_frames: int, fps: float = 15.0, keyframe_every: int = 5, 
             T_int = T_int @ increments[m]
         interval[b] = (T_int, cov)
     for k in keyframes:
-        corrections[k] = (T_gt[k] @ exp_se3(rng.normal(size=6) * noise_R), R.copy())
+        corrections[k] = (T_world_cam_gt[k] @ exp_se3(rng.normal(size=6) * noise_R), R.copy())
     stream = MeasurementStream(stamps, increments, keyframes, interval, corrections, T0, P0, gate_p,
-                               T_world_cam_gt=T_gt)
+                               T_world_cam_gt=T_world_cam_gt)
     if imu:
         _add_imu(stream, trajectory, rng)
     return stream

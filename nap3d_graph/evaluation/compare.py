@@ -45,14 +45,14 @@ def compare(stream, estimators=None) -> list:
     return results
 
 
-def nees_at_keyframes(T_est: np.ndarray, P: np.ndarray, T_gt: np.ndarray, keyframes) -> np.ndarray:
-    """NEES ``e^T P^-1 e`` (6 dof) with ``e = Log(T_est^-1 T_gt)`` at each keyframe that has a
+def nees_at_keyframes(T_world_cam_est: np.ndarray, P: np.ndarray, T_world_cam_gt: np.ndarray, keyframes) -> np.ndarray:
+    """NEES ``e^T P^-1 e`` (6 dof) with ``e = Log(T_world_cam_est^-1 T_world_cam_gt)`` at each keyframe that has a
     covariance and ground truth."""
     out = []
     for i in keyframes:
-        if not (np.all(np.isfinite(P[i])) and np.all(np.isfinite(T_gt[i]))):
+        if not (np.all(np.isfinite(P[i])) and np.all(np.isfinite(T_world_cam_gt[i]))):
             continue
-        e = log_se3(inv_T(T_est[i]) @ T_gt[i])
+        e = log_se3(inv_T(T_world_cam_est[i]) @ T_world_cam_gt[i])
         try:
             out.append(float(e @ np.linalg.solve(P[i], e)))
         except np.linalg.LinAlgError:
@@ -72,12 +72,12 @@ def correction_nees(result) -> np.ndarray:
 
 
 def _row(name: str, T: np.ndarray, P, stream, result, which: str) -> dict:
-    T_gt = stream.T_world_cam_gt
-    posed = np.all(np.isfinite(T_gt), axis=(1, 2))
+    T_world_cam_gt = stream.T_world_cam_gt
+    posed = np.all(np.isfinite(T_world_cam_gt), axis=(1, 2))
     stamps = np.asarray(stream.timestamps)[posed]
-    a = ate(stamps, T_gt[posed], T[posed])
-    r = rpe(stamps, T_gt[posed], T[posed])
-    nees = nees_at_keyframes(T, P, T_gt, stream.keyframes) if P is not None else np.array([])
+    a = ate(stamps, T_world_cam_gt[posed], T[posed])
+    r = rpe(stamps, T_world_cam_gt[posed], T[posed])
+    nees = nees_at_keyframes(T, P, T_world_cam_gt, stream.keyframes) if P is not None else np.array([])
     k = len(nees)
     # Band of the mean of k chi-square(6) values, were they independent (95%).
     band = (chi2.ppf(0.025, 6 * k) / k, chi2.ppf(0.975, 6 * k) / k) if k else (np.nan, np.nan)
@@ -148,11 +148,11 @@ def _json_default(value):
     raise TypeError(f"not JSON: {type(value).__name__}")
 
 
-def _plot(out: Path, stamps, T_gt, trajectories: dict) -> None:
+def _plot(out: Path, stamps, T_world_cam_gt, trajectories: dict) -> None:
     from nap3d_graph.plots import plot_errors, plot_trajectories
 
-    plot_trajectories(out / "trajectories.png", trajectories, T_gt, title="estimators")
-    plot_errors(out / "errors.png", stamps - stamps[0], trajectories, T_gt, title="error over time")
+    plot_trajectories(out / "trajectories.png", trajectories, T_world_cam_gt, title="estimators")
+    plot_errors(out / "errors.png", stamps - stamps[0], trajectories, T_world_cam_gt, title="error over time")
 
 
 def _fmt(value, scale: float, digits: int, width: int) -> str:

@@ -151,7 +151,7 @@ def _single_alignment(method: str, corr, K_real, config: EvalKConfig) -> Alignme
     return align_correspondences(corr, K_real, replace(config.align, **changes))
 
 
-def _run_methods(frame_given: RGBDFrame, view, field_obj, T_est, config: EvalKConfig, feats_real, feats_view):
+def _run_methods(frame_given: RGBDFrame, view, field_obj, T_world_cam_est, config: EvalKConfig, feats_real, feats_view):
     """Every method on one cell, sharing one set of matches. Yields (method, success,
     reason, corrected pose, covariance, matches, inliers, intrinsics model, seconds)."""
     timings: dict = {}
@@ -161,7 +161,7 @@ def _run_methods(frame_given: RGBDFrame, view, field_obj, T_est, config: EvalKCo
     for method in config.methods:
         t0 = time.perf_counter()
         if method == "nap3d-iter":
-            c = correct_pose(frame_given, field_obj, T_est, iterations=config.iterations, config=config.align,
+            c = correct_pose(frame_given, field_obj, T_world_cam_est, iterations=config.iterations, config=config.align,
                              render_intrinsics=view.intrinsics)
             model = c.alignment.diagnostics.get("intrinsics_model", "")
             yield (method, c.success, c.reason, c.T_world_cam_corrected, c.covariance, c.num_matches,
@@ -169,15 +169,15 @@ def _run_methods(frame_given: RGBDFrame, view, field_obj, T_est, config: EvalKCo
             continue
         result = Alignment.failure(reason) if corr is None else _single_alignment(method, corr,
                                                                                  frame_given.intrinsics, config)
-        T_corr = result.corrected_pose(T_est) if result.success else T_est
+        T_corr = result.corrected_pose(T_world_cam_est) if result.success else T_world_cam_est
         yield (method, result.success, result.reason, T_corr, result.covariance, result.num_matches,
                result.num_inliers, result.diagnostics.get("intrinsics_model", ""),
                time.perf_counter() - t0 + t_match)
 
 
-def _nees(T_corr: np.ndarray, covariance: np.ndarray, T_gt: np.ndarray) -> float | str:
+def _nees(T_corr: np.ndarray, covariance: np.ndarray, T_world_cam_gt: np.ndarray) -> float | str:
     """Normalised estimation error squared of a corrected pose (GTSAM order, right perturbation)."""
-    e = log_se3(inv_T(T_corr) @ T_gt)
+    e = log_se3(inv_T(T_corr) @ T_world_cam_gt)
     try:
         value = float(e @ np.linalg.solve(covariance, e))
     except np.linalg.LinAlgError:
@@ -206,11 +206,11 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
         raise ValueError(f"{sequence.path}: no frame has a ground-truth pose")
     for scenario in range(config.scenarios):
         index = int(posed[rng.integers(len(posed))])
-        T_gt = sequence.T_world_cam_gt[index]
-        T_est = T_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)
+        T_world_cam_gt = sequence.T_world_cam_gt[index]
+        T_world_cam_est = T_world_cam_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)
         frame = at_colour_instant(sequence, index, config.timing)
-        uncorrected = _errors(frame, T_est, T_gt, config)
-        view, render_reason = render_safely(field_obj, T_est, frame.intrinsics)
+        uncorrected = _errors(frame, T_world_cam_est, T_world_cam_gt, config)
+        view, render_reason = render_safely(field_obj, T_world_cam_est, frame.intrinsics)
         # Features depend on the image only: once per view and per blur level, reused by
         # the four intrinsics settings (which only change the back-projection).
         feats_view = view_features(view, config.align) if view is not None else None
@@ -233,11 +233,11 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
                     view_told = RenderedView(view.rgb, view.depth_m, view.opacity, K_given)
                     field_told = _ToldShiftedIntrinsics(field_obj, view.intrinsics, K_given)
                 for method, ok, reason, T_corr, cov, n_match, n_in, model, secs in _run_methods(
-                        given, view_told, field_told, T_est, config, feats_real, feats_view):
+                        given, view_told, field_told, T_world_cam_est, config, feats_real, feats_view):
                     row = {**base, "method": method, "success": ok, "reason": reason, "num_matches": n_match,
                            "num_inliers": n_in, "intrinsics_model": model, "time_s": round(secs, 4)}
                     if ok:
-                        row.update(_errors(frame, T_corr, T_gt, config), nees=_nees(T_corr, cov, T_gt))
+                        row.update(_errors(frame, T_corr, T_world_cam_gt, config), nees=_nees(T_corr, cov, T_world_cam_gt))
                     else:
                         row.update(uncorrected)
                     rows.append(row)
@@ -280,10 +280,10 @@ def at_colour_instant(sequence, index: int, timing: CaptureTiming | None) -> RGB
     return frame.with_depth(depth)
 
 
-def _errors(frame: RGBDFrame, T_corr: np.ndarray, T_gt: np.ndarray, config: EvalKConfig) -> dict:
-    t_err, r_err = pose_error(T_corr, T_gt)
+def _errors(frame: RGBDFrame, T_corr: np.ndarray, T_world_cam_gt: np.ndarray, config: EvalKConfig) -> dict:
+    t_err, r_err = pose_error(T_corr, T_world_cam_gt)
     return {"rot_err_deg": r_err, "trans_err_m": t_err,
-            "rmse_3d_m": rmse_3d(frame.depth_m, frame.intrinsics, T_corr, T_gt, config.grid_stride)}
+            "rmse_3d_m": rmse_3d(frame.depth_m, frame.intrinsics, T_corr, T_world_cam_gt, config.grid_stride)}
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:

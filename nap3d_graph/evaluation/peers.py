@@ -68,19 +68,19 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
     rows: list[dict] = []
     for trial in tqdm(range(config.trials), desc="bench-peers", unit="trial", disable=not progress):
         index = int(posed[rng.integers(len(posed))])
-        T_gt = sequence.T_world_cam_gt[index]
-        T_est = T_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)
+        T_world_cam_gt = sequence.T_world_cam_gt[index]
+        T_world_cam_est = T_world_cam_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)
         frame = at_colour_instant(sequence, index, config.timing)
         if config.render_size is not None and tuple(config.render_size) != frame.intrinsics.shape[::-1]:
             frame = resize_frame(frame, *config.render_size)
-        t_unc, r_unc = pose_error(T_est, T_gt)
+        t_unc, r_unc = pose_error(T_world_cam_est, T_world_cam_gt)
         base = {"trial": trial, "frame_index": index, "uncorrected_trans_m": t_unc, "uncorrected_rot_deg": r_unc}
-        view, reason = render_safely(field, T_est, frame.intrinsics)
+        view, reason = render_safely(field, T_world_cam_est, frame.intrinsics)
         if view is None:
             rows += [{**base, "method": m, "success": False, "reason": reason, "trans_err_m": t_unc,
                       "rot_err_deg": r_unc} for m in config.methods]
             continue
-        results, corr = run_peers(frame, view, config.methods, field, T_est,
+        results, corr = run_peers(frame, view, config.methods, field, T_world_cam_est,
                                       align_config=AlignConfig(matcher=config.matcher))
         bound_r = bound_t = float("nan")
         refined = results.get("nap3d-refined")
@@ -88,11 +88,11 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
             from nap3d_graph.nap3d.correspondences import subset
 
             # The bound for the noise these inliers carry (their residuals at the true pose).
-            bound = cramer_rao_bound(inv_T(T_gt) @ T_est, subset(corr, refined.inlier_mask), frame.intrinsics,
+            bound = cramer_rao_bound(inv_T(T_world_cam_gt) @ T_world_cam_est, subset(corr, refined.inlier_mask), frame.intrinsics,
                                      noise="measured")
             bound_r, bound_t = bound_sigmas(bound)
         for name, a in results.items():
-            t_err, r_err = pose_error(a.corrected_pose(T_est), T_gt) if a.success else (t_unc, r_unc)
+            t_err, r_err = pose_error(a.corrected_pose(T_world_cam_est), T_world_cam_gt) if a.success else (t_unc, r_unc)
             rows.append({**base, "method": name, "success": a.success, "reason": a.reason, "trans_err_m": t_err,
                          "rot_err_deg": r_err, "ms": 1000 * a.timings_s.get("total", np.nan),
                          "num_inliers": a.num_inliers, "crb_trans_m": bound_t, "crb_rot_deg": np.degrees(bound_r)})

@@ -134,16 +134,16 @@ def shared_world_check(field, sequence, config: StudyConfig, frames: int = 6) ->
     from nap3d_graph.run.config import PipelineConfig
 
     run_config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=choose_matcher(config.matcher, sequence)[0]))
-    T_gt = sequence.T_world_cam_gt
-    if T_gt is None:
+    T_world_cam_gt = sequence.T_world_cam_gt
+    if T_world_cam_gt is None:
         return {"shared": None, "why": "the query has no ground truth"}
     sizes, failed = [], 0
     for i in np.linspace(0, len(sequence) - 1, min(frames, len(sequence))).round().astype(int):
-        if not np.all(np.isfinite(T_gt[i])):
+        if not np.all(np.isfinite(T_world_cam_gt[i])):
             continue
-        c = measure_frame(sequence, int(i), field, T_gt[i], run_config, with_twist=False)
+        c = measure_frame(sequence, int(i), field, T_world_cam_gt[i], run_config, with_twist=False)
         if c.success:
-            sizes.append(pose_error(c.T_world_cam_corrected, T_gt[i])[0])
+            sizes.append(pose_error(c.T_world_cam_corrected, T_world_cam_gt[i])[0])
         else:
             failed += 1
     median = float(np.median(sizes)) if sizes else float("nan")

@@ -107,14 +107,14 @@ def measure_field_error(field, sequence, indices, timing: CaptureTiming | None =
     sigmas = np.array([perturbation[1]] * 3 + [perturbation[0]] * 3)
     for i in np.asarray(indices, dtype=int):
         offset = exp_se3(rng.normal(0.0, sigmas))  # drawn for every frame: the same offsets whatever fails
-        T_gt = sequence.T_world_cam_gt[i]
-        if not np.all(np.isfinite(T_gt)):
+        T_world_cam_gt = sequence.T_world_cam_gt[i]
+        if not np.all(np.isfinite(T_world_cam_gt)):
             continue
-        correction = measure_frame(sequence, int(i), field, T_gt @ offset, config, timing, render_size)
+        correction = measure_frame(sequence, int(i), field, T_world_cam_gt @ offset, config, timing, render_size)
         if not correction.success or not np.all(np.isfinite(correction.covariance)):
             failed += 1
             continue
-        errors.append(log_se3(inv_T(correction.T_world_cam_corrected) @ T_gt))
+        errors.append(log_se3(inv_T(correction.T_world_cam_corrected) @ T_world_cam_gt))
         covariances.append(np.asarray(correction.covariance, dtype=float))
     result = {"frames": len(errors), "failed": failed, "sigma_m": 0.0, "sigma_rad": 0.0}
     if len(errors) < min_frames:

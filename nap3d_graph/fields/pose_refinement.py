@@ -50,7 +50,7 @@ class PoseRefinementConfig:
 
 
 class PoseCorrectedSequence:
-    """``sequence`` with each frame ``i`` of ``corrections`` posed at ``T_gt[i] @ D_i`` (D_i: a
+    """``sequence`` with each frame ``i`` of ``corrections`` posed at ``T_world_cam_gt[i] @ D_i`` (D_i: a
     body-frame correction (4, 4)); ``ground_truth_at(t)`` applies the correction of the frame
     nearest in time, so the capture-timing interpolation of a field build still works."""
 

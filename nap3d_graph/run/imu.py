@@ -73,14 +73,14 @@ class ImuOdometry:
         """The sequence's IMU, starting at its ground truth's first pose and velocity (or
         ``initial_pose`` at rest)."""
         stream = ImuStream.from_sequence(sequence, config)
-        T_gt = getattr(sequence, "T_world_cam_gt", None)
+        T_world_cam_gt = getattr(sequence, "T_world_cam_gt", None)
         if initial_pose is not None:
             return cls(stream, np.asarray(initial_pose, float), np.zeros(3))
-        if T_gt is None or not np.all(np.isfinite(T_gt[:2])):
+        if T_world_cam_gt is None or not np.all(np.isfinite(T_world_cam_gt[:2])):
             raise ValueError(f"{sequence.path}: --odom imu needs the starting pose: give --initial-pose")
         dt = float(sequence.timestamps[1] - sequence.timestamps[0])
-        velocity = (T_gt[1][:3, 3] - T_gt[0][:3, 3]) / dt
-        return cls(stream, T_gt[0], velocity)
+        velocity = (T_world_cam_gt[1][:3, 3] - T_world_cam_gt[0][:3, 3]) / dt
+        return cls(stream, T_world_cam_gt[0], velocity)
 
 
 def gravity_aligned_frame(g_field: np.ndarray) -> np.ndarray:

@@ -390,20 +390,20 @@ class Pipeline:
             np.zeros(len(self.sequence), dtype=bool)
 
     def _finish(self, n: int) -> RunResult:
-        T_gt = None if self.sequence.T_world_cam_gt is None else np.asarray(self.sequence.T_world_cam_gt[:n])
+        T_world_cam_gt = None if self.sequence.T_world_cam_gt is None else np.asarray(self.sequence.T_world_cam_gt[:n])
         stamps = np.asarray(self.sequence.timestamps[:n], dtype=float)
         if not self.keyframe_indices:  # stopped before the first keyframe: odometry is all there is
             T_world_cam_odom = np.stack(self.motion.T_world_cam_odom[:n])
-            return RunResult(stamps, T_world_cam_odom, T_world_cam_odom, T_gt, [], [], T_world_cam_online=T_world_cam_odom)
+            return RunResult(stamps, T_world_cam_odom, T_world_cam_odom, T_world_cam_gt, [], [], T_world_cam_online=T_world_cam_odom)
         accepted = {r.frame_index for r in self.records if r.accepted}
         estimate = self.graph.final_estimate(accepted)
         frozen = self.graph.frozen
         T_world_kf_by_frame = {idx: frozen[j] if j in frozen else pose3_to_T(estimate.atPose3(X(j)))
                 for j, idx in enumerate(self.keyframe_indices)}
-        T_est = self.motion.smoothed(estimate, T_world_kf_by_frame, self.keyframe_indices, stamps)
+        T_world_cam_est = self.motion.smoothed(estimate, T_world_kf_by_frame, self.keyframe_indices, stamps)
         T_online = self.motion.causal(self._online, stamps)
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
-        result = RunResult(stamps, T_est, np.stack(self.motion.T_world_cam_odom[:n]), T_gt, self.records,
+        result = RunResult(stamps, T_world_cam_est, np.stack(self.motion.T_world_cam_odom[:n]), T_world_cam_gt, self.records,
                            list(self.keyframe_indices), T_map, T_world_cam_online=T_online,
                            gnc_outliers=list(self.graph.gnc_outliers), gnc_recovered=list(self.graph.gnc_recovered),
                            depth_scale=self.depth_scale.scale, interval_odometry=dict(self.interval_odometry),
