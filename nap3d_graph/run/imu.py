@@ -42,7 +42,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import B, M, V, X
 
-from nap3d_graph.conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T
+from nap3d_graph.conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T, pose_error
 from nap3d_graph.factors import imu_factor, noise_model, odometry_factor
 from nap3d_graph.imu import ImuConfig, ImuStream
 from nap3d_graph.run.config import PipelineConfig
@@ -183,9 +183,28 @@ class ImuMotion:
         self.dt_since_kf += dt
         if self._vo_since is not None:
             inc = self.odometry.fallback.increment(i, frame)
-            self._vo_increments[i] = inc.T_prev_cur
-            self.T_kf_cam = self.T_kf_cam @ inc.T_prev_cur
-            self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
+            T_prev_cur, covariance = self._checked_step(inc, t - dt, t)
+            self._vo_increments[i] = T_prev_cur
+            self.T_kf_cam = self.T_kf_cam @ T_prev_cur
+            self.cov_since_kf = compose_covariance(self.cov_since_kf, T_prev_cur, covariance)
+
+    #: A fallback step that disagrees with the IMU's own motion over the frame by more than
+    #: this (m, deg) is replaced by the IMU's: over one frame the IMU does not drift, a visual
+    #: odometry's wrong minimum (a one-frame jump) does.
+    STEP_GATE = (0.03, 3.0)
+
+    def _checked_step(self, inc, t_prev: float, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """The fallback's step, or the IMU's over the same frame (predicted from the last
+        keyframe's state) when the two disagree beyond ``STEP_GATE``."""
+        nav_prev = self._predict(self.t_kf, self.nav_kf, self.bias_kf, t_prev)
+        nav_cur = self._predict(self.t_kf, self.nav_kf, self.bias_kf, t)
+        T_imu = inv_T(pose3_to_T(nav_prev.pose())) @ pose3_to_T(nav_cur.pose())
+        moved_m, turned_deg = pose_error(inc.T_prev_cur, T_imu)
+        if moved_m <= self.STEP_GATE[0] and turned_deg <= self.STEP_GATE[1]:
+            return inc.T_prev_cur, inc.covariance
+        log.debug("fallback step at t=%.3f disagrees with the IMU by %.3f m / %.2f deg: the IMU's is used", t,
+                  moved_m, turned_deg)
+        return T_imu, np.asarray(inc.covariance) + np.diag([np.radians(1.0) ** 2] * 3 + [0.02 ** 2] * 3)
 
     def since_keyframe(self) -> np.ndarray:
         return self.T_kf_cam
