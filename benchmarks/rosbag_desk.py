@@ -40,8 +40,9 @@ def _read_all(sequence) -> tuple[float, list]:
 def _run(data: Path, traj: str, field: Path, out: Path, extra=()) -> dict:
     from nap3d_graph.cli import main
 
+    # SIFT, as when these figures were measured: the benchmark compares sources, not matchers.
     code = main(["run", "--traj", traj, "--data", str(data), "--frames", "0.5:1", "--field", str(field), "--odom",
-                 "vo", "--out", str(out), *extra])
+                 "vo", "--matcher", "sift", "--out", str(out), *extra])
     if code != 0:
         raise SystemExit(f"run on {data} failed ({code})")
     metrics = json.loads((out / "latest" / "metrics.json").read_text())
