@@ -24,22 +24,6 @@ ROOMS = (31, 32, 33)
 MAPPED_FRAMES = 30
 
 
-class PartlyMapped:
-    """The exact field, empty farther than ``radius`` from the first ``mapped`` frames' positions."""
-
-    def __init__(self, sequence, mapped: int, radius: float = 0.05):
-        self._field, self.name, self.bounds = sequence.oracle_field(), "start of the walk", None
-        self._positions, self._radius = np.asarray(sequence.T_world_cam_gt)[:mapped, :3, 3], radius
-
-    def render(self, T_world_cam, intrinsics):
-        from nap3d_graph.camera import RenderedView
-
-        view = self._field.render(T_world_cam, intrinsics)
-        if np.min(np.linalg.norm(self._positions - T_world_cam[:3, 3], axis=1)) > self._radius:
-            return RenderedView(view.rgb, view.depth_m, np.zeros_like(view.opacity), view.intrinsics)
-        return view
-
-
 def run_walk(room: int, folder: Path) -> dict:
     from nap3d_graph.conventions import pose_error
     from nap3d_graph.datasets import SimSequence
@@ -47,6 +31,7 @@ def run_walk(room: int, folder: Path) -> dict:
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.imu import ImuOdometry
     from nap3d_graph.run.pipeline import Pipeline
+    from nap3d_graph.sims.reframe import PartlyMappedField
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
     path = simulate_sequence(folder / f"room{room}", SimConfig(frames=90, fps=10.0, width=160, height=120,
@@ -57,7 +42,7 @@ def run_walk(room: int, folder: Path) -> dict:
     for name, fallback in (("imu_alone", None), ("dense", DenseVisualOdometry()), ("vo", VisualOdometry())):
         odometry = ImuOdometry.from_sequence(walk)
         odometry.fallback = fallback
-        result = Pipeline(walk, PartlyMapped(walk, MAPPED_FRAMES), odometry, config).run()
+        result = Pipeline(walk, PartlyMappedField(walk, MAPPED_FRAMES), odometry, config).run()
         smoothed = np.array([pose_error(a, b)[0] for a, b in zip(result.T_world_cam_estimate, walk.T_world_cam_gt)])
         causal = np.array([pose_error(a, b)[0] for a, b in zip(result.T_world_cam_online, walk.T_world_cam_gt)])
         row[name] = {"end_m": float(smoothed[-1]), "end_causal_m": float(causal[-1]),

@@ -7,28 +7,13 @@ import logging
 import numpy as np
 import pytest
 
-from nap3d_graph.camera import RenderedView
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import SimSequence
 from nap3d_graph.odometry import DenseVisualOdometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.imu import ImuOdometry
 from nap3d_graph.run.pipeline import Pipeline
-
-
-class _PartlyMapped:
-    """The exact field, but empty (no opacity) farther than ``radius`` from where the first
-    ``mapped`` frames went: a field whose survey covered only the start of the walk."""
-
-    def __init__(self, sequence, mapped: int, radius: float = 0.05):
-        self._field, self.name, self.bounds = sequence.oracle_field(), "start of the walk", None
-        self._positions, self._radius = np.asarray(sequence.T_world_cam_gt)[:mapped, :3, 3], radius
-
-    def render(self, T_world_cam, intrinsics):
-        view = self._field.render(T_world_cam, intrinsics)
-        if np.min(np.linalg.norm(self._positions - T_world_cam[:3, 3], axis=1)) > self._radius:
-            return RenderedView(view.rgb, view.depth_m, np.zeros_like(view.opacity), view.intrinsics)
-        return view
+from nap3d_graph.sims.reframe import PartlyMappedField
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +25,7 @@ def _run(walk, fallback):
     odometry = ImuOdometry.from_sequence(walk)
     odometry.fallback = fallback
     config = PipelineConfig(keyframe_every=4, render_width=None, render_height=None, progress=False)
-    result = Pipeline(walk, _PartlyMapped(walk, mapped=30), odometry, config).run()
+    result = Pipeline(walk, PartlyMappedField(walk, mapped=30), odometry, config).run()
     errors = lambda T: np.array([pose_error(a, b)[0] for a, b in zip(T, walk.T_world_cam_gt)])  # noqa: E731
     return result, errors(result.T_world_cam_estimate), errors(result.T_world_cam_online)
 
@@ -63,7 +48,7 @@ def test_the_imu_run_falls_back_on_visual_odometry_when_the_views_leave_the_fiel
 
 
 def test_the_fallback_hands_back_to_the_imu_when_corrections_land_again(walk, caplog):
-    class _Gap(_PartlyMapped):
+    class _Gap(PartlyMappedField):
         """Empty between frames 30 and 55's places only: the walk comes back into the field."""
 
         def __init__(self, sequence):

@@ -16,7 +16,7 @@ import numpy as np
 
 from .common import UsageError
 
-__all__ = ["apply_run_config", "load_run_config"]
+__all__ = ["apply_run_config", "load_config_file", "load_run_config", "set_unless_given"]
 
 #: config.yaml key -> run option (argparse dest).
 _TOP = {"traj": "traj", "data": "data", "frames": "frames", "field": "field", "odometry": "odom",
@@ -30,8 +30,9 @@ _PIPELINE = {"keyframe_every": "keyframe_every", "keyframe_distance_m": "keyfram
 _RESOLVED = {"timing", "progress", "align"}
 
 
-def load_run_config(path: Path) -> dict:
-    """The mapping a run's ``config.yaml`` holds (one-line errors for a bad file)."""
+def load_config_file(path: Path, section: str, command: str) -> dict:
+    """The mapping a ``command``'s ``config.yaml`` holds, which must have a ``section``
+    mapping (one-line errors for a bad file)."""
     import yaml
 
     try:
@@ -40,9 +41,21 @@ def load_run_config(path: Path) -> dict:
         raise UsageError(f"--config {path}: file not found") from None
     except (OSError, yaml.YAMLError) as exc:
         raise UsageError(f"--config {path}: not a readable YAML file ({str(exc).splitlines()[0]})") from None
-    if not isinstance(config, dict) or "pipeline" not in config:
-        raise UsageError(f"--config {path}: not a run's config.yaml (no 'pipeline' section)")
+    if not isinstance(config, dict) or not isinstance(config.get(section), dict):
+        raise UsageError(f"--config {path}: not a {command}'s config.yaml (no '{section}' section)")
     return config
+
+
+def load_run_config(path: Path) -> dict:
+    """The mapping a run's ``config.yaml`` holds (one-line errors for a bad file)."""
+    return load_config_file(path, "pipeline", "run")
+
+
+def set_unless_given(args, parser, values: dict) -> None:
+    """Set each option of ``values`` the command line left at its default (flags win)."""
+    for dest, value in values.items():
+        if hasattr(args, dest) and getattr(args, dest) == parser.get_default(dest):
+            setattr(args, dest, value)
 
 
 def apply_run_config(args, parser, path: Path) -> None:
@@ -72,9 +85,7 @@ def apply_run_config(args, parser, path: Path) -> None:
         values["gravity"] = float(imu["gravity"])
     if imu.get("fallback_odometry") is not None:
         values["fallback_odom"] = imu["fallback_odometry"]
-    for dest, value in values.items():
-        if hasattr(args, dest) and getattr(args, dest) == parser.get_default(dest):
-            setattr(args, dest, value)
+    set_unless_given(args, parser, values)
     mapped = set(_PIPELINE) | {"render_width", "render_height", "compensate_timing"} | _RESOLVED
     args.pipeline_overrides = {k: v for k, v in pipeline.items() if k not in mapped}
     args.align_overrides = {k: v for k, v in (config.get("align") or {}).items() if k != "matcher"}

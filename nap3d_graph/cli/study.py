@@ -55,24 +55,15 @@ _SETTINGS = {"split": "split", "model": "model", "train_steps": "train_steps", "
 
 def _apply_config(args, path: Path) -> None:
     """Set every option the command line left at its default from a study's config.yaml."""
-    import yaml
+    from .run_config import load_config_file, set_unless_given
 
-    try:
-        config = yaml.safe_load(Path(path).read_text())
-    except FileNotFoundError:
-        raise UsageError(f"--config {path}: file not found") from None
-    except (OSError, yaml.YAMLError) as exc:
-        raise UsageError(f"--config {path}: not a readable YAML file ({str(exc).splitlines()[0]})") from None
-    if not isinstance(config, dict) or not isinstance(config.get("study"), dict):
-        raise UsageError(f"--config {path}: not a study's config.yaml (no 'study' section)")
+    config = load_config_file(path, "study", "study")
     values = {dest: config.get(key) for key, dest in _RECORDINGS.items()}
     values = {k: (Path(v) if k in ("data", "map_data", "query") and v is not None else v) for k, v in values.items()}
     values.update({dest: config["study"][key] for key, dest in _SETTINGS.items() if key in config["study"]})
     if "odometries" in config["study"]:
         values["odom"] = ",".join(config["study"]["odometries"])
-    for dest, value in values.items():
-        if getattr(args, dest) == args.parser.get_default(dest):
-            setattr(args, dest, value)
+    set_unless_given(args, args.parser, values)
 
 
 def run(args) -> int:

@@ -152,15 +152,6 @@ class Pipeline:
         """(4, 4) the latest frame's pose as known now (the causal estimate)."""
         return np.array(self._online[-1])
 
-    @property
-    def T_world_cam_odom(self) -> list[np.ndarray]:
-        """Each frame's pose by the motion source alone (odometry, or the IMU dead-reckoned)."""
-        return self.motion.T_world_cam_odom
-
-    @property
-    def isam_rebuilds(self) -> int:
-        return self.graph.rebuilds
-
     # --- steps -----------------------------------------------------------------------------
 
     def _start(self) -> None:
