@@ -125,8 +125,13 @@ class ImuMotion:
         # Each keyframe's state as known then, with the gravity frame's estimate then (causal).
         self.kf_states: list[tuple[float, gtsam.NavState, gtsam.imuBias.ConstantBias, np.ndarray]] = []
         # Dead reckoning for "odometry alone": in the field's frame with the gravity as given.
-        self._dead_start = (t0, gtsam.NavState(T_to_pose3(odometry.initial_pose()),
-                                               np.asarray(odometry.velocity0, float)))
+        # A running preintegration from the start, extended a frame at a time (as the estimators'
+        # IMU-alone row does), on the field-frame stream.
+        self._dead_nav0 = gtsam.NavState(T_to_pose3(odometry.initial_pose()), np.asarray(odometry.velocity0, float))
+        self._dead_pim = gtsam.PreintegratedCombinedMeasurements(odometry.stream.params, gtsam.imuBias.ConstantBias())
+        self._dead_t = t0
+        # The fallback's last IMU prediction from the keyframe state: (t_kf, t, NavState).
+        self._fallback_nav: tuple[float, float, gtsam.NavState] | None = None
         self.T_world_cam_odom: list[np.ndarray] = [odometry.initial_pose()]
         self.increments: list[np.ndarray] = [np.eye(4)]
         self._notes: list[str] = []
@@ -177,7 +182,10 @@ class ImuMotion:
 
     def frame(self, i: int, frame, t: float, dt: float) -> None:
         # Dead reckoning from the start with the prior bias: the IMU alone, for comparison.
-        dead = self._predict(self._dead_start[0], self._dead_start[1], gtsam.imuBias.ConstantBias(), t)
+        if t > self._dead_t:
+            self.odometry.stream.extend(self._dead_pim, self._dead_t, t)
+            self._dead_t = t
+        dead = self._dead_pim.predict(self._dead_nav0, gtsam.imuBias.ConstantBias())
         self.T_world_cam_odom.append(pose3_to_T(dead.pose()))
         self.increments.append(np.linalg.inv(self.T_world_cam_odom[-2]) @ self.T_world_cam_odom[-1])
         self.dt_since_kf += dt
@@ -196,8 +204,13 @@ class ImuMotion:
     def _checked_step(self, inc, t_prev: float, t: float) -> tuple[np.ndarray, np.ndarray]:
         """The fallback's step, or the IMU's over the same frame (predicted from the last
         keyframe's state) when the two disagree beyond ``STEP_GATE``."""
-        nav_prev = self._predict(self.t_kf, self.nav_kf, self.bias_kf, t_prev)
+        cached = self._fallback_nav
+        if cached is not None and cached[0] == self.t_kf and cached[1] == t_prev:
+            nav_prev = cached[2]  # the previous frame's prediction from the same keyframe state
+        else:
+            nav_prev = self._predict(self.t_kf, self.nav_kf, self.bias_kf, t_prev)
         nav_cur = self._predict(self.t_kf, self.nav_kf, self.bias_kf, t)
+        self._fallback_nav = (self.t_kf, t, nav_cur)
         T_imu = inv_T(pose3_to_T(nav_prev.pose())) @ pose3_to_T(nav_cur.pose())
         moved_m, turned_deg = pose_error(inc.T_prev_cur, T_imu)
         if moved_m <= self.STEP_GATE[0] and turned_deg <= self.STEP_GATE[1]:
