@@ -100,6 +100,7 @@ class ImuMotion:
 
     allows_overlap = False  # the keyframe's IMU state is taken right after its correction
     allows_graph_window = False  # velocities and biases would need marginalising too
+    estimates_field_frame = True  # the gravity frame M(0)
 
     #: How firmly the gravity frame's heading (rad) and origin (m) are held: they are the
     #: gauge of a gravity-aligned frame, which no IMU measurement can tell.

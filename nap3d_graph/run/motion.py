@@ -45,6 +45,8 @@ class MotionModel(Protocol):
     name: str
     allows_overlap: bool
     allows_graph_window: bool
+    #: It puts the field's frame in the graph itself (``anchor_prior``): ``--anchor`` does not apply.
+    estimates_field_frame: bool
     T_world_cam_odom: list[np.ndarray]
     increments: list[np.ndarray]
 
@@ -92,6 +94,7 @@ class OdometryMotion:
 
     allows_overlap = True
     allows_graph_window = True
+    estimates_field_frame = False
 
     def __init__(self, odometry: Odometry, config: PipelineConfig):
         self.odometry, self.config = odometry, config

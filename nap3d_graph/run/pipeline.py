@@ -37,7 +37,7 @@ from nap3d_graph.run.motion import MotionModel, OdometryMotion
 from nap3d_graph.run.records import KeyframeRecord, RunResult
 from nap3d_graph.run.selection import KeyframeSelector
 
-__all__ = ["Pipeline", "motion_model"]
+__all__ = ["Pipeline", "motion_model", "motion_kind"]
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +48,11 @@ def motion_model(odometry, config: PipelineConfig, t0: float) -> MotionModel:
     if isinstance(odometry, ImuOdometry):
         return ImuMotion(odometry, config, t0)
     return OdometryMotion(odometry, config)
+
+
+def motion_kind(odometry) -> type[ImuMotion] | type[OdometryMotion]:
+    """The class :func:`motion_model` makes for ``odometry`` (what it allows, before a run)."""
+    return ImuMotion if isinstance(odometry, ImuOdometry) else OdometryMotion
 
 
 class Pipeline:
@@ -72,8 +77,8 @@ class Pipeline:
         # The field's own error, as it measured it when it was built, unless told otherwise.
         self.config = with_field_error(config or PipelineConfig(), field)
         self.correction_hook = correction_hook
-        motion = self._motion()
-        if self.config.use_anchor and motion.anchor_prior() is not None:
+        motion = motion_kind(odometry)
+        if self.config.use_anchor and motion.estimates_field_frame:
             raise ValueError("--anchor does not apply with --odom imu: the IMU path estimates the field's frame's "
                              "tilt (its gravity) itself")
         if self.config.graph_window and (self.config.use_anchor or not motion.allows_graph_window):
