@@ -38,9 +38,10 @@ def add_parser(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="checkpoint to write (FIELD.pt; its report goes to "
                    "FIELD.report.json)")
     p.add_argument("--force", action="store_true", help="replace an existing checkpoint and its report")
-    p.add_argument("--model", choices=("grid", "splat"), default="grid",
+    p.add_argument("--model", choices=("grid", "splat", "views"), default="grid",
                    help="grid (default, chosen by measurement: see the README): a voxel-grid radiance field trained "
-                   "with torch; splat: surface splats fused from the frames, no training (seconds, not minutes)")
+                   "with torch; splat: surface splats fused from the frames, no training (seconds, not minutes); "
+                   "views: the survey's sharpest frames re-projected into the asked view, no training")
     p.add_argument("--timing", choices=("auto", "none"), default="auto",
                    help="auto: estimate when depth and colour were captured relative to the poses, from the data "
                    "(for recordings with depth stamps and ground truth; the depth scale is left to the run's "

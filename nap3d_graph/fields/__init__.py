@@ -15,7 +15,7 @@ def load_field(path: str | Path):
     """Open a field by what ``path`` is.
 
     * a simulated sequence folder or its ``scene.json``: the exact oracle field of that room;
-    * a ``.pt`` checkpoint written by ``nap3d-graph train-field``: the grid or splat field it holds;
+    * a ``.pt`` checkpoint written by ``nap3d-graph train-field``: the grid, splat or view field it holds;
     * a nerfstudio ``config.yml``: the trained nerfstudio model (needs the optional extra).
     """
     path = Path(path)
@@ -34,6 +34,7 @@ def load_field(path: str | Path):
         from .checkpoint import load_state
         from .grid import CHECKPOINT_FORMAT, GridField
         from .splat import SPLAT_FORMAT, SplatField
+        from .views import VIEW_FORMAT, ViewField
 
         state = load_state(path)
         kind = state.get("format")
@@ -41,6 +42,8 @@ def load_field(path: str | Path):
             return GridField.from_state_dict(state, source=str(path))
         if kind == SPLAT_FORMAT:
             return SplatField.from_state_dict(state, source=str(path))
+        if kind == VIEW_FORMAT:
+            return ViewField.from_state_dict(state, source=str(path))
         raise FieldError(f"{path}: not a nap3d-graph field checkpoint (format {kind!r})")
     if path.suffix in (".yml", ".yaml"):
         from .nerfstudio import load_nerfstudio_field

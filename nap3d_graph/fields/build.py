@@ -12,7 +12,9 @@ Models (``train-field --model``):
 * ``splat``: surface splats fused from the frames, no gradient training
   (:mod:`nap3d_graph.fields.splat`);
 * ``grid``: the dense voxel-grid radiance field trained with torch
-  (:mod:`nap3d_graph.fields.training`).
+  (:mod:`nap3d_graph.fields.training`);
+* ``views``: the survey's sharpest frames re-projected into the asked view, no training
+  (:mod:`nap3d_graph.fields.views`).
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ __all__ = ["MODELS", "DEFAULT_MODEL", "build_field", "estimate_timing"]
 
 log = logging.getLogger(__name__)
 
-MODELS = ("splat", "grid")
+MODELS = ("splat", "grid", "views")
 DEFAULT_MODEL = "grid"
 
 
@@ -113,6 +115,8 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     oracle = oracle_for(sequence)
     if model == "splat":
         field, report = _build_splat(sequence, train_idx, voxel_size_m, timing, progress)
+    elif model == "views":
+        field, report = _build_views(sequence, train_idx, timing, render_size, progress)
     else:
         field, report = _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device,
                                     progress)
@@ -182,6 +186,18 @@ def _build_splat(sequence, train_idx, voxel_size_m, timing, progress):
     field, report = build_splat_field(sequence, train_idx, config, timing.depth_offset_s, timing.colour_offset_s,
                                       timing.depth_scale,
                                       progress=progress)
+    report["config"] = config.to_dict()
+    report["train_seconds"] = report["build_seconds"]
+    return field, report
+
+
+def _build_views(sequence, train_idx, timing, render_size, progress):
+    from .views import ViewFieldConfig, build_view_field
+
+    config = ViewFieldConfig() if render_size is None else ViewFieldConfig(width=render_size[0], height=render_size[1])
+    timing = timing or CaptureTiming()
+    field, report = build_view_field(sequence, train_idx, config, timing.depth_offset_s, timing.colour_offset_s,
+                                     timing.depth_scale, progress=progress)
     report["config"] = config.to_dict()
     report["train_seconds"] = report["build_seconds"]
     return field, report

@@ -1,0 +1,408 @@
+"""A view field: the survey's own sharpest RGB-D frames, re-projected into the asked view.
+
+Fused fields (the grid's colour voxels, the splats' footprints) average the survey's images
+over a few millimetres and several views; a trained map whose texture is blurred by a few
+pixels costs a feature matcher most of its correct matches (fr1/desk: 13-14 dB held out).
+This field keeps the pixels themselves, as image-based renderers do:
+
+Building it (``build_view_field``):
+
+1. every training frame's sharpness (variance of the Laplacian) is measured; frames are taken
+   sharpest first, and a frame is kept as a *view* unless a kept view already sees nearly
+   the same thing (camera within ``min_spacing_m`` and viewing centre within
+   ``min_spacing_m``, see :func:`_view_gap_m`), so the map holds the sharp frames of each
+   stretch, not the motion-blurred ones;
+2. each view's depth is moved from its capture pose to its colour's (the capture timing),
+   scaled (the depth scale) and resampled into the view's colour camera at the stored size
+   (``width`` x ``height``) by a z-buffered forward splat; its colour is resampled by area.
+
+Rendering (``render``): the ``views_per_render`` views nearest the asked pose (camera centre
+plus viewing centre, within ``max_angle_deg`` of its optical axis) are forward-splatted into
+it, the nearest first: each pixel keeps the first view's surface unless a later view puts a
+surface clearly in front of it (an occluder the first view did not see), and takes a later
+view's where the earlier ones left a hole. A splatted pixel far behind its neighbours is a
+background point seen through a crack in a nearer surface and is dropped; one-pixel holes
+surrounded by the same surface are filled from their neighbours. Opacity is 1 where a view
+put a surface, 0 elsewhere.
+
+The field's world frame is that of the training poses; the training frames render as
+themselves (the training-view PSNR is not a figure of merit for this field: held-out
+frames are).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from nap3d_graph.camera import Intrinsics, RenderedView, backproject_depth, warp_depth
+from nap3d_graph.camera import sharpness as image_sharpness
+from nap3d_graph.conventions import inv_T
+
+from .base import FieldError
+from .checkpoint import load_state, meta_json
+
+__all__ = ["ViewFieldConfig", "ViewField", "build_view_field", "VIEW_FORMAT", "VIEW_VERSION"]
+
+log = logging.getLogger(__name__)
+
+VIEW_FORMAT = "nap3d-graph view field"
+VIEW_VERSION = 1
+
+#: Depth of a pixel no point landed on, in splat buffers (finite, so filters can take minima).
+FAR = 1.0e6
+
+
+@dataclass(frozen=True)
+class ViewFieldConfig:
+    """Settings of a view field (defaults for room-sized scenes seen by an RGB-D camera,
+    rendered at 320x240, the pipeline's size)."""
+
+    width: int = 320
+    height: int = 240
+    min_spacing_m: float = 0.04
+    views_per_render: int = 3
+    max_angle_deg: float = 45.0
+    min_depth_m: float = 0.2
+    max_depth_m: float = 4.5
+    crack_rel: float = 0.05
+    occluder_rel: float = 0.05
+    near_m: float = 0.05
+    threads: int | None = 1
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+class ViewField:
+    """Posed RGB-D views behind the field protocol.
+
+    rgb: (V, H, W, 3) uint8; depth_m: (V, H, W) float32 z-depth in each view's colour camera
+    (0 = none); T_world_cam: (V, 4, 4) float64 colour-camera poses (world <- camera);
+    intrinsics: the views' pinhole camera (H x W); meta: JSON-serialisable provenance.
+    """
+
+    name = "views"
+
+    def __init__(self, rgb, depth_m, T_world_cam, intrinsics: Intrinsics, config: ViewFieldConfig | None = None,
+                 meta: dict | None = None):
+        self.rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+        self.depth_m = np.ascontiguousarray(depth_m, dtype=np.float32)
+        self.T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
+        v = self.rgb.shape[0] if self.rgb.ndim == 4 else -1
+        h, w = intrinsics.height, intrinsics.width
+        if (v < 1 or self.rgb.shape != (v, h, w, 3) or self.depth_m.shape != (v, h, w)
+                or self.T_world_cam.shape != (v, 4, 4)):
+            raise FieldError(f"a view field needs rgb (V, {h}, {w}, 3), depth (V, {h}, {w}) and poses (V, 4, 4) "
+                             f"with V >= 1; got {self.rgb.shape}, {self.depth_m.shape}, {self.T_world_cam.shape}")
+        if not np.all(np.isfinite(self.T_world_cam)) or not np.all(np.isfinite(self.depth_m)):
+            raise FieldError("a view field's poses and depths must be finite")
+        self.intrinsics = intrinsics.without_distortion()
+        self.config = config or ViewFieldConfig(width=w, height=h)
+        self.meta = dict(meta or {})
+        self._points: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        depth_med = [float(np.median(d[d > 0])) if np.any(d > 0) else 1.0 for d in self.depth_m]
+        self._look_depth_m = np.asarray(depth_med)
+
+    def __len__(self) -> int:
+        return int(self.rgb.shape[0])
+
+    def __repr__(self) -> str:
+        return f"ViewField({len(self)} views, {self.intrinsics.width}x{self.intrinsics.height})"
+
+    @property
+    def bounds(self) -> np.ndarray:
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for j in range(len(self)):
+            p = self._view_points(j)[0].numpy().astype(np.float64)
+            if len(p):
+                world = p @ self.T_world_cam[j, :3, :3].T + self.T_world_cam[j, :3, 3]
+                lo, hi = np.minimum(lo, world.min(0)), np.maximum(hi, world.max(0))
+        return np.stack([lo, hi])
+
+    # --- rendering ----------------------------------------------------------------------------
+
+    def nearest_views(self, T_world_cam: np.ndarray, count: int | None = None) -> np.ndarray:
+        """Indices of the views that best see what a camera at ``T_world_cam`` sees, best
+        first: smallest camera-centre plus viewing-centre distance, within ``max_angle_deg``."""
+        count = count or self.config.views_per_render
+        gap = _view_gap_m(self.T_world_cam, self._look_depth_m, T_world_cam)
+        axes = self.T_world_cam[:, :3, 2]
+        cos = axes @ np.asarray(T_world_cam)[:3, 2]
+        gap[cos < np.cos(np.radians(self.config.max_angle_deg))] = np.inf
+        order = np.argsort(gap, kind="stable")[:count]
+        return order[np.isfinite(gap[order])]
+
+    def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
+        """RGB, z-depth (m, 0 where no view sees) and opacity at ``T_world_cam`` (4x4,
+        world <- OpenCV camera). Above the stored size the render is made at the stored size
+        and enlarged (no texture is invented)."""
+        from nap3d_graph.fields.grid_render import torch_threads
+
+        T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
+        if T_world_cam.shape != (4, 4) or not np.all(np.isfinite(T_world_cam)):
+            raise FieldError(f"T_world_cam must be a finite 4x4 matrix, got shape {T_world_cam.shape}")
+        intrinsics = intrinsics.without_distortion()
+        K = intrinsics
+        if intrinsics.width > self.intrinsics.width or intrinsics.height > self.intrinsics.height:
+            ratio = min(self.intrinsics.width / intrinsics.width, self.intrinsics.height / intrinsics.height)
+            K = intrinsics.scaled(max(1, int(round(intrinsics.width * ratio))),
+                                  max(1, int(round(intrinsics.height * ratio))))
+        with torch.no_grad(), torch_threads(self.config.threads):
+            rgb, depth = self._composite(T_world_cam, K)
+        if K is not intrinsics:
+            size = (intrinsics.width, intrinsics.height)
+            rgb = cv2.resize(rgb, size, interpolation=cv2.INTER_LINEAR)
+            depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
+        return RenderedView(rgb=rgb, depth_m=depth, opacity=(depth > 0).astype(np.float32), intrinsics=intrinsics)
+
+    def _view_points(self, j: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """View ``j``'s valid pixels as camera points (N, 3) float32 and colours (N, 3) uint8
+        (cached: a run renders near the same views again and again)."""
+        if j not in self._points:
+            points, uv = backproject_depth(self.depth_m[j], self.intrinsics)
+            uv = uv.astype(np.int64)
+            colours = self.rgb[j][uv[:, 1], uv[:, 0]]
+            self._points[j] = (torch.from_numpy(points.astype(np.float32)), torch.from_numpy(colours))
+        return self._points[j]
+
+    def _splat(self, j: int, T_cam_world: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        """View ``j`` forward-splatted into camera ``K`` at ``T_cam_world``: depth (H, W)
+        (``FAR`` where nothing lands) and the index (H, W) of the winning point (-1: none).
+
+        Each point lands on its nearest pixel; where that leaves a hole (the asked camera
+        is nearer the surface than the view was: its pixels spread apart), the hole takes the
+        nearest point landing in its 2x2 footprint instead (``floor(u) + {0, 1}``)."""
+        h, w = K.height, K.width
+        points, _ = self._view_points(j)
+        T = T_cam_world @ self.T_world_cam[j]
+        R = torch.as_tensor(T[:3, :3], dtype=torch.float32)
+        t = torch.as_tensor(T[:3, 3], dtype=torch.float32)
+        p = points @ R.T + t
+        z = p[:, 2]
+        front = (z > self.config.near_m).nonzero()[:, 0]
+        z = z[front]
+        u = K.fx * p[front, 0] / z + K.cx
+        v = K.fy * p[front, 1] / z + K.cy
+        depth, source = _zbuffer(torch.round(u).long(), torch.round(v).long(), z, front, h, w)
+        if (depth >= FAR).any():
+            u0, v0 = torch.floor(u).long(), torch.floor(v).long()
+            wide_depth, wide_source = _zbuffer(torch.cat([u0, u0 + 1, u0, u0 + 1]), torch.cat([v0, v0, v0 + 1, v0 + 1]),
+                                               z.repeat(4), front.repeat(4), h, w)
+            hole = depth >= FAR
+            depth[hole], source[hole] = wide_depth[hole], wide_source[hole]
+        return depth.numpy().reshape(h, w), source.numpy().reshape(h, w)
+
+    def _composite(self, T_world_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+        h, w = K.height, K.width
+        cfg = self.config
+        depth = np.zeros((h, w), np.float32)
+        rgb = np.zeros((h, w, 3), np.uint8)
+        T_cam_world = inv_T(T_world_cam)
+        for j in self.nearest_views(T_world_cam):
+            z, source = self._splat(int(j), T_cam_world, K)
+            z = _drop_cracks(z, cfg.crack_rel)
+            seen = z < FAR
+            empty = depth <= 0
+            in_front = ~empty & (z < depth * (1.0 - cfg.occluder_rel))
+            take = seen & (empty | in_front)
+            if not take.any():
+                continue
+            depth[take] = z[take]
+            rgb[take] = self._view_points(int(j))[1].numpy()[source[take]]
+        depth, rgb = _fill_pinholes(depth, rgb, cfg.crack_rel)
+        return rgb, depth
+
+    # --- checkpoints --------------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        return {"format": VIEW_FORMAT, "version": VIEW_VERSION, "rgb": torch.from_numpy(self.rgb),
+                "depth_m": torch.from_numpy(self.depth_m), "T_world_cam": torch.from_numpy(self.T_world_cam),
+                "intrinsics": json.dumps(self.intrinsics.to_dict()), "config": json.dumps(self.config.to_dict()),
+                "conventions": "units=metres; T_world_cam: world <- OpenCV colour camera at the colour's capture "
+                               "instant; depth_m: z-depth in that camera, 0 = none; rgb: the frame's own colours",
+                "meta": meta_json(self.meta)}
+
+    def save(self, path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(self.state_dict(), tmp)
+        tmp.replace(path)  # never a half-written checkpoint under the real name
+        return path
+
+    @classmethod
+    def from_state_dict(cls, state: dict, source: str = "checkpoint") -> "ViewField":
+        if not isinstance(state, dict) or state.get("format") != VIEW_FORMAT:
+            raise FieldError(f"{source}: not a nap3d-graph view field checkpoint")
+        if state.get("version") != VIEW_VERSION:
+            raise FieldError(f"{source}: view field checkpoint version {state.get('version')!r}, but this "
+                             f"nap3d-graph reads version {VIEW_VERSION}; rebuild it with `nap3d-graph train-field`")
+        missing = [k for k in ("rgb", "depth_m", "T_world_cam", "intrinsics") if k not in state]
+        if missing:
+            raise FieldError(f"{source}: checkpoint lacks {', '.join(missing)}")
+        try:
+            intrinsics = Intrinsics.from_dict(json.loads(state["intrinsics"]))
+            stored = json.loads(state.get("config", "{}"))
+            known = {f.name for f in fields(ViewFieldConfig)}
+            config = ViewFieldConfig(**{k: v for k, v in stored.items() if k in known})
+            meta = json.loads(state.get("meta", "{}"))
+        except (TypeError, ValueError, KeyError) as exc:
+            raise FieldError(f"{source}: unreadable checkpoint metadata ({exc})") from None
+        return cls(state["rgb"].numpy(), state["depth_m"].numpy(), state["T_world_cam"].numpy(), intrinsics,
+                   config, meta)
+
+    @classmethod
+    def load(cls, path) -> "ViewField":
+        path = Path(path)
+        return cls.from_state_dict(load_state(path), source=str(path))
+
+
+def _view_gap_m(T_world_views: np.ndarray, look_depth_m: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+    """(V,) how differently each view sees from a camera at ``T_world_cam``: the distance of
+    the camera centres plus that of the viewing centres (the point ``look_depth_m`` ahead on
+    each optical axis; the asked camera's at each view's depth), in metres."""
+    T = np.asarray(T_world_cam)
+    centres = T_world_views[:, :3, 3]
+    looks = centres + T_world_views[:, :3, 2] * look_depth_m[:, None]
+    asked_looks = T[:3, 3] + T[:3, 2][None, :] * look_depth_m[:, None]
+    return np.linalg.norm(centres - T[:3, 3], axis=1) + np.linalg.norm(looks - asked_looks, axis=1)
+
+
+def _zbuffer(u: torch.Tensor, v: torch.Tensor, z: torch.Tensor, index: torch.Tensor, h: int, w: int):
+    """The nearest of the points at pixels ``(u, v)`` (N,) with depths ``z`` (N,) on an
+    H x W image: depth (H*W,) (``FAR`` where none lands) and the winner's ``index`` (-1)."""
+    ok = ((u >= 0) & (u < w) & (v >= 0) & (v < h)).nonzero()[:, 0]
+    pix, z, index = v[ok] * w + u[ok], z[ok], index[ok]
+    depth = torch.full((h * w,), FAR, dtype=z.dtype)
+    depth.scatter_reduce_(0, pix, z, reduce="amin")
+    winner = z <= depth[pix]
+    source = torch.full((h * w,), -1, dtype=torch.long)
+    source[pix[winner]] = index[winner]
+    return depth, source
+
+
+def _drop_cracks(z: np.ndarray, rel: float) -> np.ndarray:
+    """A splatted depth (H, W) (``FAR`` = nothing) without the background points seen
+    through cracks in a nearer surface: a pixel more than ``rel`` behind the nearest of its
+    3x3 neighbours, when at least 6 of the 8 are that near (a crack has the nearer surface on
+    both sides; a pixel beside a depth edge has it on one, and stays), is set to ``FAR``."""
+    z = z.astype(np.float32)
+    near = cv2.erode(z, np.ones((3, 3), np.uint8))
+    front = (z <= near * (1.0 + rel)).astype(np.float32)
+    count = cv2.filter2D(front, -1, np.ones((3, 3), np.float32), borderType=cv2.BORDER_CONSTANT)
+    out = z.copy()
+    out[(front == 0) & (count >= 6)] = FAR
+    return out
+
+
+def _fill_pinholes(depth: np.ndarray, rgb: np.ndarray, rel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Holes (depth 0) with at least 5 of their 8 neighbours on one surface (within ``rel``
+    of their mean) take the neighbours' mean depth and colour: the splat's cracks, not
+    what no view saw."""
+    seen = (depth > 0).astype(np.float32)
+    box = np.ones((3, 3), np.float32)
+    count = cv2.filter2D(seen, -1, box, borderType=cv2.BORDER_CONSTANT)
+    hole = (depth <= 0) & (count >= 5)
+    if not hole.any():
+        return depth, rgb
+    dsum = cv2.filter2D(depth, -1, box, borderType=cv2.BORDER_CONSTANT)
+    d2sum = cv2.filter2D(depth * depth, -1, box, borderType=cv2.BORDER_CONSTANT)
+    mean = dsum / np.maximum(count, 1)
+    spread = np.sqrt(np.maximum(d2sum / np.maximum(count, 1) - mean**2, 0.0))
+    hole &= spread <= rel * mean
+    csum = cv2.filter2D(rgb.astype(np.float32) * seen[..., None], -1, box, borderType=cv2.BORDER_CONSTANT)
+    depth = depth.copy()
+    rgb = rgb.copy()
+    depth[hole] = mean[hole]
+    rgb[hole] = np.clip(csum[hole] / count[hole][:, None] + 0.5, 0, 255).astype(np.uint8)
+    return depth, rgb
+
+
+# --- building ------------------------------------------------------------------------------------
+
+
+def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, depth_offset_s: float = 0.0,
+                     colour_offset_s: float = 0.0, depth_scale: float = 1.0, progress: bool = False):
+    """The sharp, spread-out views among frames ``indices`` of a posed ``sequence`` as a
+    :class:`ViewField`; returns ``(field, report)``.
+
+    Depth is placed with the ground truth at ``depth_timestamps + depth_offset_s`` and scaled
+    by ``depth_scale``, colour at ``timestamps + colour_offset_s`` (see
+    :mod:`nap3d_graph.datasets.depth_timing`); a sequence with poses at its frame stamps only
+    uses them for both.
+    """
+    from tqdm import tqdm
+
+    from .splat import _capture_poses
+
+    config = config or ViewFieldConfig()
+    indices = np.asarray(indices, dtype=int)
+    if indices.size == 0:
+        raise FieldError("no frames to build a view field from")
+    if getattr(sequence, "T_world_cam_gt", None) is None:
+        raise FieldError("building a view field needs posed frames, but the sequence has no ground-truth poses")
+    started = time.perf_counter()
+    T_depth, T_colour = _capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
+    posed = np.all(np.isfinite(T_depth), axis=(1, 2)) & np.all(np.isfinite(T_colour), axis=(1, 2))
+    K_full = sequence.intrinsics.without_distortion()
+    K = K_full.scaled(min(config.width, K_full.width), min(config.height, K_full.height))
+    sharp = np.full(len(indices), -1.0)
+    for k in tqdm(np.flatnonzero(posed), desc="rate frames", unit="frame", disable=not progress, leave=False):
+        sharp[k] = image_sharpness(sequence[int(indices[k])].rgb)
+    if not posed.any():
+        raise FieldError("no training frame has a finite pose")
+    look_m = float(np.median(_median_depths(sequence, indices[np.flatnonzero(posed)])))
+    chosen = _choose_views(T_colour, sharp, posed, look_m, config.min_spacing_m)
+    rgb = np.empty((len(chosen), K.height, K.width, 3), np.uint8)
+    depth = np.empty((len(chosen), K.height, K.width), np.float32)
+    for n, k in enumerate(tqdm(chosen, desc="store views", unit="view", disable=not progress, leave=False)):
+        frame = sequence[int(indices[k])]
+        rgb[n] = cv2.resize(frame.rgb, (K.width, K.height), interpolation=cv2.INTER_AREA)
+        d = warp_depth(np.nan_to_num(frame.depth_m, nan=0.0), K_full, inv_T(T_colour[k]) @ T_depth[k],
+                       depth_scale, dst_intrinsics=K)
+        d[(d < config.min_depth_m) | (d > config.max_depth_m)] = 0.0
+        depth[n] = d
+    field = ViewField(rgb, depth, T_colour[chosen], K, config)
+    report = {"views": int(len(chosen)), "frames_rated": int(posed.sum()), "look_depth_m": round(look_m, 4),
+              "view_frames": [int(indices[k]) for k in chosen],
+              "sharpness_kept_median": float(np.median(sharp[chosen])),
+              "sharpness_all_median": float(np.median(sharp[posed])),
+              "build_seconds": round(time.perf_counter() - started, 2)}
+    log.info("view field: %d views of %d frames in %.1f s", len(chosen), int(posed.sum()), report["build_seconds"])
+    return field, report
+
+
+def _choose_views(T_colour: np.ndarray, sharp: np.ndarray, posed: np.ndarray, look: float,
+                  min_spacing_m: float) -> np.ndarray:
+    """Positions into the frames of the kept views, in frame order: sharpest first, each kept
+    unless a kept view sees from within ``min_spacing_m`` (:func:`_view_gap_m` with the
+    viewing centres ``look`` metres ahead)."""
+    kept: list[int] = []
+    for k in np.argsort(-sharp, kind="stable"):
+        if not posed[k]:
+            continue
+        if kept:
+            gap = _view_gap_m(T_colour[kept], np.full(len(kept), look), T_colour[k])
+            if gap.min() < min_spacing_m:
+                continue
+        kept.append(int(k))
+    return np.sort(np.asarray(kept, dtype=int))
+
+
+def _median_depths(sequence, indices) -> np.ndarray:
+    """Median sensor depths of up to 5 frames spread over ``indices`` (1 m when none has one)."""
+    picks = np.asarray(indices)[np.linspace(0, len(indices) - 1, min(5, len(indices))).round().astype(int)]
+    values = []
+    for i in picks:
+        d = np.nan_to_num(sequence[int(i)].depth_m, nan=0.0)
+        if np.any(d > 0):
+            values.append(float(np.median(d[d > 0])))
+    return np.asarray(values or [1.0])
