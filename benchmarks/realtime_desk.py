@@ -41,8 +41,10 @@ def stage_ms(records, key: str) -> dict | None:
     return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)), "max": float(values.max())}
 
 
-def run(sequence, field, overlap: bool, keyframe_every: int) -> dict:
-    config = PipelineConfig(overlap=overlap, keyframe_every=keyframe_every)
+def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str) -> dict:
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    config = PipelineConfig(overlap=overlap, keyframe_every=keyframe_every, align=AlignConfig(matcher=matcher))
     t0 = time.perf_counter()
     result = Pipeline(sequence, field, make_odometry("dense", sequence), config).run()
     wall_s = time.perf_counter() - t0
@@ -67,25 +69,45 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", nargs="?", type=Path, default=Path("../shared/data/tum/rgbd_dataset_freiburg1_desk"))
     p.add_argument("--frames", default="0.5:1")
-    p.add_argument("--field", type=Path, default=Path("benchmarks/results/study_fr1_desk/field.pt"))
+    p.add_argument("--field", action="append", default=None, metavar="[NAME=]FIELD.pt",
+                   help="a field built on the other frames (repeat to compare; default the study's)")
+    p.add_argument("--matcher", default="sift")
     p.add_argument("--keyframe-every", type=int, nargs="+", default=[5, 10])
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/realtime_fr1_desk.json"))
     args = p.parse_args()
     sequence = open_sequence(args.data, frames=args.frames)
-    field = load_field(args.field)
-    out = {"data": args.data.name, "frames": args.frames, "field": str(args.field), "odometry": "dense",
+    fields = {}
+    for item in args.field or ["benchmarks/results/study_fr1_desk/field.pt"]:
+        name, sep, path = item.partition("=")
+        if not sep or "/" in name:  # a bare path (which may hold '=' itself)
+            name, path = "", item
+        fields[name or Path(path).stem] = Path(path)
+    out = {"data": args.data.name, "frames": args.frames, "fields": {k: str(v) for k, v in fields.items()},
+           "odometry": "dense", "matcher": args.matcher,
            "camera_rate_hz": float(1.0 / np.median(np.diff(sequence.timestamps))), "runs": []}
-    for every in args.keyframe_every:
-        for overlap in (False, True):
-            r = run(sequence, field, overlap, every)
-            out["runs"].append(r)
-            m = r["ms_per_keyframe"]["measure"]
-            print(f"keyframe every {every:2d}, {'overlapped' if overlap else 'inline    '}: {r['frames_per_s']:5.1f} "
-                  f"frame/s; ATE {r['ate_m'] * 100:.2f} cm (causal {r['causal_ate_m'] * 100:.2f}, odometry "
-                  f"{r['odometry_ate_m'] * 100:.2f}); {r['accepted']}/{r['keyframes']} accepted; measurement "
-                  f"{m['median']:.0f} ms median, p90 {m['p90']:.0f} ({r['rescale_retries']} measured twice)")
+    reference: dict[int, float] = {}
+    for name, path in fields.items():
+        field = load_field(path)
+        for every in args.keyframe_every:
+            for overlap in (False, True):
+                r = run(sequence, field, overlap, every, args.matcher)
+                r["field"] = name
+                reference.setdefault(every, r["frames_per_s"])
+                r["frames_per_s_vs_first_inline"] = r["frames_per_s"] / reference[every]
+                out["runs"].append(r)
+                report(name, r)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(out, indent=1))
+
+
+def report(name: str, r: dict) -> None:
+    m, every, overlap = r["ms_per_keyframe"]["measure"], r["keyframe_every"], r["overlap"]
+    render = r["ms_per_keyframe"]["render"]
+    print(f"{name:8s} keyframe every {every:2d}, {'overlapped' if overlap else 'inline    '}: {r['frames_per_s']:5.1f} "
+          f"frame/s; ATE {r['ate_m'] * 100:.2f} cm (causal {r['causal_ate_m'] * 100:.2f}, odometry "
+          f"{r['odometry_ate_m'] * 100:.2f}); {r['accepted']}/{r['keyframes']} accepted; measurement "
+          f"{m['median']:.0f} ms median, p90 {m['p90']:.0f} (render {render['median']:.0f}); "
+          f"{r['frames_per_s_vs_first_inline']:.2f}x the first field's inline rate", flush=True)
 
 
 if __name__ == "__main__":

@@ -173,51 +173,53 @@ class ViewField:
             self._points[j] = (torch.from_numpy(points.astype(np.float32)), torch.from_numpy(colours))
         return self._points[j]
 
-    def _splat(self, j: int, T_cam_world: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-        """View ``j`` forward-splatted into camera ``K`` at ``T_cam_world``: depth (H, W)
-        (``FAR`` where nothing lands) and the index (H, W) of the winning point (-1: none).
+    def _splat_all(self, views: np.ndarray, T_cam_world: np.ndarray, K: Intrinsics):
+        """``views`` (best first) forward-splatted together into camera ``K`` at
+        ``T_cam_world``: depth (H, W) (``FAR`` where nothing lands) and colour (H, W, 3).
 
-        Each point lands on its nearest pixel; where that leaves a hole (the asked camera
-        is nearer the surface than the view was: its pixels spread apart), the hole takes the
-        nearest point landing in its 2x2 footprint instead (``floor(u) + {0, 1}``)."""
+        One z-buffer for all: each point lands on its nearest pixel and competes with the
+        depth ``z (1 + occluder_rel * rank)``, rank the view's place in ``views``: a pixel
+        keeps the best view's surface unless a later view's is clearly in front of it (an
+        occluder the best view did not see), and takes a later view's where the earlier left
+        a hole."""
         h, w = K.height, K.width
-        points, _ = self._view_points(j)
-        T = T_cam_world @ self.T_world_cam[j]
-        R = torch.as_tensor(T[:3, :3], dtype=torch.float32)
-        t = torch.as_tensor(T[:3, 3], dtype=torch.float32)
-        p = points @ R.T + t
-        z = p[:, 2]
-        front = (z > self.config.near_m).nonzero()[:, 0]
-        z = z[front]
-        u = K.fx * p[front, 0] / z + K.cx
-        v = K.fy * p[front, 1] / z + K.cy
-        depth, source = _zbuffer(torch.round(u).long(), torch.round(v).long(), z, front, h, w)
-        if (depth >= FAR).any():
-            u0, v0 = torch.floor(u).long(), torch.floor(v).long()
-            wide_depth, wide_source = _zbuffer(torch.cat([u0, u0 + 1, u0, u0 + 1]), torch.cat([v0, v0, v0 + 1, v0 + 1]),
-                                               z.repeat(4), front.repeat(4), h, w)
-            hole = depth >= FAR
-            depth[hole], source[hole] = wide_depth[hole], wide_source[hole]
-        return depth.numpy().reshape(h, w), source.numpy().reshape(h, w)
+        us, vs, zs, keys, colours = [], [], [], [], []
+        for rank, j in enumerate(views):
+            points, rgb = self._view_points(int(j))
+            T = T_cam_world @ self.T_world_cam[j]
+            p = points @ torch.as_tensor(T[:3, :3].T, dtype=torch.float32) + torch.as_tensor(T[:3, 3],
+                                                                                           dtype=torch.float32)
+            front = p[:, 2] > self.config.near_m
+            p = p[front]
+            z = p[:, 2]
+            us.append(torch.round(K.fx * p[:, 0] / z + K.cx).long())
+            vs.append(torch.round(K.fy * p[:, 1] / z + K.cy).long())
+            zs.append(z)
+            keys.append(z * (1.0 + self.config.occluder_rel * rank))
+            colours.append(rgb[front])
+        if not zs:
+            return np.full((h, w), FAR, np.float32), np.zeros((h, w, 3), np.uint8)
+        u, v, z, key, colour = (torch.cat(x) for x in (us, vs, zs, keys, colours))
+        ok = ((u >= 0) & (u < w) & (v >= 0) & (v < h)).nonzero()[:, 0]
+        pix, z, key = v[ok] * w + u[ok], z[ok], key[ok]
+        best = torch.full((h * w,), float("inf"))
+        best.scatter_reduce_(0, pix, key, reduce="amin")
+        winner = (key <= best[pix]).nonzero()[:, 0]
+        depth = torch.full((h * w,), FAR)
+        rgb = torch.zeros((h * w, 3), dtype=torch.uint8)
+        depth[pix[winner]] = z[winner]
+        rgb[pix[winner]] = colour[ok[winner]]
+        return depth.numpy().reshape(h, w), rgb.numpy().reshape(h, w, 3)
 
     def _composite(self, T_world_cam: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
-        h, w = K.height, K.width
-        cfg = self.config
-        depth = np.zeros((h, w), np.float32)
-        rgb = np.zeros((h, w, 3), np.uint8)
-        T_cam_world = inv_T(T_world_cam)
-        for j in self.nearest_views(T_world_cam):
-            z, source = self._splat(int(j), T_cam_world, K)
-            z = _drop_cracks(z, cfg.crack_rel)
-            seen = z < FAR
-            empty = depth <= 0
-            in_front = ~empty & (z < depth * (1.0 - cfg.occluder_rel))
-            take = seen & (empty | in_front)
-            if not take.any():
-                continue
-            depth[take] = z[take]
-            rgb[take] = self._view_points(int(j))[1].numpy()[source[take]]
-        depth, rgb = _fill_pinholes(depth, rgb, cfg.crack_rel)
+        z, rgb = self._splat_all(self.nearest_views(T_world_cam), inv_T(T_world_cam), K)
+        z = _drop_cracks(z, self.config.crack_rel)
+        depth = np.where(z < FAR, z, 0.0).astype(np.float32)
+        rgb[depth <= 0] = 0
+        # Twice: a surface seen nearer than its view was spreads its pixels apart, and the
+        # gaps between them (one pixel wide, sometimes two) close in two passes.
+        for _ in range(2):
+            depth, rgb = _fill_pinholes(depth, rgb, self.config.crack_rel)
         return rgb, depth
 
     # --- checkpoints --------------------------------------------------------------------------
@@ -276,19 +278,6 @@ def _view_gap_m(T_world_views: np.ndarray, look_depth_m: np.ndarray, T_world_cam
     return np.linalg.norm(centres - T[:3, 3], axis=1) + np.linalg.norm(looks - asked_looks, axis=1)
 
 
-def _zbuffer(u: torch.Tensor, v: torch.Tensor, z: torch.Tensor, index: torch.Tensor, h: int, w: int):
-    """The nearest of the points at pixels ``(u, v)`` (N,) with depths ``z`` (N,) on an
-    H x W image: depth (H*W,) (``FAR`` where none lands) and the winner's ``index`` (-1)."""
-    ok = ((u >= 0) & (u < w) & (v >= 0) & (v < h)).nonzero()[:, 0]
-    pix, z, index = v[ok] * w + u[ok], z[ok], index[ok]
-    depth = torch.full((h * w,), FAR, dtype=z.dtype)
-    depth.scatter_reduce_(0, pix, z, reduce="amin")
-    winner = z <= depth[pix]
-    source = torch.full((h * w,), -1, dtype=torch.long)
-    source[pix[winner]] = index[winner]
-    return depth, source
-
-
 def _drop_cracks(z: np.ndarray, rel: float) -> np.ndarray:
     """A splatted depth (H, W) (``FAR`` = nothing) without the background points seen
     through cracks in a nearer surface: a pixel more than ``rel`` behind the nearest of its
@@ -304,13 +293,13 @@ def _drop_cracks(z: np.ndarray, rel: float) -> np.ndarray:
 
 
 def _fill_pinholes(depth: np.ndarray, rgb: np.ndarray, rel: float) -> tuple[np.ndarray, np.ndarray]:
-    """Holes (depth 0) with at least 5 of their 8 neighbours on one surface (within ``rel``
+    """Holes (depth 0) with at least 4 of their 8 neighbours on one surface (within ``rel``
     of their mean) take the neighbours' mean depth and colour: the splat's cracks, not
     what no view saw."""
     seen = (depth > 0).astype(np.float32)
     box = np.ones((3, 3), np.float32)
     count = cv2.filter2D(seen, -1, box, borderType=cv2.BORDER_CONSTANT)
-    hole = (depth <= 0) & (count >= 5)
+    hole = (depth <= 0) & (count >= 4)
     if not hole.any():
         return depth, rgb
     dsum = cv2.filter2D(depth, -1, box, borderType=cv2.BORDER_CONSTANT)
