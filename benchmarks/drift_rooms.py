@@ -4,13 +4,14 @@ For each room (scene seeds 31-34 by default): the survey and a separate traversa
 simulated exactly as the embedded default does for room 0 (240 + 240 frames at 320x240,
 15 Hz, the simulator's drifting odometry), a grid field is trained on the survey for the
 default step budget exactly as the embedded default builds its field (``build_field``, grid,
-capture timing estimated; saved as ``WORKDIR/room<N>_field.pt`` for other benchmarks), and the
+capture timing estimated; saved as ``WORKDIR/room<N>_field.pt`` for other benchmarks; another
+type with ``--model``, saved as ``room<N>_<model>_field.pt``), and the
 pipeline runs along the traversal with its default settings, once with the trained field and
 once with the exact (oracle) field. Reported per room and pooled (mean, min, max): ATE of the
 odometry alone, with NAP3D (smoothed) and causal (evo, no alignment), the ATE of each half,
 corrections accepted, and the median time per keyframe.
 
-    python benchmarks/drift_rooms.py [--rooms 31 32 33 34] [--out benchmarks/results/drift_rooms.json]
+    python benchmarks/drift_rooms.py [--rooms 31 32 33 34] [--model grid] [--out benchmarks/results/drift_rooms.json]
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 
-def run_room(room: int, workdir: Path, steps: int) -> dict:
+def run_room(room: int, workdir: Path, steps: int, model: str = "grid") -> dict:
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.evaluation.metrics import trajectory_metrics
     from nap3d_graph.fields import load_field
@@ -41,16 +42,17 @@ def run_room(room: int, workdir: Path, steps: int) -> dict:
         if not (folders[name] / "scene.json").exists():
             simulate_sequence(folders[name], SimConfig(scene_seed=room, **settings), progress=True)
     walk = SimSequence(folders["walk"])
-    field_path = workdir / f"room{room}_field.pt"
+    field_path = workdir / (f"room{room}_field.pt" if model == "grid" else f"room{room}_{model}_field.pt")
     if field_path.exists():
         field, report = load_field(field_path), json.loads(field_path.with_suffix(".json").read_text())
     else:
-        field, report = build_field(SimSequence(folders["survey"]), "grid", steps=steps, progress=True)
+        field, report = build_field(SimSequence(folders["survey"]), model, steps=steps, progress=True)
         field.save(field_path)
         field_path.with_suffix(".json").write_text(json.dumps(report, indent=1, default=float))
     held = report.get("held_out") or {}
     out = {"field_held_out": {k: held.get(k) for k in ("psnr_db", "psnr_affine_db", "depth_abs_err_m",
-                                                       "opaque_fraction", "opacity_on_surfaces")}}
+                                                       "opaque_fraction", "opacity_on_surfaces")},
+           "field_seconds": report.get("train_seconds")}
     # The trained field records the survey's capture timing; the oracle records none, so it
     # gets the traversal's own estimate (as 'nap3d-graph run --field oracle' does).
     for name, f, timing in (("trained", field, None), ("oracle", walk.oracle_field(), estimate_timing(walk))):
@@ -97,12 +99,13 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--rooms", type=int, nargs="+", default=[31, 32, 33, 34])
     p.add_argument("--train-steps", type=int, default=DEFAULT_TRAIN_STEPS)
+    p.add_argument("--model", default="grid", help="field type built on each survey (train-field --model)")
     p.add_argument("--workdir", type=Path, default=None)
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/drift_rooms.json"))
     args = p.parse_args(argv)
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="nap3d_drift_"))
-    per_room = {room: run_room(room, workdir, args.train_steps) for room in args.rooms}
-    result = {"rooms": args.rooms, "train_steps": args.train_steps, "per_room": per_room,
+    per_room = {room: run_room(room, workdir, args.train_steps, args.model) for room in args.rooms}
+    result = {"rooms": args.rooms, "model": args.model, "train_steps": args.train_steps, "per_room": per_room,
               "pooled": {field: pooled(per_room, field) for field in ("trained", "oracle")}}
     for field, s in result["pooled"].items():
         print(f"{field:8s}: ATE with NAP3D {s['ate_estimate_m']['mean'] * 100:.2f} cm mean "

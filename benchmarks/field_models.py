@@ -5,7 +5,10 @@ seen by the field) is measured as a run measures a keyframe (depth at the colour
 the field's capture timing, 320x240 render, the run's matcher) from a render 2 cm / 1 deg
 (per axis, seeded) off its true pose. Per field: the error of the correction against the
 ground truth (translation mm and rotation deg: median, p90, max), failures, inliers, the
-render time, and the field's own held-out figures from its report. Writes JSON.
+render time, and the field's own held-out figures from its report. Also the translation errors
+in the world frame, frame by frame, and their lag-1 correlation: near 0 for independent
+errors, near 1 for an offset that drifts slowly along the recording (a ground truth that is
+not consistent between the two halves, such as a tracker's, shows as that). Writes JSON.
 
     python benchmarks/field_models.py --data ../shared/data/tum/rgbd_dataset_freiburg1_desk \\
         --field views=F1.pt --field splat=F2.pt --field grid=F3.pt [--matcher xfeat] --out OUT.json
@@ -35,7 +38,7 @@ def measure(data: Path, field_path: Path, matcher: str, step: int, seed: int) ->
     timing = CaptureTiming.of(field.meta.get("timing"))
     config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=matcher))
     rng = np.random.default_rng(seed)
-    err_mm, err_deg, inliers, render_s, failures = [], [], [], [], []
+    err_mm, err_deg, inliers, render_s, failures, world_mm = [], [], [], [], [], []
     for i in range(0, len(sequence), step):
         offset = exp_se3(rng.normal(0.0, [0.0175] * 3 + [0.02] * 3))  # drawn whatever fails: same offsets per field
         T = sequence.T_world_cam_gt[i]
@@ -49,6 +52,7 @@ def measure(data: Path, field_path: Path, matcher: str, step: int, seed: int) ->
         e = log_se3(inv_T(T) @ correction.T_world_cam_corrected)
         err_mm.append(float(np.linalg.norm(e[3:]) * 1000))
         err_deg.append(float(np.degrees(np.linalg.norm(e[:3]))))
+        world_mm.append([i, *((correction.T_world_cam_corrected[:3, 3] - T[:3, 3]) * 1000).round(2).tolist()])
         inliers.append(int(correction.alignment.num_inliers))
     report_path = field_path.with_name(field_path.name[:-3] + ".report.json")
     report = json.loads(report_path.read_text()) if report_path.is_file() else {}
@@ -65,7 +69,16 @@ def measure(data: Path, field_path: Path, matcher: str, step: int, seed: int) ->
             "held_out_psnr_db": held.get("psnr_db"), "held_out_psnr_affine_db": held.get("psnr_affine_db"),
             "held_out_depth_err_median_m": (held.get("depth_abs_err_m") or {}).get("median"),
             "held_out_opaque": held.get("opaque_fraction"), "field_error": report.get("field_error"),
-            "build_seconds": report.get("train_seconds")}
+            "build_seconds": report.get("train_seconds"), "lag1_correlation": lag1(world_mm),
+            "world_error_mm": world_mm}
+
+
+def lag1(rows: list) -> float | None:
+    """Lag-1 correlation of successive world-frame error vectors (rows of [frame, x, y, z])."""
+    if len(rows) < 3:
+        return None
+    d = np.asarray(rows, dtype=float)[:, 1:]
+    return float(np.sum(d[1:] * d[:-1]) / np.sqrt(np.sum(d[1:] ** 2) * np.sum(d[:-1] ** 2)))
 
 
 def main(argv=None) -> None:
@@ -88,7 +101,7 @@ def main(argv=None) -> None:
         print(f"{name:8s} {t['median']:5.1f} / {t['p90']:5.1f} / {t['max']:5.1f} mm, {d['median']:.2f} / "
               f"{d['p90']:.2f} deg (median / p90 / max), {r['failed']} failed of {r['frames']}, "
               f"{r['inliers_median']:.0f} inliers, render {r['render_ms_median']:.0f} ms, held-out "
-              f"{psnr} dB ({time.perf_counter() - started:.0f} s)", flush=True)
+              f"{psnr} dB, lag-1 correlation {r['lag1_correlation']:.2f} ({time.perf_counter() - started:.0f} s)", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1))
     print(f"wrote {args.out}")

@@ -65,11 +65,11 @@ def test_views_are_the_sharp_frames_of_each_stretch(survey):
     kept = np.array(report["view_frames"])
     assert report["sharpness_kept_median"] > report["sharpness_all_median"]
     # No two kept views see from within the spacing (camera centre plus viewing centre).
-    from nap3d_graph.fields.views import _view_gap_m
+    from nap3d_graph.fields.views import view_gap_m
 
     for a in range(len(field)):
         others = np.delete(np.arange(len(field)), a)
-        assert _view_gap_m(field.T_world_cam[others], np.full(len(others), report["look_depth_m"]),
+        assert view_gap_m(field.T_world_cam[others], np.full(len(others), report["look_depth_m"]),
                            field.T_world_cam[a]).min() >= 2.0
     # Every kept view is the sharpest frame within a few frames of it.
     rated = np.array([sharpness(survey[int(i)].rgb) for i in indices])

@@ -46,7 +46,7 @@ from nap3d_graph.conventions import inv_T
 from .base import FieldError
 from .checkpoint import load_state, meta_json
 
-__all__ = ["SplatConfig", "SplatField", "build_splat_field", "SPLAT_FORMAT", "SPLAT_VERSION"]
+__all__ = ["SplatConfig", "SplatField", "build_splat_field", "capture_poses", "SPLAT_FORMAT", "SPLAT_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -358,7 +358,7 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
     if poses is None:
         raise FieldError("building a splat field needs posed frames, but the sequence has no ground-truth poses")
     started = time.perf_counter()
-    T_depth, T_colour = _capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
+    T_depth, T_colour = capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
     chunks, sharpness = [], np.ones(len(indices))
     for k, i in enumerate(tqdm(indices, desc="fuse frames", unit="frame", disable=not progress, leave=False)):
         if not (np.all(np.isfinite(T_depth[k])) and np.all(np.isfinite(T_colour[k]))):
@@ -418,7 +418,7 @@ def _depth_sample(sequence) -> np.ndarray:
     return values if values.size else np.array([1.0])
 
 
-def _capture_poses(sequence, indices, depth_offset_s: float, colour_offset_s: float):
+def capture_poses(sequence, indices, depth_offset_s: float, colour_offset_s: float):
     """Poses of each frame's depth and colour at their capture times (N, 4, 4) each."""
     at = getattr(sequence, "ground_truth_at", None)
     if at is None or getattr(sequence, "depth_timestamps", None) is None:

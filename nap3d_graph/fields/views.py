@@ -10,7 +10,7 @@ Building it (``build_view_field``):
 1. every training frame's sharpness (variance of the Laplacian) is measured; frames are taken
    sharpest first, and a frame is kept as a *view* unless a kept view already sees nearly
    the same thing (camera within ``min_spacing_m`` and viewing centre within
-   ``min_spacing_m``, see :func:`_view_gap_m`), so the map holds the sharp frames of each
+   ``min_spacing_m``, see :func:`view_gap_m`), so the map holds the sharp frames of each
    stretch, not the motion-blurred ones;
 2. each view's depth is moved from its capture pose to its colour's (the capture timing),
    scaled (the depth scale) and resampled into the view's colour camera at the stored size
@@ -49,7 +49,7 @@ from nap3d_graph.conventions import inv_T
 from .base import FieldError
 from .checkpoint import load_state, meta_json
 
-__all__ = ["ViewFieldConfig", "ViewField", "build_view_field", "VIEW_FORMAT", "VIEW_VERSION"]
+__all__ = ["ViewFieldConfig", "ViewField", "build_view_field", "view_gap_m", "VIEW_FORMAT", "VIEW_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -133,7 +133,7 @@ class ViewField:
         """Indices of the views that best see what a camera at ``T_world_cam`` sees, best
         first: smallest camera-centre plus viewing-centre distance, within ``max_angle_deg``."""
         count = count or self.config.views_per_render
-        gap = _view_gap_m(self.T_world_cam, self._look_depth_m, T_world_cam)
+        gap = view_gap_m(self.T_world_cam, self._look_depth_m, T_world_cam)
         axes = self.T_world_cam[:, :3, 2]
         cos = axes @ np.asarray(T_world_cam)[:3, 2]
         gap[cos < np.cos(np.radians(self.config.max_angle_deg))] = np.inf
@@ -267,7 +267,7 @@ class ViewField:
         return cls.from_state_dict(load_state(path), source=str(path))
 
 
-def _view_gap_m(T_world_views: np.ndarray, look_depth_m: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
+def view_gap_m(T_world_views: np.ndarray, look_depth_m: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
     """(V,) how differently each view sees from a camera at ``T_world_cam``: the distance of
     the camera centres plus that of the viewing centres (the point ``look_depth_m`` ahead on
     each optical axis; the asked camera's at each view's depth), in metres."""
@@ -330,7 +330,7 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
     """
     from tqdm import tqdm
 
-    from .splat import _capture_poses
+    from .splat import capture_poses
 
     config = config or ViewFieldConfig()
     indices = np.asarray(indices, dtype=int)
@@ -339,7 +339,7 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
     if getattr(sequence, "T_world_cam_gt", None) is None:
         raise FieldError("building a view field needs posed frames, but the sequence has no ground-truth poses")
     started = time.perf_counter()
-    T_depth, T_colour = _capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
+    T_depth, T_colour = capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
     posed = np.all(np.isfinite(T_depth), axis=(1, 2)) & np.all(np.isfinite(T_colour), axis=(1, 2))
     K_full = sequence.intrinsics.without_distortion()
     K = K_full.scaled(min(config.width, K_full.width), min(config.height, K_full.height))
@@ -372,14 +372,14 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
 def _choose_views(T_colour: np.ndarray, sharp: np.ndarray, posed: np.ndarray, look: float,
                   min_spacing_m: float) -> np.ndarray:
     """Positions into the frames of the kept views, in frame order: sharpest first, each kept
-    unless a kept view sees from within ``min_spacing_m`` (:func:`_view_gap_m` with the
+    unless a kept view sees from within ``min_spacing_m`` (:func:`view_gap_m` with the
     viewing centres ``look`` metres ahead)."""
     kept: list[int] = []
     for k in np.argsort(-sharp, kind="stable"):
         if not posed[k]:
             continue
         if kept:
-            gap = _view_gap_m(T_colour[kept], np.full(len(kept), look), T_colour[k])
+            gap = view_gap_m(T_colour[kept], np.full(len(kept), look), T_colour[k])
             if gap.min() < min_spacing_m:
                 continue
         kept.append(int(k))
