@@ -27,7 +27,8 @@ def add_parser(sub) -> None:
                    help="--query: its frames to correct (default all)")
     p.add_argument("--out", type=Path, required=True, help="output folder (must be empty unless --force)")
     p.add_argument("--split", type=float, default=0.5, help="fraction of the frames the field is built on (default 0.5)")
-    p.add_argument("--model", choices=("grid", "splat"), default="grid", help="field model (default grid)")
+    p.add_argument("--model", choices=("grid", "splat", "views"), default="grid",
+                   help="field model (default grid; see train-field --help)")
     p.add_argument("--train-steps", type=positive_int, default=None, help="grid: training steps (default: 5 minutes)")
     p.add_argument("--keyframe-every", type=positive_int, default=5, help="a correction every N frames (default 5)")
     p.add_argument("--scenarios", type=positive_int, default=40, help="Evaluation K scenarios (default 40)")
