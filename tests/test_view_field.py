@@ -154,3 +154,30 @@ def test_checkpoint_round_trip_and_bad_input(built, tmp_path):
         ViewField(np.zeros((2, 48, 64, 3)), np.zeros((2, 48, 60)), np.stack([np.eye(4)] * 2), K)
     with pytest.raises(FieldError, match="finite"):
         ViewField(np.zeros((1, 48, 64, 3)), np.full((1, 48, 64), np.nan), np.eye(4)[None], K)
+
+
+def test_the_field_error_grows_away_from_the_views_and_runs_use_it(built, survey):
+    """train-field also measures the view field's error with the views near each held-out
+    frame hidden; a run then adds, to each correction, the error at its own render pose's
+    distance from the nearest view."""
+    from nap3d_graph.run.config import PipelineConfig, with_field_error
+
+    field, report, _ = built
+    by_view = report["field_error"]["by_view"]
+    assert field.has_error_by_view and len(by_view["gap_m"]) >= 2
+    assert np.all(np.diff(by_view["gap_m"]) >= 0) and by_view["sigma_m"][-1] > by_view["sigma_m"][0]
+    near = field.T_world_cam[3]
+    far = near.copy()
+    far[:3, 3] += 3.0 * near[:3, 2]  # 3 m forward along its optical axis: seen from nowhere near
+    (s_near, r_near), (s_far, r_far) = field.error_sigmas_at(near), field.error_sigmas_at(far)
+    assert s_near == pytest.approx(by_view["sigma_m"][0]) and s_far > s_near and r_far > r_near
+    config = with_field_error(PipelineConfig(), field)
+    assert config.field_error_by_view and config.field_sigma_m == report["field_error"]["sigma_m"]
+    cov_near, cov_far = config.field_covariance(field, near), config.field_covariance(field, far)
+    assert cov_far[3, 3] == pytest.approx(s_far**2) and cov_far[3, 3] > cov_near[3, 3]
+    # A hidden view is not rendered from, and the field it was hidden in is a separate object.
+    hidden = field.hiding_near(near, 0.01)
+    assert 3 not in hidden.nearest_views(near) and 3 in field.nearest_views(near)
+    # Given sigmas (--field-sigma M) are used as they are, everywhere.
+    given = with_field_error(PipelineConfig(field_sigma_m=0.004), field)
+    assert not given.field_error_by_view and given.field_covariance(field, far)[3, 3] == pytest.approx(0.004**2)

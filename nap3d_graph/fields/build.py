@@ -174,6 +174,12 @@ def _field_error(field, sequence, every, timing, render_size, matcher) -> dict:
     _, error_idx = split_posed_frames(sequence, every, ERROR_FRAMES)
     started = time.perf_counter()
     error = measure_field_error(field, sequence, error_idx, timing, AlignConfig(matcher=matcher), render_size)
+    if hasattr(field, "hiding_near"):  # a view field: also how its error grows away from its views
+        from .field_error import measure_error_by_view
+
+        by_view = measure_error_by_view(field, sequence, error_idx, timing, AlignConfig(matcher=matcher), render_size)
+        if by_view is not None:
+            error["by_view"] = by_view
     error.update({"matcher": matcher, "seconds": round(time.perf_counter() - started, 2)})
     return error
 

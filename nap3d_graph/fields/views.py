@@ -32,6 +32,7 @@ frames are).
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 import time
@@ -108,6 +109,7 @@ class ViewField:
         self.config = config or ViewFieldConfig(width=w, height=h)
         self.meta = dict(meta or {})
         self._points: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        self._hidden: np.ndarray | None = None  # views left out (hiding_near), (V,) bool
         depth_med = [float(np.median(d[d > 0])) if np.any(d > 0) else 1.0 for d in self.depth_m]
         self._look_depth_m = np.asarray(depth_med)
 
@@ -129,16 +131,57 @@ class ViewField:
 
     # --- rendering ----------------------------------------------------------------------------
 
-    def nearest_views(self, T_world_cam: np.ndarray, count: int | None = None) -> np.ndarray:
-        """Indices of the views that best see what a camera at ``T_world_cam`` sees, best
-        first: smallest camera-centre plus viewing-centre distance, within ``max_angle_deg``."""
-        count = count or self.config.views_per_render
+    def _gaps(self, T_world_cam: np.ndarray) -> np.ndarray:
+        """(V,) :func:`view_gap_m` of each view from ``T_world_cam``; inf for views beyond
+        ``max_angle_deg`` of its optical axis and for hidden ones."""
         gap = view_gap_m(self.T_world_cam, self._look_depth_m, T_world_cam)
         axes = self.T_world_cam[:, :3, 2]
         cos = axes @ np.asarray(T_world_cam)[:3, 2]
         gap[cos < np.cos(np.radians(self.config.max_angle_deg))] = np.inf
+        if self._hidden is not None:
+            gap[self._hidden] = np.inf
+        return gap
+
+    def nearest_views(self, T_world_cam: np.ndarray, count: int | None = None) -> np.ndarray:
+        """Indices of the views that best see what a camera at ``T_world_cam`` sees, best
+        first: smallest camera-centre plus viewing-centre distance, within ``max_angle_deg``."""
+        count = count or self.config.views_per_render
+        gap = self._gaps(T_world_cam)
         order = np.argsort(gap, kind="stable")[:count]
         return order[np.isfinite(gap[order])]
+
+    def nearest_gap_m(self, T_world_cam: np.ndarray) -> float:
+        """How far (:func:`view_gap_m`, metres) the nearest view sees from ``T_world_cam``
+        (inf when none looks its way)."""
+        return float(self._gaps(T_world_cam).min())
+
+    def hiding_near(self, T_world_cam: np.ndarray, radius_m: float) -> "ViewField":
+        """This field without the views within ``radius_m`` of ``T_world_cam`` (they share
+        the data): how it renders a viewpoint it saw from no nearer than that."""
+        other = copy.copy(self)
+        hidden = view_gap_m(self.T_world_cam, self._look_depth_m, T_world_cam) < radius_m
+        other._hidden = hidden if self._hidden is None else (hidden | self._hidden)
+        return other
+
+    @property
+    def has_error_by_view(self) -> bool:
+        """Whether the field measured how its error grows away from its views
+        (``meta["field_error"]["by_view"]``, see :meth:`error_sigmas_at`)."""
+        return bool(((self.meta.get("field_error") or {}).get("by_view") or {}).get("gap_m"))
+
+    def error_sigmas_at(self, T_world_cam: np.ndarray) -> tuple[float, float] | None:
+        """``(sigma_m, sigma_rad)`` of the field's error at ``T_world_cam``, from the error
+        measured with the views near held-out frames hidden (``meta["field_error"]["by_view"]``:
+        sigmas at increasing gaps to the nearest view), interpolated at this pose's gap and
+        extended linearly beyond the largest measured one; None without that measurement."""
+        if not self.has_error_by_view:
+            return None
+        model = self.meta["field_error"]["by_view"]
+        gaps = np.asarray(model["gap_m"], dtype=float)
+        gap = self.nearest_gap_m(T_world_cam)
+        gap = float(gaps[-1] * 4) if not np.isfinite(gap) else gap  # nothing looks its way: far
+        return (_interp_extend(gap, gaps, np.asarray(model["sigma_m"], dtype=float)),
+                _interp_extend(gap, gaps, np.asarray(model["sigma_rad"], dtype=float)))
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
         """RGB, z-depth (m, 0 where no view sees) and opacity at ``T_world_cam`` (4x4,
@@ -265,6 +308,15 @@ class ViewField:
     def load(cls, path) -> "ViewField":
         path = Path(path)
         return cls.from_state_dict(load_state(path), source=str(path))
+
+
+def _interp_extend(x: float, xs: np.ndarray, ys: np.ndarray) -> float:
+    """``ys(x)`` interpolated on increasing ``xs``, extended with the last segment's slope
+    (never below the last value) beyond ``xs[-1]``; ``ys[0]`` before ``xs[0]``."""
+    if len(xs) > 1 and x > xs[-1]:
+        slope = max((ys[-1] - ys[-2]) / max(xs[-1] - xs[-2], 1e-9), 0.0)
+        return float(ys[-1] + slope * (x - xs[-1]))
+    return float(np.interp(x, xs, ys))
 
 
 def view_gap_m(T_world_views: np.ndarray, look_depth_m: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:

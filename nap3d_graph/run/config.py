@@ -62,6 +62,11 @@ class PipelineConfig:
         when it was built (``meta["field_error"]``, see
         :mod:`nap3d_graph.fields.field_error`; 0 for a field that records none, such as the
         exact oracle); :func:`with_field_error` resolves it. 0 adds nothing.
+    field_error_by_view: set by :func:`with_field_error` when the field's error comes from
+        the field and the field also measured how it grows away from what it saw (a view
+        field: ``error_sigmas_at``, larger the farther the asked pose is from its nearest
+        view): each correction then adds the field's error at its own render pose, with the
+        resolved sigmas as the floor.
     depth_scale_check, depth_scale_tolerance, depth_scale_sigmas, depth_scale_window: every
         correction also measures the real depth's scale against the field's (a similarity
         fit on its inliers). A running estimate (median of the last ``depth_scale_window``
@@ -116,6 +121,7 @@ class PipelineConfig:
     field_sigma_m: float | None = None
     field_sigma_rad: float | None = None
     field_sigma_depth_m: float = 2.0
+    field_error_by_view: bool = False
     overlap: bool = False
     graph_window: int = 0
     max_frames: int | None = None
@@ -137,10 +143,16 @@ class PipelineConfig:
         if not self.field_sigma_depth_m > 0:
             raise ValueError(f"field_sigma_depth_m must be > 0, got {self.field_sigma_depth_m}")
 
-    def field_covariance(self) -> np.ndarray | None:
-        """The field's error as a 6x6 covariance (GTSAM order), or None when it adds nothing."""
+    def field_covariance(self, field=None, T_field_cam: np.ndarray | None = None) -> np.ndarray | None:
+        """The field's error as a 6x6 covariance (GTSAM order), or None when it adds nothing;
+        with ``field_error_by_view``, the ``field``'s own at the render pose ``T_field_cam``
+        where it is larger than the resolved sigmas."""
         s_t = self.field_sigma_m or 0.0
         s_r = self.field_sigma_rad if self.field_sigma_rad is not None else s_t / self.field_sigma_depth_m
+        at = getattr(field, "error_sigmas_at", None) if self.field_error_by_view else None
+        local = at(T_field_cam) if at is not None and T_field_cam is not None else None
+        if local is not None:
+            s_t, s_r = max(s_t, local[0]), max(s_r, local[1])
         if s_t <= 0 and s_r <= 0:
             return None
         return np.diag([s_r**2] * 3 + [s_t**2] * 3)
@@ -169,4 +181,5 @@ def with_field_error(config: PipelineConfig, field) -> PipelineConfig:
 
     sigma_m, sigma_rad = field_sigmas(field) if field is not None else (0.0, 0.0)
     rad = config.field_sigma_rad if config.field_sigma_rad is not None else sigma_rad
-    return dataclasses.replace(config, field_sigma_m=sigma_m, field_sigma_rad=rad)
+    by_view = bool(getattr(field, "has_error_by_view", False))
+    return dataclasses.replace(config, field_sigma_m=sigma_m, field_sigma_rad=rad, field_error_by_view=by_view)

@@ -79,7 +79,7 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         # Measured at the colour's instant: move it to the frame's stamp.
         shift = exp_se3(-twist * job.timing.colour_offset_s)
         correction = dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
-    field_cov = config.field_covariance()
+    field_cov = config.field_covariance(field, job.T_field_cam_render)
     if correction.success and field_cov is not None:
         correction = dataclasses.replace(correction, covariance=correction.covariance + field_cov)
     correction.timings_s["measure"] = time.perf_counter() - t0
