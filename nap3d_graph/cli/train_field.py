@@ -150,6 +150,12 @@ def summary(field, report: dict, out, report_path) -> str:
                      f"{error['sigma_m'] * 1000:.1f} mm, {error['sigma_rad'] * 57.2958:.2f} deg beyond the "
                      f"corrections' covariance (their NEES median {error['nees_median_before']:.1f} -> "
                      f"{error['nees_median_after']:.1f}); runs of this field add it to every correction")
+        by_view = error.get("by_view")
+        if by_view:
+            steps = ", ".join(f"{g:.2f} m: {m * 1000:.1f} mm / {r * 57.2958:.2f} deg"
+                              for g, m, r in zip(by_view["gap_m"], by_view["sigma_m"], by_view["sigma_rad"]))
+            lines.append(f"field error away from the views (nearest view at {steps}); runs add it at each "
+                         "correction's own distance from the views")
     elif error:
         lines.append(f"field error: not measured ({error['frames']} held-out frames aligned, too few; "
                      f"{error['failed']} failed); runs take the field as exact")
