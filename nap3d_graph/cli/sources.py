@@ -411,9 +411,11 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     config = with_overrides(config, getattr(args, "pipeline_overrides", None))  # run --config: unflagged settings
     config = with_field_error(config, field_obj)
     if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
+        growth = (", growing with each correction's distance from the field's views" if config.field_error_by_view
+                  else "")
         print(f"field error: {config.field_sigma_m * 1000:.1f} mm, {np.degrees(config.field_sigma_rad or 0):.2f} deg "
-              "(measured by train-field on held-out frames) added to every correction's covariance; --field-sigma 0 "
-              "takes the field as exact")
+              f"(measured by train-field on held-out frames{growth}) added to every correction's covariance; "
+              "--field-sigma 0 takes the field as exact")
     record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
               "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
               "initial_pose": None if initial_pose is None else initial_pose.tolist(),
