@@ -181,3 +181,23 @@ def test_the_field_error_grows_away_from_the_views_and_runs_use_it(built, survey
     # Given sigmas (--field-sigma M) are used as they are, everywhere.
     given = with_field_error(PipelineConfig(field_sigma_m=0.004), field)
     assert not given.field_error_by_view and given.field_covariance(field, far)[3, 3] == pytest.approx(0.004**2)
+
+
+def test_a_run_with_a_view_field_from_the_command_line(built, survey, tmp_path, capsys):
+    """The whole path a user takes: train-field --model views, then run with it. The run says
+    the field's error grows away from its views, records it, and removes most of the drift."""
+    import yaml
+
+    from nap3d_graph.cli import main
+
+    _, _, path = built
+    assert main(["run", "--traj", "sim", "--data", str(survey.path), "--field", str(path), "--frames", "0:40",
+                 "--keyframe-every", "2", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "growing with each correction's distance from the field's views" in out
+    run = tmp_path / "latest"
+    assert yaml.safe_load((run / "config.yaml").read_text())["pipeline"]["field_error_by_view"] is True
+    metrics = json.loads((run / "metrics.json").read_text())
+    # Measured: the odometry's drift 7.4 cm -> 1.1 cm, 19 of 20 accepted (the field was built on these frames:
+    # the run warns so; this checks the path, not the field's generalisation).
+    assert metrics["estimate"]["ate_m"]["rmse"] < 0.5 * metrics["odometry"]["ate_m"]["rmse"], metrics
