@@ -10,7 +10,7 @@ from pathlib import Path
 
 from .base import FieldError
 
-__all__ = ["load_state", "meta_json"]
+__all__ = ["load_state", "save_state", "check_state", "meta_json"]
 
 
 def load_state(path: Path) -> dict:
@@ -36,6 +36,32 @@ def load_state(path: Path) -> dict:
     if not isinstance(state, dict):
         raise FieldError(f"{path}: not a nap3d-graph field checkpoint")
     return state
+
+
+def save_state(state: dict, path) -> Path:
+    """Write a field's state dict with ``torch.save``, atomically (a temporary file renamed:
+    never a half-written checkpoint under the real name); returns the path."""
+    import torch
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(state, tmp)
+    tmp.replace(path)
+    return path
+
+
+def check_state(state, source: str, kind: str, fmt: str, version: int, required: tuple[str, ...]) -> None:
+    """Raise :class:`FieldError` (one line naming ``source``) unless ``state`` is a ``kind``
+    checkpoint of format ``fmt``, version ``version``, holding every key of ``required``."""
+    if not isinstance(state, dict) or state.get("format") != fmt:
+        raise FieldError(f"{source}: not a nap3d-graph {kind} checkpoint")
+    if state.get("version") != version:
+        raise FieldError(f"{source}: {kind} checkpoint version {state.get('version')!r}, but this "
+                         f"nap3d-graph reads version {version}; rebuild it with `nap3d-graph train-field`")
+    missing = [k for k in required if k not in state]
+    if missing:
+        raise FieldError(f"{source}: checkpoint lacks {', '.join(missing)}")
 
 
 def meta_json(meta: dict) -> str:

@@ -44,7 +44,7 @@ import torch
 import torch.nn.functional as F
 
 from .base import FieldError
-from .checkpoint import load_state, meta_json
+from .checkpoint import load_state, meta_json, save_state
 from .grid_render import GridRenderer, RenderConfig
 
 __all__ = [
@@ -297,13 +297,8 @@ class GridField(GridRenderer):
         }
 
     def save(self, path) -> Path:
-        """Write the checkpoint (``torch.save`` of :meth:`state_dict`); returns the path."""
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(self.state_dict(), tmp)
-        tmp.replace(path)  # never leave a half-written checkpoint under the real name
-        return path
+        """Write the checkpoint (``torch.save`` of :meth:`state_dict`, atomically); returns the path."""
+        return save_state(self.state_dict(), path)
 
     @classmethod
     def from_state_dict(cls, state: dict, device=None, source: str = "checkpoint") -> "GridField":

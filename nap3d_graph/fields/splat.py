@@ -44,7 +44,7 @@ from nap3d_graph.camera import sharpness as image_sharpness
 from nap3d_graph.conventions import inv_T
 
 from .base import FieldError
-from .checkpoint import load_state, meta_json
+from .checkpoint import check_state, load_state, meta_json, save_state
 
 __all__ = ["SplatConfig", "SplatField", "build_splat_field", "capture_poses", "SPLAT_FORMAT", "SPLAT_VERSION"]
 
@@ -216,23 +216,13 @@ class SplatField:
                 "meta": meta_json(self.meta)}
 
     def save(self, path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(self.state_dict(), tmp)
-        tmp.replace(path)  # never a half-written checkpoint under the real name
-        return path
+        """Write the checkpoint (:meth:`state_dict`, atomically); returns the path."""
+        return save_state(self.state_dict(), path)
 
     @classmethod
     def from_state_dict(cls, state: dict, source: str = "checkpoint") -> "SplatField":
-        if not isinstance(state, dict) or state.get("format") != SPLAT_FORMAT:
-            raise FieldError(f"{source}: not a nap3d-graph splat field checkpoint")
-        if state.get("version") != SPLAT_VERSION:
-            raise FieldError(f"{source}: splat field checkpoint version {state.get('version')!r}, but this "
-                             f"nap3d-graph reads version {SPLAT_VERSION}; rebuild it with `nap3d-graph train-field`")
-        missing = [k for k in ("points", "colors", "weights", "views", "voxel_size_m") if k not in state]
-        if missing:
-            raise FieldError(f"{source}: checkpoint lacks {', '.join(missing)}")
+        check_state(state, source, "splat field", SPLAT_FORMAT, SPLAT_VERSION,
+                    ("points", "colors", "weights", "views", "voxel_size_m"))
         if not all(torch.isfinite(state[k]).all() for k in ("points", "colors", "weights")):
             raise FieldError(f"{source}: checkpoint holds non-finite splats")
         try:

@@ -48,7 +48,7 @@ from nap3d_graph.camera import sharpness as image_sharpness
 from nap3d_graph.conventions import inv_T
 
 from .base import FieldError
-from .checkpoint import load_state, meta_json
+from .checkpoint import check_state, load_state, meta_json, save_state
 
 __all__ = ["ViewFieldConfig", "ViewField", "build_view_field", "view_gap_m", "VIEW_FORMAT", "VIEW_VERSION"]
 
@@ -276,23 +276,12 @@ class ViewField:
                 "meta": meta_json(self.meta)}
 
     def save(self, path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(self.state_dict(), tmp)
-        tmp.replace(path)  # never a half-written checkpoint under the real name
-        return path
+        """Write the checkpoint (:meth:`state_dict`, atomically); returns the path."""
+        return save_state(self.state_dict(), path)
 
     @classmethod
     def from_state_dict(cls, state: dict, source: str = "checkpoint") -> "ViewField":
-        if not isinstance(state, dict) or state.get("format") != VIEW_FORMAT:
-            raise FieldError(f"{source}: not a nap3d-graph view field checkpoint")
-        if state.get("version") != VIEW_VERSION:
-            raise FieldError(f"{source}: view field checkpoint version {state.get('version')!r}, but this "
-                             f"nap3d-graph reads version {VIEW_VERSION}; rebuild it with `nap3d-graph train-field`")
-        missing = [k for k in ("rgb", "depth_m", "T_world_cam", "intrinsics") if k not in state]
-        if missing:
-            raise FieldError(f"{source}: checkpoint lacks {', '.join(missing)}")
+        check_state(state, source, "view field", VIEW_FORMAT, VIEW_VERSION, ("rgb", "depth_m", "T_world_cam", "intrinsics"))
         try:
             intrinsics = Intrinsics.from_dict(json.loads(state["intrinsics"]))
             stored = json.loads(state.get("config", "{}"))
