@@ -38,12 +38,14 @@ def measure(data: Path, field_path: Path, matcher: str, step: int, seed: int) ->
     timing = CaptureTiming.of(field.meta.get("timing"))
     config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=matcher))
     rng = np.random.default_rng(seed)
-    err_mm, err_deg, inliers, render_s, failures, world_mm = [], [], [], [], [], []
+    err_mm, err_deg, inliers, render_s, failures, world_mm, gaps = [], [], [], [], [], [], []
     for i in range(0, len(sequence), step):
         offset = exp_se3(rng.normal(0.0, [0.0175] * 3 + [0.02] * 3))  # drawn whatever fails: same offsets per field
         T = sequence.T_world_cam_gt[i]
         if not np.all(np.isfinite(T)):
             continue
+        if hasattr(field, "nearest_gap_m"):  # a view field: how far its nearest view sees from here
+            gaps.append(field.nearest_gap_m(T))
         correction = measure_frame(sequence, i, field, T @ offset, config, timing)
         render_s.append(correction.timings_s.get("render", np.nan))
         if not correction.success:
@@ -70,6 +72,7 @@ def measure(data: Path, field_path: Path, matcher: str, step: int, seed: int) ->
             "held_out_depth_err_median_m": (held.get("depth_abs_err_m") or {}).get("median"),
             "held_out_opaque": held.get("opaque_fraction"), "field_error": report.get("field_error"),
             "build_seconds": report.get("train_seconds"), "lag1_correlation": lag1(world_mm),
+            "nearest_view_gap_m_median": float(np.median(gaps)) if gaps else None,
             "world_error_mm": world_mm}
 
 

@@ -143,9 +143,10 @@ def measure_field_error(field, sequence, indices, timing: CaptureTiming | None =
 
 #: Radii (metres of :func:`~nap3d_graph.fields.views.view_gap_m`: camera plus viewing centre),
 #: beyond each held-out frame's own nearest view, within which a view field's views are hidden
-#: from it, to measure its error from viewpoints it saw only from farther away. A held-out frame between training frames is
-#: millimetres from a view (fr1/desk: 4 mm median), a later traversal's keyframes are not
-#: (fr1/desk's second half: 0.62 m), and the error grows with that distance.
+#: from it, to measure its error from viewpoints it saw only from farther away. A held-out
+#: frame between training frames is near a view (fr1/desk: 0.08 m median), a later
+#: traversal's keyframes are not (fr1/desk's second half: 0.62 m), and the error grows with
+#: that distance.
 VIEW_GAP_RADII_M = (0.0, 0.15, 0.3, 0.6)
 
 
