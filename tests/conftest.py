@@ -46,6 +46,18 @@ def sim_walk(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def field_survey(tmp_path_factory):
+    """The small survey the field tests build their fields from (room 0's mapping path,
+    100 frames at 128x96), simulated once per session; read it, do not write into it."""
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    folder = tmp_path_factory.mktemp("fields") / "survey"
+    simulate_sequence(folder, SimConfig(frames=100, path="mapping", scene_seed=0, seed=5, width=128, height=96))
+    return open_sequence(folder)
+
+
+@pytest.fixture(scope="session")
 def room():
     """A hold-out procedural room (not the default one) and its oracle field."""
     from nap3d_graph.sims.scene import OracleField, make_scene

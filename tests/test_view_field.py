@@ -15,13 +15,8 @@ from nap3d_graph.fields.views import ViewField, ViewFieldConfig, build_view_fiel
 
 
 @pytest.fixture(scope="module")
-def survey(tmp_path_factory):
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
-
-    folder = tmp_path_factory.mktemp("views") / "survey"
-    simulate_sequence(folder, SimConfig(frames=100, path="mapping", scene_seed=0, seed=5, width=128, height=96))
-    return open_sequence(folder)
+def survey(field_survey):
+    return field_survey
 
 
 @pytest.fixture(scope="module")

@@ -20,6 +20,7 @@ block) that brings the *median* of the per-frame 3-dof NEES to the chi-square me
 from __future__ import annotations
 
 import logging
+from functools import partial
 
 import numpy as np
 
@@ -67,6 +68,37 @@ def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, tim
     return measure_keyframe(job, field, run_config)
 
 
+def _perturbed_errors(sequence, indices, field_for, align, timing, render_size, perturbation, seed):
+    """Frames ``indices`` measured from renders offset from their true pose (Gaussian, per
+    axis ``perturbation`` = (metres, radians), seeded; drawn for every frame, so the offsets
+    are the same whatever fails). ``field_for(i, T_world_cam_gt)`` gives ``(field, extra)``
+    to measure frame i with, or None to skip it. Returns the errors (N, 6) of the successful
+    corrections against the truth (GTSAM order), their covariances (N, 6, 6), how many failed,
+    and the ``extra`` of each."""
+    from nap3d_graph.run.config import PipelineConfig
+
+    from ..conventions import exp_se3
+
+    config = PipelineConfig(field_sigma_m=0.0, **({"align": align} if align is not None else {}))
+    rng = np.random.default_rng(seed)
+    sigmas = np.array([perturbation[1]] * 3 + [perturbation[0]] * 3)
+    errors, covariances, extras, failed = [], [], [], 0
+    for i in np.asarray(indices, dtype=int):
+        offset = exp_se3(rng.normal(0.0, sigmas))
+        T_world_cam_gt = sequence.T_world_cam_gt[i]
+        chosen = field_for(int(i), T_world_cam_gt) if np.all(np.isfinite(T_world_cam_gt)) else None
+        if chosen is None:
+            continue
+        correction = measure_frame(sequence, int(i), chosen[0], T_world_cam_gt @ offset, config, timing, render_size)
+        if not correction.success or not np.all(np.isfinite(correction.covariance)):
+            failed += 1
+            continue
+        errors.append(log_se3(inv_T(correction.T_world_cam_corrected) @ T_world_cam_gt))
+        covariances.append(np.asarray(correction.covariance, dtype=float))
+        extras.append(chosen[1])
+    return errors, covariances, failed, extras
+
+
 def sigma_for_median_nees(errors: np.ndarray, covariances: np.ndarray) -> float:
     """The isotropic sigma s with median_i e_i^T (C_i + s^2 I)^-1 e_i = the chi2(3) median
     (0 when the covariances alone already reach it). errors (N, 3), covariances (N, 3, 3)."""
@@ -98,25 +130,8 @@ def measure_field_error(field, sequence, indices, timing: CaptureTiming | None =
     ``perturbation``: (metres, radians) per axis of the Gaussian offset of each render from
     the true pose.
     """
-    from nap3d_graph.run.config import PipelineConfig
-
-    from ..conventions import exp_se3
-
-    config = PipelineConfig(field_sigma_m=0.0, **({"align": align} if align is not None else {}))
-    errors, covariances, failed = [], [], 0
-    rng = np.random.default_rng(seed)
-    sigmas = np.array([perturbation[1]] * 3 + [perturbation[0]] * 3)
-    for i in np.asarray(indices, dtype=int):
-        offset = exp_se3(rng.normal(0.0, sigmas))  # drawn for every frame: the same offsets whatever fails
-        T_world_cam_gt = sequence.T_world_cam_gt[i]
-        if not np.all(np.isfinite(T_world_cam_gt)):
-            continue
-        correction = measure_frame(sequence, int(i), field, T_world_cam_gt @ offset, config, timing, render_size)
-        if not correction.success or not np.all(np.isfinite(correction.covariance)):
-            failed += 1
-            continue
-        errors.append(log_se3(inv_T(correction.T_world_cam_corrected) @ T_world_cam_gt))
-        covariances.append(np.asarray(correction.covariance, dtype=float))
+    errors, covariances, failed, _ = _perturbed_errors(sequence, indices, lambda i, T: (field, None), align, timing,
+                                                        render_size, perturbation, seed)
     result = {"frames": len(errors), "failed": failed, "sigma_m": 0.0, "sigma_rad": 0.0}
     if len(errors) < min_frames:
         log.warning("field error: only %d of %d held-out frames aligned (need %d); the field's error is not "
@@ -156,39 +171,23 @@ def measure_error_by_view(field, sequence, indices, timing: CaptureTiming | None
                           seed: int = 0) -> dict | None:
     """How a view field's error grows away from its views: for each radius of ``radii``, the
     frames ``indices`` measured as :func:`measure_field_error` does with the views within that
-    radius beyond each frame's own nearest view hidden (``field.hiding_near``), and the sigmas that bring the median
-    per-block NEES to the chi-square's. Returns ``{"gap_m", "sigma_m", "sigma_rad",
+    radius beyond each frame's own nearest view hidden (``field.hiding_near``), and the
+    sigmas that bring the median per-block NEES to the chi-square's. Returns ``{"gap_m", "sigma_m", "sigma_rad",
     "frames", "radii_m"}`` (gap: the median distance of the nearest remaining view; sigmas
     made non-decreasing with it: the field cannot get better farther from what it saw), or
     None when fewer than two radii had ``min_frames`` aligned frames."""
-    from nap3d_graph.run.config import PipelineConfig
+    def hidden_near(i, T_world_cam_gt, radius):
+        # Hide the views within ``radius`` beyond the frame's own nearest one: each step
+        # pushes the nearest remaining view farther, however dense the survey is.
+        own = field.nearest_gap_m(T_world_cam_gt)
+        hidden = field.hiding_near(T_world_cam_gt, own + radius) if radius > 0 and np.isfinite(own) else field
+        gap = hidden.nearest_gap_m(T_world_cam_gt)
+        return (hidden, gap) if np.isfinite(gap) else None
 
-    from ..conventions import exp_se3
-
-    config = PipelineConfig(field_sigma_m=0.0, **({"align": align} if align is not None else {}))
-    sigmas = np.array([perturbation[1]] * 3 + [perturbation[0]] * 3)
     rows = []
     for radius in radii:
-        rng = np.random.default_rng(seed)
-        errors, covariances, gaps = [], [], []
-        for i in np.asarray(indices, dtype=int):
-            offset = exp_se3(rng.normal(0.0, sigmas))
-            T_world_cam_gt = sequence.T_world_cam_gt[i]
-            if not np.all(np.isfinite(T_world_cam_gt)):
-                continue
-            # Hide the views within ``radius`` beyond the frame's own nearest one: each step
-            # pushes the nearest remaining view farther, however dense the survey is.
-            own = field.nearest_gap_m(T_world_cam_gt)
-            hidden = field.hiding_near(T_world_cam_gt, own + radius) if radius > 0 and np.isfinite(own) else field
-            gap = hidden.nearest_gap_m(T_world_cam_gt)
-            if not np.isfinite(gap):
-                continue
-            correction = measure_frame(sequence, int(i), hidden, T_world_cam_gt @ offset, config, timing, render_size)
-            if not correction.success or not np.all(np.isfinite(correction.covariance)):
-                continue
-            errors.append(log_se3(inv_T(correction.T_world_cam_corrected) @ T_world_cam_gt))
-            covariances.append(np.asarray(correction.covariance, dtype=float))
-            gaps.append(gap)
+        errors, covariances, _, gaps = _perturbed_errors(sequence, indices, partial(hidden_near, radius=radius), align,
+                                                         timing, render_size, perturbation, seed)
         if len(errors) < min_frames:
             break
         e, C = np.asarray(errors), np.asarray(covariances)

@@ -123,7 +123,7 @@ class ViewField:
     def bounds(self) -> np.ndarray:
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         for j in range(len(self)):
-            p = self._view_points(j)[0].numpy().astype(np.float64)
+            p, _ = backproject_depth(self.depth_m[j], self.intrinsics)  # not cached: a render needs few views
             if len(p):
                 world = p @ self.T_world_cam[j, :3, :3].T + self.T_world_cam[j, :3, 3]
                 lo, hi = np.minimum(lo, world.min(0)), np.maximum(hi, world.max(0))
