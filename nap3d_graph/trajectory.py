@@ -96,11 +96,20 @@ class Trajectory:
         trajectory = self.only_valid() if skip_unknown else self
         if not np.all(trajectory.valid):
             raise DatasetError(f"{path}: refusing to write non-finite timestamps or poses")
-        rows = np.concatenate([trajectory.stamps[:, None], T_to_tum(trajectory.T_world_cam).reshape(-1, 7)], axis=1)
         text = TUM_HEADER if header is None else f"{header}\n{TUM_HEADER}"
         # evo reads with a single-space delimiter: no trailing blanks, one space between columns.
-        np.savetxt(path, rows, fmt=["%.6f"] + ["%.9f"] * 7, delimiter=" ", header=text, comments="# ")
+        np.savetxt(path, trajectory._tum_rows(), fmt=_TUM_FORMAT, delimiter=" ", header=text, comments="# ")
         return path
+
+    def append_tum(self, handle) -> None:
+        """Append the poses as TUM rows (the format of :meth:`write_tum`, no header) to an open
+        text file: a long run writes its retired frames as it goes. Unknown poses are refused."""
+        if not np.all(self.valid):
+            raise DatasetError("refusing to write non-finite timestamps or poses")
+        np.savetxt(handle, self._tum_rows(), fmt=_TUM_FORMAT, delimiter=" ")
+
+    def _tum_rows(self) -> np.ndarray:
+        return np.concatenate([self.stamps[:, None], T_to_tum(self.T_world_cam).reshape(-1, 7)], axis=1)
 
     def to_evo(self):
         """evo's ``PoseTrajectory3D`` of the known poses."""
@@ -108,6 +117,9 @@ class Trajectory:
 
         known = self.only_valid()
         return PoseTrajectory3D(poses_se3=list(known.T_world_cam), timestamps=known.stamps)
+
+
+_TUM_FORMAT = ["%.6f"] + ["%.9f"] * 7
 
 
 def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:

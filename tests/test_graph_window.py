@@ -72,3 +72,74 @@ def test_graph_window_is_refused_where_it_does_not_apply():
     walk = ImagelessWalk(10)
     with pytest.raises(ValueError, match="map anchor"):
         Pipeline(walk, None, make_odometry("noisy", walk, 1), PipelineConfig(graph_window=5, use_anchor=True))
+
+
+def _kept(pipeline) -> int:
+    """The most per-frame or per-keyframe items the run holds."""
+    motion = pipeline.motion
+    return max(len(motion.T_world_cam_odom._items), len(motion.increments._items), len(pipeline._online._items),
+               len(pipeline.keyframe_indices._items), len(pipeline.records._items), len(pipeline.graph.frozen))
+
+
+def test_a_long_run_that_retires_its_past_keeps_flat_memory_and_the_same_result():
+    from nap3d_graph.run.history import join_segments
+
+    walk = ImagelessWalk(3000)
+    config = PipelineConfig(keyframe_every=5, progress=False, graph_window=20)
+    segments, kept = [], []
+    streamed = Pipeline(walk, None, make_odometry("noisy", walk, 1, 2e-3, 2e-3), config, on_retire=segments.append)
+    result = streamed.run(on_keyframe=lambda record: kept.append(_kept(streamed)))
+    # 600 keyframes; at most 1.5 windows of them (and their frames) are ever held.
+    assert max(kept) <= 31 * 5 + 1, max(kept)
+    assert len(segments) >= 50 and result.first_frame >= 3000 - 31 * 5
+    whole = Pipeline(walk, None, make_odometry("noisy", walk, 1, 2e-3, 2e-3), config).run()
+    joined = join_segments([*segments, result])
+    assert joined.first_frame == 0 and len(joined.timestamps) == 3000 and len(joined.keyframes) == 600
+    np.testing.assert_array_equal(joined.timestamps, whole.timestamps)
+    np.testing.assert_allclose(joined.T_world_cam_estimate, whole.T_world_cam_estimate, atol=1e-9)
+    np.testing.assert_allclose(joined.T_world_cam_online, whole.T_world_cam_online, atol=1e-12)
+    np.testing.assert_allclose(joined.T_world_cam_odometry, whole.T_world_cam_odometry, atol=1e-12)
+    np.testing.assert_allclose(joined.T_world_cam_gt, whole.T_world_cam_gt)
+    assert joined.keyframe_indices == whole.keyframe_indices
+    assert [k.frame_index for k in joined.keyframes] == [k.frame_index for k in whole.keyframes]
+    with pytest.raises(ValueError, match="not consecutive"):
+        join_segments([segments[0], segments[2]])
+
+
+def test_a_live_corrector_that_retires_its_past_matches_the_one_that_keeps_it(tmp_path):
+    from nap3d_graph.datasets import SimSequence
+    from nap3d_graph.run.history import join_segments
+    from nap3d_graph.run.live import DriftCorrector
+    from nap3d_graph.sims.sensors import DepthNoise
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    ideal = SimConfig(frames=40, seed=7, width=160, height=120, timing=None, exposure=None,
+                      depth=DepthNoise(flying_fraction=0.0))
+    walk = SimSequence(simulate_sequence(tmp_path / "w", ideal))
+    odometry = make_odometry("noisy", walk, 3, 6e-3, 6e-3)
+    increments = [odometry.increment(i, None).T_prev_cur for i in range(1, len(walk))]
+    config = PipelineConfig(keyframe_every=2, render_width=160, render_height=120, graph_window=4)
+    field = walk.oracle_field()
+
+    def corrector(segments=None):
+        live = DriftCorrector(field, walk.T_world_cam_gt[0], config,
+                              on_retire=None if segments is None else segments.append)
+        for i in range(len(walk)):
+            frame = walk[i]
+            live.add_frame(frame.rgb, frame.depth_m, frame.intrinsics, frame.timestamp,
+                           None if i == 0 else increments[i - 1])
+        return live
+
+    segments: list = []
+    streamed, kept = corrector(segments), corrector()
+    assert segments and len(streamed._frames.timestamps._items) < 20  # the stamps are let go too
+    joined, whole = join_segments([*segments, streamed.finish()]), kept.finish()
+    assert sum(k.accepted for k in joined.keyframes) == whole.num_accepted >= 10
+    np.testing.assert_allclose(joined.T_world_cam_estimate, whole.T_world_cam_estimate, atol=1e-9)
+    np.testing.assert_allclose(joined.T_world_cam_online, whole.T_world_cam_online, atol=1e-12)
+
+    def ate(T_world_cam):
+        return float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(T_world_cam, walk.T_world_cam_gt)])))
+
+    assert ate(joined.T_world_cam_estimate) < 0.5 * ate(joined.T_world_cam_odometry), \
+        (ate(joined.T_world_cam_estimate), ate(joined.T_world_cam_odometry))

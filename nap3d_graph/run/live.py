@@ -25,6 +25,7 @@ from nap3d_graph.camera import Intrinsics, RGBDFrame
 from nap3d_graph.conventions import as_T, rigid_transform_problem
 from nap3d_graph.odometry import Increment
 from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.run.records import KeyframeRecord, RunResult
 
@@ -47,17 +48,22 @@ class LiveUpdate:
 
 
 class _LiveFrames:
-    """The frames given so far, as the sequence the pipeline reads (the latest two kept)."""
+    """The frames given so far, as the sequence the pipeline reads (the latest two kept; the
+    stamps of the frames the run has not retired)."""
 
     def __init__(self):
-        self._stamps: list[float] = []
+        self._stamps: FrameLog[float] = FrameLog()
         self._frames: dict[int, RGBDFrame] = {}
         self.T_world_cam_gt = None
         self.intrinsics: Intrinsics | None = None
 
     @property
-    def timestamps(self) -> np.ndarray:
-        return np.asarray(self._stamps, dtype=float)
+    def timestamps(self) -> FrameLog[float]:
+        """Indexed by frame (``[i]``, ``[a:b]``), as a sequence's stamps are."""
+        return self._stamps
+
+    def forget_before(self, i: int) -> None:
+        self._stamps.drop_before(i)
 
     def append(self, frame: RGBDFrame) -> int:
         i = len(self._stamps)
@@ -111,16 +117,25 @@ class DriftCorrector:
     config: a :class:`PipelineConfig` (corrections are measured inline: ``overlap`` is off).
     odometry_sigmas: (rad, m) per-frame sigmas of the increments when ``add_frame`` is given
     no covariance.
+    on_retire: optional ``f(RunResult)`` for a loop that runs for hours: with a bounded graph
+        (``config.graph_window``) the frames whose poses are final are handed to it (write
+        them out) and forgotten, so memory stays flat; :meth:`finish` then gives the frames
+        after them (see :class:`~nap3d_graph.run.pipeline.Pipeline`).
     """
 
     def __init__(self, field, T_world_cam_start, config: PipelineConfig | None = None,
-                 odometry_sigmas: tuple[float, float] = (2e-3, 2e-3)):
+                 odometry_sigmas: tuple[float, float] = (2e-3, 2e-3), on_retire=None):
         T_start = _rigid(T_world_cam_start, "T_world_cam_start")
         config = dataclasses.replace(config or PipelineConfig(), overlap=False, progress=False)
         self._frames = _LiveFrames()
         self._odometry = _GivenOdometry(T_start)
         self._default_cov = np.diag([odometry_sigmas[0] ** 2] * 3 + [odometry_sigmas[1] ** 2] * 3)
-        self.pipeline = Pipeline(self._frames, field, self._odometry, config)
+        retire = None
+        if on_retire is not None:
+            def retire(segment: RunResult) -> None:
+                self._frames.forget_before(segment.first_frame + len(segment.timestamps))
+                on_retire(segment)
+        self.pipeline = Pipeline(self._frames, field, self._odometry, config, on_retire=retire)
         self.pipeline.start()
 
     def add_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, stamp: float,

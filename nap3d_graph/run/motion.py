@@ -24,6 +24,7 @@ from nap3d_graph.factors import odometry_factor, pose_prior_factor
 from nap3d_graph.run.chain import chain_from_nearest_keyframe
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.graph import KeyframeGraph
+from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.records import RunResult
 
 __all__ = ["MotionModel", "Odometry", "OdometryMotion"]
@@ -99,8 +100,9 @@ class OdometryMotion:
     def __init__(self, odometry: Odometry, config: PipelineConfig):
         self.odometry, self.config = odometry, config
         self.name = str(getattr(odometry, "name", "odometry"))
-        self.T_world_cam_odom: list[np.ndarray] = [odometry.initial_pose()]
-        self.increments: list[np.ndarray] = [np.eye(4)]
+        # Indexed by frame; a run that retires its past drops their oldest items (FrameLog).
+        self.T_world_cam_odom: FrameLog[np.ndarray] = FrameLog([odometry.initial_pose()])
+        self.increments: FrameLog[np.ndarray] = FrameLog([np.eye(4)])
         self.T_kf_cam = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
         self.dt_since_kf = 0.0
@@ -180,10 +182,13 @@ class OdometryMotion:
         return log_se3(self.increments[i]) / dt if dt > 0 else None
 
     def smoothed(self, values, T_world_kf_by_frame, keyframe_indices, stamps) -> np.ndarray:
-        return chain_from_nearest_keyframe(T_world_kf_by_frame, self.increments, len(stamps))
+        """The frames from the oldest kept one (``stamps``: theirs) chained from the keyframes."""
+        first = self.increments.start
+        return chain_from_nearest_keyframe(T_world_kf_by_frame, self.increments, first + len(stamps), start=first)
 
-    def causal(self, online: list[np.ndarray], stamps: np.ndarray) -> np.ndarray:
-        return np.stack(online[:len(stamps)])
+    def causal(self, online, stamps: np.ndarray) -> np.ndarray:
+        first = getattr(online, "start", 0)
+        return np.stack(online[first:first + len(stamps)])
 
     def finish(self, values, graph, accepted, keyframe_indices, result) -> None:
         pass

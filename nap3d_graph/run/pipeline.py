@@ -30,7 +30,9 @@ from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
 from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig, with_field_error
+from nap3d_graph.run.chain import chain_from_nearest_keyframe
 from nap3d_graph.run.graph import KeyframeGraph
+from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
 from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
@@ -67,11 +69,18 @@ class Pipeline:
         moves the run between keyframes.
     correction_hook: optional ``f(frame_index, Correction) -> Correction`` applied before the
         gate (tests use it to inject a wrong correction).
+    on_retire: optional ``f(RunResult)``. With a bounded graph (``config.graph_window``), each
+        time keyframes leave the window with their poses fixed, the frames up to the last of
+        them are final: they are handed over as a :class:`RunResult` segment (``first_frame``
+        says where it starts) and forgotten, so a long run's memory stays flat; the run's own
+        result then holds the frames after them (:func:`~nap3d_graph.run.history.join_segments`
+        puts the pieces together). Without it the run keeps everything.
     """
 
     def __init__(self, sequence: FrameSource, field, odometry, config: PipelineConfig | None = None,
-                 correction_hook=None):
+                 correction_hook=None, on_retire=None):
         self.sequence = sequence
+        self.on_retire = on_retire
         self.field = field
         self.odometry = odometry
         # The field's own error, as it measured it when it was built, unless told otherwise.
@@ -164,11 +173,13 @@ class Pipeline:
         anchor = self.motion.anchor_prior()
         self.anchored = self.config.use_anchor or anchor is not None
         self.graph = KeyframeGraph(self.config, self.anchored)
-        self.keyframe_indices: list[int] = []
-        self.records: list[KeyframeRecord] = []
+        # Indexed by keyframe number (records: in the order they were done); with on_retire
+        # the oldest are dropped (FrameLog), like the motion model's per-frame lists.
+        self.keyframe_indices: FrameLog[int] = FrameLog()
+        self.records: FrameLog[KeyframeRecord] = FrameLog()
         self.T_world_kf_pred = self.motion.T_world_cam_odom[0]
         self._pending_record: KeyframeRecord | None = None
-        self._online: list[np.ndarray] = []  # each frame's pose as known at that frame (causal)
+        self._online: FrameLog[np.ndarray] = FrameLog()  # each frame's pose as known at that frame (causal)
         # The latest keyframe's correction and factor (a live caller reads them).
         self.last_correction: Correction | None = None
         self.last_factor: gtsam.NonlinearFactor | None = None
@@ -367,9 +378,33 @@ class Pipeline:
             for kept in (self.interval_odometry, self.measured_corrections):
                 for frame in [frame for frame in kept if frame < oldest_frame]:
                     del kept[frame]
+            if self.on_retire is not None:
+                self._retire(cut)
         record = record or self._pending_record
         if record is not None:
             record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
+
+    def _retire(self, cut: int) -> None:
+        """Keyframes before ``cut`` have left the graph with their poses fixed: the frames before
+        the last of them have their final smoothed poses (each is chained from a fixed
+        keyframe). Hand them to ``on_retire`` and forget them; the last fixed keyframe stays, the
+        frames after it are chained from it at the end."""
+        first, last_fixed = self._online.start, self.keyframe_indices[cut - 1]
+        if last_fixed <= first:
+            return
+        fixed = {idx: self.graph.frozen[j] for j, idx in self.keyframe_indices.items() if j < cut}
+        T_world_cam_est = chain_from_nearest_keyframe(fixed, self.motion.increments, last_fixed, start=first)
+        stamps = np.asarray(self.sequence.timestamps[first:last_fixed], dtype=float)
+        gt = self.sequence.T_world_cam_gt
+        keyframes_gone = self.keyframe_indices.drop_before(self.keyframe_indices.first(lambda idx: idx >= last_fixed))
+        records_gone = self.records.drop_before(self.records.first(lambda r: r.frame_index >= last_fixed))
+        for j in [j for j in self.graph.frozen if j < self.keyframe_indices.start]:
+            del self.graph.frozen[j]
+        segment = RunResult(stamps, T_world_cam_est, np.stack(self.motion.T_world_cam_odom.drop_before(last_fixed)),
+                            None if gt is None else np.asarray(gt[first:last_fixed]), records_gone, keyframes_gone,
+                            T_world_cam_online=np.stack(self._online.drop_before(last_fixed)),
+                            increments=self.motion.increments.drop_before(last_fixed), first_frame=first)
+        self.on_retire(segment)
 
     def _finish_keyframe(self) -> KeyframeRecord | None:
         j = len(self.keyframe_indices) - 1
@@ -386,24 +421,27 @@ class Pipeline:
             np.zeros(len(self.sequence), dtype=bool)
 
     def _finish(self, n: int) -> RunResult:
-        T_world_cam_gt = None if self.sequence.T_world_cam_gt is None else np.asarray(self.sequence.T_world_cam_gt[:n])
-        stamps = np.asarray(self.sequence.timestamps[:n], dtype=float)
-        if not self.keyframe_indices:  # stopped before the first keyframe: odometry is all there is
+        first = self._online.start  # frames before it were retired (on_retire)
+        T_world_cam_gt = None if self.sequence.T_world_cam_gt is None else \
+            np.asarray(self.sequence.T_world_cam_gt[first:n])
+        stamps = np.asarray(self.sequence.timestamps[first:n], dtype=float)
+        if not len(self.keyframe_indices):  # stopped before the first keyframe: odometry is all there is
             T_world_cam_odom = np.stack(self.motion.T_world_cam_odom[:n])
             return RunResult(stamps, T_world_cam_odom, T_world_cam_odom, T_world_cam_gt, [], [], T_world_cam_online=T_world_cam_odom)
         accepted = {r.frame_index for r in self.records if r.accepted}
         estimate = self.graph.final_estimate(accepted)
         frozen = self.graph.frozen
         T_world_kf_by_frame = {idx: frozen[j] if j in frozen else pose3_to_T(estimate.atPose3(X(j)))
-                for j, idx in enumerate(self.keyframe_indices)}
+                               for j, idx in self.keyframe_indices.items()}
         T_world_cam_est = self.motion.smoothed(estimate, T_world_kf_by_frame, self.keyframe_indices, stamps)
         T_online = self.motion.causal(self._online, stamps)
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
-        result = RunResult(stamps, T_world_cam_est, np.stack(self.motion.T_world_cam_odom[:n]), T_world_cam_gt, self.records,
-                           list(self.keyframe_indices), T_map, T_world_cam_online=T_online,
+        result = RunResult(stamps, T_world_cam_est, np.stack(self.motion.T_world_cam_odom[:n]), T_world_cam_gt,
+                           list(self.records), list(self.keyframe_indices), T_map, T_world_cam_online=T_online,
                            gnc_outliers=list(self.graph.gnc_outliers), gnc_recovered=list(self.graph.gnc_recovered),
                            depth_scale=self.depth_scale.scale, interval_odometry=dict(self.interval_odometry),
-                           corrections=dict(self.measured_corrections), increments=list(self.motion.increments[:n]))
+                           corrections=dict(self.measured_corrections), increments=list(self.motion.increments[:n]),
+                           first_frame=first)
         self.motion.finish(estimate, self.graph, accepted, self.keyframe_indices, result)
         return result
 

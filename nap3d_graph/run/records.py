@@ -44,7 +44,10 @@ class RunResult:
     ``T_world_cam_estimate``: the smoothed trajectory (every correction, past and future,
     used). ``T_world_cam_online``: the causal one, what a robot had at each frame: each
     keyframe as iSAM2 knew it right after its own correction, the frames after it chained
-    with the odometry. ``partial``: the run was stopped before its last frame.
+    with the odometry. ``partial``: the run was stopped before its last frame. ``first_frame``:
+    the frame the arrays start at (0 but for a run that handed its older frames to
+    ``on_retire``, :mod:`nap3d_graph.run.history`); ``keyframe_indices`` and the records'
+    ``frame_index`` count from the run's first frame all the same.
     """
 
     timestamps: np.ndarray
@@ -69,6 +72,7 @@ class RunResult:
     gravity_world: np.ndarray | None = None
     gravity_world_prior: np.ndarray | None = None
     fallback_intervals: list = field(default_factory=list)
+    first_frame: int = 0
 
     def trajectories(self) -> dict[str, Trajectory]:
         """The run's trajectories as :class:`~nap3d_graph.trajectory.Trajectory`:
