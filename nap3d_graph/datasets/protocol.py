@@ -6,7 +6,7 @@ field of a simulated room), ``imu_config``."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -21,10 +21,12 @@ SEQUENCE_ATTRIBUTES = ("path", "timestamps", "depth_timestamps", "intrinsics", "
 
 class FrameSource(Protocol):
     """What a drift-correction run reads of its frames (a live caller's growing sequence gives
-    just this): ``len``, the frames, their ``timestamps`` (N,) and ``T_world_cam_gt`` (or None)."""
+    just this): ``len``, the frames, their ``timestamps`` (N,) and ``T_world_cam_gt`` (or None).
+    ``timestamps`` is an array, or anything indexed by frame as one is (``[i]``, ``[a:b]``:
+    a live run's :class:`~nap3d_graph.run.history.FrameLog`)."""
 
     @property
-    def timestamps(self) -> np.ndarray: ...
+    def timestamps(self) -> Any: ...
 
     @property
     def T_world_cam_gt(self) -> np.ndarray | None: ...

@@ -47,6 +47,7 @@ from nap3d_graph.factors import imu_factor, noise_model, odometry_factor
 from nap3d_graph.imu import ImuConfig, ImuStream
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.graph import KeyframeGraph
+from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.records import RunResult
 
 __all__ = ["ImuOdometry", "ImuMotion", "gravity_aligned_frame"]
@@ -133,8 +134,8 @@ class ImuMotion:
         self._dead_t = t0
         # The fallback's last IMU prediction from the keyframe state: (t_kf, t, NavState).
         self._fallback_nav: tuple[float, float, gtsam.NavState] | None = None
-        self.T_world_cam_odom: list[np.ndarray] = [odometry.initial_pose()]
-        self.increments: list[np.ndarray] = [np.eye(4)]
+        self.T_world_cam_odom: FrameLog[np.ndarray] = FrameLog([odometry.initial_pose()])
+        self.increments: FrameLog[np.ndarray] = FrameLog([np.eye(4)])
         self._notes: list[str] = []
         self.dt_since_kf = 0.0
         self.T_world_kf = self.T_world_cam_odom[0]  # the latest keyframe's estimate in the field's frame
@@ -328,7 +329,7 @@ class ImuMotion:
             T_field_cam[i] = T_field_nav @ pose3_to_T(self._predict(t_k, nav, bias, float(t)).pose())
         return T_field_cam
 
-    def smoothed(self, values: gtsam.Values, T_world_kf_by_frame: dict[int, np.ndarray], keyframe_indices: list[int],
+    def smoothed(self, values: gtsam.Values, T_world_kf_by_frame: dict[int, np.ndarray], keyframe_indices: FrameLog[int],
                  stamps: np.ndarray) -> np.ndarray:
         T_field_nav = self._field_from_nav(values)
         states = []
@@ -344,14 +345,14 @@ class ImuMotion:
                 T_field_cam[i] = T_field_cam[i - 1] @ self._vo_increments[i]
         return T_field_cam
 
-    def causal(self, online: list[np.ndarray], stamps: np.ndarray) -> np.ndarray:
+    def causal(self, online: FrameLog[np.ndarray], stamps: np.ndarray) -> np.ndarray:
         T_field_cam = self._frames_from_states(self.kf_states, stamps)
         for i in self._vo_increments:  # frames the fallback chained, as the run had them
             if i < len(stamps):
                 T_field_cam[i] = online[i]
         return T_field_cam
 
-    def finish(self, values: gtsam.Values, graph: KeyframeGraph, accepted: set[int], keyframe_indices: list[int],
+    def finish(self, values: gtsam.Values, graph: KeyframeGraph, accepted: set[int], keyframe_indices: FrameLog[int],
                result: RunResult) -> None:
         """The refined gravity, the biases and their sigmas, the IMU's notes, the fallback's spans."""
         n = len(result.timestamps)

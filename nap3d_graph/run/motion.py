@@ -48,8 +48,8 @@ class MotionModel(Protocol):
     allows_graph_window: bool
     #: It puts the field's frame in the graph itself (``anchor_prior``): ``--anchor`` does not apply.
     estimates_field_frame: bool
-    T_world_cam_odom: list[np.ndarray]
-    increments: list[np.ndarray]
+    T_world_cam_odom: FrameLog[np.ndarray]  # per frame (a run that retires its past drops the oldest)
+    increments: FrameLog[np.ndarray]
 
     @property
     def needs_frames(self) -> bool: ...
@@ -78,12 +78,12 @@ class MotionModel(Protocol):
 
     def twist(self, i: int, t: float, dt: float) -> np.ndarray | None: ...
 
-    def smoothed(self, values: gtsam.Values, T_world_kf_by_frame: dict[int, np.ndarray], keyframe_indices: list[int],
-                 stamps: np.ndarray) -> np.ndarray: ...
+    def smoothed(self, values: gtsam.Values, T_world_kf_by_frame: dict[int, np.ndarray],
+                 keyframe_indices: FrameLog[int], stamps: np.ndarray) -> np.ndarray: ...
 
-    def causal(self, online: list[np.ndarray], stamps: np.ndarray) -> np.ndarray: ...
+    def causal(self, online: FrameLog[np.ndarray], stamps: np.ndarray) -> np.ndarray: ...
 
-    def finish(self, values: gtsam.Values, graph: KeyframeGraph, accepted: set[int], keyframe_indices: list[int],
+    def finish(self, values: gtsam.Values, graph: KeyframeGraph, accepted: set[int], keyframe_indices: FrameLog[int],
                result: RunResult) -> None: ...
 
 
@@ -186,8 +186,8 @@ class OdometryMotion:
         first = self.increments.start
         return chain_from_nearest_keyframe(T_world_kf_by_frame, self.increments, first + len(stamps), start=first)
 
-    def causal(self, online, stamps: np.ndarray) -> np.ndarray:
-        first = getattr(online, "start", 0)
+    def causal(self, online: FrameLog[np.ndarray], stamps: np.ndarray) -> np.ndarray:
+        first = online.start
         return np.stack(online[first:first + len(stamps)])
 
     def finish(self, values, graph, accepted, keyframe_indices, result) -> None:

@@ -29,8 +29,8 @@ from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
 from nap3d_graph.results import Correction
-from nap3d_graph.run.config import PipelineConfig, with_field_error
 from nap3d_graph.run.chain import chain_from_nearest_keyframe
+from nap3d_graph.run.config import PipelineConfig, with_field_error
 from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
