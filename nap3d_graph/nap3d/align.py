@@ -272,18 +272,20 @@ def view_features(view: RenderedView, config: AlignConfig | None = None) -> Feat
 
 
 def align_views(real: RGBDFrame, view: RenderedView, config: AlignConfig | None = None,
-                feats_real: Features | None = None) -> Alignment:
+                feats_real: Features | None = None, feats_view: Features | None = None) -> Alignment:
     """NAP3D between a real RGB-D frame and the view a field rendered at the believed pose.
 
     Returns an :class:`Alignment` whose ``T_real_rendered`` maps rendered-camera points into
     the real camera; ``success=False`` with a ``reason`` on bad data. Never raises on data.
-    ``feats_real``: the real frame's features (``config.matcher``'s), when already detected.
+    ``feats_real``, ``feats_view``: the real frame's and the view's features
+    (``config.matcher``'s, the view's by :func:`view_features`), when already detected.
     """
     config = config or AlignConfig()
     method = f"nap3d-{config.method}"
     timings: dict = {}
     try:
-        corr, reason = prepare_correspondences(real, view, config, timings, feats_real=feats_real)
+        corr, reason = prepare_correspondences(real, view, config, timings, feats_real=feats_real,
+                                               feats_view=feats_view)
         if corr is None:
             return Alignment.failure(reason, method=method, timings_s=timings)
         return align_correspondences(corr, real.intrinsics, config, timings)

@@ -11,17 +11,18 @@ import logging
 import os
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import Intrinsics, RGBDFrame
+from ..camera import Intrinsics, RenderedView, RGBDFrame
 from ..conventions import as_T, inv_T, log_se3, rigid_transform_problem
 from ..results import Alignment, Correction
-from .align import align_views
+from .align import align_views, view_features
 from .config import AlignConfig
-from .matching import detect_features
+from .matching import Features, detect_features
 
-__all__ = ["correct_pose", "render_safely", "resize_frame"]
+__all__ = ["correct_pose", "render_safely", "resize_frame", "PreparedView", "prepare_view"]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +39,32 @@ def render_safely(field, T_world_cam: np.ndarray, intrinsics: Intrinsics):
     return view, ""
 
 
+@dataclass(frozen=True)
+class PreparedView:
+    """A render made before its frame arrived, with its features: ``T_world_cam`` (4, 4) where
+    it was rendered, ``view`` (RenderedView), ``features`` (:func:`view_features`),
+    ``intrinsics`` (its camera), ``seconds`` (render and detection)."""
+
+    T_world_cam: np.ndarray
+    view: RenderedView
+    features: Features
+    intrinsics: Intrinsics
+    seconds: float
+
+
+def prepare_view(field, T_world_cam: np.ndarray, intrinsics: Intrinsics, config: AlignConfig | None = None
+                 ) -> PreparedView | None:
+    """Render at ``T_world_cam`` and detect the view's features, ahead of the frame that will
+    be aligned to it (a run's next keyframe at its predicted pose); None when the field does
+    not render there."""
+    t0 = time.perf_counter()
+    view, _ = render_safely(field, np.asarray(T_world_cam, dtype=float), intrinsics)
+    if view is None:
+        return None
+    features = view_features(view, config or AlignConfig())
+    return PreparedView(np.array(T_world_cam, dtype=float), view, features, intrinsics, time.perf_counter() - t0)
+
+
 def correct_pose(
     frame: RGBDFrame,
     field,
@@ -46,6 +73,7 @@ def correct_pose(
     config: AlignConfig | None = None,
     render_intrinsics: Intrinsics | None = None,
     stop_mahalanobis: float = 0.3,
+    prepared: PreparedView | None = None,
 ) -> Correction:
     """Correct ``T_world_cam_est`` (world <- camera, OpenCV; a (4, 4) array or a
     ``gtsam.Pose3``, as a GTSAM loop has it) of ``frame`` with ``field``.
@@ -56,7 +84,9 @@ def correct_pose(
     ``stop_mahalanobis``): then the last alignment compared two views from practically the
     same viewpoint, and its covariance is honest. ``render_intrinsics`` (default: the
     frame's) sets the rendering camera; a frame at another resolution is resized to it.
-    Never raises on bad data: ``success=False`` and ``reason`` say why.
+    ``prepared``: a render made ahead near the estimate (:func:`prepare_view`, with the same
+    camera): the first round aligns to it instead of rendering, measuring the pose from where
+    it was rendered. Never raises on bad data: ``success=False`` and ``reason`` say why.
     """
     T_est = as_T(T_world_cam_est)  # a 4x4 array or a gtsam.Pose3
     problem = rigid_transform_problem(T_est, tolerance=1e-5)
@@ -65,6 +95,8 @@ def correct_pose(
         T_keep = T_est if T_est.shape == (4, 4) else np.eye(4)
         return Correction(T_keep, T_keep.copy(), np.full((6, 6), np.inf), failed, 0, False, failed.reason, {})
     intrinsics = render_intrinsics or frame.intrinsics
+    if prepared is not None and prepared.intrinsics.shape != intrinsics.shape:
+        prepared = None  # rendered for another camera: render afresh
     timings = {"render": 0.0, "align": 0.0}
     T_current = T_est
     alignment = Alignment.failure("not run")
@@ -79,16 +111,21 @@ def correct_pose(
     # other, and OpenCV and torch both release the GIL, so the second core takes one of them.
     detecting = _detector().submit(_timed_detect, real.rgb, config)
     for rounds in range(1, max(1, iterations) + 1):
-        t0 = time.perf_counter()
-        view, reason = render_safely(field, T_current, intrinsics)
-        timings["render"] += time.perf_counter() - t0
+        feats_view = None
+        if rounds == 1 and prepared is not None:  # rendered ahead: align to it from where it was made
+            T_current, view, feats_view, reason = prepared.T_world_cam, prepared.view, prepared.features, ""
+            timings["render_ahead"] = prepared.seconds
+        else:
+            t0 = time.perf_counter()
+            view, reason = render_safely(field, T_current, intrinsics)
+            timings["render"] += time.perf_counter() - t0
         if rounds == 1:
             feats_real, timings["detect"] = detecting.result()
         if view is None:
             alignment = Alignment.failure(reason)
             break
         t0 = time.perf_counter()
-        step = align_views(real, view, config, feats_real=feats_real)
+        step = align_views(real, view, config, feats_real=feats_real, feats_view=feats_view)
         timings["align"] += time.perf_counter() - t0
         for key, value in step.timings_s.items():
             timings[key] = timings.get(key, 0.0) + value

@@ -10,6 +10,7 @@ depth-scale check, the gate, the factor) stays with the run, on its own thread.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -18,10 +19,12 @@ from typing import Any
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RGBDFrame, warp_depth
-from nap3d_graph.conventions import exp_se3
+from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming
-from nap3d_graph.nap3d.correct import correct_pose
+from nap3d_graph.nap3d.correct import PreparedView, correct_pose, prepare_view
 from nap3d_graph.results import Correction
+
+log = logging.getLogger(__name__)
 
 __all__ = ["KeyframeJob", "measure_keyframe", "at_colour_time", "CorrectionWorker", "DepthScaleTracker"]
 
@@ -32,7 +35,9 @@ class KeyframeJob:
     pose to render at (the field's frame); twist: (6,) body twist per second (GTSAM order)
     of the camera at the frame, or None; timing: the :class:`~nap3d_graph.datasets.depth_timing.CaptureTiming` (``depth_offset_s``,
     ``colour_offset_s``) or None; depth_scale: the run's current factor on the sensor's
-    depth; render_intrinsics: the virtual camera of the render."""
+    depth; render_intrinsics: the virtual camera of the render; prepared: a render made ahead
+    at the keyframe's predicted pose (a :class:`~nap3d_graph.nap3d.correct.PreparedView`, or
+    the worker's future of one), used when it is near ``T_field_cam_render``."""
 
     frame_index: int
     frame: RGBDFrame
@@ -41,6 +46,7 @@ class KeyframeJob:
     timing: CaptureTiming | None
     depth_scale: float
     render_intrinsics: Intrinsics
+    prepared: Any = None
 
 
 def at_colour_time(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, depth_scale: float):
@@ -73,8 +79,10 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     align = config.align
     if config.depth_scale_check and not align.rescale_depth:
         align = dataclasses.replace(align, rescale_depth=True)
+    prepared = usable_prepared_view(job, config)
     correction = correct_pose(frame, field, job.T_field_cam_render, iterations=config.correction_iterations,
-                              config=align, render_intrinsics=job.render_intrinsics)
+                              config=align, render_intrinsics=job.render_intrinsics, prepared=prepared)
+    correction.timings_s["prepared"] = float(prepared is not None)
     if twist is not None and job.timing is not None and correction.success:
         # Measured at the colour's instant: move it to the frame's stamp.
         shift = exp_se3(-twist * job.timing.colour_offset_s)
@@ -84,6 +92,23 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         correction = dataclasses.replace(correction, covariance=correction.covariance + field_cov)
     correction.timings_s["measure"] = time.perf_counter() - t0
     return correction
+
+
+def usable_prepared_view(job: KeyframeJob, config) -> PreparedView | None:
+    """The job's render made ahead, when there is one and it was made within
+    ``config.render_ahead_m`` / ``render_ahead_deg`` of the pose the keyframe is to be rendered at
+    (farther, the alignment would compare more distant viewpoints than a fresh render gives)."""
+    prepared = job.prepared
+    if prepared is not None and not isinstance(prepared, PreparedView):
+        try:
+            prepared = prepared.result()  # the worker's future: done, it ran before this job
+        except Exception as exc:  # a field is user code: render afresh instead
+            log.warning("the render made ahead failed (%s); rendering at the keyframe", exc)
+            return None
+    if prepared is None:
+        return None
+    moved_m, turned_deg = pose_error(prepared.T_world_cam, job.T_field_cam_render)
+    return prepared if moved_m <= config.render_ahead_m and turned_deg <= config.render_ahead_deg else None
 
 
 class DepthScaleTracker:
@@ -130,6 +155,27 @@ class CorrectionWorker:
         self.field, self.config = field, config
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="nap3d-correction")
         self._flight: tuple[Any, Future] | None = None
+        self._prepared: Future | None = None
+
+    def prepare(self, T_field_cam: np.ndarray, intrinsics: Intrinsics) -> None:
+        """Render at the next keyframe's predicted pose and detect its features while the worker
+        is idle (:func:`~nap3d_graph.nap3d.correct.prepare_view`); the next :meth:`take_prepared`
+        hands it to that keyframe's job. The worker runs its tasks in order, so the measurement
+        never waits on a render in progress for longer than it would have rendered itself."""
+        self._prepared = self._pool.submit(prepare_view, self.field, T_field_cam, intrinsics, self.config.align)
+
+    @property
+    def preparing(self) -> bool:
+        """A render made ahead waits for its keyframe (done or not)."""
+        return self._prepared is not None
+
+    def idle(self) -> bool:
+        """Nothing submitted is still running."""
+        return all(f is None or f.done() for f in (self._prepared, self._flight[1] if self._flight else None))
+
+    def take_prepared(self) -> Future | None:
+        prepared, self._prepared = self._prepared, None
+        return prepared
 
     def submit(self, tag, job: KeyframeJob) -> None:
         """Start measuring ``job``; ``tag`` comes back with its result. One in flight only:

@@ -16,6 +16,7 @@ prediction. The motion model chains the frames between keyframes.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -111,6 +112,7 @@ class Pipeline:
         n = len(self.sequence) if self.config.max_frames is None else min(len(self.sequence), self.config.max_frames)
         done, partial = n, False
         worker = CorrectionWorker(self.field, self.config) if self._overlapping() else None
+        self.worker = worker  # a caller's stop hook may watch it
         try:
             for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
                 if stop is not None and stop():
@@ -122,6 +124,7 @@ class Pipeline:
         finally:
             if worker is not None:
                 worker.close()
+            self.worker = None
         result = self._finish(max(done, 1))
         result.partial = partial
         result.wall_time_s = time.perf_counter() - t_start
@@ -160,6 +163,8 @@ class Pipeline:
                 if on_keyframe is not None and record is not None:
                     on_keyframe(record)
         self._online.append(self.motion.causal_pose())
+        if worker is not None:
+            self._render_ahead(i, worker)
 
     @property
     def current_estimate(self) -> np.ndarray:
@@ -213,6 +218,7 @@ class Pipeline:
             return None
         if i == 0:
             self.motion.prime(frame)
+        self._frame_intrinsics = frame.intrinsics  # the camera a render made ahead uses
         return frame
 
     def _keyframe_record(self, i: int, key: int, **extra) -> KeyframeRecord:
@@ -263,12 +269,30 @@ class Pipeline:
         if self.anchored:
             T_field_cam_render = inv_T(self.graph.anchor()) @ self.T_world_kf_pred  # the field's frame
         return KeyframeJob(i, frame, T_field_cam_render, self._velocity(i), self._timing(), self.depth_scale.scale,
-                           self._render_intrinsics(frame))
+                           self._render_intrinsics(frame.intrinsics))
+
+    def _render_ahead(self, i: int, worker: CorrectionWorker) -> None:
+        """Overlapped run, after frame i: when frame i + 1 is due to be a keyframe and the worker
+        is idle, it renders at i + 1's predicted pose (frame i's, one more step of the same
+        motion) so that keyframe's measurement finds its render made
+        (``PipelineConfig.render_ahead``)."""
+        last = self.keyframe_indices[-1] if len(self.keyframe_indices) else None
+        intrinsics = getattr(self, "_frame_intrinsics", None)
+        if (not self.config.render_ahead or worker.busy or worker.preparing or last is None or intrinsics is None
+                or i + 1 - last < self.config.keyframe_every or i + 1 >= len(self.sequence)):
+            return
+        T_world_cam_next = self.motion.causal_pose() @ self.motion.increments[i]
+        if self.anchored:
+            T_world_cam_next = inv_T(self.graph.anchor()) @ T_world_cam_next  # the field's frame
+        worker.prepare(T_world_cam_next, self._render_intrinsics(intrinsics))
 
     def _launch(self, worker: CorrectionWorker, i: int, frame, on_keyframe) -> None:
         """Overlapped run: hand keyframe i's measurement to the worker and go on; until it
         lands, the keyframe is known by its prediction."""
         record, job = self._pending(), self._job(i, frame)
+        prepared = worker.take_prepared()
+        if job is not None and prepared is not None:
+            job = dataclasses.replace(job, prepared=prepared)
         self._pending_record = None
         self.motion.keyframe_estimated(self.graph, len(self.keyframe_indices) - 1, record.timestamp)
         if job is None:  # nothing to measure: the keyframe is done (its reason recorded)
@@ -447,8 +471,9 @@ class Pipeline:
 
     # --- helpers -----------------------------------------------------------------------------
 
-    def _render_intrinsics(self, frame) -> Intrinsics:
+    def _render_intrinsics(self, intrinsics: Intrinsics) -> Intrinsics:
+        """The render's camera: the frame's (``intrinsics``) at the configured render size."""
         w, h = self.config.render_width, self.config.render_height
-        if w is None or h is None or (w, h) == (frame.intrinsics.width, frame.intrinsics.height):
-            return frame.intrinsics
-        return frame.intrinsics.scaled(w, h)
+        if w is None or h is None or (w, h) == (intrinsics.width, intrinsics.height):
+            return intrinsics
+        return intrinsics.scaled(w, h)
