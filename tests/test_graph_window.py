@@ -81,14 +81,23 @@ def _kept(pipeline) -> int:
                len(pipeline.keyframe_indices._items), len(pipeline.records._items), len(pipeline.graph.frozen))
 
 
-def test_a_long_run_that_retires_its_past_keeps_flat_memory_and_the_same_result():
+def test_a_long_run_that_retires_its_past_keeps_flat_memory_and_the_same_result(tmp_path):
     from nap3d_graph.run.history import join_segments
+    from nap3d_graph.trajectory import read_tum_trajectory
 
     walk = ImagelessWalk(3000)
     config = PipelineConfig(keyframe_every=5, progress=False, graph_window=20)
     segments, kept = [], []
-    streamed = Pipeline(walk, None, make_odometry("noisy", walk, 1, 2e-3, 2e-3), config, on_retire=segments.append)
+    written = open(tmp_path / "estimate.txt", "w")
+
+    def retire(segment):
+        segments.append(segment)
+        segment.trajectories()["estimate"].append_tum(written)  # as a long run writes them out
+
+    streamed = Pipeline(walk, None, make_odometry("noisy", walk, 1, 2e-3, 2e-3), config, on_retire=retire)
     result = streamed.run(on_keyframe=lambda record: kept.append(_kept(streamed)))
+    result.trajectories()["estimate"].append_tum(written)
+    written.close()
     # 600 keyframes; at most 1.5 windows of them (and their frames) are ever held.
     assert max(kept) <= 31 * 5 + 1, max(kept)
     assert len(segments) >= 50 and result.first_frame >= 3000 - 31 * 5
@@ -101,6 +110,9 @@ def test_a_long_run_that_retires_its_past_keeps_flat_memory_and_the_same_result(
     np.testing.assert_allclose(joined.T_world_cam_odometry, whole.T_world_cam_odometry, atol=1e-12)
     np.testing.assert_allclose(joined.T_world_cam_gt, whole.T_world_cam_gt)
     assert joined.keyframe_indices == whole.keyframe_indices
+    stamps, T_world_cam = read_tum_trajectory(tmp_path / "estimate.txt")
+    np.testing.assert_allclose(stamps, whole.timestamps, atol=1e-6)
+    np.testing.assert_allclose(T_world_cam, whole.T_world_cam_estimate, atol=1e-8)
     assert [k.frame_index for k in joined.keyframes] == [k.frame_index for k in whole.keyframes]
     with pytest.raises(ValueError, match="not consecutive"):
         join_segments([segments[0], segments[2]])
