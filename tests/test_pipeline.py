@@ -293,7 +293,7 @@ def test_overlapped_run_renders_the_next_keyframe_ahead(walk, baseline):
     seq = SimSequence(walk)
     # A 6 Hz walk: the one-step guess of the next pose is up to 6 cm / 1.7 deg off (at 30 Hz,
     # millimetres), so the render made ahead is taken within 8 cm / 3 deg here.
-    config = dataclasses.replace(CONFIG, overlap=True, render_ahead_m=0.08, render_ahead_deg=3.0)
+    config = dataclasses.replace(CONFIG, overlap=True, render_ahead=True, render_ahead_m=0.08, render_ahead_deg=3.0)
     pipeline = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq), config)
 
     def idle_worker():
@@ -306,6 +306,8 @@ def test_overlapped_run_renders_the_next_keyframe_ahead(walk, baseline):
     prepared = [r.timings_s.get("prepared") for r in result.keyframes]
     assert prepared[0] == 0.0 and all(p == 1.0 for p in prepared[1:]), prepared
     assert all("render_ahead" in r.timings_s for r in result.keyframes[1:])
+    # The keyframe's own features were detected as it arrived, beside its odometry.
+    assert all("detect_ahead" in r.timings_s for r in result.keyframes[1:])
     assert result.num_accepted >= baseline.num_accepted - 1
     assert ate(result) < ate(baseline) + 0.002, (ate(result), ate(baseline))
     moved = [pose_error(a, b)[0] for a, b in zip(result.T_world_cam_estimate, baseline.T_world_cam_estimate)]

@@ -22,7 +22,8 @@ from .align import align_views, view_features
 from .config import AlignConfig
 from .matching import Features, detect_features
 
-__all__ = ["correct_pose", "render_safely", "resize_frame", "PreparedView", "prepare_view"]
+__all__ = ["correct_pose", "render_safely", "resize_frame", "at_render_size", "real_features", "PreparedView",
+           "prepare_view"]
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +75,7 @@ def correct_pose(
     render_intrinsics: Intrinsics | None = None,
     stop_mahalanobis: float = 0.3,
     prepared: PreparedView | None = None,
+    feats_real: Features | None = None,
 ) -> Correction:
     """Correct ``T_world_cam_est`` (world <- camera, OpenCV; a (4, 4) array or a
     ``gtsam.Pose3``, as a GTSAM loop has it) of ``frame`` with ``field``.
@@ -86,7 +88,9 @@ def correct_pose(
     frame's) sets the rendering camera; a frame at another resolution is resized to it.
     ``prepared``: a render made ahead near the estimate (:func:`prepare_view`, with the same
     camera): the first round aligns to it instead of rendering, measuring the pose from where
-    it was rendered. Never raises on bad data: ``success=False`` and ``reason`` say why.
+    it was rendered. ``feats_real``: the frame's features at the render size, when already
+    detected (:func:`real_features`). Never raises on bad data: ``success=False`` and
+    ``reason`` say why.
     """
     T_est = as_T(T_world_cam_est)  # a 4x4 array or a gtsam.Pose3
     problem = rigid_transform_problem(T_est, tolerance=1e-5)
@@ -104,12 +108,11 @@ def correct_pose(
     shown = None  # the render the kept alignment compared (for Correction.views)
     config = config or AlignConfig()
     # The real frame is the same every round: resize it and detect its features once.
-    real = frame
-    if intrinsics.shape != frame.intrinsics.shape:
-        real = resize_frame(frame, intrinsics.width, intrinsics.height)
+    real = at_render_size(frame, intrinsics)
     # The real frame's features while the first render is made: the two do not depend on each
     # other, and OpenCV and torch both release the GIL, so the second core takes one of them.
-    detecting = _detector().submit(_timed_detect, real.rgb, config)
+    if feats_real is None:
+        detecting = _detector().submit(_timed_detect, real.rgb, config)
     for rounds in range(1, max(1, iterations) + 1):
         feats_view = None
         if rounds == 1 and prepared is not None:  # rendered ahead: align to it from where it was made
@@ -119,7 +122,7 @@ def correct_pose(
             t0 = time.perf_counter()
             view, reason = render_safely(field, T_current, intrinsics)
             timings["render"] += time.perf_counter() - t0
-        if rounds == 1:
+        if rounds == 1 and feats_real is None:
             feats_real, timings["detect"] = detecting.result()
         if view is None:
             alignment = Alignment.failure(reason)
@@ -146,6 +149,20 @@ def correct_pose(
         return Correction(T_est, T_est.copy(), np.full((6, 6), np.inf), alignment, rounds, False,
                           alignment.reason, timings, views)
     return Correction(T_est, T_current, alignment.covariance, alignment, rounds, True, "", timings, views)
+
+
+def at_render_size(frame: RGBDFrame, intrinsics: Intrinsics) -> RGBDFrame:
+    """The frame resized to the render's camera (as it is when the sizes agree)."""
+    if intrinsics.shape != frame.intrinsics.shape:
+        return resize_frame(frame, intrinsics.width, intrinsics.height)
+    return frame
+
+
+def real_features(frame: RGBDFrame, intrinsics: Intrinsics, config: AlignConfig | None = None) -> Features:
+    """The real frame's features as :func:`correct_pose` detects them (at the render's size),
+    for a caller that detects them before the correction starts."""
+    config = config or AlignConfig()
+    return detect_features(at_render_size(frame, intrinsics).rgb, config.max_features, matcher=config.matcher)
 
 
 def _timed_detect(rgb: np.ndarray, config: AlignConfig):

@@ -110,10 +110,10 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
             J_z = np.concatenate([J_z, np.zeros((n, 4))], axis=1)
         r, J, W = stack_rows(r_px, J_px, r_z, J_z, grad, var_px0 * scale_px, var_z0 * scale_z,
                               use_reprojection, use_depth)
-        norm_sq = np.einsum("ni,nij,nj->n", r, W, r)
+        Wr = _apply(W, r)
+        norm_sq = np.sum(r * Wr, axis=1)
         rob = _huber_weights(np.sqrt(norm_sq / rows), config.huber_k)
-        H = np.einsum("n,nri,nrs,nsj->ij", rob, J, W, J)
-        g = np.einsum("n,nri,nrs,ns->i", rob, J, W, r)
+        H, g = _normal_equations(rob, J, W, Wr)
         if calibrate:  # the prior keeps the intrinsics near their given values
             H[6:, 6:] += np.diag(K_prior_info)
             g[6:] += K_prior_info * d_K
@@ -135,7 +135,7 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
     if config.covariance == "sandwich":
         # Heteroscedasticity-consistent (HC1) sandwich: the spread of each correspondence's
         # actual residual, not only the model's, enters the covariance.
-        score = rob[:, None] * np.einsum("nri,nrs,ns->ni", J, W, r)
+        score = rob[:, None] * np.matmul(np.swapaxes(J, 1, 2), _apply(W, r)[:, :, None])[:, :, 0]
         B = score.T @ score * n / max(n - 6, 1)
         full = _covariance(H)
         cov = (full @ B @ full)[:6, :6]
@@ -172,10 +172,24 @@ def consensus_cost(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsi
     J_z = point_jacobian(p)[:, 2, :]
     var_px = 2.0 * config.keypoint_sigma_px**2 * scale_px
     r, _, W = stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z0 * scale_z, True, use_depth)
-    r2 = np.einsum("ni,nij,nj->n", r, W, r)
+    r2 = np.sum(r * _apply(W, r), axis=1)
     # The same tail probability as the 3-row threshold, for 2 rows when the depth is left out.
     threshold = config.inlier_chi2 if use_depth else float(chi2.ppf(chi2.cdf(config.inlier_chi2, 3), 2))
     return float(np.sum(np.minimum(r2, threshold))), int(np.sum(r2 < threshold))
+
+
+def _apply(W: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(N, m) ``W[n] @ r[n]`` for information matrices W (N, m, m) and residuals r (N, m)."""
+    return np.matmul(W, r[:, :, None])[:, :, 0]
+
+
+def _normal_equations(rob: np.ndarray, J: np.ndarray, W: np.ndarray, Wr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``H = sum_n rob_n J_n^T W_n J_n`` (k, k) and ``g = sum_n rob_n J_n^T W_n r_n`` (k,) for
+    Jacobians J (N, m, k), information W (N, m, m), ``Wr`` = W r (N, m) and weights rob (N,):
+    as one matrix product over the stacked rows (BLAS), not an einsum over four operands."""
+    k = J.shape[2]
+    J_rob = (J * rob[:, None, None]).reshape(-1, k)
+    return J_rob.T @ np.matmul(W, J).reshape(-1, k), J_rob.T @ Wr.reshape(-1)
 
 
 def stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use_depth):
@@ -254,8 +268,8 @@ def plain_covariance(R, t, x, y, weights, s_xy, s_z) -> np.ndarray:
     f_z = max(float(np.sum(along**2 / (s_z**2 * np.sum(ray**2, axis=1))) / (n * redundancy)), 1e-3)
     Sigma = (f_xy * s_xy**2)[:, None, None] * np.diag([1.0, 1.0, 0.0]) + \
         (f_z * s_z**2)[:, None, None] * ray[:, :, None] * ray[:, None, :]
-    H = np.einsum("n,nri,nrj->ij", w, J, J)
-    B = np.einsum("n,nri,nrs,nsj->ij", w**2, J, Sigma, J)
+    H = (J * w[:, None, None]).reshape(-1, J.shape[2]).T @ J.reshape(-1, J.shape[2])
+    B = (J * (w**2)[:, None, None]).reshape(-1, J.shape[2]).T @ np.matmul(Sigma, J).reshape(-1, J.shape[2])
     H_inv = _covariance(H)
     cov = H_inv @ B @ H_inv
     return 0.5 * (cov + cov.T)

@@ -80,14 +80,19 @@ class PipelineConfig:
         trajectory then holds each frame's pose as it was known at that frame. Results depend
         on when a correction finishes, so an overlapped run is not bit-for-bit repeatable.
         The IMU path does not overlap.
-    render_ahead, render_ahead_m, render_ahead_deg: with ``overlap``, while the worker is idle
-        and the next frame is due to be a keyframe (``keyframe_every``), it renders at that
-        frame's predicted pose (the last frame's, one more odometry step ahead) and detects the
-        render's features, so the keyframe's measurement starts at the real frame's features:
-        its correction lands sooner. The keyframe uses that render when it was made within
-        ``render_ahead_m`` / ``render_ahead_deg`` of its own prediction, else renders afresh.
-        (The prediction is itself centimetres from the truth: a render a little beside it is
-        as good a reference; at 30 Hz the one-step guess is off by millimetres.)
+    detect_ahead: with ``overlap``, when a frame due to be a keyframe (``keyframe_every``)
+        arrives, the worker detects its features while the run computes its odometry; the
+        keyframe's measurement then starts at its render (the features are the same: nothing
+        changes but when its correction lands).
+    render_ahead, render_ahead_m, render_ahead_deg: with ``overlap``, also render ahead: while
+        the worker is idle and the next frame is due to be a keyframe, it renders at that
+        frame's one-step guess (the last frame's pose, one more step of the same motion) and
+        detects the render's features, so the keyframe's measurement starts at the matching.
+        The keyframe aligns to that render when it was made within ``render_ahead_m`` /
+        ``render_ahead_deg`` of its own prediction, else renders afresh. Off by default: on
+        fr1/desk at 15 Hz the guess is up to 3 deg off in fast turns, and the corrections
+        measured from it were worse (median 16.7 against 14.7 mm); it lands them a frame
+        sooner (``benchmarks/realtime_desk.py``). At 30 Hz the guess is four times closer.
     graph_window: keyframes kept in iSAM2 (0: all, the default). With N > 0, once more than
         1.5 N keyframes are in the graph the oldest are marginalised down to N (iSAM2's
         ``marginalizeLeaves``: their information stays as a linear prior on the window's
@@ -131,7 +136,8 @@ class PipelineConfig:
     field_sigma_depth_m: float = 2.0
     field_error_by_view: bool = False
     overlap: bool = False
-    render_ahead: bool = True
+    detect_ahead: bool = True
+    render_ahead: bool = False
     render_ahead_m: float = 0.05
     render_ahead_deg: float = 3.0
     graph_window: int = 0

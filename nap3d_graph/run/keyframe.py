@@ -21,7 +21,7 @@ import numpy as np
 from nap3d_graph.camera import Intrinsics, RGBDFrame, warp_depth
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming
-from nap3d_graph.nap3d.correct import PreparedView, correct_pose, prepare_view
+from nap3d_graph.nap3d.correct import PreparedView, correct_pose, prepare_view, real_features
 from nap3d_graph.results import Correction
 
 log = logging.getLogger(__name__)
@@ -37,7 +37,9 @@ class KeyframeJob:
     ``colour_offset_s``) or None; depth_scale: the run's current factor on the sensor's
     depth; render_intrinsics: the virtual camera of the render; prepared: a render made ahead
     at the keyframe's predicted pose (a :class:`~nap3d_graph.nap3d.correct.PreparedView`, or
-    the worker's future of one), used when it is near ``T_field_cam_render``."""
+    the worker's future of one), used when it is near ``T_field_cam_render``; feats_real: the
+    frame's features at the render size, detected as soon as it arrived (the worker's future
+    of ``(features, seconds)``), or None."""
 
     frame_index: int
     frame: RGBDFrame
@@ -47,6 +49,7 @@ class KeyframeJob:
     depth_scale: float
     render_intrinsics: Intrinsics
     prepared: Any = None
+    feats_real: Any = None
 
 
 def at_colour_time(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, depth_scale: float):
@@ -80,9 +83,13 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     if config.depth_scale_check and not align.rescale_depth:
         align = dataclasses.replace(align, rescale_depth=True)
     prepared = usable_prepared_view(job, config)
+    feats_real, detect_s = _resolved(job.feats_real, (None, 0.0), "the frame's features detected ahead")
     correction = correct_pose(frame, field, job.T_field_cam_render, iterations=config.correction_iterations,
-                              config=align, render_intrinsics=job.render_intrinsics, prepared=prepared)
+                              config=align, render_intrinsics=job.render_intrinsics, prepared=prepared,
+                              feats_real=feats_real)
     correction.timings_s["prepared"] = float(prepared is not None)
+    if feats_real is not None:
+        correction.timings_s["detect_ahead"] = detect_s
     if twist is not None and job.timing is not None and correction.success:
         # Measured at the colour's instant: move it to the frame's stamp.
         shift = exp_se3(-twist * job.timing.colour_offset_s)
@@ -98,17 +105,25 @@ def usable_prepared_view(job: KeyframeJob, config) -> PreparedView | None:
     """The job's render made ahead, when there is one and it was made within
     ``config.render_ahead_m`` / ``render_ahead_deg`` of the pose the keyframe is to be rendered at
     (farther, the alignment would compare more distant viewpoints than a fresh render gives)."""
-    prepared = job.prepared
-    if prepared is not None and not isinstance(prepared, PreparedView):
-        try:
-            prepared = prepared.result()  # the worker's future: done, it ran before this job
-        except Exception as exc:  # a field is user code: render afresh instead
-            log.warning("the render made ahead failed (%s); rendering at the keyframe", exc)
-            return None
+    prepared = _resolved(job.prepared, None, "the render made ahead")
     if prepared is None:
         return None
     moved_m, turned_deg = pose_error(prepared.T_world_cam, job.T_field_cam_render)
     return prepared if moved_m <= config.render_ahead_m and turned_deg <= config.render_ahead_deg else None
+
+
+def _resolved(value, fallback, what: str):
+    """``value``, or its result when it is the worker's future (done: it ran before the job
+    that asks); ``fallback`` when there is none or it failed (the job then does the work)."""
+    if value is None:
+        return fallback
+    if not isinstance(value, Future):
+        return value
+    try:
+        return value.result()
+    except Exception as exc:  # a field is user code: do the work in the measurement instead
+        log.warning("%s failed (%s); the keyframe's measurement does it", what, exc)
+        return fallback
 
 
 class DepthScaleTracker:
@@ -156,6 +171,7 @@ class CorrectionWorker:
         self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="nap3d-correction")
         self._flight: tuple[Any, Future] | None = None
         self._prepared: Future | None = None
+        self._detected: tuple[int, Future] | None = None
 
     def prepare(self, T_field_cam: np.ndarray, intrinsics: Intrinsics) -> None:
         """Render at the next keyframe's predicted pose and detect its features while the worker
@@ -164,6 +180,22 @@ class CorrectionWorker:
         never waits on a render in progress for longer than it would have rendered itself."""
         self._prepared = self._pool.submit(prepare_view, self.field, T_field_cam, intrinsics, self.config.align)
 
+    def detect_ahead(self, frame_index: int, frame: RGBDFrame, intrinsics: Intrinsics) -> None:
+        """Detect the features of a frame due to be a keyframe as soon as it arrives (at the
+        render size ``intrinsics``), while the run computes its odometry;
+        :meth:`take_detected` hands them to its job."""
+        def timed():
+            t0 = time.perf_counter()
+            return real_features(frame, intrinsics, self.config.align), time.perf_counter() - t0
+
+        self._detected = (frame_index, self._pool.submit(timed))
+
+    def take_detected(self, frame_index: int) -> Future | None:
+        """The features detected ahead for ``frame_index`` (None when there are none; those of
+        another frame are dropped)."""
+        detected, self._detected = self._detected, None
+        return detected[1] if detected is not None and detected[0] == frame_index else None
+
     @property
     def preparing(self) -> bool:
         """A render made ahead waits for its keyframe (done or not)."""
@@ -171,7 +203,9 @@ class CorrectionWorker:
 
     def idle(self) -> bool:
         """Nothing submitted is still running."""
-        return all(f is None or f.done() for f in (self._prepared, self._flight[1] if self._flight else None))
+        running = (self._prepared, self._flight[1] if self._flight else None,
+                   self._detected[1] if self._detected else None)
+        return all(f is None or f.done() for f in running)
 
     def take_prepared(self) -> Future | None:
         prepared, self._prepared = self._prepared, None

@@ -144,6 +144,8 @@ class Pipeline:
         keyframe, its node, its correction and the solve. ``run`` is this over the sequence;
         :class:`nap3d_graph.run.live.DriftCorrector` calls it a frame at a time."""
         frame = self._read_frame(i) if self.motion.needs_frames or self.selector.reads_every_frame else None
+        if worker is not None:
+            frame = self._detect_ahead(i, frame, worker)
         if i > 0:
             t = float(self.sequence.timestamps[i])
             self.motion.frame(i, frame, t, t - float(self.sequence.timestamps[i - 1]))
@@ -286,13 +288,26 @@ class Pipeline:
             T_world_cam_next = inv_T(self.graph.anchor()) @ T_world_cam_next  # the field's frame
         worker.prepare(T_world_cam_next, self._render_intrinsics(intrinsics))
 
+    def _detect_ahead(self, i: int, frame, worker: CorrectionWorker):
+        """Overlapped run, before frame i's odometry: when frame i is due to be a keyframe, the
+        worker detects its features now, on the other core, while the odometry runs
+        (``PipelineConfig.detect_ahead``). Returns the frame (read now if it was not yet)."""
+        last = self.keyframe_indices[-1] if len(self.keyframe_indices) else None
+        if (not self.config.detect_ahead or self.field is None or last is None
+                or i - last < self.config.keyframe_every):
+            return frame
+        frame = frame if frame is not None else self._read_frame(i)
+        if frame is not None:
+            worker.detect_ahead(i, frame, self._render_intrinsics(frame.intrinsics))
+        return frame
+
     def _launch(self, worker: CorrectionWorker, i: int, frame, on_keyframe) -> None:
         """Overlapped run: hand keyframe i's measurement to the worker and go on; until it
         lands, the keyframe is known by its prediction."""
         record, job = self._pending(), self._job(i, frame)
-        prepared = worker.take_prepared()
-        if job is not None and prepared is not None:
-            job = dataclasses.replace(job, prepared=prepared)
+        prepared, detected = worker.take_prepared(), worker.take_detected(i)
+        if job is not None:
+            job = dataclasses.replace(job, prepared=prepared, feats_real=detected)
         self._pending_record = None
         self.motion.keyframe_estimated(self.graph, len(self.keyframe_indices) - 1, record.timestamp)
         if job is None:  # nothing to measure: the keyframe is done (its reason recorded)
