@@ -1,5 +1,7 @@
 """EKF vs graph: the estimators, the IMU path and the comparison command."""
 
+import csv
+import json
 import re
 
 import gtsam
@@ -281,6 +283,30 @@ def test_run_command_with_the_imu_writes_the_biases(walk, tmp_path, capsys):
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "imu", "--overlap",
                  "--out", str(tmp_path)]) == 2
     assert "--overlap does not apply to --odom imu" in capsys.readouterr().err
+
+
+def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
+    """``run --overlap --render-ahead``: the keyframes are measured on the second thread, each
+    due keyframe's features detected beside its odometry, the next one rendered ahead; the
+    choice is recorded in config.yaml and the drift is removed as inline."""
+    import yaml
+
+    from nap3d_graph.cli import main
+
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--render-ahead",
+                 "--out", str(tmp_path)]) == 2
+    assert "--render-ahead works ahead on the second thread: it needs --overlap" in capsys.readouterr().err
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--overlap", "--render-ahead",
+                 "--out", str(tmp_path)]) == 0
+    run = tmp_path / "latest"
+    pipeline = yaml.safe_load((run / "config.yaml").read_text())["pipeline"]
+    assert pipeline["overlap"] is True and pipeline["render_ahead"] is True and pipeline["detect_ahead"] is True
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["corrections_accepted"] >= 0.8 * metrics["keyframes"]
+    assert metrics["estimate"]["ate_m"]["rmse"] < 0.4 * metrics["odometry"]["ate_m"]["rmse"], metrics
+    with open(run / "corrections.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert len(rows) == metrics["keyframes"]
 
 
 def test_imu_run_survives_a_failed_isam2_update(walk, monkeypatch):

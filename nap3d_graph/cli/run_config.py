@@ -24,7 +24,8 @@ _TOP = {"traj": "traj", "data": "data", "frames": "frames", "field": "field", "o
 _PIPELINE = {"keyframe_every": "keyframe_every", "keyframe_distance_m": "keyframe_distance",
              "keyframe_angle_deg": "keyframe_angle", "keyframe_window": "keyframe_window",
              "keyframe_on_doubt": "keyframe_on_doubt", "correction_iterations": "iterations", "gate_p": "gate_p",
-             "field_sigma_m": "field_sigma", "overlap": "overlap", "max_frames": "max_frames",
+             "field_sigma_m": "field_sigma", "overlap": "overlap", "render_ahead": "render_ahead",
+             "max_frames": "max_frames",
              "use_anchor": "anchor"}
 #: Pipeline settings a run resolves for itself each time (not carried over).
 _RESOLVED = {"timing", "progress", "align"}

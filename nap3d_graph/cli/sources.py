@@ -157,6 +157,10 @@ def add_source_arguments(p) -> None:
     p.add_argument("--overlap", action="store_true",
                    help="measure each keyframe's correction on a second thread while the odometry goes on; it "
                    "enters the graph when ready (faster on two cores; not bit-for-bit repeatable; not with --odom imu)")
+    p.add_argument("--render-ahead", action="store_true",
+                   help="with --overlap: render the next keyframe at its one-step guessed pose while the second "
+                   "thread is idle, so its correction lands sooner (for slow fields or fast cameras; its "
+                   "corrections can be slightly worse where the motion turns fast)")
     p.add_argument("--graph-window", type=non_negative_int, default=0, metavar="N",
                    help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their "
                    "poses, so a long run's graph and its updates stay bounded (default 0: every keyframe, the whole "
@@ -393,6 +397,8 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     warn_guessed_camera(sequence)
     args.matcher = chosen_matcher(args.matcher, sequence)
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
+    if args.render_ahead and not args.overlap:
+        raise UsageError("--render-ahead works ahead on the second thread: it needs --overlap")
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
     if args.graph_window and (odom_kind == "imu" or use_anchor):
@@ -403,7 +409,8 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             keyframe_window=args.keyframe_window, keyframe_on_doubt=args.keyframe_on_doubt,
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
-                            field_sigma_m=args.field_sigma, overlap=args.overlap, max_frames=args.max_frames,
+                            field_sigma_m=args.field_sigma, overlap=args.overlap, render_ahead=args.render_ahead,
+                            max_frames=args.max_frames,
                             graph_window=args.graph_window,
                             progress=True, compensate_timing=args.timing == "auto",
                             timing=_timing(args, field_obj, sequence),
