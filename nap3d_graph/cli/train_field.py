@@ -63,10 +63,13 @@ def add_parser(sub) -> None:
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     add_matcher_argument(p, RUN_MATCHER)
     p.add_argument("--refine-poses", type=non_negative_int, default=0, metavar="ROUNDS",
-                   help="refine the training frames' poses against the map first, for ROUNDS rounds: each frame is "
-                   "aligned (as a run would) with a splat map of the other half of the frames, fused with its input "
-                   "pose, and the maps rebuilt; the refined trajectory is held to the input one (default 0: the "
-                   "poses as given). The report gives each round and the multi-view depth agreement before and after")
+                   help="refine the training frames' poses first, for ROUNDS rounds (default 0: the poses as given; "
+                   "see --refine-method). The report gives each round and the multi-view depth agreement before "
+                   "and after")
+    p.add_argument("--refine-method", choices=("depth", "map"), default="depth",
+                   help="depth (default): each frame's depth aligned with its neighbours' (ICP), the poses solved in "
+                   "a graph that holds each to its input pose; map: each frame aligned (as a run would) with a splat "
+                   "map of the other half of the frames, fused with its input pose, the maps rebuilt")
     p.add_argument("--no-field-error", action="store_true",
                    help="do not measure the field's own error (by default each held-out frame is aligned with the "
                    "render at its true pose, as a run would, and what the corrections miss beyond their covariance "
@@ -99,7 +102,8 @@ def run(args) -> int:
                                 eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
                                 timing="auto" if args.timing == "auto" else None, device=args.device,
                                 progress=not args.quiet, measure_error=not args.no_field_error,
-                                matcher=args.matcher, refine_poses=args.refine_poses)
+                                matcher=args.matcher, refine_poses=args.refine_poses,
+                                refine_method=args.refine_method)
     report["data"] = str(args.data)
     report["frames"] = args.frames
     report["checkpoint"] = str(args.out)

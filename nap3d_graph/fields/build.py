@@ -27,7 +27,7 @@ from nap3d_graph.datasets.depth_timing import CaptureTiming
 from .base import FieldError
 from .evaluation import evaluate_field, oracle_for
 
-__all__ = ["MODELS", "DEFAULT_MODEL", "build_field", "estimate_timing"]
+__all__ = ["MODELS", "DEFAULT_MODEL", "REFINE_METHODS", "build_field", "estimate_timing"]
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                 every: int = 1, eval_frames: int = 8, seed: int = 0, voxel_size_m: float | None = None,
                 timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
                 device: str | None = None, progress: bool = True, measure_error: bool = True,
-                matcher: str = "sift", refine_poses: int = 0):
+                matcher: str = "sift", refine_poses: int = 0, refine_method: str = "depth"):
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
@@ -96,10 +96,13 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     smaller, or with ``None``). ``measure_error``: measure the field's own error on the
     held-out frames with ``matcher`` (:mod:`~nap3d_graph.fields.field_error`), recorded in
     ``field.meta["field_error"]`` and used by every run of the field to widen its corrections.
-    ``refine_poses``: rounds of training-pose refinement against the map
-    (:mod:`~nap3d_graph.fields.pose_refinement`; 0: the poses as given); the field is built
-    with the refined poses, which it records (``meta["pose_corrections"]``), and the report
-    holds each round and the frames' multi-view depth agreement before and after.
+    ``refine_poses``: rounds of training-pose refinement (0: the poses as given), by
+    ``refine_method``: ``"depth"`` (neighbouring frames' depths aligned with ICP, a pose graph
+    holding them to their input poses: :mod:`~nap3d_graph.fields.depth_refinement`) or
+    ``"map"`` (each frame aligned with NAP3D to a splat map of the others:
+    :mod:`~nap3d_graph.fields.pose_refinement`); the field is built with the refined poses,
+    which it records (``meta["pose_corrections"]``), and the report holds each round and the
+    frames' multi-view depth agreement before and after.
     """
     from .training_data import split_posed_frames
 
@@ -111,7 +114,8 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     timing_seconds = time.perf_counter() - started
     refinement = None
     if refine_poses > 0:
-        sequence, refinement = _refined(sequence, train_idx, timing, refine_poses, matcher, render_size, progress)
+        sequence, refinement = _refined(sequence, train_idx, timing, refine_poses, refine_method, matcher, render_size,
+                                        progress)
     oracle = oracle_for(sequence)
     if model == "splat":
         field, report = _build_splat(sequence, train_idx, voxel_size_m, timing, progress)
@@ -142,16 +146,27 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     return field, report
 
 
-def _refined(sequence, train_idx, timing, rounds, matcher, render_size, progress):
+REFINE_METHODS = ("depth", "map")
+
+
+def _refined(sequence, train_idx, timing, rounds, method, matcher, render_size, progress):
     """The sequence with its training frames' poses refined (a PoseCorrectedSequence) and the
     refinement's report, with the multi-view depth agreement before and after."""
     from nap3d_graph.datasets.depth_timing import multiview_agreement_mm
 
+    from .depth_refinement import DepthRefinementConfig, refine_poses_by_depth
     from .pose_refinement import PoseCorrectedSequence, PoseRefinementConfig, refine_training_poses
 
+    if method not in REFINE_METHODS:
+        raise FieldError(f"unknown pose refinement {method!r}; choose from {', '.join(REFINE_METHODS)}")
     started = time.perf_counter()
-    config = PoseRefinementConfig(rounds=rounds, matcher=matcher, render_size=render_size)
-    corrections, report = refine_training_poses(sequence, train_idx, timing, config, progress)
+    if method == "depth":
+        corrections, report = refine_poses_by_depth(sequence, train_idx, timing, DepthRefinementConfig(rounds=rounds),
+                                                    progress)
+    else:
+        config = PoseRefinementConfig(rounds=rounds, matcher=matcher, render_size=render_size)
+        corrections, report = refine_training_poses(sequence, train_idx, timing, config, progress)
+        report["method"] = "map"
     refined = PoseCorrectedSequence(sequence, corrections)
     offset = timing.depth_offset_s if timing is not None else 0.0
     if getattr(sequence, "ground_truth_at", None) is not None and getattr(sequence, "depth_timestamps", None) is not None:
