@@ -82,6 +82,7 @@ class Pipeline:
                  correction_hook=None, on_retire=None):
         self.sequence = sequence
         self.on_retire = on_retire
+        self.worker: CorrectionWorker | None = None  # an overlapped run's, while it runs
         self.field = field
         self.odometry = odometry
         # The field's own error, as it measured it when it was built, unless told otherwise.
@@ -186,6 +187,7 @@ class Pipeline:
         self.records: FrameLog[KeyframeRecord] = FrameLog()
         self.T_world_kf_pred = self.motion.T_world_cam_odom[0]
         self._pending_record: KeyframeRecord | None = None
+        self._frame_intrinsics: Intrinsics | None = None  # the last frame read's camera (a render made ahead uses it)
         self._online: FrameLog[np.ndarray] = FrameLog()  # each frame's pose as known at that frame (causal)
         # The latest keyframe's correction and factor (a live caller reads them).
         self.last_correction: Correction | None = None
@@ -220,7 +222,7 @@ class Pipeline:
             return None
         if i == 0:
             self.motion.prime(frame)
-        self._frame_intrinsics = frame.intrinsics  # the camera a render made ahead uses
+        self._frame_intrinsics = frame.intrinsics
         return frame
 
     def _keyframe_record(self, i: int, key: int, **extra) -> KeyframeRecord:
@@ -279,7 +281,7 @@ class Pipeline:
         motion) so that keyframe's measurement finds its render made
         (``PipelineConfig.render_ahead``)."""
         last = self.keyframe_indices[-1] if len(self.keyframe_indices) else None
-        intrinsics = getattr(self, "_frame_intrinsics", None)
+        intrinsics = self._frame_intrinsics
         if (not self.config.render_ahead or worker.busy or worker.preparing or last is None or intrinsics is None
                 or i + 1 - last < self.config.keyframe_every or i + 1 >= len(self.sequence)):
             return
