@@ -23,7 +23,7 @@ from .config import AlignConfig
 from .matching import Features, detect_features
 
 __all__ = ["correct_pose", "render_safely", "resize_frame", "at_render_size", "real_features", "PreparedView",
-           "prepare_view"]
+           "prepare_view", "prepare_view_beside"]
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +64,12 @@ def prepare_view(field, T_world_cam: np.ndarray, intrinsics: Intrinsics, config:
         return None
     features = view_features(view, config or AlignConfig())
     return PreparedView(np.array(T_world_cam, dtype=float), view, features, intrinsics, time.perf_counter() - t0)
+
+
+def prepare_view_beside(field, T_world_cam: np.ndarray, intrinsics: Intrinsics, config: AlignConfig | None = None):
+    """:func:`prepare_view` on the side thread that otherwise detects the real frame's features
+    (a future): for a caller that has those features already and other work to do meanwhile."""
+    return _detector().submit(prepare_view, field, T_world_cam, intrinsics, config)
 
 
 def correct_pose(

@@ -21,7 +21,7 @@ import numpy as np
 from nap3d_graph.camera import Intrinsics, RGBDFrame, warp_depth
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming
-from nap3d_graph.nap3d.correct import PreparedView, correct_pose, prepare_view, real_features
+from nap3d_graph.nap3d.correct import PreparedView, correct_pose, prepare_view, prepare_view_beside, real_features
 from nap3d_graph.results import Correction
 
 log = logging.getLogger(__name__)
@@ -78,16 +78,24 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     repeated them.
     """
     t0 = time.perf_counter()
-    frame, twist = at_colour_time(job.frame, job.timing, job.twist, job.depth_scale)
     align = config.align
     if config.depth_scale_check and not align.rescale_depth:
         align = dataclasses.replace(align, rescale_depth=True)
     prepared = usable_prepared_view(job, config)
     feats_real, detect_s = _resolved(job.feats_real, (None, 0.0), "the frame's features detected ahead")
+    rendering = None
+    if prepared is None and feats_real is not None:
+        # The real frame's features are known: its render (and the render's features) need not
+        # wait for the depth to be moved to the colour instant; the side thread makes it now.
+        rendering = prepare_view_beside(field, job.T_field_cam_render, job.render_intrinsics, align)
+    frame, twist = at_colour_time(job.frame, job.timing, job.twist, job.depth_scale)
+    beside = _resolved(rendering, None, "the render") if rendering is not None else None
     correction = correct_pose(frame, field, job.T_field_cam_render, iterations=config.correction_iterations,
-                              config=align, render_intrinsics=job.render_intrinsics, prepared=prepared,
+                              config=align, render_intrinsics=job.render_intrinsics, prepared=prepared or beside,
                               feats_real=feats_real)
     correction.timings_s["prepared"] = float(prepared is not None)
+    if beside is not None:  # rendered at the keyframe's own prediction, beside the depth warp
+        correction.timings_s["render"] = correction.timings_s.pop("render_ahead", 0.0)
     if feats_real is not None:
         correction.timings_s["detect_ahead"] = detect_s
     if twist is not None and job.timing is not None and correction.success:
