@@ -94,8 +94,8 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
                               config=align, render_intrinsics=job.render_intrinsics, prepared=prepared or beside,
                               feats_real=feats_real)
     correction.timings_s["prepared"] = float(prepared is not None)
-    if beside is not None:  # rendered at the keyframe's own prediction, beside the depth warp
-        correction.timings_s["render"] = correction.timings_s.pop("render_ahead", 0.0)
+    if beside is not None:  # rendered at the keyframe's own prediction (and its features), beside the depth warp
+        correction.timings_s["render_beside"] = correction.timings_s.pop("render_ahead", 0.0)
     if feats_real is not None:
         correction.timings_s["detect_ahead"] = detect_s
     if twist is not None and job.timing is not None and correction.success:
