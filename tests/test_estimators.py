@@ -307,6 +307,8 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     with open(run / "corrections.csv") as handle:
         rows = list(csv.DictReader(handle))
     assert len(rows) == metrics["keyframes"]
+    # Every keyframe after the first had its features detected ahead; its time is in the row.
+    assert all(float(r["t_detect_ahead_s"]) > 0 for r in rows[1:]), [r["t_detect_ahead_s"] for r in rows]
 
 
 def test_imu_run_survives_a_failed_isam2_update(walk, monkeypatch):

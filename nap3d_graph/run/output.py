@@ -29,7 +29,8 @@ __all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary
 
 log = logging.getLogger(__name__)
 
-TIMING_STAGES = ("render", "detect", "match", "ransac", "refine", "gate", "isam", "measure", "wait")
+TIMING_STAGES = ("render", "detect", "match", "ransac", "refine", "gate", "isam", "measure", "wait",
+                 "render_beside", "render_ahead", "detect_ahead")  # the last three: overlapped runs (--overlap)
 CORRECTION_COLUMNS = ["frame_index", "run_index", "timestamp", "key", "matches", "inliers", "iterations", "accepted",
                       "reason", "gate_d2", "correction_m", "correction_deg", "trained_frame", "keyframe_why",
                       "sharpness", "postponed_frames", *[f"t_{s}_s" for s in TIMING_STAGES]]
