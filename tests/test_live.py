@@ -47,6 +47,35 @@ def test_frame_at_a_time_equals_the_batch_run(walk):
     assert pose_error(updates[-1].T_world_cam, walk.T_world_cam_gt[-1])[0] < 0.01
 
 
+def test_an_overlapped_corrector_returns_at_once_and_lands_each_correction_later(walk):
+    """With ``overlap`` each keyframe is measured on a worker thread: ``add_frame`` reports the
+    keyframe, and the correction comes with the frame at which it landed (at the latest when
+    the next keyframe arrives, or at ``finish``). Each keyframe is measured at the same
+    prediction as inline, so the smoothed trajectory is the inline one."""
+    import dataclasses
+
+    field = walk.oracle_field()
+    inline = Pipeline(walk, field, make_odometry("recorded", walk), CONFIG).run()
+    odometry = make_odometry("recorded", walk)
+    corrector = DriftCorrector(field, odometry.initial_pose(), dataclasses.replace(CONFIG, overlap=True))
+    updates = []
+    for i in range(len(walk)):
+        frame = walk[i]
+        inc = odometry.increment(i, None) if i > 0 else None
+        updates.append(corrector.add_frame(frame.rgb, frame.depth_m, frame.intrinsics, frame.timestamp,
+                                           None if inc is None else inc.T_prev_cur,
+                                           None if inc is None else inc.covariance))
+    result = corrector.finish()
+    assert [i for i, u in enumerate(updates) if u.keyframe] == inline.keyframe_indices
+    landed = [(i, u.record.frame_index) for i, u in enumerate(updates) if u.record is not None]
+    assert all(keyframe <= i for i, keyframe in landed)  # never before its keyframe
+    # Every keyframe's correction met the graph once: during a later frame or at finish.
+    assert [r.frame_index for r in result.keyframes] == inline.keyframe_indices
+    assert {k for _, k in landed} <= set(inline.keyframe_indices)
+    assert result.num_accepted == inline.num_accepted
+    np.testing.assert_allclose(result.T_world_cam_estimate, inline.T_world_cam_estimate, atol=1e-6)
+
+
 def test_bad_input_is_refused_and_the_graph_goes_on(walk):
     import gtsam
 

@@ -26,6 +26,7 @@ from nap3d_graph.conventions import as_T, rigid_transform_problem
 from nap3d_graph.odometry import Increment
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.history import FrameLog
+from nap3d_graph.run.keyframe import CorrectionWorker
 from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.run.records import KeyframeRecord, RunResult
 
@@ -35,10 +36,13 @@ __all__ = ["DriftCorrector", "LiveUpdate"]
 @dataclass
 class LiveUpdate:
     """What one frame changed. ``T_world_cam`` (4, 4): the estimate at this frame as known now
-    (causal). At a keyframe: ``record`` (one row of corrections.csv), ``correction`` (the
+    (causal). ``keyframe``: this frame is a keyframe. When a correction met the graph during
+    this frame: ``record`` (one row of corrections.csv), ``correction`` (the
     :class:`~nap3d_graph.results.Correction`, successful or not) and ``factor`` (the robust
     GTSAM factor that entered the graph, or None when the correction failed or was gated out;
-    ``record.reason`` says why)."""
+    ``record.reason`` says why). Measured inline that is this keyframe's own; with
+    ``PipelineConfig.overlap`` it is the one that landed now, of an earlier keyframe
+    (``record.frame_index``)."""
 
     T_world_cam: np.ndarray
     keyframe: bool = False
@@ -114,7 +118,10 @@ class DriftCorrector:
 
     field: anything with ``render(T_world_cam, intrinsics)`` (:func:`nap3d_graph.load_field`).
     T_world_cam_start (4, 4) or ``gtsam.Pose3``: the first frame's pose in the field's frame.
-    config: a :class:`PipelineConfig` (corrections are measured inline: ``overlap`` is off).
+    config: a :class:`PipelineConfig`. With ``overlap`` each keyframe is measured on a worker
+        thread and ``add_frame`` returns at once; its correction enters the graph at a later
+        frame (that frame's :class:`LiveUpdate` carries it), and :meth:`finish` waits for the
+        last one.
     odometry_sigmas: (rad, m) per-frame sigmas of the increments when ``add_frame`` is given
     no covariance.
     on_retire: optional ``f(RunResult)`` for a loop that runs for hours: with a bounded graph
@@ -126,7 +133,7 @@ class DriftCorrector:
     def __init__(self, field, T_world_cam_start, config: PipelineConfig | None = None,
                  odometry_sigmas: tuple[float, float] = (2e-3, 2e-3), on_retire=None):
         T_start = _rigid(T_world_cam_start, "T_world_cam_start")
-        config = dataclasses.replace(config or PipelineConfig(), overlap=False, progress=False)
+        config = dataclasses.replace(config or PipelineConfig(), progress=False)
         self._frames = _LiveFrames()
         self._odometry = _GivenOdometry(T_start)
         self._default_cov = np.diag([odometry_sigmas[0] ** 2] * 3 + [odometry_sigmas[1] ** 2] * 3)
@@ -137,6 +144,7 @@ class DriftCorrector:
                 on_retire(segment)
         self.pipeline = Pipeline(self._frames, field, self._odometry, config, on_retire=retire)
         self.pipeline.start()
+        self._worker = CorrectionWorker(field, self.pipeline.config) if self.pipeline.overlaps() else None
 
     def add_frame(self, rgb: np.ndarray, depth_m: np.ndarray, intrinsics: Intrinsics, stamp: float,
                   T_prev_cur: np.ndarray | None = None, covariance: np.ndarray | None = None) -> LiveUpdate:
@@ -159,15 +167,20 @@ class DriftCorrector:
         frame = RGBDFrame(rgb, depth_m, intrinsics, float(stamp))  # validates the images
         self._frames.append(frame)
         pipeline = self.pipeline
-        records = len(pipeline.records)
+        records, keyframes = len(pipeline.records), len(pipeline.keyframe_indices)
         pipeline.last_correction = pipeline.last_factor = None
-        pipeline.step(i)
-        update = LiveUpdate(pipeline.current_estimate)
+        pipeline.step(i, self._worker)
+        update = LiveUpdate(pipeline.current_estimate, keyframe=len(pipeline.keyframe_indices) > keyframes)
         if len(pipeline.records) > records:
-            update.keyframe, update.record = True, pipeline.records[-1]
+            update.record = pipeline.records[-1]
             update.correction, update.factor = pipeline.last_correction, pipeline.last_factor
         return update
 
     def finish(self) -> RunResult:
-        """Every frame's pose so far, smoothed with every correction (a batch solve)."""
+        """Every frame's pose so far, smoothed with every correction (a batch solve); with
+        ``overlap``, the correction still in flight is waited for first and the worker stops."""
+        if self._worker is not None:
+            self.pipeline.land_pending(self._worker)
+            self._worker.close()
+            self._worker = None
         return self.pipeline.result(len(self._frames))

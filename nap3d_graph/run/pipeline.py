@@ -112,7 +112,7 @@ class Pipeline:
         self._start()
         n = len(self.sequence) if self.config.max_frames is None else min(len(self.sequence), self.config.max_frames)
         done, partial = n, False
-        worker = CorrectionWorker(self.field, self.config) if self._overlapping() else None
+        worker = CorrectionWorker(self.field, self.config) if self.overlaps() else None
         self.worker = worker  # a caller's stop hook may watch it
         try:
             for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
@@ -120,8 +120,8 @@ class Pipeline:
                     done, partial = i, True
                     break
                 self.step(i, worker, on_keyframe)
-            if worker is not None and worker.busy:
-                self._land(worker, on_keyframe)
+            if worker is not None:
+                self.land_pending(worker, on_keyframe)
         finally:
             if worker is not None:
                 worker.close()
@@ -393,8 +393,16 @@ class Pipeline:
         # Two iSAM2 steps: a correction can move the pose a long way from its linearisation.
         self._update_isam(extra_step=True, record=record)
 
-    def _overlapping(self) -> bool:
+    def overlaps(self) -> bool:
+        """Whether keyframes are measured on a worker thread (``config.overlap``, a field, and a
+        motion model that allows it); after :meth:`start`."""
         return bool(self.config.overlap) and self.field is not None and self.motion.allows_overlap
+
+    def land_pending(self, worker: CorrectionWorker, on_keyframe=None) -> None:
+        """The measurement still in flight, if any, waited for and put in the graph (the end of
+        an overlapped run)."""
+        if worker.busy:
+            self._land(worker, on_keyframe)
 
     def _timing(self) -> CaptureTiming | None:
         """The capture timing the run compensates: the config's, else the field's (None: off)."""
