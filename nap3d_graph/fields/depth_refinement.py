@@ -32,7 +32,7 @@ import numpy as np
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 
 from ..camera import Intrinsics, warp_depth
-from ..conventions import inv_T, log_se3, pose_error, rigid_transform_problem
+from ..conventions import inv_T, pose_error, rigid_transform_problem
 
 __all__ = ["DepthRefinementConfig", "refine_poses_by_depth"]
 
@@ -159,9 +159,9 @@ def _pair_covariance(depth_dst: np.ndarray, intrinsics: Intrinsics, config: Dept
         return floor + np.eye(6)
 
 
-def _measure_pairs(frames, T_world, depths, aligner, config, progress) -> tuple[list, int]:
-    """``[(a, b, T_a_b measured, covariance)]`` for each neighbour pair whose alignment held,
-    and how many pairs were tried."""
+def _measure_pairs(frames, T_world, depths, covariances, aligner, config, progress) -> tuple[list, int]:
+    """``[(a, b, T_a_b measured, covariance)]`` for each neighbour pair whose alignment held
+    (``covariances``: each frame's as a pair's destination), and how many pairs were tried."""
     from tqdm import tqdm
 
     pairs, tried = [], 0
@@ -178,7 +178,7 @@ def _measure_pairs(frames, T_world, depths, aligner, config, progress) -> tuple[
             moved_m, turned_deg = pose_error(D, np.eye(4))
             if moved_m > config.max_pair_m or turned_deg > config.max_pair_deg:
                 continue
-            pairs.append((a, b, inv_T(D @ T_b_a), _pair_covariance(depths[int(frames[b])], aligner.intrinsics, config)))
+            pairs.append((a, b, inv_T(D @ T_b_a), covariances[int(frames[b])]))
     return pairs, tried
 
 
@@ -219,9 +219,11 @@ def refine_poses_by_depth(sequence, train_idx, timing: CaptureTiming | None = No
         return unposed, {"method": "depth", "rounds": [], "reason": "fewer than two posed training frames"}
     depths, small = _small_depths(sequence, frames, config.width, timing.depth_scale)
     aligner = _PairAligner(small)
+    # A pair's covariance depends on its destination's surfaces alone: once per frame.
+    covariances = {i: _pair_covariance(depth, small, config) for i, depth in depths.items()}
     T_now, rounds = T_in.copy(), []
     for r in range(config.rounds):
-        pairs, tried = _measure_pairs(frames, T_now, depths, aligner, config, progress)
+        pairs, tried = _measure_pairs(frames, T_now, depths, covariances, aligner, config, progress)
         if not pairs:
             log.warning("depth refinement round %d: no pair aligned; poses left as they are", r + 1)
             break
@@ -239,6 +241,4 @@ def refine_poses_by_depth(sequence, train_idx, timing: CaptureTiming | None = No
         log.info("depth refinement round %d: %d of %d pairs aligned, frames moved %.1f mm / %.2f deg (median)",
                  r + 1, len(pairs), tried, info["median_correction_mm"], info["median_correction_deg"])
     corrections = {**unposed, **{int(i): inv_T(T_in[a]) @ T_now[a] for a, i in enumerate(frames)}}
-    sizes = np.array([log_se3(D) for D in corrections.values()])
-    log.debug("depth refinement: largest frame correction %.1f mm", 1000 * np.max(np.linalg.norm(sizes[:, 3:], axis=1)))
     return corrections, {"method": "depth", "rounds": rounds, "config": config.to_dict()}

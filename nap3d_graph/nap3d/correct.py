@@ -164,11 +164,11 @@ def at_render_size(frame: RGBDFrame, intrinsics: Intrinsics) -> RGBDFrame:
     return frame
 
 
-def real_features(frame: RGBDFrame, intrinsics: Intrinsics, config: AlignConfig | None = None) -> Features:
-    """The real frame's features as :func:`correct_pose` detects them (at the render's size),
-    for a caller that detects them before the correction starts."""
-    config = config or AlignConfig()
-    return detect_features(at_render_size(frame, intrinsics).rgb, config.max_features, matcher=config.matcher)
+def real_features(frame: RGBDFrame, intrinsics: Intrinsics, config: AlignConfig | None = None
+                  ) -> tuple[Features, float]:
+    """``(features, seconds)``: the real frame's features as :func:`correct_pose` detects them
+    (at the render's size), for a caller that detects them before the correction starts."""
+    return _timed_detect(at_render_size(frame, intrinsics).rgb, config or AlignConfig())
 
 
 def _timed_detect(rgb: np.ndarray, config: AlignConfig):

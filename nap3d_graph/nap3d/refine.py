@@ -135,7 +135,7 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
     if config.covariance == "sandwich":
         # Heteroscedasticity-consistent (HC1) sandwich: the spread of each correspondence's
         # actual residual, not only the model's, enters the covariance.
-        score = rob[:, None] * np.matmul(np.swapaxes(J, 1, 2), _apply(W, r)[:, :, None])[:, :, 0]
+        score = rob[:, None] * np.matmul(np.swapaxes(J, 1, 2), Wr[:, :, None])[:, :, 0]
         B = score.T @ score * n / max(n - 6, 1)
         full = _covariance(H)
         cov = (full @ B @ full)[:6, :6]

@@ -192,11 +192,7 @@ class CorrectionWorker:
         """Detect the features of a frame due to be a keyframe as soon as it arrives (at the
         render size ``intrinsics``), while the run computes its odometry;
         :meth:`take_detected` hands them to its job."""
-        def timed():
-            t0 = time.perf_counter()
-            return real_features(frame, intrinsics, self.config.align), time.perf_counter() - t0
-
-        self._detected = (frame_index, self._pool.submit(timed))
+        self._detected = (frame_index, self._pool.submit(real_features, frame, intrinsics, self.config.align))
 
     def take_detected(self, frame_index: int) -> Future | None:
         """The features detected ahead for ``frame_index`` (None when there are none; those of

@@ -275,15 +275,19 @@ class Pipeline:
         return KeyframeJob(i, frame, T_field_cam_render, self._velocity(i), self._timing(), self.depth_scale.scale,
                            self._render_intrinsics(frame.intrinsics))
 
+    def _due_by_count(self, i: int) -> bool:
+        """Frame i is due to be a keyframe by ``keyframe_every`` alone (what can be known before
+        its odometry; the other reasons a keyframe is taken cannot)."""
+        return len(self.keyframe_indices) > 0 and i - self.keyframe_indices[-1] >= self.config.keyframe_every
+
     def _render_ahead(self, i: int, worker: CorrectionWorker) -> None:
         """Overlapped run, after frame i: when frame i + 1 is due to be a keyframe and the worker
         is idle, it renders at i + 1's predicted pose (frame i's, one more step of the same
         motion) so that keyframe's measurement finds its render made
         (``PipelineConfig.render_ahead``)."""
-        last = self.keyframe_indices[-1] if len(self.keyframe_indices) else None
         intrinsics = self._frame_intrinsics
-        if (not self.config.render_ahead or worker.busy or worker.preparing or last is None or intrinsics is None
-                or i + 1 - last < self.config.keyframe_every or i + 1 >= len(self.sequence)):
+        if (not self.config.render_ahead or worker.busy or worker.preparing or intrinsics is None
+                or not self._due_by_count(i + 1) or i + 1 >= len(self.sequence)):
             return
         T_world_cam_next = self.motion.causal_pose() @ self.motion.increments[i]
         if self.anchored:
@@ -294,9 +298,7 @@ class Pipeline:
         """Overlapped run, before frame i's odometry: when frame i is due to be a keyframe, the
         worker detects its features now, on the other core, while the odometry runs
         (``PipelineConfig.detect_ahead``). Returns the frame (read now if it was not yet)."""
-        last = self.keyframe_indices[-1] if len(self.keyframe_indices) else None
-        if (not self.config.detect_ahead or self.field is None or last is None
-                or i - last < self.config.keyframe_every):
+        if not self.config.detect_ahead or self.field is None or not self._due_by_count(i):
             return frame
         frame = frame if frame is not None else self._read_frame(i)
         if frame is not None:
