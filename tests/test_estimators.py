@@ -296,11 +296,18 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--render-ahead",
                  "--out", str(tmp_path)]) == 2
     assert "--render-ahead works ahead on the second thread: it needs --overlap" in capsys.readouterr().err
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--land-within", "frame",
+                 "--out", str(tmp_path)]) == 2
+    assert "--land-within waits for the second thread's correction: it needs --overlap" in capsys.readouterr().err
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--land-within", "-1"]) == 2
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--overlap", "--render-ahead",
-                 "--out", str(tmp_path)]) == 0
+                 "--land-within", "frame", "--out", str(tmp_path)]) == 0
     run = tmp_path / "latest"
     pipeline = yaml.safe_load((run / "config.yaml").read_text())["pipeline"]
     assert pipeline["overlap"] is True and pipeline["render_ahead"] is True and pipeline["detect_ahead"] is True
+    # 'frame': 0.9 of the walk's frame period, recorded in seconds.
+    period_s = float(np.median(np.diff(SimSequence(walk).timestamps)))
+    assert pipeline["land_within_s"] == pytest.approx(0.9 * period_s)
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["corrections_accepted"] >= 0.8 * metrics["keyframes"]
     assert metrics["estimate"]["ate_m"]["rmse"] < 0.4 * metrics["odometry"]["ate_m"]["rmse"], metrics

@@ -76,6 +76,30 @@ def test_an_overlapped_corrector_returns_at_once_and_lands_each_correction_later
     np.testing.assert_allclose(result.T_world_cam_estimate, inline.T_world_cam_estimate, atol=1e-6)
 
 
+def test_an_overlapped_corrector_given_time_returns_each_correction_with_its_keyframe(walk):
+    """``land_within_s``: ``add_frame`` waits up to that long for the correction in flight
+    (while a live loop would idle for the next frame). Given time enough, each keyframe's
+    update carries its own correction, and every update's pose is the inline corrector's."""
+    import dataclasses
+
+    field = walk.oracle_field()
+    inline = Pipeline(walk, field, make_odometry("recorded", walk), CONFIG).run()
+    odometry = make_odometry("recorded", walk)
+    corrector = DriftCorrector(field, odometry.initial_pose(),
+                               dataclasses.replace(CONFIG, overlap=True, land_within_s=30.0))
+    updates = []
+    for i in range(len(walk)):
+        frame = walk[i]
+        inc = odometry.increment(i, None) if i > 0 else None
+        updates.append(corrector.add_frame(frame.rgb, frame.depth_m, frame.intrinsics, frame.timestamp,
+                                           None if inc is None else inc.T_prev_cur,
+                                           None if inc is None else inc.covariance))
+    corrector.finish()
+    assert [(i, u.record.frame_index) for i, u in enumerate(updates) if u.record is not None] == \
+        [(i, i) for i in inline.keyframe_indices]
+    np.testing.assert_allclose(np.stack([u.T_world_cam for u in updates]), inline.T_world_cam_online, atol=1e-6)
+
+
 def test_bad_input_is_refused_and_the_graph_goes_on(walk):
     import gtsam
 

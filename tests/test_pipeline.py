@@ -282,6 +282,25 @@ def test_overlapped_run_lands_late_corrections_at_their_keyframes(walk, baseline
     assert ate(result) <= online < 0.65 * ate_odometry(result)
 
 
+def test_an_overlapped_run_given_time_lands_each_correction_at_its_own_frame(walk, baseline):
+    """``land_within_s``: before a frame's pose is given, the run waits up to that long (from
+    the frame's arrival) for the correction in flight. Given time enough, every correction
+    lands at its own keyframe's frame, though the field is slow and the odometry would have
+    outrun it: the causal trajectory is then the inline run's, not the late-landing one's."""
+    seq = SimSequence(walk)
+    config = dataclasses.replace(CONFIG, overlap=True, land_within_s=30.0)
+    result = Pipeline(seq, _SlowField(seq.oracle_field()), make_odometry("recorded", seq), config).run()
+    assert result.keyframe_indices == baseline.keyframe_indices
+    assert [r.timings_s["landed_frame"] for r in result.keyframes] == result.keyframe_indices
+    assert all(r.timings_s["wait"] > 0.02 for r in result.keyframes[1:])  # each waited for its slow render
+    assert result.num_accepted == baseline.num_accepted
+    for name in ("T_world_cam_online", "T_world_cam_estimate"):
+        moved = [pose_error(a, b) for a, b in zip(getattr(result, name), getattr(baseline, name))]
+        assert max(m[0] for m in moved) < 1e-6 and max(m[1] for m in moved) < 1e-4, (name, max(moved))
+    with pytest.raises(ValueError, match="land_within_s"):
+        PipelineConfig(land_within_s=-0.01)
+
+
 def test_overlapped_run_renders_the_next_keyframe_ahead(walk, baseline):
     """While the worker is idle and the next frame is due to be a keyframe, it renders at that
     frame's predicted pose and detects the render's features; the keyframe's measurement then

@@ -61,6 +61,26 @@ def _field_sigma(text: str) -> float | None:
     return None if text == "auto" else non_negative_float(text)
 
 
+def _land_within(text: str) -> float | str:
+    return "frame" if text == "frame" else non_negative_float(text)
+
+
+#: ``--land-within frame``: this share of the camera's frame period (the rest of the step:
+#: the graph update and handing the pose over).
+LAND_WITHIN_FRAME_SHARE = 0.9
+
+
+def land_within_s(value: float | str, sequence) -> float:
+    """``--land-within`` in seconds: as given, or ('frame') :data:`LAND_WITHIN_FRAME_SHARE`
+    of the sequence's median frame period."""
+    if value != "frame":
+        return float(value)
+    stamps = np.asarray(sequence.timestamps, dtype=float)
+    if stamps.size < 2:
+        raise UsageError("--land-within frame needs at least two frames to find the camera's rate")
+    return LAND_WITHIN_FRAME_SHARE * float(np.median(np.diff(stamps)))
+
+
 def add_source_arguments(p) -> None:
     """The source, field, odometry and keyframe options of a drift-correction run."""
     import argparse
@@ -161,6 +181,11 @@ def add_source_arguments(p) -> None:
                    help="with --overlap: render the next keyframe at its one-step guessed pose while the second "
                    "thread is idle, so its correction lands sooner (for slow fields or fast cameras; its "
                    "corrections can be slightly worse where the motion turns fast)")
+    p.add_argument("--land-within", type=_land_within, default=0.0, metavar="S|frame",
+                   help="with --overlap: wait up to S seconds after a frame arrives for the correction in flight, "
+                   "so one that is done by then lands at that frame and not a later one; 'frame' waits "
+                   f"{LAND_WITHIN_FRAME_SHARE:g} of the camera's frame period (only while a live run would idle "
+                   "for the next frame). Default 0: never wait")
     p.add_argument("--graph-window", type=non_negative_int, default=0, metavar="N",
                    help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their "
                    "poses, so a long run's graph and its updates stay bounded (default 0: every keyframe, the whole "
@@ -399,6 +424,8 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
     if args.render_ahead and not args.overlap:
         raise UsageError("--render-ahead works ahead on the second thread: it needs --overlap")
+    if args.land_within and not args.overlap:
+        raise UsageError("--land-within waits for the second thread's correction: it needs --overlap")
     if args.overlap and odom_kind == "imu":
         raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
     if args.graph_window and (odom_kind == "imu" or use_anchor):
@@ -410,6 +437,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
                             field_sigma_m=args.field_sigma, overlap=args.overlap, render_ahead=args.render_ahead,
+                            land_within_s=land_within_s(args.land_within, sequence),
                             max_frames=args.max_frames,
                             graph_window=args.graph_window,
                             progress=True, compensate_timing=args.timing == "auto",

@@ -93,6 +93,11 @@ class PipelineConfig:
         fr1/desk at 15 Hz the guess is up to 3 deg off in fast turns, and the corrections
         measured from it were worse (median 16.7 against 14.7 mm); it lands them a frame
         sooner (``benchmarks/realtime_desk.py``). At 30 Hz the guess is four times closer.
+    land_within_s: with ``overlap``, how long after a frame's step starts (the frame arrived)
+        the run may wait for the correction in flight before it gives that frame's pose: a
+        correction done by then lands at that frame instead of a later one. 0 (the default)
+        never waits. The camera's frame period less the odometry's time waits only while the
+        run would sit idle for the next frame anyway, so it never falls behind the camera.
     graph_window: keyframes kept in iSAM2 (0: all, the default). With N > 0, once more than
         1.5 N keyframes are in the graph the oldest are marginalised down to N (iSAM2's
         ``marginalizeLeaves``: their information stays as a linear prior on the window's
@@ -140,6 +145,7 @@ class PipelineConfig:
     render_ahead: bool = False
     render_ahead_m: float = 0.05
     render_ahead_deg: float = 3.0
+    land_within_s: float = 0.0
     graph_window: int = 0
     max_frames: int | None = None
     progress: bool = False
@@ -157,6 +163,8 @@ class PipelineConfig:
             value = getattr(self, name)
             if value is not None and not value >= 0:
                 raise ValueError(f"{name} must be >= 0 or None, got {value}")
+        if not self.land_within_s >= 0:
+            raise ValueError(f"land_within_s must be >= 0 seconds, got {self.land_within_s}")
         if not self.field_sigma_depth_m > 0:
             raise ValueError(f"field_sigma_depth_m must be > 0, got {self.field_sigma_depth_m}")
 

@@ -13,6 +13,7 @@ import dataclasses
 import logging
 import time
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass
 from typing import Any
 
@@ -229,6 +230,13 @@ class CorrectionWorker:
     def ready(self) -> bool:
         """A measurement is in flight and done."""
         return self._flight is not None and self._flight[1].done()
+
+    def wait(self, timeout_s: float) -> bool:
+        """Wait at most ``timeout_s`` seconds for the measurement in flight; whether it is done."""
+        if self._flight is None:
+            return False
+        done, _ = futures_wait([self._flight[1]], timeout=max(timeout_s, 0.0))
+        return bool(done)
 
     def take(self) -> tuple[Any, Correction, float]:
         """``(tag, correction, seconds waited)`` of the measurement in flight, waiting for it

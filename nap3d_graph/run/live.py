@@ -121,7 +121,9 @@ class DriftCorrector:
     config: a :class:`PipelineConfig`. With ``overlap`` each keyframe is measured on a worker
         thread and ``add_frame`` returns at once; its correction enters the graph at a later
         frame (that frame's :class:`LiveUpdate` carries it), and :meth:`finish` waits for the
-        last one.
+        last one. ``land_within_s`` (say 0.9 of the camera's frame period less your own
+        per-frame work) lets ``add_frame`` wait that long after it is called for the
+        correction in flight, so one done by then comes with this frame.
     odometry_sigmas: (rad, m) per-frame sigmas of the increments when ``add_frame`` is given
     no covariance.
     on_retire: optional ``f(RunResult)`` for a loop that runs for hours: with a bounded graph

@@ -144,6 +144,7 @@ class Pipeline:
         """Frame i (after frames 0..i-1; ``_start`` first): its odometry, and when it is a
         keyframe, its node, its correction and the solve. ``run`` is this over the sequence;
         :class:`nap3d_graph.run.live.DriftCorrector` calls it a frame at a time."""
+        t_arrived = time.perf_counter()
         frame = self._read_frame(i) if self.motion.needs_frames or self.selector.reads_every_frame else None
         if worker is not None:
             frame = self._detect_ahead(i, frame, worker)
@@ -165,6 +166,8 @@ class Pipeline:
                 record = self._finish_keyframe()
                 if on_keyframe is not None and record is not None:
                     on_keyframe(record)
+        if worker is not None:
+            self._land_within(worker, t_arrived, on_keyframe)
         self._online.append(self.motion.causal_pose())
         if worker is not None:
             self._render_ahead(i, worker)
@@ -321,18 +324,29 @@ class Pipeline:
             return
         worker.submit((record, job.T_field_cam_render), job)
 
-    def _land(self, worker: CorrectionWorker, on_keyframe) -> None:
+    def _land(self, worker: CorrectionWorker, on_keyframe, waited_s: float = 0.0) -> None:
         """Overlapped run: the measurement in flight (waited for if need be) enters the graph
-        at its keyframe, and the latest keyframe's estimate is refreshed."""
-        (record, T_field_cam_render), correction, waited_s = worker.take()
+        at its keyframe, and the latest keyframe's estimate is refreshed. ``waited_s``: how long
+        the run already waited for it."""
+        (record, T_field_cam_render), correction, took_s = worker.take()
         self._apply_correction(record, record.frame_index, correction, T_field_cam_render)
-        record.timings_s["wait"] = round(waited_s, 5)
+        record.timings_s["wait"] = round(waited_s + took_s, 5)
         record.timings_s["landed_frame"] = len(self.motion.T_world_cam_odom) - 1
         j = len(self.keyframe_indices) - 1
         self.motion.keyframe_estimated(self.graph, j, float(self.sequence.timestamps[self.keyframe_indices[j]]))
         self.records.append(record)
         if on_keyframe is not None:
             on_keyframe(record)
+
+    def _land_within(self, worker: CorrectionWorker, t_arrived: float, on_keyframe) -> None:
+        """Overlapped run, before frame i's pose is given: a correction in flight that is done
+        within ``land_within_s`` of the frame's arrival (``t_arrived``, perf_counter seconds)
+        lands now, at this frame."""
+        left_s = t_arrived + self.config.land_within_s - time.perf_counter()
+        if worker.busy and self.config.land_within_s > 0 and left_s > 0:
+            t0 = time.perf_counter()
+            if worker.wait(left_s):
+                self._land(worker, on_keyframe, waited_s=time.perf_counter() - t0)
 
     def _apply_correction(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render) -> None:
         """The graph half (:meth:`_gate_and_add`), and a warning while the run goes when
