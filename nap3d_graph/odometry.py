@@ -24,6 +24,7 @@ from .camera import RenderedView, RGBDFrame
 from .conventions import inv_T
 from .nap3d.align import align_views
 from .nap3d.config import AlignConfig
+from .nap3d.matching import Features, detect_features
 
 __all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
            "bridge_pose_gaps"]
@@ -153,32 +154,43 @@ class VisualOdometry:
 
     def __init__(self, initial_pose: np.ndarray | None = None, config: AlignConfig | None = None,
                  fallback_rot_sigma_rad: float = 0.05, fallback_trans_sigma_m: float = 0.05,
-                 min_good_inliers: int = 60):
+                 min_good_inliers: int = 60, reuse_features: bool = True):
         self._initial = np.eye(4) if initial_pose is None else np.asarray(initial_pose, dtype=float)
         self.config = config or AlignConfig(min_opacity=0.5)
         self._previous: RGBDFrame | None = None
+        # The previous frame's features (detected when it was the current frame), which serve
+        # it again as the view: detected once per frame, not twice.
+        self._previous_features: Features | None = None
         self._last_good = np.eye(4)
         self._fallback_cov = _diag_cov(fallback_rot_sigma_rad, fallback_trans_sigma_m)
         self.min_good_inliers = int(min_good_inliers)
+        self.reuse_features = bool(reuse_features)
 
     def initial_pose(self) -> np.ndarray:
         return self._initial.copy()
 
     def prime(self, frame: RGBDFrame) -> None:
         """Give the first frame (the pipeline calls this before any increment)."""
-        self._previous = frame
+        self._previous, self._previous_features = frame, None
 
     def increment(self, i: int, frame: RGBDFrame | None = None) -> Increment:
         if frame is None or self._previous is None:
             # An unreadable frame: guess with constant velocity, restart from the next one.
-            self._previous = frame
+            self._previous, self._previous_features = frame, None
             return Increment(self._last_good.copy(), self._fallback_cov, False, "no frame")
-        prev = self._previous
-        self._previous = frame
+        prev, prev_features = self._previous, self._previous_features
         opacity = np.isfinite(prev.depth_m) & (prev.depth_m > 0)
         view = RenderedView(prev.rgb, np.nan_to_num(prev.depth_m), opacity.astype(np.float32), prev.intrinsics)
-        a = align_views(frame, view, self.config)
+        t0 = time.perf_counter()
+        features = detect_features(frame.rgb, self.config.max_features, matcher=self.config.matcher)
+        detect_s = time.perf_counter() - t0
+        view_features = None
+        if prev_features is not None and self._features_reusable():
+            view_features = prev_features.where(opacity >= self.config.min_opacity)
+        self._previous, self._previous_features = frame, features
+        a = align_views(frame, view, self.config, feats_real=features, feats_view=view_features)
         timings = dict(a.timings_s)
+        timings["detect"] = timings.get("detect", 0.0) + detect_s
         if not a.success:
             log.info("VO failed at frame %d (%s); constant-velocity guess", i, a.reason)
             return Increment(self._last_good.copy(), self._fallback_cov, False, a.reason, timings)
@@ -187,6 +199,12 @@ class VisualOdometry:
         covariance = self._step_covariance(a, T_prev_cur)
         self._last_good = T_prev_cur
         return Increment(T_prev_cur, covariance, timings_s=timings)
+
+    def _features_reusable(self) -> bool:
+        """A frame's features serve it masked as the view (``reuse_features``): always for
+        XFeat (masked after detection), for SIFT only without a cap on their number (a capped
+        SIFT keeps the strongest among the masked ones)."""
+        return self.reuse_features and (self.config.matcher != "sift" or self.config.max_features == 0)
 
     def _step_covariance(self, alignment, T_prev_cur: np.ndarray) -> np.ndarray:
         from .conventions import log_se3

@@ -126,3 +126,44 @@ def test_auto_chooses_xfeat_on_a_cameras_recording_and_sift_on_the_simulators(tu
     small = SimpleNamespace(intrinsics=SimpleNamespace(width=160), simulated=False)
     assert choose_matcher("auto", small) == ("sift", "auto: frames 160 px wide, too small for XFeat")
     assert RealSenseRecording.simulated is False  # a camera's, unless its sidecar says the simulator wrote it
+
+
+@pytest.mark.parametrize("matcher", ["sift", "xfeat"])
+def test_an_images_features_serve_it_masked_and_the_odometry_detects_each_frame_once(tum_path, matcher, monkeypatch):
+    """Masking after detection gives exactly what detecting with the mask gives (real TUM
+    frames, the mask their valid depth), so the feature odometry detects each frame once and
+    reuses its features as the next step's view: the same steps, bit for bit, as detecting
+    every image afresh."""
+    import nap3d_graph.odometry as odometry_module
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.odometry import VisualOdometry
+
+    sequence = open_sequence(tum_path)
+    frames = [sequence[i] for i in range(4)]
+    for frame in frames:
+        mask = np.isfinite(frame.depth_m) & (frame.depth_m > 0)
+        direct = detect_features(frame.rgb, mask=mask, matcher=matcher)
+        reused = detect_features(frame.rgb, matcher=matcher).where(mask)
+        assert 0 < len(reused) < len(detect_features(frame.rgb, matcher=matcher))
+        np.testing.assert_array_equal(reused.uv, direct.uv)
+        np.testing.assert_array_equal(reused.descriptors, direct.descriptors)
+
+    def steps(reuse: bool) -> tuple[list, int]:
+        calls = []
+
+        def counted(*args, **kwargs):
+            calls.append(1)
+            return detect_features(*args, **kwargs)
+
+        monkeypatch.setattr(odometry_module, "detect_features", counted)
+        vo = VisualOdometry(config=AlignConfig(min_opacity=0.5, matcher=matcher), reuse_features=reuse)
+        vo.prime(frames[0])
+        return [vo.increment(i, frames[i]) for i in range(1, len(frames))], len(calls)
+
+    once, detected = steps(True)
+    twice, _ = steps(False)
+    assert detected == len(frames) - 1  # the odometry's own detections: one per step
+    for a, b in zip(once, twice):
+        assert a.ok
+        np.testing.assert_array_equal(a.T_prev_cur, b.T_prev_cur)
+        np.testing.assert_array_equal(a.covariance, b.covariance)

@@ -81,6 +81,22 @@ class Features:
     def __len__(self) -> int:
         return len(self.uv)
 
+    def where(self, mask: np.ndarray) -> "Features":
+        """The features whose pixel is set in ``mask`` (H, W): what :func:`detect_features`
+        gives with that mask (its keypoints and descriptors do not depend on the mask: SIFT's
+        pyramid is the whole image's and OpenCV drops masked keypoints at their rounded pixel;
+        XFeat's are filtered after detection), so an image's features serve it masked too."""
+        mask = np.asarray(mask, dtype=bool)
+        height, width = mask.shape
+        if not len(self.uv):
+            return self
+        # OpenCV's KeyPointsFilter rounds half up; the XFeat path has always used rint.
+        rounded = np.floor(self.uv + 0.5) if self.matcher == "sift" else np.rint(self.uv)
+        iu = np.clip(rounded[:, 0].astype(int), 0, width - 1)
+        iv = np.clip(rounded[:, 1].astype(int), 0, height - 1)
+        keep = mask[iv, iu]
+        return Features(self.uv[keep], self.descriptors[keep], self.matcher, self.image_size)
+
 
 @dataclass(frozen=True)
 class Matches:
@@ -128,14 +144,10 @@ def detect_features(rgb: np.ndarray, max_features: int = 0, mask: np.ndarray | N
     height, width = np.asarray(rgb).shape[:2]
     if matcher == "sift":
         uv, descriptors = _detect_sift(rgb, max_features, mask)
-    else:
-        uv, descriptors = _detect_xfeat(rgb, max_features or XFEAT_TOP_K)
-        if mask is not None and len(uv):
-            iu = np.clip(np.rint(uv[:, 0]).astype(int), 0, width - 1)
-            iv = np.clip(np.rint(uv[:, 1]).astype(int), 0, height - 1)
-            keep = np.asarray(mask, dtype=bool)[iv, iu]
-            uv, descriptors = uv[keep], descriptors[keep]
-    return Features(uv, descriptors, matcher, (int(width), int(height)))
+        return Features(uv, descriptors, matcher, (int(width), int(height)))
+    uv, descriptors = _detect_xfeat(rgb, max_features or XFEAT_TOP_K)
+    features = Features(uv, descriptors, matcher, (int(width), int(height)))
+    return features if mask is None else features.where(mask)
 
 
 def _detect_sift(rgb: np.ndarray, max_features: int, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
