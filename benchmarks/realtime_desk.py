@@ -34,6 +34,7 @@ from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields import load_field
 from nap3d_graph.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.pacing import CameraPace
 from nap3d_graph.run.pipeline import Pipeline
 
 
@@ -48,35 +49,13 @@ def stage_ms(records, key: str) -> dict | None:
     return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)), "max": float(values.max())}
 
 
-class Pacer:
-    """``stop()`` hook for ``Pipeline.run`` that hands frame i over no earlier than the camera
-    delivered it (``timestamps[i] - timestamps[0]`` seconds after the start, divided by
-    ``speed``): the run sees the frames as a live camera gives them. Records how far behind
-    the camera the run was when each frame was due."""
-
-    def __init__(self, timestamps, speed: float = 1.0):
-        self.due_s = (np.asarray(timestamps, dtype=float) - float(timestamps[0])) / speed
-        self.i, self.t0, self.behind_s = 0, None, []
-
-    def __call__(self) -> bool:
-        now = time.perf_counter()
-        if self.t0 is None:
-            self.t0 = now
-        wait = self.t0 + self.due_s[self.i] - now
-        if wait > 0:
-            time.sleep(wait)
-        self.behind_s.append(max(-wait, 0.0))
-        self.i += 1
-        return False
-
-
 def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str, paced: bool = False,
         render_ahead: bool = False, land_within_s: float = 0.0) -> dict:
     from nap3d_graph.nap3d.config import AlignConfig
 
     config = PipelineConfig(overlap=overlap, keyframe_every=keyframe_every, align=AlignConfig(matcher=matcher),
                             render_ahead=render_ahead, land_within_s=land_within_s)
-    pacer = Pacer(sequence.timestamps) if paced else None
+    pacer = CameraPace(sequence.timestamps) if paced else None
     t0 = time.perf_counter()
     result = Pipeline(sequence, field, make_odometry("dense", sequence), config).run(stop=pacer)
     wall_s = time.perf_counter() - t0

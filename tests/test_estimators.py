@@ -301,13 +301,18 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     assert "--land-within waits for the second thread's correction: it needs --overlap" in capsys.readouterr().err
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--land-within", "-1"]) == 2
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--overlap", "--render-ahead",
-                 "--land-within", "frame", "--out", str(tmp_path)]) == 0
+                 "--land-within", "frame", "--pace", "4", "--out", str(tmp_path)]) == 0
     run = tmp_path / "latest"
-    pipeline = yaml.safe_load((run / "config.yaml").read_text())["pipeline"]
+    config = yaml.safe_load((run / "config.yaml").read_text())
+    pipeline = config["pipeline"]
     assert pipeline["overlap"] is True and pipeline["render_ahead"] is True and pipeline["detect_ahead"] is True
-    # 'frame': 0.9 of the walk's frame period, recorded in seconds.
+    # 'frame': 0.9 of the walk's frame period, recorded in seconds; fed at 4x the camera's rate.
     period_s = float(np.median(np.diff(SimSequence(walk).timestamps)))
     assert pipeline["land_within_s"] == pytest.approx(0.9 * period_s)
+    assert config["pace"] == 4.0
+    paced = json.loads((run / "metrics.json").read_text())["paced"]
+    assert paced["speed"] == 4.0 and paced["frames"] == 60 and paced["behind_camera_s"]["max"] >= 0
+    assert "paced at 4x the camera's rate" in capsys.readouterr().out
     metrics = json.loads((run / "metrics.json").read_text())
     assert metrics["corrections_accepted"] >= 0.8 * metrics["keyframes"]
     assert metrics["estimate"]["ate_m"]["rmse"] < 0.4 * metrics["odometry"]["ate_m"]["rmse"], metrics

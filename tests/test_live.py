@@ -119,3 +119,31 @@ def test_bad_input_is_refused_and_the_graph_goes_on(walk):
     assert len(corrector.finish().timestamps) == 2
     with pytest.raises(ValueError, match="not a rigid transform"):
         DriftCorrector(field, exp_se3(np.zeros(6)) * 2.0)
+
+
+def test_camera_pace_hands_each_frame_over_at_its_time_and_records_lateness(monkeypatch):
+    """``run --pace``: frame i is taken no earlier than its stamp's offset from the first
+    (divided by the speed); when the run is slower it is taken at once and the lateness is
+    recorded. A fake clock: frames due at 0, 0.1, 0.2, 0.3 s (2x: 0, 0.05, 0.1, 0.15); the run
+    spends 0.02 s on each frame except 0.12 s on frame 1."""
+    import nap3d_graph.run.pacing as pacing
+    from nap3d_graph.run.pacing import CameraPace
+
+    clock = {"now": 100.0}
+    monkeypatch.setattr(pacing.time, "perf_counter", lambda: clock["now"])
+    monkeypatch.setattr(pacing.time, "sleep", lambda s: clock.__setitem__("now", clock["now"] + s))
+    stops = iter([False, False, True, False])
+    pace = CameraPace([5.0, 5.1, 5.2, 5.3], speed=2.0, then=lambda: next(stops))
+    taken, answers = [], []
+    for work_s in (0.02, 0.12, 0.02, 0.02):
+        answers.append(pace())
+        taken.append(clock["now"] - 100.0)
+        clock["now"] += work_s
+    np.testing.assert_allclose(taken, [0.0, 0.05, 0.17, 0.19])  # frames 2 and 3 late behind frame 1's work
+    np.testing.assert_allclose(pace.behind_s, [0.0, 0.0, 0.07, 0.04], atol=1e-9)
+    assert answers == [False, False, True, False]  # the wrapped hook (Ctrl-C) still speaks
+    summary = pace.summary()
+    assert summary["speed"] == 2.0 and summary["frames"] == 4
+    assert summary["behind_camera_s"]["max"] == pytest.approx(0.07) and summary["frames_over_a_period_late"] == 1
+    with pytest.raises(ValueError, match="speed"):
+        CameraPace([0.0, 1.0], speed=0)

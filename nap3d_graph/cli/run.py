@@ -15,8 +15,9 @@ import time
 from pathlib import Path
 
 from nap3d_graph.run.output import refusal_hint_for
+from nap3d_graph.run.pacing import CameraPace
 
-from .common import StopOnSignal, UsageError, writable_dir
+from .common import StopOnSignal, UsageError, positive_float, writable_dir
 from .sources import add_source_arguments, prepare
 
 __all__ = ["add_parser", "run"]
@@ -35,6 +36,11 @@ def add_parser(sub) -> None:
     p.add_argument("--anchor", action="store_true",
                    help="estimate the field's frame in the world (map anchor M(0)) instead of assuming it is the "
                    "odometry's world frame")
+    p.add_argument("--pace", type=positive_float, nargs="?", const=1.0, default=None, metavar="SPEED",
+                   help="feed the frames as the camera delivered them (SPEED times its rate; default 1): the causal "
+                   "trajectory is then the one a robot riding along would have had, which for --overlap depends on "
+                   "the camera's rate, not on how fast a replay goes. metrics.json records how late the run took "
+                   "the frames")
     p.add_argument("--out", type=Path, default=Path("results"), help="results root (default ./results)")
     p.add_argument("--write-bag", type=Path, metavar="OUT.bag|OUT_DIR",
                    help="also write the trajectories as a ROS bag in the input's time, to play next to the input in "
@@ -66,9 +72,10 @@ def run(args) -> int:
     if args.viz is not None:
         _check_viz(args.viz)
     prepared = prepare(args, use_anchor=args.anchor)
+    prepared.record["pace"] = args.pace
     writer = RunWriter(args.out, prepared.name, prepared.record, getattr(prepared.sequence, "rgb_line_index", None))
     pipeline = prepared.pipeline()
-    recorder, on_keyframe = None, writer.add_keyframe
+    recorder, on_keyframe, pace = None, writer.add_keyframe, None
     if args.viz is not None:
         from nap3d_graph.run.viz import RunRecorder
 
@@ -80,12 +87,17 @@ def run(args) -> int:
             recorder.keyframe(record, pipeline.last_correction if measured else None)
     try:
         with StopOnSignal() as stop:
-            result = pipeline.run(on_keyframe=on_keyframe, stop=stop)
+            pace = None if args.pace is None else CameraPace(prepared.sequence.timestamps, args.pace, then=stop)
+            result = pipeline.run(on_keyframe=on_keyframe, stop=stop if pace is None else pace)
     finally:
         writer.close()
         if recorder is not None and sys.exc_info()[0] is not None:
             recorder.close()  # what was recorded stays readable
-    metrics = writer.finish(result, partial=result.partial)
+    metrics = writer.finish(result, partial=result.partial, extra=None if pace is None else {"paced": pace.summary()})
+    if pace is not None:
+        late = metrics["paced"].get("behind_camera_s") or {}
+        print(f"paced at {args.pace:g}x the camera's rate: the run took the frames up to {late.get('max', 0) * 1000:.0f} "
+              f"ms late ({metrics['paced'].get('frames_over_a_period_late', 0)} over a frame period)")
     if recorder is not None:
         recorder.finish(result)
         recorder.close()

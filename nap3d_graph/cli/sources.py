@@ -185,7 +185,7 @@ def add_source_arguments(p) -> None:
                    help="with --overlap: wait up to S seconds after a frame arrives for the correction in flight, "
                    "so one that is done by then lands at that frame and not a later one; 'frame' waits "
                    f"{LAND_WITHIN_FRAME_SHARE:g} of the camera's frame period (only while a live run would idle "
-                   "for the next frame). Default 0: never wait")
+                   "for the next frame; with run --pace, as a live camera feeds it). Default 0: never wait")
     p.add_argument("--graph-window", type=non_negative_int, default=0, metavar="N",
                    help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their "
                    "poses, so a long run's graph and its updates stay bounded (default 0: every keyframe, the whole "

@@ -160,9 +160,9 @@ class RunWriter:
                    header="IMU bias estimate at each keyframe (final solve) and its sigma\n"
                           "timestamp bax bay baz bgx bgy bgz sigma_bax sigma_bay sigma_baz sigma_bgx sigma_bgy sigma_bgz")
 
-    def finish(self, result, partial: bool = False) -> dict:
-        """Write everything the finished (or interrupted: ``partial``) run has; returns the
-        metrics and moves ``latest`` here."""
+    def finish(self, result, partial: bool = False, extra: dict | None = None) -> dict:
+        """Write everything the finished (or interrupted: ``partial``) run has, with ``extra``
+        entries in metrics.json; returns the metrics and moves ``latest`` here."""
         self.close()
         run = self.dir
         written = result.trajectories()
@@ -210,6 +210,7 @@ class RunWriter:
                                              "given": np.round(result.gravity_world_prior, 4).tolist(),
                                              "turned_deg": round(gravity_angle_deg(result.gravity_world,
                                                                                    result.gravity_world_prior), 3)}
+        metrics.update(extra or {})
         (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
         plot_top_view(run / "trajectory_top_view.png", result)
         plot_error_over_time(run / "translation_error.png", result)
