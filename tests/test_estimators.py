@@ -299,6 +299,9 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--land-within", "frame",
                  "--out", str(tmp_path)]) == 2
     assert "--land-within waits for the second thread's correction: it needs --overlap" in capsys.readouterr().err
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--keyframe-when-idle", "2",
+                 "--out", str(tmp_path)]) == 2
+    assert "--keyframe-when-idle takes keyframes while the second thread is idle" in capsys.readouterr().err
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--land-within", "-1"]) == 2
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--overlap", "--render-ahead",
                  "--land-within", "frame", "--pace", "4", "--out", str(tmp_path)]) == 0

@@ -301,6 +301,42 @@ def test_an_overlapped_run_given_time_lands_each_correction_at_its_own_frame(wal
         PipelineConfig(land_within_s=-0.01)
 
 
+def test_an_overlapped_run_takes_a_keyframe_whenever_its_worker_is_idle(walk):
+    """``keyframe_when_idle``: any frame at least N after the last keyframe is one while the
+    worker has nothing in flight. Fed so that the worker is idle before each frame (a camera
+    slower than the measurement), every second frame is a keyframe ('idle'), and given time to
+    land each correction at its frame, the run is the inline run with a keyframe every 2: the
+    second core measures as often as it keeps up. Busy all the time instead (a slow field,
+    frames as fast as they come), keyframes fall back to ``keyframe_every``."""
+    import time
+
+    seq = SimSequence(walk)
+    inline = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq),
+                      dataclasses.replace(CONFIG, keyframe_every=2)).run()
+    config = dataclasses.replace(CONFIG, overlap=True, keyframe_when_idle=2, land_within_s=30.0)
+    pipeline = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq), config)
+
+    def idle_worker():
+        while pipeline.worker is not None and not pipeline.worker.idle():
+            time.sleep(0.002)
+        return False
+
+    result = pipeline.run(stop=idle_worker)
+    assert result.keyframe_indices == inline.keyframe_indices == list(range(0, len(seq), 2))
+    assert [r.why for r in result.keyframes] == ["first"] + ["idle"] * (len(result.keyframes) - 1)
+    assert result.num_accepted == inline.num_accepted
+    for name in ("T_world_cam_online", "T_world_cam_estimate"):
+        moved = max(pose_error(a, b)[0] for a, b in zip(getattr(result, name), getattr(inline, name)))
+        assert moved < 1e-6, (name, moved)
+    # A worker that is never idle when a frame comes: the count takes over (every 4th frame).
+    busy = Pipeline(seq, _SlowField(seq.oracle_field()), make_odometry("recorded", seq),
+                    dataclasses.replace(CONFIG, overlap=True, keyframe_when_idle=1)).run()
+    whys = {r.why for r in busy.keyframes}
+    assert "every" in whys and len(busy.keyframes) < len(seq) // 2, (whys, busy.keyframe_indices)
+    with pytest.raises(ValueError, match="keyframe_when_idle"):
+        PipelineConfig(keyframe_when_idle=2)  # no worker to wait for without overlap
+
+
 def test_overlapped_run_renders_the_next_keyframe_ahead(walk, baseline):
     """While the worker is idle and the next frame is due to be a keyframe, it renders at that
     frame's predicted pose and detects the render's features; the keyframe's measurement then

@@ -24,7 +24,7 @@ _TOP = {"traj": "traj", "data": "data", "frames": "frames", "field": "field", "o
         "pace": "pace"}
 _PIPELINE = {"keyframe_every": "keyframe_every", "keyframe_distance_m": "keyframe_distance",
              "keyframe_angle_deg": "keyframe_angle", "keyframe_window": "keyframe_window",
-             "keyframe_on_doubt": "keyframe_on_doubt", "correction_iterations": "iterations", "gate_p": "gate_p",
+             "keyframe_on_doubt": "keyframe_on_doubt", "keyframe_when_idle": "keyframe_when_idle", "correction_iterations": "iterations", "gate_p": "gate_p",
              "field_sigma_m": "field_sigma", "overlap": "overlap", "render_ahead": "render_ahead",
              "land_within_s": "land_within",
              "max_frames": "max_frames",

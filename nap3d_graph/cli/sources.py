@@ -162,6 +162,11 @@ def add_source_arguments(p) -> None:
                    default=PipelineConfig.keyframe_on_doubt,
                    help="also a keyframe right after the odometry guessed a step (visual odometry lost track), so "
                    f"the jump is corrected at once (default {'on' if PipelineConfig.keyframe_on_doubt else 'off'})")
+    p.add_argument("--keyframe-when-idle", type=non_negative_int, default=0, metavar="N",
+                   help="with --overlap: also a keyframe at any frame N or more after the last while the second thread "
+                   "is idle, so corrections come as often as it can measure them (--keyframe-every is then the "
+                   "longest interval; which frames are keyframes depends on the machine's speed, or with run --pace "
+                   "on the camera's rate). Default 0: off")
     p.add_argument("--iterations", type=positive_int, default=1,
                    help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
                    "a little more accurate, twice the time)")
@@ -424,6 +429,8 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
     if args.render_ahead and not args.overlap:
         raise UsageError("--render-ahead works ahead on the second thread: it needs --overlap")
+    if args.keyframe_when_idle and not args.overlap:
+        raise UsageError("--keyframe-when-idle takes keyframes while the second thread is idle: it needs --overlap")
     if args.land_within and not args.overlap:
         raise UsageError("--land-within waits for the second thread's correction: it needs --overlap")
     if args.overlap and odom_kind == "imu":
@@ -434,6 +441,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
         raise UsageError(f"--graph-window must be 0 (every keyframe) or at least 3, got {args.graph_window}")
     config = PipelineConfig(keyframe_every=args.keyframe_every, keyframe_distance_m=args.keyframe_distance,
                             keyframe_window=args.keyframe_window, keyframe_on_doubt=args.keyframe_on_doubt,
+                            keyframe_when_idle=args.keyframe_when_idle,
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
                             field_sigma_m=args.field_sigma, overlap=args.overlap, render_ahead=args.render_ahead,

@@ -26,6 +26,12 @@ class PipelineConfig:
         waited for beyond the window.
     keyframe_on_doubt: also take a keyframe at the frame after the odometry guessed a step
         (visual odometry lost track: fast, blurred motion), so a jump is corrected at once.
+    keyframe_when_idle: with ``overlap``, N > 0 also takes a keyframe at any frame at least
+        N after the last one while the worker has no measurement in flight: the second core
+        measures as often as it can keep up, and ``keyframe_every`` is the longest interval
+        (which waits for the worker if need be). 0 (the default): keyframes by count,
+        distance and angle only. Which frames are keyframes then depends on the machine's
+        speed (with ``run --pace``, on the camera's rate).
     correction_iterations: render-align rounds per correction (see ``correct_pose``).
     render_width, render_height: the field renders at this size (None: the frame's).
     gate_p: chi-square gate probability (6 dof) of a correction against the prediction.
@@ -112,6 +118,7 @@ class PipelineConfig:
     keyframe_window: int = 0
     keyframe_sharpness_fraction: float = 0.8
     keyframe_on_doubt: bool = False
+    keyframe_when_idle: int = 0
     correction_iterations: int = 1
     render_width: int | None = 320
     render_height: int | None = 240
@@ -163,6 +170,9 @@ class PipelineConfig:
             value = getattr(self, name)
             if value is not None and not value >= 0:
                 raise ValueError(f"{name} must be >= 0 or None, got {value}")
+        if self.keyframe_when_idle < 0 or (self.keyframe_when_idle and not self.overlap):
+            raise ValueError(f"keyframe_when_idle must be >= 0 and needs overlap (the worker it waits to be idle), "
+                             f"got {self.keyframe_when_idle} with overlap={self.overlap}")
         if not self.land_within_s >= 0:
             raise ValueError(f"land_within_s must be >= 0 seconds, got {self.land_within_s}")
         if not self.field_sigma_depth_m > 0:

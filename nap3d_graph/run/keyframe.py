@@ -231,6 +231,11 @@ class CorrectionWorker:
         """A measurement is in flight and done."""
         return self._flight is not None and self._flight[1].done()
 
+    def free(self) -> bool:
+        """No measurement in flight, or the one in flight is done (it lands next): a new
+        keyframe would not wait."""
+        return self._flight is None or self._flight[1].done()
+
     def wait(self, timeout_s: float) -> bool:
         """Wait at most ``timeout_s`` seconds for the measurement in flight; whether it is done."""
         if self._flight is None:

@@ -152,7 +152,8 @@ class Pipeline:
             t = float(self.sequence.timestamps[i])
             self.motion.frame(i, frame, t, t - float(self.sequence.timestamps[i - 1]))
         last = self.keyframe_indices[-1] if self.keyframe_indices else None
-        keyframe = self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe())
+        idle = worker is not None and worker.free()
+        keyframe = self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe(), idle)
         if worker is not None and (worker.ready() or (worker.busy and keyframe)):
             self._land(worker, on_keyframe)  # a late correction enters the graph now
         if keyframe:
@@ -298,10 +299,13 @@ class Pipeline:
         worker.prepare(T_world_cam_next, self._render_intrinsics(intrinsics))
 
     def _detect_ahead(self, i: int, frame, worker: CorrectionWorker):
-        """Overlapped run, before frame i's odometry: when frame i is due to be a keyframe, the
-        worker detects its features now, on the other core, while the odometry runs
-        (``PipelineConfig.detect_ahead``). Returns the frame (read now if it was not yet)."""
-        if not self.config.detect_ahead or self.field is None or not self._due_by_count(i):
+        """Overlapped run, before frame i's odometry: when frame i is due to be a keyframe (by
+        count, or by ``keyframe_when_idle`` with the worker idle now), the worker detects its
+        features now, on the other core, while the odometry runs (``PipelineConfig.detect_ahead``).
+        Returns the frame (read now if it was not yet)."""
+        last = self.keyframe_indices[-1] if self.keyframe_indices else None
+        idle_due = worker.free() and self.selector.idle_due(i, last)
+        if not self.config.detect_ahead or self.field is None or not (self._due_by_count(i) or idle_due):
             return frame
         frame = frame if frame is not None else self._read_frame(i)
         if frame is not None:

@@ -1,5 +1,6 @@
 """Which frames are keyframes: every N-th, after a distance or a turn, right after the odometry
-doubted itself, and, with a window, the first sharp frame once one is due."""
+doubted itself, whenever an overlapped run's worker is idle, and, with a window, the first
+sharp frame once one is due."""
 
 from __future__ import annotations
 
@@ -29,26 +30,37 @@ class KeyframeSelector:
         the reference a due one is judged by)."""
         return self.config.keyframe_window > 1
 
-    def due(self, i: int, last_keyframe: int | None, doubted: bool, T_kf_cam: np.ndarray) -> str:
+    def due(self, i: int, last_keyframe: int | None, doubted: bool, T_kf_cam: np.ndarray,
+            worker_idle: bool = False) -> str:
         """Why frame i is due to be a keyframe ("" when it is not): ``last_keyframe`` the last
         keyframe's frame (None before the first), ``doubted`` the odometry guessed a step since,
-        ``T_kf_cam`` (4, 4) the motion since."""
+        ``T_kf_cam`` (4, 4) the motion since, ``worker_idle`` an overlapped run's worker has no
+        measurement in flight (``keyframe_when_idle``)."""
         if last_keyframe is None:
             return "first" if i == 0 else ""
         if self.config.keyframe_on_doubt and doubted:
             return "doubt"
         if i - last_keyframe >= self.config.keyframe_every:
             return "every"
+        if worker_idle and self.idle_due(i, last_keyframe):
+            return "idle"
         moved_m, turned_deg = pose_error(T_kf_cam, np.eye(4))
         if self.config.keyframe_distance_m > 0 and moved_m >= self.config.keyframe_distance_m:
             return "distance"
         return "angle" if self.config.keyframe_angle_deg > 0 and turned_deg >= self.config.keyframe_angle_deg else ""
 
-    def is_keyframe(self, i: int, frame, last_keyframe: int | None, doubted: bool, T_kf_cam: np.ndarray) -> bool:
+    def idle_due(self, i: int, last_keyframe: int | None) -> bool:
+        """Frame i is far enough from the last keyframe to be taken while the worker is idle
+        (``keyframe_when_idle``)."""
+        gap = self.config.keyframe_when_idle
+        return bool(gap) and last_keyframe is not None and i - last_keyframe >= gap
+
+    def is_keyframe(self, i: int, frame, last_keyframe: int | None, doubted: bool, T_kf_cam: np.ndarray,
+                    worker_idle: bool = False) -> bool:
         """Frame i is a keyframe: it is due (:meth:`due`) and, with a keyframe window, sharp
         enough or the window's last frame."""
         if self._due_since is None:
-            why = self.due(i, last_keyframe, doubted, T_kf_cam)
+            why = self.due(i, last_keyframe, doubted, T_kf_cam, worker_idle)
             if not why:
                 self._note_sharpness(frame)
                 return False
