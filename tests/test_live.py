@@ -20,11 +20,9 @@ def walk(sim_walk):
     return SimSequence(sim_walk(21))
 
 
-def test_frame_at_a_time_equals_the_batch_run(walk):
-    field = walk.oracle_field()
-    batch = Pipeline(walk, field, make_odometry("recorded", walk), CONFIG).run()
-    odometry = make_odometry("recorded", walk)
-    corrector = DriftCorrector(field, odometry.initial_pose(), CONFIG)
+def _feed(corrector, walk, odometry) -> list:
+    """Every frame of ``walk`` given to ``corrector`` with the odometry's increment, as a
+    caller's loop does; the updates."""
     updates = []
     for i in range(len(walk)):
         frame = walk[i]  # the caller's own images, camera and stamps
@@ -32,6 +30,15 @@ def test_frame_at_a_time_equals_the_batch_run(walk):
         updates.append(corrector.add_frame(frame.rgb, frame.depth_m, frame.intrinsics, frame.timestamp,
                                            None if inc is None else inc.T_prev_cur,
                                            None if inc is None else inc.covariance))
+    return updates
+
+
+def test_frame_at_a_time_equals_the_batch_run(walk):
+    field = walk.oracle_field()
+    batch = Pipeline(walk, field, make_odometry("recorded", walk), CONFIG).run()
+    odometry = make_odometry("recorded", walk)
+    corrector = DriftCorrector(field, odometry.initial_pose(), CONFIG)
+    updates = _feed(corrector, walk, odometry)
     live = corrector.finish()
     np.testing.assert_allclose(live.T_world_cam_estimate, batch.T_world_cam_estimate, atol=1e-9)
     np.testing.assert_allclose(live.T_world_cam_online, batch.T_world_cam_online, atol=1e-9)
@@ -58,13 +65,7 @@ def test_an_overlapped_corrector_returns_at_once_and_lands_each_correction_later
     inline = Pipeline(walk, field, make_odometry("recorded", walk), CONFIG).run()
     odometry = make_odometry("recorded", walk)
     corrector = DriftCorrector(field, odometry.initial_pose(), dataclasses.replace(CONFIG, overlap=True))
-    updates = []
-    for i in range(len(walk)):
-        frame = walk[i]
-        inc = odometry.increment(i, None) if i > 0 else None
-        updates.append(corrector.add_frame(frame.rgb, frame.depth_m, frame.intrinsics, frame.timestamp,
-                                           None if inc is None else inc.T_prev_cur,
-                                           None if inc is None else inc.covariance))
+    updates = _feed(corrector, walk, odometry)
     result = corrector.finish()
     assert [i for i, u in enumerate(updates) if u.keyframe] == inline.keyframe_indices
     landed = [(i, u.record.frame_index) for i, u in enumerate(updates) if u.record is not None]
@@ -87,13 +88,7 @@ def test_an_overlapped_corrector_given_time_returns_each_correction_with_its_key
     odometry = make_odometry("recorded", walk)
     corrector = DriftCorrector(field, odometry.initial_pose(),
                                dataclasses.replace(CONFIG, overlap=True, land_within_s=30.0))
-    updates = []
-    for i in range(len(walk)):
-        frame = walk[i]
-        inc = odometry.increment(i, None) if i > 0 else None
-        updates.append(corrector.add_frame(frame.rgb, frame.depth_m, frame.intrinsics, frame.timestamp,
-                                           None if inc is None else inc.T_prev_cur,
-                                           None if inc is None else inc.covariance))
+    updates = _feed(corrector, walk, odometry)
     corrector.finish()
     assert [(i, u.record.frame_index) for i, u in enumerate(updates) if u.record is not None] == \
         [(i, i) for i in inline.keyframe_indices]

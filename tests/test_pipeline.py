@@ -301,6 +301,19 @@ def test_an_overlapped_run_given_time_lands_each_correction_at_its_own_frame(wal
         PipelineConfig(land_within_s=-0.01)
 
 
+def _idle_worker_before_each_frame(pipeline):
+    """A ``stop()`` hook that hands each frame over only once the pipeline's worker is idle
+    (a camera slower than the measurement)."""
+    import time
+
+    def hook() -> bool:
+        while pipeline.worker is not None and not pipeline.worker.idle():
+            time.sleep(0.002)
+        return False
+
+    return hook
+
+
 def test_an_overlapped_run_takes_a_keyframe_whenever_its_worker_is_idle(walk):
     """``keyframe_when_idle``: any frame at least N after the last keyframe is one while the
     worker has nothing in flight. Fed so that the worker is idle before each frame (a camera
@@ -308,20 +321,13 @@ def test_an_overlapped_run_takes_a_keyframe_whenever_its_worker_is_idle(walk):
     land each correction at its frame, the run is the inline run with a keyframe every 2: the
     second core measures as often as it keeps up. Busy all the time instead (a slow field,
     frames as fast as they come), keyframes fall back to ``keyframe_every``."""
-    import time
-
     seq = SimSequence(walk)
     inline = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq),
                       dataclasses.replace(CONFIG, keyframe_every=2)).run()
     config = dataclasses.replace(CONFIG, overlap=True, keyframe_when_idle=2, land_within_s=30.0)
     pipeline = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq), config)
 
-    def idle_worker():
-        while pipeline.worker is not None and not pipeline.worker.idle():
-            time.sleep(0.002)
-        return False
-
-    result = pipeline.run(stop=idle_worker)
+    result = pipeline.run(stop=_idle_worker_before_each_frame(pipeline))
     assert result.keyframe_indices == inline.keyframe_indices == list(range(0, len(seq), 2))
     assert [r.why for r in result.keyframes] == ["first"] + ["idle"] * (len(result.keyframes) - 1)
     assert result.num_accepted == inline.num_accepted
@@ -343,20 +349,13 @@ def test_overlapped_run_renders_the_next_keyframe_ahead(walk, baseline):
     starts from them. Fed so that the worker is idle before each frame (a camera slower than
     the measurement), every keyframe after the first finds its render made, and the result is
     the run that rendered at each keyframe's own prediction, to a fraction of its error."""
-    import time
-
     seq = SimSequence(walk)
     # A 6 Hz walk: the one-step guess of the next pose is up to 6 cm / 1.7 deg off (at 30 Hz,
     # millimetres), so the render made ahead is taken within 8 cm / 3 deg here.
     config = dataclasses.replace(CONFIG, overlap=True, render_ahead=True, render_ahead_m=0.08, render_ahead_deg=3.0)
     pipeline = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq), config)
 
-    def idle_worker():
-        while pipeline.worker is not None and not pipeline.worker.idle():
-            time.sleep(0.002)
-        return False
-
-    result = pipeline.run(stop=idle_worker)
+    result = pipeline.run(stop=_idle_worker_before_each_frame(pipeline))
     assert result.keyframe_indices == baseline.keyframe_indices
     prepared = [r.timings_s.get("prepared") for r in result.keyframes]
     assert prepared[0] == 0.0 and all(p == 1.0 for p in prepared[1:]), prepared
