@@ -304,7 +304,7 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     assert "--keyframe-when-idle takes keyframes while the second thread is idle" in capsys.readouterr().err
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--land-within", "-1"]) == 2
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--overlap", "--render-ahead",
-                 "--land-within", "frame", "--pace", "4", "--out", str(tmp_path)]) == 0
+                 "--pace", "4", "--out", str(tmp_path)]) == 0  # paced and overlapped: --land-within frame
     run = tmp_path / "latest"
     config = yaml.safe_load((run / "config.yaml").read_text())
     pipeline = config["pipeline"]

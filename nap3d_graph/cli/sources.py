@@ -81,6 +81,14 @@ def land_within_s(value: float | str, sequence) -> float:
     return LAND_WITHIN_FRAME_SHARE * float(np.median(np.diff(stamps)))
 
 
+def _land_within_default(args) -> float | str:
+    """``--land-within`` as given, else 'frame' for an overlapped run fed at its camera's
+    rate (``run --pace``: waiting costs nothing while the next frame has not come), else 0."""
+    if args.land_within is not None:
+        return args.land_within
+    return "frame" if args.overlap and getattr(args, "pace", None) else 0.0
+
+
 def add_source_arguments(p) -> None:
     """The source, field, odometry and keyframe options of a drift-correction run."""
     import argparse
@@ -186,11 +194,12 @@ def add_source_arguments(p) -> None:
                    help="with --overlap: render the next keyframe at its one-step guessed pose while the second "
                    "thread is idle, so its correction lands sooner (for slow fields or fast cameras; its "
                    "corrections can be slightly worse where the motion turns fast)")
-    p.add_argument("--land-within", type=_land_within, default=0.0, metavar="S|frame",
+    p.add_argument("--land-within", type=_land_within, default=None, metavar="S|frame",
                    help="with --overlap: wait up to S seconds after a frame arrives for the correction in flight, "
                    "so one that is done by then lands at that frame and not a later one; 'frame' waits "
                    f"{LAND_WITHIN_FRAME_SHARE:g} of the camera's frame period (only while a live run would idle "
-                   "for the next frame; with run --pace, as a live camera feeds it). Default 0: never wait")
+                   "for the next frame; with run --pace, as a live camera feeds it). Default: 'frame' for run "
+                   "--overlap --pace (the run would idle then anyway), else 0: never wait")
     p.add_argument("--graph-window", type=non_negative_int, default=0, metavar="N",
                    help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their "
                    "poses, so a long run's graph and its updates stay bounded (default 0: every keyframe, the whole "
@@ -445,7 +454,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
                             render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
                             field_sigma_m=args.field_sigma, overlap=args.overlap, render_ahead=args.render_ahead,
-                            land_within_s=land_within_s(args.land_within, sequence),
+                            land_within_s=land_within_s(_land_within_default(args), sequence),
                             max_frames=args.max_frames,
                             graph_window=args.graph_window,
                             progress=True, compensate_timing=args.timing == "auto",
