@@ -24,7 +24,8 @@ from .camera import RenderedView, RGBDFrame
 from .conventions import inv_T
 from .nap3d.align import align_views
 from .nap3d.config import AlignConfig
-from .nap3d.matching import Features, detect_features
+from .nap3d.correct import real_features
+from .nap3d.matching import Features
 
 __all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
            "bridge_pose_gaps"]
@@ -181,9 +182,7 @@ class VisualOdometry:
         prev, prev_features = self._previous, self._previous_features
         opacity = np.isfinite(prev.depth_m) & (prev.depth_m > 0)
         view = RenderedView(prev.rgb, np.nan_to_num(prev.depth_m), opacity.astype(np.float32), prev.intrinsics)
-        t0 = time.perf_counter()
-        features = detect_features(frame.rgb, self.config.max_features, matcher=self.config.matcher)
-        detect_s = time.perf_counter() - t0
+        features, detect_s = real_features(frame, frame.intrinsics, self.config)
         view_features = None
         if prev_features is not None and self._features_reusable():
             view_features = prev_features.where(opacity >= self.config.min_opacity)

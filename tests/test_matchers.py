@@ -134,7 +134,7 @@ def test_an_images_features_serve_it_masked_and_the_odometry_detects_each_frame_
     frames, the mask their valid depth), so the feature odometry detects each frame once and
     reuses its features as the next step's view: the same steps, bit for bit, as detecting
     every image afresh."""
-    import nap3d_graph.odometry as odometry_module
+    import nap3d_graph.nap3d.correct as correct_module
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.odometry import VisualOdometry
 
@@ -155,7 +155,7 @@ def test_an_images_features_serve_it_masked_and_the_odometry_detects_each_frame_
             calls.append(1)
             return detect_features(*args, **kwargs)
 
-        monkeypatch.setattr(odometry_module, "detect_features", counted)
+        monkeypatch.setattr(correct_module, "detect_features", counted)  # the odometry's detection goes there
         vo = VisualOdometry(config=AlignConfig(min_opacity=0.5, matcher=matcher), reuse_features=reuse)
         vo.prime(frames[0])
         return [vo.increment(i, frames[i]) for i in range(1, len(frames))], len(calls)

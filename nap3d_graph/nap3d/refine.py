@@ -187,9 +187,19 @@ def _normal_equations(rob: np.ndarray, J: np.ndarray, W: np.ndarray, Wr: np.ndar
     """``H = sum_n rob_n J_n^T W_n J_n`` (k, k) and ``g = sum_n rob_n J_n^T W_n r_n`` (k,) for
     Jacobians J (N, m, k), information W (N, m, m), ``Wr`` = W r (N, m) and weights rob (N,):
     as one matrix product over the stacked rows (BLAS), not an einsum over four operands."""
-    k = J.shape[2]
-    J_rob = (J * rob[:, None, None]).reshape(-1, k)
-    return J_rob.T @ np.matmul(W, J).reshape(-1, k), J_rob.T @ Wr.reshape(-1)
+    J_rob = _weighted_rows(rob, J)
+    return J_rob.T @ _rows(np.matmul(W, J)), J_rob.T @ Wr.reshape(-1)
+
+
+def _rows(M: np.ndarray) -> np.ndarray:
+    """(N * m, k) the stacked rows of per-correspondence matrices M (N, m, k)."""
+    return M.reshape(-1, M.shape[2])
+
+
+def _weighted_rows(w: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """(N * m, k) the rows of J (N, m, k), each correspondence's scaled by its weight w (N,):
+    ``_weighted_rows(w, J).T @ _rows(A)`` is ``sum_n w_n J_n^T A_n`` as one BLAS product."""
+    return _rows(J * w[:, None, None])
 
 
 def stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use_depth):
@@ -268,8 +278,8 @@ def plain_covariance(R, t, x, y, weights, s_xy, s_z) -> np.ndarray:
     f_z = max(float(np.sum(along**2 / (s_z**2 * np.sum(ray**2, axis=1))) / (n * redundancy)), 1e-3)
     Sigma = (f_xy * s_xy**2)[:, None, None] * np.diag([1.0, 1.0, 0.0]) + \
         (f_z * s_z**2)[:, None, None] * ray[:, :, None] * ray[:, None, :]
-    H = (J * w[:, None, None]).reshape(-1, J.shape[2]).T @ J.reshape(-1, J.shape[2])
-    B = (J * (w**2)[:, None, None]).reshape(-1, J.shape[2]).T @ np.matmul(Sigma, J).reshape(-1, J.shape[2])
+    H = _weighted_rows(w, J).T @ _rows(J)
+    B = _weighted_rows(w**2, J).T @ _rows(np.matmul(Sigma, J))
     H_inv = _covariance(H)
     cov = H_inv @ B @ H_inv
     return 0.5 * (cov + cov.T)
