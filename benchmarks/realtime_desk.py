@@ -55,12 +55,12 @@ def stage_ms(records, key: str) -> dict | None:
 
 def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str, paced: bool = False,
         render_ahead: bool = False, land_within_s: float = 0.0, keyframe_when_idle: int = 0,
-        pace_speed: float = 1.0) -> dict:
+        pace_speed: float = 1.0, read_ahead: int = 2) -> dict:
     from nap3d_graph.nap3d.config import AlignConfig
 
     config = PipelineConfig(overlap=overlap, keyframe_every=keyframe_every, align=AlignConfig(matcher=matcher),
                             render_ahead=render_ahead, land_within_s=land_within_s,
-                            keyframe_when_idle=keyframe_when_idle)
+                            keyframe_when_idle=keyframe_when_idle, read_ahead=read_ahead)
     pacer = CameraPace(sequence.timestamps, pace_speed) if paced else None
     t0 = time.perf_counter()
     result = Pipeline(sequence, field, make_odometry("dense", sequence), config).run(stop=pacer)
@@ -69,7 +69,7 @@ def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str, paced
     late = [r.timings_s["landed_frame"] - r.frame_index for r in result.keyframes if "landed_frame" in r.timings_s]
     return {
         "overlap": overlap, "render_ahead": overlap and render_ahead, "land_within_s": land_within_s,
-        "keyframe_when_idle": keyframe_when_idle,
+        "keyframe_when_idle": keyframe_when_idle, "read_ahead": read_ahead,
         "keyframe_interval_mean": float(np.mean(np.diff(result.keyframe_indices))) if len(result.keyframe_indices) > 1
         else None,
         "rendered_ahead_fraction": float(np.mean([r.timings_s.get("prepared", 0.0) for r in result.keyframes])),

@@ -381,3 +381,63 @@ def test_a_capture_timing_the_data_cannot_tell_is_not_applied(tmp_path, caplog):
     with caplog.at_level("WARNING"):
         assert estimate_timing(sequence) is None
     assert "capture timing not compensated" in caplog.text
+
+
+class _ThreadNotingSequence(SimSequence):
+    """A simulated sequence that notes which thread read each frame."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.read_on: dict[int, str] = {}
+
+    def __getitem__(self, i):
+        import threading
+
+        self.read_on[int(i)] = threading.current_thread().name
+        return super().__getitem__(i)
+
+
+def test_a_replay_reads_its_next_frames_on_another_thread_with_the_same_result(walk):
+    """``read_ahead``: a run that reads every frame (here the dense odometry) decodes the next
+    frames on a background thread while it works on this one; the frames, and so the run, are
+    the same as reading each frame when its step comes."""
+    config = dataclasses.replace(CONFIG, max_frames=24)
+    runs = {}
+    for ahead in (0, 2):
+        seq = _ThreadNotingSequence(walk)
+        runs[ahead] = (seq, Pipeline(seq, seq.oracle_field(), make_odometry("dense", seq),
+                                     dataclasses.replace(config, read_ahead=ahead)).run())
+    (plain_seq, plain), (ahead_seq, ahead) = runs[0], runs[2]
+    assert set(plain_seq.read_on.values()) == {"MainThread"}
+    read_ahead = [i for i, name in ahead_seq.read_on.items() if name.startswith("nap3d-read-ahead")]
+    assert sorted(read_ahead) == list(range(1, 24))  # all but the first, which nothing read before
+    assert ahead.keyframe_indices == plain.keyframe_indices
+    for name in ("T_world_cam_odometry", "T_world_cam_online", "T_world_cam_estimate"):
+        assert np.array_equal(np.asarray(getattr(ahead, name)), np.asarray(getattr(plain, name))), name
+    assert ate(ahead) < 0.8 * ate_odometry(ahead)
+
+
+def test_reading_ahead_hands_over_each_frame_and_its_error_when_asked():
+    """A frame that cannot be read raises its own error when the run asks for it (the run
+    records it and goes on), not earlier and not for its neighbours; nothing is read past the end."""
+    from nap3d_graph.datasets import DatasetError
+    from nap3d_graph.run.read_ahead import FrameReadAhead, reads_concurrently
+
+    asked = []
+
+    class Frames:
+        def __getitem__(self, i):
+            asked.append(i)
+            if i == 3:
+                raise DatasetError("frame 3: rgb image unreadable")
+            return f"frame {i}"
+
+    with FrameReadAhead(Frames(), ahead=2, stop=6) as reader:
+        assert reader[0] == "frame 0" and reader[1] == "frame 1" and reader[2] == "frame 2"
+        with pytest.raises(DatasetError, match="frame 3"):
+            reader[3]
+        assert reader[5] == "frame 5"  # frame 4, read ahead and never asked for, is dropped
+    assert sorted(set(asked)) == [0, 1, 2, 3, 4, 5] and max(asked) < 6
+    assert not reads_concurrently(Frames()) and reads_concurrently(SimSequence) and reads_concurrently(TumSequence)
+    with pytest.raises(ValueError, match="read_ahead"):
+        PipelineConfig(read_ahead=-1)

@@ -107,6 +107,9 @@ class RealSenseRecording(GroundTruthLookup):
     Holds the recording's frames in memory (about 1.5 MB per 640x480 pair).
     """
 
+    #: Frames may be read on another thread (a replay reads ahead: nap3d_graph.run.read_ahead).
+    reads_concurrently = True
+
     def __init__(self, path, groundtruth=None, frames: str | None = None, config: RealSenseConfig | None = None):
         from .realsense_io import read_recording
 

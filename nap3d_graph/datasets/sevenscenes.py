@@ -124,6 +124,9 @@ class SevenScenesSequence(GroundTruthLookup):
     ``frame_range``, ``path``, ``name``, ``recording_id``.
     """
 
+    #: Frames may be read on another thread (a replay reads ahead: nap3d_graph.run.read_ahead).
+    reads_concurrently = True
+
     def __init__(self, path, sequence: str | None = None, depth_intrinsics: Intrinsics | None = None,
                  registration="auto", frames: str | None = None, cache_dir=None, intrinsics=None):
         if intrinsics is not None:

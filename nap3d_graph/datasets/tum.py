@@ -173,6 +173,9 @@ class TumSequence(GroundTruthLookup):
     fr1/xyz that takes neighbouring frames' depth agreement from 3.2 to 2.4 mm.
     """
 
+    #: Frames may be read on another thread (a replay reads ahead: nap3d_graph.run.read_ahead).
+    reads_concurrently = True
+
     def __init__(
         self,
         path,

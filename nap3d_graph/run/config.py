@@ -104,6 +104,10 @@ class PipelineConfig:
         correction done by then lands at that frame instead of a later one. 0 (the default)
         never waits. The camera's frame period less the odometry's time waits only while the
         run would sit idle for the next frame anyway, so it never falls behind the camera.
+    read_ahead: frames a replay reads ahead on a background thread while the run works on
+        the current one (:mod:`nap3d_graph.run.read_ahead`; 0: read each frame when its step
+        comes). Only for sequences whose frames can be read from another thread; the frames
+        are the same either way.
     graph_window: keyframes kept in iSAM2 (0: all, the default). With N > 0, once more than
         1.5 N keyframes are in the graph the oldest are marginalised down to N (iSAM2's
         ``marginalizeLeaves``: their information stays as a linear prior on the window's
@@ -153,6 +157,7 @@ class PipelineConfig:
     render_ahead_m: float = 0.05
     render_ahead_deg: float = 3.0
     land_within_s: float = 0.0
+    read_ahead: int = 2
     graph_window: int = 0
     max_frames: int | None = None
     progress: bool = False
@@ -173,6 +178,8 @@ class PipelineConfig:
         if self.keyframe_when_idle < 0 or (self.keyframe_when_idle and not self.overlap):
             raise ValueError(f"keyframe_when_idle must be >= 0 and needs overlap (the worker it waits to be idle), "
                              f"got {self.keyframe_when_idle} with overlap={self.overlap}")
+        if self.read_ahead < 0:
+            raise ValueError(f"read_ahead must be >= 0 frames, got {self.read_ahead}")
         if not self.land_within_s >= 0:
             raise ValueError(f"land_within_s must be >= 0 seconds, got {self.land_within_s}")
         if not self.field_sigma_depth_m > 0:

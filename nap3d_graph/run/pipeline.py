@@ -37,6 +37,7 @@ from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
 from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
+from nap3d_graph.run.read_ahead import FrameReadAhead, reads_concurrently
 from nap3d_graph.run.records import KeyframeRecord, RunResult
 from nap3d_graph.run.selection import KeyframeSelector
 
@@ -114,6 +115,11 @@ class Pipeline:
         done, partial = n, False
         worker = CorrectionWorker(self.field, self.config) if self.overlaps() else None
         self.worker = worker  # a caller's stop hook may watch it
+        # Only a run that reads every frame reads ahead (one that moves with recorded or IMU
+        # odometry reads its keyframes alone).
+        reads_all = self.motion.needs_frames or self.selector.reads_every_frame
+        if self.config.read_ahead and reads_all and reads_concurrently(self.sequence):
+            self._frames = FrameReadAhead(self.sequence, self.config.read_ahead, n)
         try:
             for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
                 if stop is not None and stop():
@@ -126,6 +132,9 @@ class Pipeline:
             if worker is not None:
                 worker.close()
             self.worker = None
+            if isinstance(self._frames, FrameReadAhead):
+                self._frames.close()
+            self._frames = self.sequence
         result = self._finish(max(done, 1))
         result.partial = partial
         result.wall_time_s = time.perf_counter() - t_start
@@ -181,6 +190,7 @@ class Pipeline:
     # --- steps -----------------------------------------------------------------------------
 
     def _start(self) -> None:
+        self._frames = self.sequence  # what frames are read from (run reads ahead: FrameReadAhead)
         self.motion = self._motion()
         anchor = self.motion.anchor_prior()
         self.anchored = self.config.use_anchor or anchor is not None
@@ -219,7 +229,7 @@ class Pipeline:
         from nap3d_graph.datasets import DatasetError
 
         try:
-            frame = self.sequence[i]
+            frame = self._frames[i]
         except (DatasetError, OSError) as exc:
             log.warning("frame %d unreadable: %s", i, exc)
             self._frame_error = str(exc)
