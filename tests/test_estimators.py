@@ -326,6 +326,31 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     assert all(float(r["t_detect_ahead_s"]) > 0 for r in rows[1:]), [r["t_detect_ahead_s"] for r in rows]
 
 
+def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path):
+    """``run --pace`` without ``--overlap``: fed as a camera delivers the frames, the run
+    overlaps, waits up to 0.9 of a frame period for a correction and takes a keyframe whenever
+    the second thread is idle; ``--no-overlap`` keeps it inline, and an unpaced replay is inline."""
+    import yaml
+
+    from nap3d_graph.cli import main
+
+    period_s = float(np.median(np.diff(SimSequence(walk).timestamps)))
+    settings = {}
+    for name, extra in (("live", ["--pace", "8"]), ("inline", ["--pace", "8", "--no-overlap"]), ("replay", [])):
+        out = tmp_path / name
+        assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--max-frames", "30",
+                     "--out", str(out), *extra]) == 0
+        settings[name] = yaml.safe_load((out / "latest" / "config.yaml").read_text())["pipeline"]
+        metrics = json.loads((out / "latest" / "metrics.json").read_text())
+        assert metrics["estimate"]["ate_m"]["rmse"] < 0.5 * metrics["odometry"]["ate_m"]["rmse"], (name, metrics)
+    live = settings["live"]
+    assert live["overlap"] is True and live["keyframe_when_idle"] == 1
+    assert live["land_within_s"] == pytest.approx(0.9 * period_s)
+    for name in ("inline", "replay"):
+        assert settings[name]["overlap"] is False and settings[name]["keyframe_when_idle"] == 0
+        assert settings[name]["land_within_s"] == 0.0
+
+
 def test_imu_run_survives_a_failed_isam2_update(walk, monkeypatch):
     """iSAM2's Cholesky step can report an indeterminate system on a graph that is well posed
     as a whole (seen on the IMU path: a loosely weighted first correction beside the bias

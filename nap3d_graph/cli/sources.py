@@ -81,6 +81,18 @@ def land_within_s(value: float | str, sequence) -> float:
     return LAND_WITHIN_FRAME_SHARE * float(np.median(np.diff(stamps)))
 
 
+def live_defaults(args, odom_kind: str) -> None:
+    """Resolve ``--overlap`` and ``--keyframe-when-idle`` left at their defaults: a run fed at
+    its camera's rate (``run --pace``) takes the live settings (overlapped, a keyframe whenever
+    the second thread is idle; ``--land-within frame`` follows from ``_land_within_default``),
+    any other run is inline. The IMU path never overlaps."""
+    paced = getattr(args, "pace", None) is not None
+    if args.overlap is None:
+        args.overlap = paced and odom_kind != "imu"
+    if args.keyframe_when_idle is None:
+        args.keyframe_when_idle = 1 if args.overlap and paced else 0
+
+
 def _land_within_default(args) -> float | str:
     """``--land-within`` as given, else 'frame' for an overlapped run fed at its camera's
     rate (``run --pace``: waiting costs nothing while the next frame has not come), else 0."""
@@ -170,11 +182,11 @@ def add_source_arguments(p) -> None:
                    default=PipelineConfig.keyframe_on_doubt,
                    help="also a keyframe right after the odometry guessed a step (visual odometry lost track), so "
                    f"the jump is corrected at once (default {'on' if PipelineConfig.keyframe_on_doubt else 'off'})")
-    p.add_argument("--keyframe-when-idle", type=non_negative_int, default=0, metavar="N",
+    p.add_argument("--keyframe-when-idle", type=non_negative_int, default=None, metavar="N",
                    help="with --overlap: also a keyframe at any frame N or more after the last while the second thread "
                    "is idle, so corrections come as often as it can measure them (--keyframe-every is then the "
                    "longest interval; which frames are keyframes depends on the machine's speed, or with run --pace "
-                   "on the camera's rate). Default 0: off")
+                   "on the camera's rate). Default: 1 for an overlapped run --pace (the live settings), else 0: off")
     p.add_argument("--iterations", type=positive_int, default=1,
                    help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
                    "a little more accurate, twice the time)")
@@ -187,9 +199,13 @@ def add_source_arguments(p) -> None:
                    "(rotation: M / 2 m per radian). Default auto: what the field measured of itself when "
                    "train-field built it (0 for the exact oracle and fields that record none); 0: take the field "
                    "as exact")
-    p.add_argument("--overlap", action="store_true",
+    p.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
                    help="measure each keyframe's correction on a second thread while the odometry goes on; it "
-                   "enters the graph when ready (faster on two cores; not bit-for-bit repeatable; not with --odom imu)")
+                   "enters the graph when ready (faster on two cores; not bit-for-bit repeatable; not with --odom imu). "
+                   "Default: on for run --pace (frames fed as the camera delivers them: with the live settings, "
+                   "--land-within frame and --keyframe-when-idle 1, as accurate as inline and more often corrected), "
+                   "off for a replay that goes as fast as it can (inline is repeatable there, and an overlapped "
+                   "run's causal trajectory would depend on the machine's speed)")
     p.add_argument("--render-ahead", action="store_true",
                    help="with --overlap: render the next keyframe at its one-step guessed pose while the second "
                    "thread is idle, so its correction lands sooner (for slow fields or fast cameras; its "
@@ -436,6 +452,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     warn_guessed_camera(sequence)
     args.matcher = chosen_matcher(args.matcher, sequence)
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
+    live_defaults(args, odom_kind)
     if args.render_ahead and not args.overlap:
         raise UsageError("--render-ahead works ahead on the second thread: it needs --overlap")
     if args.keyframe_when_idle and not args.overlap:
