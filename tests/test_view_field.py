@@ -100,6 +100,47 @@ def test_nearest_views_and_rendering_a_training_view(built, survey):
     assert empty.opacity.max() == 0.0 and empty.depth_m.max() == 0.0
 
 
+def test_where_no_view_has_depth_the_render_takes_the_views_colour_without_geometry(built, survey):
+    """A depth camera that sees less than the colour camera (a band along each view's border
+    with no depth): the render's pixels there get the nearest views' colour through the plane
+    each looks at, much nearer the room's real colour than black, with no depth and no opacity
+    (nothing is invented for the alignment); ``fill_background=False`` leaves them black."""
+    import copy
+    import dataclasses
+
+    field, _, _ = built
+    cut = copy.copy(field)
+    cut.depth_m = field.depth_m.copy()
+    band = field.intrinsics.width // 6
+    cut.depth_m[:, :, :band] = 0.0
+    cut.depth_m[:, :, -band:] = 0.0
+    cut._points = {}
+    oracle = survey.oracle_field()
+    trained = set(field.meta["train_frames"])
+    filled_err, black_err, holes, filled_px = [], [], 0, 0
+    for i in [i for i in range(len(survey)) if i not in trained][:6]:
+        T = survey.T_world_cam_gt[i]
+        view = cut.render(T, field.intrinsics)
+        truth = oracle.render(T, field.intrinsics).rgb.astype(float)
+        hole = view.depth_m <= 0
+        assert np.all(view.opacity[hole] == 0)
+        filled = np.any(view.rgb > 0, axis=2) & hole
+        holes, filled_px = holes + hole.sum(), filled_px + filled.sum()
+        filled_err.append(np.abs(view.rgb.astype(float) - truth)[filled])
+        black_err.append(np.abs(truth[filled]))
+        plain = copy.copy(cut)
+        plain.config = dataclasses.replace(cut.config, fill_background=False)
+        black = plain.render(T, field.intrinsics)
+        assert np.all(black.rgb[hole] == 0) and np.array_equal(black.depth_m, view.depth_m)
+        assert np.array_equal(black.rgb[~hole], view.rgb[~hole])
+    filled_err, black_err = np.concatenate(filled_err).mean(), np.concatenate(black_err).mean()
+    assert holes > 0.05 * 6 * field.intrinsics.width * field.intrinsics.height and filled_px > 0.6 * holes
+    # Measured: 5.3% of the pixels without depth, 70% of them coloured (the rest outside every
+    # near view), their mean absolute colour error 29.8 against 71.5 for black (0-255; a plane
+    # stands in for the room's corners and furniture).
+    assert filled_err < 0.5 * black_err, (filled_err, black_err)
+
+
 def test_corrections_through_the_view_field_recover_perturbed_poses(built, survey):
     """Held-out survey frames, rendered 2 cm / 1 deg off their true pose, corrected by NAP3D
     through the view field as a run corrects a keyframe (depth moved to the colour's instant
