@@ -326,7 +326,7 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     assert all(float(r["t_detect_ahead_s"]) > 0 for r in rows[1:]), [r["t_detect_ahead_s"] for r in rows]
 
 
-def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path):
+def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path, capsys):
     """``run --pace`` without ``--overlap``: fed as a camera delivers the frames, the run
     overlaps, waits up to 0.9 of a frame period for a correction and takes a keyframe whenever
     the second thread is idle; ``--no-overlap`` keeps it inline, and an unpaced replay is inline."""
@@ -341,6 +341,11 @@ def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path):
         assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--max-frames", "30",
                      "--out", str(out), *extra]) == 0
         settings[name] = yaml.safe_load((out / "latest" / "config.yaml").read_text())["pipeline"]
+        said = capsys.readouterr().out
+        if name == "live":
+            assert "paced at 8x the camera's rate (overlapped, waiting up to" in said and "whenever" in said
+        elif name == "inline":
+            assert "paced at 8x the camera's rate (inline)" in said
         metrics = json.loads((out / "latest" / "metrics.json").read_text())
         assert metrics["estimate"]["ate_m"]["rmse"] < 0.5 * metrics["odometry"]["ate_m"]["rmse"], (name, metrics)
     live = settings["live"]

@@ -96,8 +96,13 @@ def run(args) -> int:
     metrics = writer.finish(result, partial=result.partial, extra=None if pace is None else {"paced": pace.summary()})
     if pace is not None:
         late = metrics["paced"].get("behind_camera_s") or {}
-        print(f"paced at {args.pace:g}x the camera's rate: the run took the frames up to {late.get('max', 0) * 1000:.0f} "
-              f"ms late ({metrics['paced'].get('frames_over_a_period_late', 0)} over a frame period)")
+        config = pipeline.config
+        mode = (f"overlapped, waiting up to {config.land_within_s * 1000:.0f} ms for a correction"
+                + (f", a keyframe whenever the second thread is idle ({config.keyframe_when_idle} or more frames apart)"
+                   if config.keyframe_when_idle else "") if config.overlap else "inline")
+        print(f"paced at {args.pace:g}x the camera's rate ({mode}): the run took the frames up to "
+              f"{late.get('max', 0) * 1000:.0f} ms late ({metrics['paced'].get('frames_over_a_period_late', 0)} over "
+              "a frame period)")
     if recorder is not None:
         recorder.finish(result)
         recorder.close()

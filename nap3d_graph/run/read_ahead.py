@@ -14,12 +14,9 @@ decoded up front) are read ahead; a ROS bag's reader stays on the run's thread.
 
 from __future__ import annotations
 
-import logging
 from concurrent.futures import Future, ThreadPoolExecutor
 
 __all__ = ["FrameReadAhead", "reads_concurrently"]
-
-log = logging.getLogger(__name__)
 
 
 def reads_concurrently(sequence) -> bool:
