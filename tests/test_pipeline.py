@@ -245,15 +245,15 @@ def test_field_sigma_makes_a_biased_fields_corrections_honest(walk, baseline):
 
 
 class _SlowField:
-    """The oracle field, 40 ms slower per render: its corrections come back frames late."""
+    """The oracle field, ``delay_s`` (40 ms) slower per render: its corrections come back frames late."""
 
-    def __init__(self, field):
-        self.field, self.name, self.bounds = field, field.name, field.bounds
+    def __init__(self, field, delay_s: float = 0.04):
+        self.field, self.name, self.bounds, self.delay_s = field, field.name, field.bounds, delay_s
 
     def render(self, T_world_cam, intrinsics):
         import time
 
-        time.sleep(0.04)
+        time.sleep(self.delay_s)
         return self.field.render(T_world_cam, intrinsics)
 
 
@@ -417,6 +417,26 @@ def test_a_replay_reads_its_next_frames_on_another_thread_with_the_same_result(w
     assert ate(ahead) < 0.8 * ate_odometry(ahead)
 
 
+def test_an_overlapped_run_waiting_for_its_second_thread_reads_on_its_own(walk):
+    """With a field slower than the odometry, an overlapped run's keyframes wait for the
+    correction in flight: the run then reads each frame itself (a reader thread would compete
+    with the second thread it waits for); with the exact field's quick renders it reads ahead."""
+    config = dataclasses.replace(CONFIG, overlap=True, max_frames=24)
+    threads = {}
+    for name in ("slow", "idle"):
+        seq = _ThreadNotingSequence(walk)
+        # Slow: each render takes far longer than the 4 frames of odometry between keyframes.
+        # Idle: each frame is handed over once the second thread is idle (a slow camera).
+        field = _SlowField(seq.oracle_field(), delay_s=0.5) if name == "slow" else seq.oracle_field()
+        pipeline = Pipeline(seq, field, make_odometry("dense", seq), config)
+        result = pipeline.run(stop=_idle_worker_before_each_frame(pipeline) if name == "idle" else None)
+        assert ate(result) < ate_odometry(result)
+        threads[name] = sum(t.startswith("nap3d-read-ahead") for t in seq.read_on.values())
+    # Slow: frames 1-2 before the first wait, 2 more after the first keyframe, the rest on the
+    # run's thread. Idle: every frame after the first.
+    assert threads["slow"] <= 6 and threads["idle"] == 23, threads
+
+
 def test_reading_ahead_hands_over_each_frame_and_its_error_when_asked():
     """A frame that cannot be read raises its own error when the run asks for it (the run
     records it and goes on), not earlier and not for its neighbours; nothing is read past the end."""
@@ -438,6 +458,15 @@ def test_reading_ahead_hands_over_each_frame_and_its_error_when_asked():
             reader[3]
         assert reader[5] == "frame 5"  # frame 4, read ahead and never asked for, is dropped
     assert sorted(set(asked)) == [0, 1, 2, 3, 4, 5] and max(asked) < 6
+    # Not wanted (an overlapped run waiting for its second thread): each frame is read when asked.
+    asked.clear()
+    want = [True]
+    with FrameReadAhead(Frames(), ahead=2, stop=6, wanted=lambda: want[0]) as reader:
+        assert reader[0] == "frame 0"  # reads 1 and 2 ahead
+        want[0] = False
+        assert reader[1] == "frame 1" and reader[2] == "frame 2" and reader[4] == "frame 4"
+        assert reader.read_ahead_count == 2
+    assert sorted(asked) == [0, 1, 2, 4]
     assert not reads_concurrently(Frames()) and reads_concurrently(SimSequence) and reads_concurrently(TumSequence)
     with pytest.raises(ValueError, match="read_ahead"):
         PipelineConfig(read_ahead=-1)

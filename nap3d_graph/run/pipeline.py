@@ -119,7 +119,10 @@ class Pipeline:
         # odometry reads its keyframes alone).
         reads_all = self.motion.needs_frames or self.selector.reads_every_frame
         if self.config.read_ahead and reads_all and reads_concurrently(self.sequence):
-            self._frames = FrameReadAhead(self.sequence, self.config.read_ahead, n)
+            # A third thread on two cores: when the second thread is what the run waits for, the
+            # reader would only slow it down, and reading here costs nothing (the run would wait).
+            self._frames = FrameReadAhead(self.sequence, self.config.read_ahead, n,
+                                          wanted=lambda: not self._waits_for_worker)
         try:
             for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
                 if stop is not None and stop():
@@ -163,6 +166,8 @@ class Pipeline:
         last = self.keyframe_indices[-1] if self.keyframe_indices else None
         idle = worker is not None and worker.free()
         keyframe = self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe(), idle)
+        if keyframe and worker is not None:
+            self._waits_for_worker = not worker.free()  # the last correction is still being measured
         if worker is not None and (worker.ready() or (worker.busy and keyframe)):
             self._land(worker, on_keyframe)  # a late correction enters the graph now
         if keyframe:
@@ -191,6 +196,7 @@ class Pipeline:
 
     def _start(self) -> None:
         self._frames = self.sequence  # what frames are read from (run reads ahead: FrameReadAhead)
+        self._waits_for_worker = False  # the latest keyframe had to wait for the one in flight
         self.motion = self._motion()
         anchor = self.motion.anchor_prior()
         self.anchored = self.config.use_anchor or anchor is not None
