@@ -277,7 +277,7 @@ class ViewField:
         """``rgb`` (H, W, 3) with its ``hole`` pixels (H, W) bool (no view's depth landed
         there) coloured from the views (best first) through the homography of the plane each
         view looks at (its median depth, facing it): an approximate background, with no depth,
-        instead of black. The depth camera sees less than the colour camera (fr1/desk: 12-22%
+        instead of black. The depth camera sees less than the colour camera (fr1/desk: 11-22%
         of a render has no depth), and a black region's edges are strong, false features."""
         hole = hole.copy()
         if not hole.any():
