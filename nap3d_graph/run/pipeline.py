@@ -82,6 +82,9 @@ class Pipeline:
     def __init__(self, sequence: FrameSource, field, odometry, config: PipelineConfig | None = None,
                  correction_hook=None, on_retire=None):
         self.sequence = sequence
+        # What frames are read from: the sequence, or a FrameReadAhead over it while run() goes.
+        self._frames: FrameSource | FrameReadAhead = sequence
+        self._waits_for_worker = False  # the latest keyframe had to wait for the one in flight
         self.on_retire = on_retire
         self.worker: CorrectionWorker | None = None  # an overlapped run's, while it runs
         self.field = field
