@@ -420,7 +420,7 @@ def test_a_replay_reads_its_next_frames_on_another_thread_with_the_same_result(w
 def test_an_overlapped_run_waiting_for_its_second_thread_reads_on_its_own(walk):
     """With a field slower than the odometry, an overlapped run's keyframes wait for the
     correction in flight: the run then reads each frame itself (a reader thread would compete
-    with the second thread it waits for); with the exact field's quick renders it reads ahead."""
+    with the second thread it waits for); handed each frame once that thread is idle, it reads ahead."""
     config = dataclasses.replace(CONFIG, overlap=True, max_frames=24)
     threads = {}
     for name in ("slow", "idle"):
