@@ -39,8 +39,9 @@ def add_parser(sub) -> None:
     p.add_argument("--pace", type=positive_float, nargs="?", const=1.0, default=None, metavar="SPEED",
                    help="feed the frames as the camera delivered them (SPEED times its rate; default 1): the causal "
                    "trajectory is then the one a robot riding along would have had, which for --overlap depends on "
-                   "the camera's rate, not on how fast a replay goes. metrics.json records how late the run took "
-                   "the frames")
+                   "the camera's rate, not on how fast a replay goes. Takes the live settings unless told otherwise "
+                   "(--overlap --land-within frame --keyframe-when-idle 1; --no-overlap runs inline). metrics.json "
+                   "records how late the run took the frames")
     p.add_argument("--out", type=Path, default=Path("results"), help="results root (default ./results)")
     p.add_argument("--write-bag", type=Path, metavar="OUT.bag|OUT_DIR",
                    help="also write the trajectories as a ROS bag in the input's time, to play next to the input in "
