@@ -65,6 +65,7 @@ def _spread(rows: list[dict], key: str) -> dict:
 
 
 def main() -> None:
+    from nap3d_graph.cli.train_field import report_path_for
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields import load_field
 
@@ -81,7 +82,7 @@ def main() -> None:
     for item in args.field:
         name, _, path = item.partition("=")
         path = Path(path)
-        report = json.loads(path.with_name(path.name.removesuffix(".pt") + ".report.json").read_text())
+        report = json.loads(report_path_for(path).read_text())
         frames = report["held_out"]["frames"]
         rows = registration(sequence, load_field(path), frames, size)
         summary = {key: _spread(rows, key) for key in ("psnr_db", "psnr_opaque_db", "psnr_flow_warped_db",

@@ -170,7 +170,7 @@ class Pipeline:
         idle = worker is not None and worker.free()
         keyframe = self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe(), idle)
         if keyframe and worker is not None:
-            self._waits_for_worker = not worker.free()  # the last correction is still being measured
+            self._waits_for_worker = not idle  # the last correction is still being measured
         if worker is not None and (worker.ready() or (worker.busy and keyframe)):
             self._land(worker, on_keyframe)  # a late correction enters the graph now
         if keyframe:
@@ -198,8 +198,7 @@ class Pipeline:
     # --- steps -----------------------------------------------------------------------------
 
     def _start(self) -> None:
-        self._frames = self.sequence  # what frames are read from (run reads ahead: FrameReadAhead)
-        self._waits_for_worker = False  # the latest keyframe had to wait for the one in flight
+        self._frames, self._waits_for_worker = self.sequence, False  # as in __init__, for a new run
         self.motion = self._motion()
         anchor = self.motion.anchor_prior()
         self.anchored = self.config.use_anchor or anchor is not None
