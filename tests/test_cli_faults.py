@@ -41,6 +41,8 @@ RUN = ("run", "--traj", "sim", "--field", "oracle")
     (("--iterations", "0"), "--iterations: must be an integer >= 1"),
     (("--odom-trans-sigma", "-1"), "--odom-trans-sigma: must be a finite number > 0"),
     (("--odom-rot-sigma", "nan"), "--odom-rot-sigma: must be a finite number > 0"),
+    (("--vo-width", "0"), "--vo-width: must be an integer >= 1"),
+    (("--odom", "dense", "--vo-width", "160"), "--vo-width is for --odom vo, not --odom dense"),
 ])
 def test_usage_mistakes_are_one_line_with_the_range(walk, tmp_path, capsys, extra, message):
     rc, err = _cli(capsys, *RUN, "--data", walk, "--out", tmp_path / "out", *extra)

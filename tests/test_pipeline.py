@@ -470,3 +470,50 @@ def test_reading_ahead_hands_over_each_frame_and_its_error_when_asked():
     assert not reads_concurrently(Frames()) and reads_concurrently(SimSequence) and reads_concurrently(TumSequence)
     with pytest.raises(ValueError, match="read_ahead"):
         PipelineConfig(read_ahead=-1)
+
+
+def test_the_feature_odometry_at_the_renders_width_hands_its_features_to_the_correction(walk, monkeypatch):
+    """``--odom vo --vo-width`` at the render's width: the odometry resizes each frame as the
+    correction does and detects the same features on it, so a keyframe's correction takes them
+    instead of detecting them again (inline and overlapped): one detection fewer per keyframe,
+    the same trajectory to the bit."""
+    import nap3d_graph.nap3d.correct as correct_module
+    from nap3d_graph.nap3d.matching import detect_features
+    from nap3d_graph.odometry import VisualOdometry
+
+    calls = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return detect_features(*args, **kwargs)
+
+    monkeypatch.setattr(correct_module, "detect_features", counted)  # the real frames' detections
+    config = dataclasses.replace(CONFIG, max_frames=24, render_width=160, render_height=120)
+    seq = SimSequence(walk)
+    field = seq.oracle_field()
+
+    def run(shared: bool, overlap: bool = False):
+        calls.clear()
+        odometry = make_odometry("vo", seq, vo_width=160)
+        assert odometry.shares_features(seq.intrinsics.scaled(160, 120), config.align)
+        if not shared:
+            monkeypatch.setattr(odometry, "features_of", lambda *args: None)
+        result = Pipeline(seq, field, odometry, dataclasses.replace(config, overlap=overlap)).run()
+        return result, len(calls)
+
+    (plain, plain_calls), (shared, shared_calls) = run(False), run(True)
+    # Every keyframe but the first (the odometry detects from frame 1 on) reuses the odometry's:
+    # one detection per frame in all.
+    assert shared_calls == plain_calls - (len(shared.keyframe_indices) - 1) == config.max_frames
+    assert shared.keyframe_indices == plain.keyframe_indices
+    for name in ("T_world_cam_odometry", "T_world_cam_online", "T_world_cam_estimate"):
+        assert np.array_equal(np.asarray(getattr(shared, name)), np.asarray(getattr(plain, name))), name
+    assert all(k.accepted for k in shared.keyframes)
+    assert ate(shared) < 0.5 * ate_odometry(shared)
+    overlapped, overlapped_calls = run(True, overlap=True)
+    assert overlapped_calls == config.max_frames
+    assert np.array_equal(np.asarray(overlapped.T_world_cam_estimate), np.asarray(shared.T_world_cam_estimate))
+    # A width the render does not have: nothing to share, and it is said so.
+    assert not VisualOdometry(width=128).shares_features(seq.intrinsics.scaled(160, 120), config.align)
+    with pytest.raises(ValueError, match="--vo-width is for --odom vo"):
+        make_odometry("dense", seq, vo_width=160)

@@ -67,6 +67,8 @@ def run(args) -> int:
         from .run_config import apply_run_config
 
         apply_run_config(args, args.parser, args.config)
+    if getattr(args, "vo_width", None) is not None and args.odom not in (None, "vo"):
+        raise UsageError(f"--vo-width is for --odom vo, not --odom {args.odom}")
     writable_dir(args.out)  # before the run, not after it
     if args.write_bag is not None:
         _check_bag_path(args.write_bag)

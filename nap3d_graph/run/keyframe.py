@@ -40,7 +40,8 @@ class KeyframeJob:
     at the keyframe's predicted pose (a :class:`~nap3d_graph.nap3d.correct.PreparedView`, or
     the worker's future of one), used when it is near ``T_field_cam_render``; feats_real: the
     frame's features at the render size, detected as soon as it arrived (the worker's future
-    of ``(features, seconds)``), or None."""
+    of ``(features, seconds)``), or as the feature odometry detected them (``(features, 0.0)``),
+    or None."""
 
     frame_index: int
     frame: RGBDFrame

@@ -294,8 +294,21 @@ class Pipeline:
         T_field_cam_render = self.T_world_kf_pred
         if self.anchored:
             T_field_cam_render = inv_T(self.graph.anchor()) @ self.T_world_kf_pred  # the field's frame
+        render_intrinsics = self._render_intrinsics(frame.intrinsics)
         return KeyframeJob(i, frame, T_field_cam_render, self._velocity(i), self._timing(), self.depth_scale.scale,
-                           self._render_intrinsics(frame.intrinsics))
+                           render_intrinsics, feats_real=self._odometry_features(i, render_intrinsics))
+
+    def _odometry_features(self, i: int, render_intrinsics: Intrinsics):
+        """``(features, 0.0)``: frame i's features as the feature odometry detected them, when they
+        are what its correction would detect (``--odom vo --vo-width`` at the render's width);
+        else None."""
+        features_of = getattr(self.odometry, "features_of", None)
+        features = features_of(i, render_intrinsics, self.config.align) if features_of is not None else None
+        return None if features is None else (features, 0.0)
+
+    def _odometry_shares_features(self, intrinsics: Intrinsics) -> bool:
+        shares = getattr(self.odometry, "shares_features", None)
+        return shares is not None and shares(self._render_intrinsics(intrinsics), self.config.align)
 
     def _due_by_count(self, i: int) -> bool:
         """Frame i is due to be a keyframe by ``keyframe_every`` alone (what can be known before
@@ -326,7 +339,7 @@ class Pipeline:
         if not self.config.detect_ahead or self.field is None or not (self._due_by_count(i) or idle_due):
             return frame
         frame = frame if frame is not None else self._read_frame(i)
-        if frame is not None:
+        if frame is not None and not self._odometry_shares_features(frame.intrinsics):  # else its odometry detects them
             worker.detect_ahead(i, frame, self._render_intrinsics(frame.intrinsics))
         return frame
 
@@ -336,7 +349,7 @@ class Pipeline:
         record, job = self._pending(), self._job(i, frame)
         prepared, detected = worker.take_prepared(), worker.take_detected(i)
         if job is not None:
-            job = dataclasses.replace(job, prepared=prepared, feats_real=detected)
+            job = dataclasses.replace(job, prepared=prepared, feats_real=job.feats_real if detected is None else detected)
         self._pending_record = None
         self.motion.keyframe_estimated(self.graph, len(self.keyframe_indices) - 1, record.timestamp)
         if job is None:  # nothing to measure: the keyframe is done (its reason recorded)
