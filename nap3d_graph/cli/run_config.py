@@ -21,7 +21,7 @@ __all__ = ["apply_run_config", "load_config_file", "load_run_config", "set_unles
 #: config.yaml key -> run option (argparse dest).
 _TOP = {"traj": "traj", "data": "data", "frames": "frames", "field": "field", "odometry": "odom",
         "odom_rot_sigma_rad": "odom_rot_sigma", "odom_trans_sigma_m": "odom_trans_sigma", "seed": "seed",
-        "pace": "pace"}
+        "pace": "pace", "vo_width": "vo_width"}
 _PIPELINE = {"keyframe_every": "keyframe_every", "keyframe_distance_m": "keyframe_distance",
              "keyframe_angle_deg": "keyframe_angle", "keyframe_window": "keyframe_window",
              "keyframe_on_doubt": "keyframe_on_doubt", "keyframe_when_idle": "keyframe_when_idle", "correction_iterations": "iterations", "gate_p": "gate_p",
