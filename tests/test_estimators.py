@@ -356,6 +356,20 @@ def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path, capsys):
         assert settings[name]["land_within_s"] == 0.0
 
 
+def test_a_paced_run_that_falls_behind_its_camera_says_what_keeps_up(walk, tmp_path, capsys):
+    """Fed far faster than it measures (500x the walk's camera), an inline run falls behind:
+    the run warns, with a keyframe's measurement time, and names what keeps up."""
+    from nap3d_graph.cli import main
+
+    assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--max-frames", "20",
+                 "--pace", "500", "--no-overlap", "--out", str(tmp_path)]) == 0
+    err = capsys.readouterr().err
+    assert "the run fell behind the camera:" in err and "keyframe's measurement took" in err, err
+    assert "train-field --model views" in err
+    paced = json.loads((tmp_path / "latest" / "metrics.json").read_text())["paced"]
+    assert paced["frames_over_a_period_late"] > 2
+
+
 def test_imu_run_survives_a_failed_isam2_update(walk, monkeypatch):
     """iSAM2's Cholesky step can report an indeterminate system on a graph that is well posed
     as a whole (seen on the IMU path: a loosely weighted first correction beside the bias

@@ -118,9 +118,9 @@ def run(args) -> int:
         write_run_bag(args.write_bag, result, world_frame=world)
         print(f"bag: {args.write_bag} (/nap3d/causal/pose, /nap3d/smoothed/pose, paths and /tf in frame {world!r})")
     print(summary_table(metrics, time.perf_counter() - t0, with_field=prepared.field is not None))
-    hint = refusal_hint(metrics)
-    if hint:
-        print(f"warning: {hint}", file=sys.stderr)
+    for hint in (refusal_hint(metrics), pace_hint(metrics)):
+        if hint:
+            print(f"warning: {hint}", file=sys.stderr)
     print(f"results: {writer.dir}  (also {Path(args.out) / 'latest'})")
     if result.partial:
         print(f"interrupted after {len(result.timestamps)} of {len(prepared.sequence)} frames: the results are partial "
@@ -160,6 +160,24 @@ def refusal_hint(metrics: dict) -> str:
         return ""
     why = refusal_hint_for(kind) or "see corrections.csv"
     return f"{count} of {keyframes} corrections were refused for '{kind}': {why}"
+
+
+def pace_hint(metrics: dict) -> str:
+    """A warning when a paced run fell behind its camera (more than a tenth of its frames taken
+    over a frame period late): how long a keyframe's measurement took, and what keeps up.
+    Empty otherwise."""
+    paced = metrics.get("paced") or {}
+    frames, late = paced.get("frames", 0), paced.get("frames_over_a_period_late", 0)
+    if not frames or late <= 0.1 * frames:
+        return ""
+    stages = metrics.get("seconds_per_keyframe_median") or {}
+    took = ""
+    if stages.get("measure"):
+        render = f", its render {stages['render'] * 1000:.0f} ms" if stages.get("render") else ""
+        took = f" (a keyframe's measurement took {stages['measure'] * 1000:.0f} ms median{render})"
+    return (f"the run fell behind the camera: {late} of {frames} frames taken over a frame period late{took}; "
+            "a view field (train-field --model views) renders 320x240 in about 25 ms, or take keyframes less "
+            "often (--keyframe-every)")
 
 
 def summary_table(metrics: dict, seconds: float, with_field: bool = True) -> str:
