@@ -152,8 +152,8 @@ class VisualOdometry:
     ``width``: detect and align each frame resized to this many pixels wide (area for colour,
     nearest for depth; None: as read). At the keyframe render's size (320) a keyframe's
     correction reuses the features the odometry detected (:meth:`features_of`). On fr1/desk's
-    second half the steps took 34 / 56 ms (SIFT / XFeat) instead of 88 / 160 ms at 640 and
-    whole runs went 2.4x / 2.3x as fast; the odometry alone drifted more (10.2 / 14.5 against
+    second half the steps took 33 / 56 ms (SIFT / XFeat) instead of 90 / 159 ms at 640 and
+    whole runs went 2.5x / 2.3x as fast; the odometry alone drifted more (10.2 / 14.5 against
     7.9 / 7.4 cm ATE), the corrected trajectories ended at 2.15 / 2.13 against 2.24 / 2.11 cm
     and their causal ones 4-14% worse (``benchmarks/results/vo_width_*.json``).
     """

@@ -141,7 +141,7 @@ def add_source_arguments(p) -> None:
     p.add_argument("--vo-width", type=positive_int, default=None, metavar="PX",
                    help="--odom vo: detect and align each frame resized to PX pixels wide (default: as read). At the "
                    "render's width (320 by default) each keyframe's correction reuses the features the odometry "
-                   "detected: on fr1/desk 2.3-2.4x the frame rate, the odometry alone drifting more, the corrected "
+                   "detected: on fr1/desk 2.3-2.5x the frame rate, the odometry alone drifting more, the corrected "
                    "trajectory within 4%% (its causal one up to 14%% worse); see the README")
     p.add_argument("--imu-noise", metavar="'AN GN AW GW'", default=None,
                    help="IMU noise densities: accel m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), accel bias walk m/s^3/sqrt(Hz), "
