@@ -364,10 +364,14 @@ def test_a_paced_run_that_falls_behind_its_camera_says_what_keeps_up(walk, tmp_p
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--max-frames", "20",
                  "--pace", "500", "--no-overlap", "--out", str(tmp_path)]) == 0
     err = capsys.readouterr().err
-    assert "the run fell behind the camera:" in err and "keyframe's measurement took" in err, err
+    assert "the run fell behind the camera at " in err and "keyframe's measurement took" in err, err
     assert "train-field --model views" in err
     paced = json.loads((tmp_path / "latest" / "metrics.json").read_text())["paced"]
     assert paced["frames_over_a_period_late"] > 2
+    # Handed over at 500x the walk's own rate.
+    period_s = float(np.median(np.diff(SimSequence(walk).timestamps)))
+    assert paced["camera_hz"] == pytest.approx(500.0 / period_s, rel=1e-3)
+    assert f"against the camera's {paced['camera_hz']:.1f} Hz" in err
 
 
 def test_imu_run_survives_a_failed_isam2_update(walk, monkeypatch):

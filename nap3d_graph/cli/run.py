@@ -171,11 +171,14 @@ def pace_hint(metrics: dict) -> str:
     if not frames or late <= 0.1 * frames:
         return ""
     stages = metrics.get("seconds_per_keyframe_median") or {}
+    wall_s, camera_hz = metrics.get("wall_time_s") or 0.0, paced.get("camera_hz")
+    rate = (f" at {frames / wall_s:.1f} frame/s against the camera's {camera_hz:.1f} Hz"
+            if wall_s > 0 and camera_hz else "")
     took = ""
     if stages.get("measure"):
         render = f", its render {stages['render'] * 1000:.0f} ms" if stages.get("render") else ""
         took = f" (a keyframe's measurement took {stages['measure'] * 1000:.0f} ms median{render})"
-    return (f"the run fell behind the camera: {late} of {frames} frames taken over a frame period late{took}; "
+    return (f"the run fell behind the camera{rate}: {late} of {frames} frames taken over a frame period late{took}; "
             "a view field (train-field --model views) renders 320x240 in about 25 ms, or take keyframes less "
             "often (--keyframe-every)")
 

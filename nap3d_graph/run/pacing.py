@@ -48,13 +48,14 @@ class CameraPace:
         return bool(self.then()) if self.then is not None else False
 
     def summary(self) -> dict:
-        """How the run kept up: ``speed``, and how late it took the frames (median, p90, max
-        seconds) and how many it took more than one frame period late."""
+        """How the run kept up: ``speed``, the rate the frames were handed over at
+        (``camera_hz``, the recording's times ``speed``), how late the run took them (median,
+        p90, max seconds) and how many it took more than one frame period late."""
         behind = np.asarray(self.behind_s, dtype=float)
         if behind.size == 0:
             return {"speed": self.speed, "frames": 0}
         period_s = float(np.median(np.diff(self.due_s))) if len(self.due_s) > 1 else float("inf")
-        return {"speed": self.speed, "frames": int(behind.size),
+        return {"speed": self.speed, "frames": int(behind.size), "camera_hz": round(1.0 / period_s, 3),
                 "behind_camera_s": {"median": round(float(np.median(behind)), 4),
                                     "p90": round(float(np.percentile(behind, 90)), 4),
                                     "max": round(float(behind.max()), 4)},
