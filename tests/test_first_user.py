@@ -4,6 +4,7 @@ ground truth misses frames (real TUM recordings have frames outside their motion
 
 import logging
 import pkgutil
+import re
 import shutil
 import subprocess
 import sys
@@ -237,6 +238,10 @@ def test_a_streak_of_refusals_is_said_during_the_run(walk, caplog):
     assert result.num_accepted <= 1
     warnings = [r.message for r in caplog.records if "keyframes (to frame" in r.message]
     assert len(warnings) >= 1 and "odometry alone" in warnings[0]
+    # It names the reason of the keyframe that ended the streak.
+    last = int(re.search(r"to frame (\d+)", warnings[0]).group(1))
+    reason = next(k.reason for k in result.keyframes if k.frame_index == last)
+    assert reason and f"(the last: {reason})" in warnings[0], warnings[0]
 
 
 def test_a_run_is_reproduced_from_its_config(walk, tmp_path, capsys):

@@ -88,7 +88,9 @@ REFUSAL_HINTS = {
                        "metres (TUM PNGs: 5000 per metre)?",
     "too few inliers": "matches do not agree in 3D: is the depth in metres (TUM PNGs: 5000 per metre), and the "
                        "camera's intrinsics right?",
-    "depth scale": "the frames' depth disagrees with the field's metre: check the depth unit and scale",
+    "depth scale": "the frames' depth disagrees with the field's metre: by a few percent in fast, blurred motion "
+                   "(depth and colour are captured at different instants; corrections resume as it slows), by x5 "
+                   "or x1000 with a wrong depth unit (TUM PNGs: 5000 per metre)",
     "innovation": "the corrections disagree with the odometry's prediction: is the field in this recording's "
                   "frame (--anchor), or the odometry noisier than its model (--odom-rot-sigma, --odom-trans-sigma)?",
 }

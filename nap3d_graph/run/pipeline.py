@@ -406,9 +406,9 @@ class Pipeline:
         count = count + 1 if kind == previous else 1
         self._streak = (kind, count)
         if count == self.REFUSAL_STREAK:
-            log.warning("the last %d keyframes (to frame %d) were all refused for '%s'; the run goes on on its "
-                        "odometry alone until corrections land again. %s", count, record.frame_index, kind,
-                        refusal_hint_for(kind))
+            log.warning("the last %d keyframes (to frame %d) were all refused for '%s' (the last: %s); the run goes "
+                        "on on its odometry alone until corrections land again. %s", count, record.frame_index, kind,
+                        record.reason, refusal_hint_for(kind))
 
     def _gate_and_add(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render) -> None:
         """The graph half: depth-scale check, gate, factor (see the module docstring)."""
