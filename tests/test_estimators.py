@@ -356,6 +356,25 @@ def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path, capsys):
         assert settings[name]["land_within_s"] == 0.0
 
 
+def test_a_paced_feature_odometry_works_at_the_renders_width(walk, tmp_path, capsys):
+    """``run --pace --odom vo``: fed as a live camera, the feature odometry works at the
+    render's width and hands its features to the corrections, said on the terminal and kept in
+    config.yaml; an unpaced run keeps the frames as read, and ``--vo-width`` overrides."""
+    import yaml
+
+    from nap3d_graph.cli import main
+
+    widths = {}
+    for name, extra in (("paced", ["--pace", "8"]), ("replay", []), ("given", ["--pace", "8", "--vo-width", "96"])):
+        out = tmp_path / name
+        assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "vo",
+                     "--render-size", "128x96", "--max-frames", "12", "--out", str(out), *extra]) == 0
+        widths[name] = yaml.safe_load((out / "latest" / "config.yaml").read_text())["vo_width"]
+        said = capsys.readouterr().out
+        assert ("frames resized to 128 px wide" in said) == (name == "paced"), (name, said)
+    assert widths == {"paced": 128, "replay": None, "given": 96}
+
+
 def test_a_paced_run_that_falls_behind_its_camera_says_what_keeps_up(walk, tmp_path, capsys):
     """Fed far faster than it measures (500x the walk's camera), an inline run falls behind:
     the run warns, with a keyframe's measurement time, and names what keeps up."""

@@ -142,7 +142,8 @@ def add_source_arguments(p) -> None:
                    help="--odom vo: detect and align each frame resized to PX pixels wide (default: as read). At the "
                    "render's width (320 by default) each keyframe's correction reuses the features the odometry "
                    "detected: on fr1/desk 2.3-2.5x the frame rate, the odometry alone drifting more, the corrected "
-                   "trajectory within 4%% (its causal one up to 14%% worse); see the README")
+                   "trajectory within 4%% (its causal one up to 14%% worse); see the README. --pace with --odom vo "
+                   "takes the render's width unless told")
     p.add_argument("--imu-noise", metavar="'AN GN AW GW'", default=None,
                    help="IMU noise densities: accel m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), accel bias walk m/s^3/sqrt(Hz), "
                    "gyro bias walk rad/s^2/sqrt(Hz) (default: the simulator's, 2e-3 2.4e-4 1e-4 2e-6)")
@@ -376,6 +377,12 @@ def _odometry(args, sequence, initial_pose):
             odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
             odometry.fallback = _fallback_odometry(getattr(args, "fallback_odom", "dense"), args.matcher)
             return odom_kind, odometry
+        if odom_kind == "vo" and getattr(args, "vo_width", None) is None and getattr(args, "pace", None) is not None:
+            # Fed as a live camera: the feature odometry at the render's width, its features shared
+            # with the corrections (on fr1/desk SIFT keeps up with 15 Hz so, not at 640).
+            args.vo_width = parse_size(args.render_size)[0]
+            print(f"--odom vo fed at the camera's rate: frames resized to {args.vo_width} px wide, their features "
+                  "shared with the corrections (--vo-width sets it)")
         odometry = make_odometry(odom_kind, sequence, args.seed, args.odom_rot_sigma, args.odom_trans_sigma,
                                  initial_pose=initial_pose, matcher=args.matcher,
                                  vo_width=getattr(args, "vo_width", None))
