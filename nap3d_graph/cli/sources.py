@@ -364,12 +364,11 @@ def _odometry(args, sequence, initial_pose):
         odom_kind = "imu" if getattr(sequence, "imu", None) is not None else "vo"
     else:
         odom_kind = "recorded" if getattr(sequence, "T_world_cam_odom", None) is not None else "noisy"
+    if getattr(args, "vo_width", None) is not None and odom_kind != "vo":  # a chosen odometry, too
+        raise UsageError(f"--vo-width is for --odom vo, not --odom {odom_kind}")
     try:
         if odom_kind == "imu":
             from nap3d_graph.run.imu import ImuOdometry
-
-            if getattr(args, "vo_width", None) is not None:
-                raise ValueError("--vo-width is for --odom vo, not --odom imu")
 
             config = imu_config(args, getattr(sequence, "imu_config", None))
             odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
