@@ -5,6 +5,8 @@ renderer it is tested against."""
 from __future__ import annotations
 
 import contextlib
+import functools
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -15,6 +17,11 @@ import torch
 from nap3d_graph.camera import Intrinsics, RenderedView
 
 from .base import FieldError
+
+log = logging.getLogger(__name__)
+
+#: Raw density 0 maps to a near-transparent softplus(-DENSITY_SHIFT) (see grid.py).
+DENSITY_SHIFT = 10.0
 
 __all__ = ["GridRenderer", "RenderConfig", "pixel_directions", "torch_threads"]
 
@@ -57,7 +64,10 @@ class RenderConfig:
     (0: never); a cell is smooth when its corners' opacity >= smooth_min_opacity, their depth
     spread < smooth_max_spread_m and the twist of their inverse depth, in metres, is below
     smooth_max_twist_m. threads: torch CPU threads while rendering (see :func:`torch_threads`;
-    None keeps torch's setting).
+    None keeps torch's setting). backend: "auto" renders on a CPU with the compiled kernels of
+    :mod:`~nap3d_graph.fields.grid_kernels` when numba is installed (the same algorithm, a loop
+    per ray instead of batches of tensors) and with torch otherwise and on a GPU; "torch"
+    always takes the torch path.
     """
 
     coarse_rays: int = 5000
@@ -75,6 +85,11 @@ class RenderConfig:
     smooth_max_spread_m: float = 0.05
     smooth_max_twist_m: float = 0.002
     threads: int | None = 1
+    backend: str = "auto"
+
+    def __post_init__(self):
+        if self.backend not in ("auto", "torch"):
+            raise FieldError(f"render backend must be 'auto' or 'torch', got {self.backend!r}")
 
 
 def pixel_directions(intrinsics: Intrinsics, device=None) -> torch.Tensor:
@@ -130,6 +145,40 @@ class GridRenderer:
         return origin, dirs
 
     def _render_image(self, T_world_cam: np.ndarray, intrinsics: Intrinsics):
+        """(rgb (H, W, 3), depth (H, W), opacity (H, W), stats) as tensors, compiled or torch."""
+        kernels = _compiled_kernels() if (self.device.type == "cpu" and self.render_config.backend == "auto") else None
+        if kernels is not None:
+            return self._render_image_compiled(kernels, T_world_cam, intrinsics)
+        return self._render_image_torch(T_world_cam, intrinsics)
+
+    def _render_image_compiled(self, kernels, T_world_cam: np.ndarray, intrinsics: Intrinsics):
+        """The hierarchical render by :mod:`~nap3d_graph.fields.grid_kernels` (CPU)."""
+        cfg = self.render_config
+        started = time.perf_counter()
+        h, w = intrinsics.height, intrinsics.width
+        stride = 1
+        while (h * w) / float(stride * stride) > cfg.coarse_rays:
+            stride *= 2
+        density, occupancy, color = self._numpy_grids()
+        origin = self.world_to_local(T_world_cam[:3, 3]).numpy().astype(np.float64)
+        R = np.ascontiguousarray(T_world_cam[:3, :3], dtype=np.float64)
+        params = np.array([cfg.near_m, cfg.march_step_vox, cfg.window_voxels, cfg.max_march_windows,
+                           cfg.window_samples, cfg.window_margin_m, cfg.edge_gap_m, cfg.refine_samples,
+                           cfg.min_opacity, cfg.interpolate_below_stride, cfg.smooth_min_opacity,
+                           cfg.smooth_max_spread_m, cfg.smooth_max_twist_m], dtype=np.float64)
+        counts = np.zeros(4, dtype=np.int64)
+        K = (float(intrinsics.fx), float(intrinsics.fy), float(intrinsics.cx), float(intrinsics.cy))
+        depth, opacity = kernels.render_depth(density, occupancy, origin, R, *K, h, w, stride, self.voxel_size,
+                                              DENSITY_SHIFT, params, counts)
+        levels_s = time.perf_counter() - started
+        rgb = kernels.shade(color, self.color_voxel_size, origin, R, *K, depth, opacity, 1e-3)
+        stats = {"level0_stride": stride, "marched": int(counts[0]), "windowed": int(counts[1]),
+                 "interpolated": int(counts[2]), "fallback": int(counts[3]), "backend": "compiled",
+                 "t_levels": levels_s, "seconds": time.perf_counter() - started}
+        return torch.from_numpy(rgb), torch.from_numpy(depth), torch.from_numpy(opacity), stats
+
+    def _render_image_torch(self, T_world_cam: np.ndarray, intrinsics: Intrinsics):
+        """The hierarchical render in batched torch operations (any device)."""
         cfg = self.render_config
         started = time.perf_counter()
         h, w = intrinsics.height, intrinsics.width
@@ -140,7 +189,8 @@ class GridRenderer:
         stride = 1
         while (h * w) / float(stride * stride) > cfg.coarse_rays:
             stride *= 2
-        stats = {"level0_stride": stride, "marched": 0, "windowed": 0, "interpolated": 0, "fallback": 0}
+        stats = {"level0_stride": stride, "marched": 0, "windowed": 0, "interpolated": 0, "fallback": 0,
+                 "backend": "torch"}
 
         # Level 0: full march on a sparse lattice.
         us, vs = _lattice(w, stride).to(self.device), _lattice(h, stride).to(self.device)
@@ -375,6 +425,18 @@ class GridRenderer:
             opacity=opacity.clamp(0, 1).cpu().numpy(),
             intrinsics=intrinsics,
         )
+
+
+@functools.lru_cache(maxsize=1)
+def _compiled_kernels():
+    """:mod:`~nap3d_graph.fields.grid_kernels`, or None (logged once) without numba."""
+    try:
+        from . import grid_kernels
+    except ImportError as exc:
+        log.warning("numba is not installed (%s): the grid field renders with torch on the CPU, several times "
+                    "slower; `pip install numba` (in the \"full\" extra) for the compiled renderer", exc)
+        return None
+    return grid_kernels
 
 
 def _fraction(x: torch.Tensor, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:
