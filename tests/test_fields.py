@@ -147,6 +147,10 @@ def test_compiled_and_torch_renderers_agree(survey, trained):
         assert np.abs(fast.rgb.astype(int) - slow.rgb.astype(int)).max() <= 3
     with pytest.raises(FieldError, match="backend"):
         RenderConfig(backend="cuda")
+    # A run's keyframe thread renders while its odometry goes on: the kernels drop the GIL.
+    from nap3d_graph.fields import grid_kernels
+
+    assert grid_kernels.render_depth.targetoptions["nogil"] and grid_kernels.shade.targetoptions["nogil"]
 
 
 def test_checkpoint_round_trip_is_bit_identical(survey, trained, tmp_path):

@@ -8,7 +8,8 @@ depth, and the depth is the median termination depth. Here each ray is a loop in
 batch of tensors: on a CPU the torch version spends most of its time launching small tensor
 operations and sampling windows past the surface (measured 117 ms for a 320x240 render of
 fr1/desk's field on one core), while a ray that stops where its transmittance is spent costs
-a few dozen trilinear lookups.
+a few dozen trilinear lookups. The kernels release the GIL (``nogil``): a run's keyframe
+thread renders while its odometry goes on.
 
 Frames and units: points and the ray origin are in the grid's local frame (metres from the
 grid's first vertex, world axes); ray directions have unit camera z, so the ray parameter
@@ -37,7 +38,7 @@ _SOFTPLUS_LO, _SOFTPLUS_STEP = -15.0, 0.01
 _SOFTPLUS = np.log1p(np.exp(np.arange(_SOFTPLUS_LO, 20.0 + 2 * _SOFTPLUS_STEP, _SOFTPLUS_STEP)))
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _raw_at(grid, qx, qy, qz):
     """Trilinear value of ``grid`` (nz, ny, nx) at vertex coordinates (qx, qy, qz); vertices
     outside the grid read 0."""
@@ -56,7 +57,7 @@ def _raw_at(grid, qx, qy, qz):
     return _raw_at_edge(grid, ix, iy, iz, wx, wy, wz)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _raw_at_edge(grid, ix, iy, iz, wx, wy, wz):
     """:func:`_raw_at` for a cell that sticks out of the grid (its outside vertices read 0);
     kept out of line so the inlined common case stays small."""
@@ -80,7 +81,7 @@ def _raw_at_edge(grid, ix, iy, iz, wx, wy, wz):
     return total
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _sigma(density, px, py, pz, inv_voxel, shift):
     """Density per metre at a local point: softplus(raw - shift) / voxel (torch's softplus,
     linear above 20)."""
@@ -97,7 +98,7 @@ def _sigma(density, px, py, pz, inv_voxel, shift):
     return soft * inv_voxel
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _box_range(o, d, hi, near):
     """Entry and exit ``t`` of a ray through the box [0, hi] (local frame)."""
     t_in = -1e30
@@ -111,7 +112,7 @@ def _box_range(o, d, hi, near):
     return max(t_in, near), t_out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _samples(density, o, d, norm, a0, length, count, t_lo, t_hi, tau0, refine, inv_voxel, shift):
     """Median termination depth over ``count`` samples in ``[a0, a0 + length]``.
 
@@ -153,7 +154,7 @@ def _samples(density, o, d, norm, a0, length, count, t_lo, t_hi, tau0, refine, i
     return z, 1.0 - math.exp(-cum), cum, crossed
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _refine(density, o, d, norm, start, dt, before, refine, inv_voxel, shift, z_coarse):
     """The crossing inside ``[start, start + dt]`` from ``refine`` sub-samples; ``z_coarse``
     where they do not reach optical depth ln 2 (the coarse sample was not confirmed)."""
@@ -168,7 +169,7 @@ def _refine(density, o, d, norm, start, dt, before, refine, inv_voxel, shift, z_
     return z_coarse
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _march(density, occ, o, d, t_start, hi, voxel, shift, near, march_step_vox, window_voxels, max_windows,
            refine):
     """Full march of one ray from ``t_start``: find the first occupied coarse cell (lookups one
@@ -208,7 +209,7 @@ def _march(density, occ, o, d, t_start, hi, voxel, shift, near, march_step_vox, 
     return depth, opacity
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _window(density, o, d, z_lo, z_hi, hi, voxel, shift, near, margin, count, refine):
     """Depth and opacity of a ray whose surface lies in ``[z_lo, z_hi]`` give or take
     ``margin``: ``count`` samples there, then the crossing refined."""
@@ -220,7 +221,7 @@ def _window(density, o, d, z_lo, z_hi, hi, voxel, shift, near, margin, count, re
     return z, a
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _lattice(n, stride):
     """Pixel coordinates 0, stride, 2 stride, ... plus the last one, so it brackets all."""
     count = (n - 1) // stride + 1
@@ -233,7 +234,7 @@ def _lattice(n, stride):
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _below(coarse, n):
     """For each pixel coordinate 0..n-1, the index of the last coarse coordinate at or before it."""
     out = np.empty(n, np.int64)
@@ -245,7 +246,7 @@ def _below(coarse, n):
     return out
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _direction(R, fx, fy, cx, cy, u, v, d):
     """World (= grid) direction of pixel (u, v) with unit camera z, written into ``d`` (3,)."""
     x = (u - cx) / fx
@@ -254,7 +255,7 @@ def _direction(R, fx, fy, cx, cy, u, v, d):
         d[k] = R[k, 0] * x + R[k, 1] * y + R[k, 2]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def render_depth(density, occ, o, R, fx, fy, cx, cy, height, width, stride, voxel, shift, params, counts):
     """Median depth (H, W) and opacity (H, W) of the density grid seen from origin ``o`` (3,)
     (local frame) with rotation ``R`` (3, 3) (grid <- camera) and pinhole (fx, fy, cx, cy).
@@ -344,7 +345,7 @@ def render_depth(density, occ, o, R, fx, fy, cx, cy, height, width, stride, voxe
     return depth, opacity
 
 
-@njit(cache=True, inline="always")
+@njit(cache=True, nogil=True, inline="always")
 def _smooth(cz, ca, min_opacity, max_spread, max_twist):
     """A cell whose four corners all see an opaque surface at nearly the same, nearly planar
     depth (the twist of the bilinear patch of inverse depth is zero on any plane)."""
@@ -363,7 +364,7 @@ def _smooth(cz, ca, min_opacity, max_spread, max_twist):
     return twist * mean * mean < max_twist
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def shade(color, color_voxel, o, R, fx, fy, cx, cy, depth, opacity, min_opacity):
     """Colour (H, W, 3) float32 in [0, 1]: ``sigmoid`` of the raw colour grid (mz, my, mx, 3)
     (channel-last: a lookup's three channels share cache lines) at each pixel's depth point,
