@@ -153,6 +153,33 @@ def test_compiled_and_torch_renderers_agree(survey, trained):
     assert grid_kernels.render_depth.targetoptions["nogil"] and grid_kernels.shade.targetoptions["nogil"]
 
 
+def test_without_numba_the_torch_renderer_takes_over(trained, survey, monkeypatch, caplog):
+    """numba is in the "full" extra; a core install without it still renders (torch), and says
+    once how to get the compiled renderer."""
+    import sys
+
+    from nap3d_graph.fields import grid_render
+
+    field, report = trained
+    i = report["held_out"]["frames"][0]
+    compiled = field.render(survey.T_world_cam_gt[i], survey.intrinsics)
+    import nap3d_graph.fields
+
+    monkeypatch.setitem(sys.modules, "nap3d_graph.fields.grid_kernels", None)  # import fails
+    monkeypatch.delattr(nap3d_graph.fields, "grid_kernels", raising=False)
+    grid_render._compiled_kernels.cache_clear()
+    try:
+        with caplog.at_level("WARNING", logger="nap3d_graph.fields.grid_render"):
+            fallback = field.render(survey.T_world_cam_gt[i], survey.intrinsics)
+            field.render(survey.T_world_cam_gt[i], survey.intrinsics)
+    finally:
+        grid_render._compiled_kernels.cache_clear()
+    assert fallback.extras["render_stats"]["backend"] == "torch"
+    assert sum("pip install numba" in r.getMessage() for r in caplog.records) == 1
+    both = (compiled.opacity > 0.5) & (fallback.opacity > 0.5)
+    assert np.percentile(np.abs(compiled.depth_m - fallback.depth_m)[both], 99) < 1e-4
+
+
 def test_checkpoint_round_trip_is_bit_identical(survey, trained, tmp_path):
     field, _ = trained
     path = field.save(tmp_path / "field.pt")
