@@ -123,8 +123,9 @@ def test_fast_renderer_agrees_with_reference(survey, trained):
 
 def test_compiled_and_torch_renderers_agree(survey, trained):
     """The compiled CPU kernels (the default on a CPU) and the torch path (the GPU's) run one
-    algorithm: same depths to float precision on every held-out view, colours within the
-    compiled path's early stop (opacity > 0.993 where it stops)."""
+    algorithm: same depths, opacities and colours to float precision on every held-out view
+    (a level of a colour value where rounding falls either way; a pixel whose hierarchy
+    decision flips on a float's last bit may differ more)."""
     import dataclasses
 
     from nap3d_graph.fields.grid_render import RenderConfig
@@ -143,8 +144,9 @@ def test_compiled_and_torch_renderers_agree(survey, trained):
         assert both.sum() >= 0.99 * (slow.opacity > 0.5).sum() > 0
         dz = np.abs(fast.depth_m - slow.depth_m)[both]
         assert np.percentile(dz, 99) < 1e-4 and dz.max() < 0.01, (np.percentile(dz, 99), dz.max())
-        assert np.abs(fast.opacity - slow.opacity).max() < 0.01
-        assert np.abs(fast.rgb.astype(int) - slow.rgb.astype(int)).max() <= 3
+        assert np.percentile(np.abs(fast.opacity - slow.opacity), 99.9) < 1e-4
+        rgb_diff = np.abs(fast.rgb.astype(int) - slow.rgb.astype(int))
+        assert (rgb_diff > 1).mean() < 0.002 and (rgb_diff > 0).mean() < 0.01, ((rgb_diff > 1).mean(), (rgb_diff > 0).mean())
     with pytest.raises(FieldError, match="backend"):
         RenderConfig(backend="cuda")
     # A run's keyframe thread renders while its odometry goes on: the kernels drop the GIL.

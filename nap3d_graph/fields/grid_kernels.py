@@ -28,10 +28,10 @@ from numba import njit
 __all__ = ["render_depth", "shade"]
 
 _LN2 = math.log(2.0)
-#: Optical depth past which a window stops sampling after its crossing: the opacity is then
-#: above 0.993, so every opacity test of the renderer (0.5, and 0.99 for smooth cells) decides
-#: as it would on the whole window; the colour, scaled by opacity, moves by < 0.7%.
-_TAU_DONE = 5.0
+#: Optical depth past which a window stops sampling (it has crossed): the opacity is then
+#: 1 - 6e-6 of the whole window's. Stopping sooner (at 5) saved no measurable time but moved
+#: a fifth of the colour values by a level or more against the torch path.
+_TAU_DONE = 12.0
 #: softplus(x) tabulated every 0.01 over [-15, 20] (linear interpolation is within 4e-6 of it,
 #: 1.3e-5 relative): log1p(exp(x)) was a third of a sample's cost.
 _SOFTPLUS_LO, _SOFTPLUS_STEP = -15.0, 0.01
