@@ -60,6 +60,36 @@ def test_untrained_field_renders_the_contract():
     assert np.all(view.depth_m[view.opacity < 1e-3] == 0.0)
 
 
+@pytest.mark.parametrize("backend", ["auto", "torch"])
+def test_holes_are_not_marched_and_lose_no_surface(backend):
+    """A block in empty space: pixels between lattice corners that all saw nothing take their
+    corners' opacity instead of marching (empty_cell_opacity), on both backends, and the render
+    still matches the brute-force reference on the block and on the empty background."""
+    import dataclasses
+
+    field = GridField.empty([[0.0, 0.0, 0.0], [2.0, 2.0, 2.0]], voxel_size=0.05, device="cpu")
+    block = field.density[0, 0]
+    block[20:29, 16:25, 16:25] = 30.0  # world z 1.0-1.4 m, x and y 0.8-1.2 m: a 40 cm cube
+    field.mark_changed()
+    K = Intrinsics(100.0, 100.0, 63.5, 47.5, 128, 96)
+    T = np.eye(4)
+    T[:3, 3] = [1.03, 0.97, 0.0]  # looking down world +z at the cube's face, 1 m away
+    views = {}
+    for skip in (True, False):
+        field.render_config = dataclasses.replace(field.render_config, backend=backend,
+                                                  empty_cell_opacity=0.02 if skip else 0.0)
+        views[skip] = field.render(T, K)
+    ref = field.render_reference(T, K, step_vox=0.1)
+    on, off = views[True].extras["render_stats"], views[False].extras["render_stats"]
+    assert on["empty"] > 2000 and off["empty"] == 0 and on["fallback"] < off["fallback"] - 2000, (on, off)
+    solid, clear = ref.opacity > 0.9, ref.opacity < 0.01
+    assert 0.1 < solid.mean() < 0.5 and clear.mean() > 0.4
+    for view in views.values():
+        assert (view.opacity[solid] > 0.9).all() and (view.opacity[clear] < 0.01).all()
+        assert np.median(np.abs(view.depth_m - ref.depth_m)[solid]) < 0.002
+    np.testing.assert_allclose(views[True].depth_m[solid], views[False].depth_m[solid], atol=1e-5)
+
+
 def test_render_rejects_a_bad_pose():
     field = GridField.empty([[0, 0, 0], [1, 1, 1]], voxel_size=0.1)
     with pytest.raises(FieldError, match="4x4"):

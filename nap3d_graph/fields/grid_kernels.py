@@ -260,16 +260,18 @@ def render_depth(density, occ, o, R, fx, fy, cx, cy, height, width, stride, voxe
     """Median depth (H, W) and opacity (H, W) of the density grid seen from origin ``o`` (3,)
     (local frame) with rotation ``R`` (3, 3) (grid <- camera) and pinhole (fx, fy, cx, cy).
 
-    ``stride``: level 0's lattice stride. ``params`` (13,) float64: near_m, march_step_vox,
+    ``stride``: level 0's lattice stride. ``params`` (14,) float64: near_m, march_step_vox,
     window_voxels, max_march_windows, window_samples, window_margin_m, edge_gap_m,
     refine_samples, min_opacity, interpolate_below_stride, smooth_min_opacity,
-    smooth_max_spread_m, smooth_max_twist_m (as in ``RenderConfig``). ``counts`` (4,) int64 is
-    incremented by the pixels marched at level 0, windowed, interpolated and marched again.
+    smooth_max_spread_m, smooth_max_twist_m, empty_cell_opacity (as in ``RenderConfig``).
+    ``counts`` (5,) int64 is incremented by the pixels marched at level 0, windowed,
+    interpolated, marched again, and filled as holes.
     """
     near, step_vox, window_vox = params[0], params[1], params[2]
     max_windows, window_samples, margin = int(params[3]), int(params[4]), params[5]
     edge_gap, refine, min_opacity = params[6], int(params[7]), params[8]
     interpolate_below, smooth_opacity, smooth_spread, smooth_twist = int(params[9]), params[10], params[11], params[12]
+    empty_opacity = params[13]
     nz, ny, nx = density.shape
     hi = np.array([(nx - 1) * voxel, (ny - 1) * voxel, (nz - 1) * voxel])
     depth = np.zeros((height, width), np.float32)
@@ -332,7 +334,14 @@ def render_depth(density, occ, o, R, fx, fy, cx, cy, height, width, stride, voxe
                 if windowed:
                     z, a = _window(density, o, d, z_near, z_far, hi, voxel, shift, near, margin, window_samples, refine)
                     counts[1] += 1
-                if not windowed or a < min_opacity:
+                if ca[0] < empty_opacity and ca[1] < empty_opacity and ca[2] < empty_opacity and ca[3] < empty_opacity:
+                    # A hole: no corner saw even a faint surface. Their opacity, no march.
+                    wu = (u - u0) / (u1 - u0) if u1 > u0 else 0.0
+                    wv = (v - v0) / (v1 - v0) if v1 > v0 else 0.0
+                    a = (1 - wu) * (1 - wv) * ca[0] + wu * (1 - wv) * ca[1] + (1 - wu) * wv * ca[2] + wu * wv * ca[3]
+                    z = cz[np.argmax(ca)]
+                    counts[4] += 1
+                elif not windowed or a < min_opacity:
                     # A window that found nothing starts over from the camera.
                     start = z_near - margin if (any_ok and not windowed) else 0.0
                     z, a = _march(density, occ, o, d, start, hi, voxel, shift, near, step_vox, window_vox,
