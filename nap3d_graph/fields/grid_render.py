@@ -63,12 +63,12 @@ class RenderConfig:
     interpolate_below_stride: levels at or below this stride interpolate smooth cells
     (0: never); a cell is smooth when its corners' opacity >= smooth_min_opacity, their depth
     spread < smooth_max_spread_m and the twist of their inverse depth, in metres, is below
-    smooth_max_twist_m. empty_cell_opacity: a finer-level pixel whose four corners' opacities are
-    all below this sees a hole (unseen space, an open doorway) and does not march: it takes their
-    opacity, bilinearly, and the most opaque corner's depth (on fr1/desk's field a fifth of the
-    render's time went into marching through such holes, where the reference renderer finds no
-    more surface either); 0 marches every cell. threads: torch CPU threads while rendering (see :func:`torch_threads`;
-    None keeps torch's setting). backend: "auto" renders on a CPU with the compiled kernels of
+    smooth_max_twist_m. empty_cell_opacity: a finer-level pixel whose four corners' opacities
+    are all below this sees a hole (unseen space, an open doorway) and does not march: it takes
+    their opacity, bilinearly, and the most opaque corner's depth (on fr1/desk's field a fifth
+    of the render's time went into marching through such holes, where the reference renderer
+    finds no more surface either); 0 marches every cell. threads: torch CPU threads while
+    rendering (see :func:`torch_threads`; None keeps torch's setting). backend: "auto" renders on a CPU with the compiled kernels of
     :mod:`~nap3d_graph.fields.grid_kernels` when numba is installed (the same algorithm, a loop
     per ray instead of batches of tensors) and with torch otherwise and on a GPU; "torch"
     always takes the torch path.
