@@ -142,7 +142,7 @@ def add_source_arguments(p) -> None:
                    help="--odom vo: detect and align each frame resized to PX pixels wide (default: as read). At the "
                    "render's width (320 by default) each keyframe's correction reuses the features the odometry "
                    "detected: on fr1/desk 2.3-2.5x the frame rate, the odometry alone drifting more, the corrected "
-                   "trajectory within 4%% (its causal one up to 14%% worse), on redkitchen 1.5x, within 10%%; "
+                   "trajectory within 4%% (its causal one up to 14%% worse), on redkitchen 1.4-1.6x, within 9%%; "
                    "see the README. --pace with --odom vo "
                    "takes the render's width unless told")
     p.add_argument("--imu-noise", metavar="'AN GN AW GW'", default=None,
