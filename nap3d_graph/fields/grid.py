@@ -54,7 +54,6 @@ __all__ = [
     "GridField",
     "CHECKPOINT_FORMAT",
     "CHECKPOINT_VERSION",
-    "DENSITY_SHIFT",
     "default_device",
     "trilinear_corners",
 ]

@@ -9,6 +9,7 @@ import functools
 import logging
 import math
 import time
+import types
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +24,7 @@ log = logging.getLogger(__name__)
 #: Raw density 0 maps to a near-transparent softplus(-DENSITY_SHIFT) (see grid.py).
 DENSITY_SHIFT = 10.0
 
-__all__ = ["GridRenderer", "RenderConfig", "pixel_directions", "torch_threads"]
+__all__ = ["DENSITY_SHIFT", "GridRenderer", "RenderConfig", "pixel_directions", "torch_threads"]
 
 _LN2 = math.log(2.0)
 
@@ -448,14 +449,16 @@ class GridRenderer:
 
 @functools.lru_cache(maxsize=1)
 def _compiled_kernels():
-    """:mod:`~nap3d_graph.fields.grid_kernels`, or None (logged once) without numba."""
+    """The kernels of :mod:`~nap3d_graph.fields.grid_kernels` (``render_depth``, ``shade``), or
+    None (logged once) without numba. The names are imported, not the module through the
+    package (``from . import``), which would make the package and this module import each other."""
     try:
-        from . import grid_kernels
+        from .grid_kernels import render_depth, shade
     except ImportError as exc:
         log.warning("numba is not installed (%s): the grid field renders with torch on the CPU, several times "
                     "slower; `pip install numba` (in the \"full\" extra) for the compiled renderer", exc)
         return None
-    return grid_kernels
+    return types.SimpleNamespace(render_depth=render_depth, shade=shade)
 
 
 def _fraction(x: torch.Tensor, x0: torch.Tensor, x1: torch.Tensor) -> torch.Tensor:

@@ -39,8 +39,8 @@ import torch
 import torch.nn.functional as F
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
-from nap3d_graph.fields.grid import CHECKPOINT_VERSION, DENSITY_SHIFT, GridField, default_device, trilinear_corners
-from nap3d_graph.fields.grid_render import torch_threads
+from nap3d_graph.fields.grid import CHECKPOINT_VERSION, GridField, default_device, trilinear_corners
+from nap3d_graph.fields.grid_render import DENSITY_SHIFT, torch_threads
 
 from .base import FieldError
 from .evaluation import evaluate_field, oracle_for, psnr
