@@ -26,7 +26,7 @@ _PIPELINE = {"keyframe_every": "keyframe_every", "keyframe_distance_m": "keyfram
              "keyframe_angle_deg": "keyframe_angle", "keyframe_window": "keyframe_window",
              "keyframe_on_doubt": "keyframe_on_doubt", "keyframe_when_idle": "keyframe_when_idle", "correction_iterations": "iterations", "gate_p": "gate_p",
              "field_sigma_m": "field_sigma", "overlap": "overlap", "render_ahead": "render_ahead",
-             "land_within_s": "land_within",
+             "land_within_s": "land_within", "rolling_shutter_s": "rolling_shutter",
              "max_frames": "max_frames",
              "use_anchor": "anchor"}
 #: Pipeline settings a run resolves for itself each time (not carried over).

@@ -194,6 +194,11 @@ def add_source_arguments(p) -> None:
                    "is idle, so corrections come as often as it can measure them (--keyframe-every is then the "
                    "longest interval; which frames are keyframes depends on the machine's speed, or with run --pace "
                    "on the camera's rate). Default: 1 for an overlapped run --pace (the live settings), else 0: off")
+    p.add_argument("--rolling-shutter", type=non_negative_float, default=PipelineConfig.rolling_shutter_s,
+                   metavar="S", help="the colour camera's rolling-shutter readout, first row to last, in seconds: each "
+                   "keyframe's matched points are moved along the odometry's velocity to the middle row's instant "
+                   "before the alignment (a CMOS camera at its highest rate reads for about a frame period: the "
+                   "Kinect's colour camera at 30 Hz ~0.033). Default 0: a global shutter")
     p.add_argument("--iterations", type=positive_int, default=1,
                    help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
                    "a little more accurate, twice the time)")
@@ -491,6 +496,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             max_frames=args.max_frames,
                             graph_window=args.graph_window,
                             progress=True, compensate_timing=args.timing == "auto",
+                            rolling_shutter_s=args.rolling_shutter,
                             timing=_timing(args, field_obj, sequence),
                             align=with_overrides(AlignConfig(matcher=args.matcher), getattr(args, "align_overrides", None)))
     config = with_overrides(config, getattr(args, "pipeline_overrides", None))  # run --config: unflagged settings

@@ -41,6 +41,7 @@ from .correspondences import Correspondences, build_correspondences, noise_sigma
 from .matching import Features, detect_features, match_features, refine_matches_subpixel
 from .ransac import anisotropic_residual_sq, ransac_procrustes, ransac_scale
 from .refine import consensus_cost, plain_covariance, refine_pose
+from .rolling_shutter import RowMotion, to_mid_readout
 
 __all__ = ["align_views", "align_correspondences", "prepare_correspondences", "view_features",
            "choose_intrinsics_model", "covariance_inflation", "inflate_rotation", "viewpoint_change_px"]
@@ -233,11 +234,14 @@ def choose_intrinsics_model(corr: Correspondences, intrinsics: Intrinsics, fixed
 
 def prepare_correspondences(real: RGBDFrame, view: RenderedView, config: AlignConfig | None = None,
                             timings: dict | None = None, feats_real: Features | None = None,
-                            feats_view: Features | None = None) -> tuple[Correspondences | None, str]:
+                            feats_view: Features | None = None,
+                            motion: RowMotion | None = None) -> tuple[Correspondences | None, str]:
     """Features, matches and back-projection for one pair: ``(correspondences, "")`` or
     ``(None, reason)``. NAP3D and the PnP baseline both start from this, so an evaluation
     compares them on the very same matches. Features already computed for an image can be
-    passed in (``feats_real``, ``feats_view``) to skip detecting them again."""
+    passed in (``feats_real``, ``feats_view``) to skip detecting them again. ``motion``: the
+    real camera's motion while a rolling shutter read its rows; the real points are moved to
+    the middle row's instant (:mod:`~nap3d_graph.nap3d.rolling_shutter`)."""
     config = config or AlignConfig()
     timings = {} if timings is None else timings
     t0 = time.perf_counter()
@@ -261,6 +265,8 @@ def prepare_correspondences(real: RGBDFrame, view: RenderedView, config: AlignCo
     corr = build_correspondences(real, view, matches, config)
     if corr.reason:
         return None, corr.reason
+    if motion is not None:
+        corr = to_mid_readout(corr, motion, real.intrinsics)
     return corr, ""
 
 
@@ -272,20 +278,23 @@ def view_features(view: RenderedView, config: AlignConfig | None = None) -> Feat
 
 
 def align_views(real: RGBDFrame, view: RenderedView, config: AlignConfig | None = None,
-                feats_real: Features | None = None, feats_view: Features | None = None) -> Alignment:
+                feats_real: Features | None = None, feats_view: Features | None = None,
+                motion: RowMotion | None = None) -> Alignment:
     """NAP3D between a real RGB-D frame and the view a field rendered at the believed pose.
 
     Returns an :class:`Alignment` whose ``T_real_rendered`` maps rendered-camera points into
     the real camera; ``success=False`` with a ``reason`` on bad data. Never raises on data.
     ``feats_real``, ``feats_view``: the real frame's and the view's features
     (``config.matcher``'s, the view's by :func:`view_features`), when already detected.
+    ``motion``: the real camera's twist and its rolling shutter's readout time, to align the
+    real points as of the middle row (None: the frame is taken as one instant).
     """
     config = config or AlignConfig()
     method = f"nap3d-{config.method}"
     timings: dict = {}
     try:
         corr, reason = prepare_correspondences(real, view, config, timings, feats_real=feats_real,
-                                               feats_view=feats_view)
+                                               feats_view=feats_view, motion=motion)
         if corr is None:
             return Alignment.failure(reason, method=method, timings_s=timings)
         return align_correspondences(corr, real.intrinsics, config, timings)

@@ -21,6 +21,7 @@ from ..results import Alignment, Correction
 from .align import align_views, view_features
 from .config import AlignConfig
 from .matching import Features, detect_features
+from .rolling_shutter import RowMotion
 
 __all__ = ["correct_pose", "render_safely", "resize_frame", "at_render_size", "real_features", "PreparedView",
            "prepare_view", "prepare_view_beside"]
@@ -82,6 +83,7 @@ def correct_pose(
     stop_mahalanobis: float = 0.3,
     prepared: PreparedView | None = None,
     feats_real: Features | None = None,
+    motion: RowMotion | None = None,
 ) -> Correction:
     """Correct ``T_world_cam_est`` (world <- camera, OpenCV; a (4, 4) array or a
     ``gtsam.Pose3``, as a GTSAM loop has it) of ``frame`` with ``field``.
@@ -95,8 +97,9 @@ def correct_pose(
     ``prepared``: a render made ahead near the estimate (:func:`prepare_view`, with the same
     camera): the first round aligns to it instead of rendering, measuring the pose from where
     it was rendered. ``feats_real``: the frame's features at the render size, when already
-    detected (:func:`real_features`). Never raises on bad data: ``success=False`` and
-    ``reason`` say why.
+    detected (:func:`real_features`). ``motion``: the camera's twist while its rolling shutter
+    read the frame (:class:`~nap3d_graph.nap3d.rolling_shutter.RowMotion`), or None. Never
+    raises on bad data: ``success=False`` and ``reason`` say why.
     """
     T_est = as_T(T_world_cam_est)  # a 4x4 array or a gtsam.Pose3
     problem = rigid_transform_problem(T_est, tolerance=1e-5)
@@ -134,7 +137,7 @@ def correct_pose(
             alignment = Alignment.failure(reason)
             break
         t0 = time.perf_counter()
-        step = align_views(real, view, config, feats_real=feats_real, feats_view=feats_view)
+        step = align_views(real, view, config, feats_real=feats_real, feats_view=feats_view, motion=motion)
         timings["align"] += time.perf_counter() - t0
         for key, value in step.timings_s.items():
             timings[key] = timings.get(key, 0.0) + value

@@ -23,6 +23,7 @@ from nap3d_graph.camera import Intrinsics, RGBDFrame, warp_depth
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.nap3d.correct import PreparedView, correct_pose, prepare_view, prepare_view_beside, real_features
+from nap3d_graph.nap3d.rolling_shutter import RowMotion
 from nap3d_graph.results import Correction
 
 log = logging.getLogger(__name__)
@@ -78,6 +79,9 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     the features and the matches do not depend on the depth's metre, so aligning again from
     scratch (as earlier versions did, for 21 of 28 keyframes on fr1/desk, +165 ms each) only
     repeated them.
+
+    With ``config.rolling_shutter_s`` the real points are aligned as of the frame's middle row,
+    moved there along ``job.twist`` (:mod:`nap3d_graph.nap3d.rolling_shutter`).
     """
     t0 = time.perf_counter()
     align = config.align
@@ -92,9 +96,11 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         rendering = prepare_view_beside(field, job.T_field_cam_render, job.render_intrinsics, align)
     frame, twist = at_colour_time(job.frame, job.timing, job.twist, job.depth_scale)
     beside = _resolved(rendering, None, "the render") if rendering is not None else None
+    motion = RowMotion(job.twist, config.rolling_shutter_s) if (config.rolling_shutter_s > 0
+                                                                 and job.twist is not None) else None
     correction = correct_pose(frame, field, job.T_field_cam_render, iterations=config.correction_iterations,
                               config=align, render_intrinsics=job.render_intrinsics, prepared=prepared or beside,
-                              feats_real=feats_real)
+                              feats_real=feats_real, motion=motion)
     correction.timings_s["prepared"] = float(prepared is not None)
     if beside is not None:  # rendered at the keyframe's own prediction (and its features), beside the depth warp
         correction.timings_s["render_beside"] = correction.timings_s.pop("render_ahead", 0.0)
