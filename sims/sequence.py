@@ -20,6 +20,7 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -161,11 +162,15 @@ def _stop_pool(pool) -> None:
 
 
 def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, progress: bool = False,
-                      workers: int | None = None) -> Path:
+                      workers: int | None = None, stop: Callable[[], bool] | None = None) -> Path:
     """Render a sequence into ``out_dir`` (created) and return its path.
 
     ``workers`` processes render frames in parallel (default: the CPU count, at most 4);
-    the output does not depend on it.
+    the output does not depend on it. ``stop``: asked after each rendered frame; when it says
+    so, the workers are ended and ``KeyboardInterrupt`` is raised, as an interruption would
+    (a caller's signal handler sets a flag instead of raising inside whatever runs then: an
+    exception raised inside a finalizer of the process pool is printed and dropped, and the
+    interruption with it).
     """
     import os
 
@@ -213,7 +218,8 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     try:
         for _ in tqdm(pool.map(_render_and_write, jobs, chunksize=4), total=len(jobs), desc="render",
                       unit="frame", disable=not progress):
-            pass
+            if stop is not None and stop():
+                raise KeyboardInterrupt("stopped")
     except BaseException:
         _stop_pool(pool)
         raise

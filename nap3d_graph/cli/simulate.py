@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import PartialOutput, empty_or_new_dir, positive_float, positive_int
+from .common import PartialOutput, StopOnSignal, empty_or_new_dir, positive_float, positive_int
 
 
 def add_parser(sub) -> None:
@@ -60,8 +60,11 @@ def run(args) -> int:
     empty_or_new_dir(args.out, args.force)
     config = SimConfig(frames=args.frames, scene_seed=args.scene_seed, seed=args.seed, path=args.path,
                        fps=args.fps, width=args.width, height=args.height)
-    with PartialOutput(args.out, f"nap3d-graph simulate {args.out}"):
-        out = simulate_sequence(args.out, config, progress=True)
+    # SIGINT / SIGTERM set a flag the rendering loop reads after each frame (a second one stops
+    # at once): raised wherever the main thread is, an interruption can land in the process
+    # pool's finalizers, where Python prints and drops it, and the simulation went on to the end.
+    with PartialOutput(args.out, f"nap3d-graph simulate {args.out}"), StopOnSignal() as stop:
+        out = simulate_sequence(args.out, config, progress=True, stop=stop)
     print(f"wrote {args.frames} frames ({args.path}, room {args.scene_seed}, seed {args.seed}) to {out}")
     if args.realsense is not None:
         from nap3d_graph.datasets.realsense_sim import write_realsense_recording
