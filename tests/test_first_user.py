@@ -250,7 +250,7 @@ def test_a_run_is_reproduced_from_its_config(walk, tmp_path, capsys):
     first = tmp_path / "first"
     assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--keyframe-every", "3",
                  "--gate-p", "0.99", "--render-size", "160x120", "--odom", "vo", "--vo-width", "160",
-                 "--out", str(first)]) == 0
+                 "--rolling-shutter", "0.02", "--out", str(first)]) == 0
     config = first / "latest" / "config.yaml"
     # A setting with no flag survives too.
     edited = yaml.safe_load(config.read_text())
@@ -266,9 +266,12 @@ def test_a_run_is_reproduced_from_its_config(walk, tmp_path, capsys):
     assert reproduced["pipeline"]["keyframe_every"] == 3 and reproduced["pipeline"]["gate_p"] == 0.99
     assert reproduced["pipeline"]["depth_scale_tolerance"] == 0.05
     assert reproduced["odometry"] == "vo" and reproduced["vo_width"] == 160
+    assert reproduced["pipeline"]["rolling_shutter_s"] == 0.02
     # A flag given on the command line wins over the file.
-    assert main(["run", "--config", str(config), "--keyframe-every", "4", "--out", str(tmp_path / "third")]) == 0
-    assert yaml.safe_load((tmp_path / "third" / "latest" / "config.yaml").read_text())["pipeline"]["keyframe_every"] == 4
+    assert main(["run", "--config", str(config), "--keyframe-every", "4", "--rolling-shutter", "0.01",
+                 "--out", str(tmp_path / "third")]) == 0
+    third = yaml.safe_load((tmp_path / "third" / "latest" / "config.yaml").read_text())["pipeline"]
+    assert third["keyframe_every"] == 4 and third["rolling_shutter_s"] == 0.01
     capsys.readouterr()
     assert main(["run", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "x")]) == 2
     assert "file not found" in capsys.readouterr().err
