@@ -3,8 +3,7 @@ with the same field rendered on the CPU (by the compiled kernels when numba is i
 and by torch).
 
 A small simulated survey (room 0's mapping path, 128x96) is written to a temporary folder; a
-grid field is trained on it for ``--steps`` steps on ``--device`` (the same steps on the CPU
-with ``--compare-cpu-training``); held-out poses of a separate walk through the room are
+grid field is trained on it for ``--steps`` steps on ``--device``; held-out poses of a separate walk through the room are
 rendered at 320x240 by the GPU field and by its copy moved to the CPU. Reports per backend:
 render milliseconds (median over the poses after one warm-up), and against the GPU render the
 median / p99 depth difference where both are opaque, the share of pixels whose opacity

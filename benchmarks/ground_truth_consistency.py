@@ -126,12 +126,10 @@ def measure_by_baseline(data: Path, field_path: Path, matcher: str, step: int, o
     sequence = open_sequence(data, frames="0.5:1")
     first_half = load_field(field_path)  # its capture timing, as a run of a field of that recording uses
     timing = CaptureTiming.of(first_half.meta.get("timing"))
-    t = timing or CaptureTiming.of(None)
+    t = timing or CaptureTiming()  # none recorded: the stamps as they are
     # Every frame of the half a view of its own (no spacing): view k is frame frames[k].
     own, report = build_view_field(sequence, np.arange(len(sequence)), ViewFieldConfig(min_spacing_m=0.0),
-                                   depth_offset_s=t.depth_offset_s if timing else 0.0,
-                                   colour_offset_s=t.colour_offset_s if timing else 0.0,
-                                   depth_scale=t.depth_scale if timing else 1.0)
+                                   t.depth_offset_s, t.colour_offset_s, t.depth_scale)
     view_of = {frame: k for k, frame in enumerate(report["view_frames"])}
     config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=matcher))
     pairs, failures = [], 0
@@ -162,7 +160,8 @@ def measure_by_baseline(data: Path, field_path: Path, matcher: str, step: int, o
         if inside:
             e = np.array([p["translation_mm"] for p in inside])
             bins.append({"gap_m": [lo, hi], "pairs": len(inside),
-                         "baseline_m_median": float(np.median([p["baseline_m"] for p in inside])), "translation_mm_median": float(np.median(e)),
+                         "baseline_m_median": float(np.median([p["baseline_m"] for p in inside])),
+                         "translation_mm_median": float(np.median(e)),
                          "translation_mm_p90": float(np.percentile(e, 90)),
                          "rotation_deg_median": float(np.median([p["rotation_deg"] for p in inside])),
                          "inliers_median": float(np.median([p["inliers"] for p in inside]))})
