@@ -122,7 +122,8 @@ def test_short_training_beats_the_bars(survey, trained):
 def test_capture_timing_is_recovered_and_fixes_the_field(survey, trained):
     """The survey's depth is captured 30 ms before its colour and stamped 15 ms after its
     capture: the estimate finds the depth 12-18 ms before its stamp and the colour at its
-    own, and a field trained without the compensation has several times the depth error."""
+    own with a global shutter (no readout: the simulator renders every row at once), and a field
+    trained without the compensation has several times the depth error."""
     from nap3d_graph.fields.build import build_field
 
     _, report = trained
@@ -131,6 +132,7 @@ def test_capture_timing_is_recovered_and_fixes_the_field(survey, trained):
     timing = report["timing"]
     assert abs(timing["depth_offset_s"] + np.median(lag)) <= 0.003, (timing, np.median(lag))
     assert abs(timing["colour_offset_s"]) <= 0.003 and abs(timing["depth_scale"] - 1.0) <= 0.01
+    assert timing["readout_s"] == 0.0 and timing["colour_error_px"] == timing["global_shutter_error_px"], timing
     _, ignored = build_field(survey, "grid", steps=TRAIN_STEPS, voxel_size_m=0.05, eval_frames=4, seed=1,
                              timing=None, progress=False)
     with_timing = report["held_out"]["depth_abs_err_m"]["median"]

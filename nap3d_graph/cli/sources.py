@@ -61,6 +61,10 @@ def _field_sigma(text: str) -> float | None:
     return None if text == "auto" else non_negative_float(text)
 
 
+def _rolling_shutter(text: str) -> float | None:
+    return None if text == "auto" else non_negative_float(text)
+
+
 def _land_within(text: str) -> float | str:
     return "frame" if text == "frame" else non_negative_float(text)
 
@@ -194,11 +198,12 @@ def add_source_arguments(p) -> None:
                    "is idle, so corrections come as often as it can measure them (--keyframe-every is then the "
                    "longest interval; which frames are keyframes depends on the machine's speed, or with run --pace "
                    "on the camera's rate). Default: 1 for an overlapped run --pace (the live settings), else 0: off")
-    p.add_argument("--rolling-shutter", type=non_negative_float, default=PipelineConfig.rolling_shutter_s,
-                   metavar="S", help="the colour camera's rolling-shutter readout, first row to last, in seconds: each "
-                   "keyframe's matched points are moved along the odometry's velocity to the middle row's instant "
-                   "before the alignment (a CMOS camera at its highest rate reads for about a frame period: the "
-                   "Kinect's colour camera at 30 Hz ~0.033). Default 0: a global shutter")
+    p.add_argument("--rolling-shutter", type=_rolling_shutter, default=PipelineConfig.rolling_shutter_s,
+                   metavar="S|auto", help="the colour camera's rolling-shutter readout, first row to last, in seconds: "
+                   "each keyframe's matched points are moved along the odometry's velocity to the middle row's "
+                   "instant before the alignment. Default auto: the readout train-field estimated from the "
+                   "recording's ground truth with its capture timing (fr1/desk's Kinect: 24 ms; 0, a global shutter, "
+                   "where the data showed none or the field records no timing); 0: a global shutter")
     p.add_argument("--iterations", type=positive_int, default=1,
                    help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
                    "a little more accurate, twice the time)")
@@ -257,6 +262,22 @@ class Prepared:
         from nap3d_graph.run.pipeline import Pipeline
 
         return Pipeline(self.sequence, self.field, self.odometry, self.config)
+
+
+def _say_readout(config, field_obj) -> float:
+    """The rolling-shutter readout (s) the run compensates, said in one line when it did not come
+    from the command line."""
+    from nap3d_graph.datasets.depth_timing import CaptureTiming
+    from nap3d_graph.run.keyframe import readout_of
+
+    timing = None
+    if config.compensate_timing:
+        timing = CaptureTiming.of(config.timing) or CaptureTiming.of((getattr(field_obj, "meta", None) or {}).get("timing"))
+    readout_s = readout_of(config, timing)
+    if readout_s > 0 and config.rolling_shutter_s is None:
+        print(f"rolling shutter: colour rows read over {readout_s * 1000:.0f} ms (estimated with the capture timing); "
+              "each keyframe is aligned as of its middle row (--rolling-shutter 0: a global shutter)")
+    return readout_s
 
 
 def _timing(args, field_obj, sequence):
@@ -501,6 +522,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             align=with_overrides(AlignConfig(matcher=args.matcher), getattr(args, "align_overrides", None)))
     config = with_overrides(config, getattr(args, "pipeline_overrides", None))  # run --config: unflagged settings
     config = with_field_error(config, field_obj)
+    readout_s = _say_readout(config, field_obj)
     if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
         growth = (", growing with each correction's distance from the field's views" if config.field_error_by_view
                   else "")
@@ -509,7 +531,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
               "--field-sigma 0 takes the field as exact")
     record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
               "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
-              "vo_width": getattr(args, "vo_width", None),
+              "vo_width": getattr(args, "vo_width", None), "rolling_shutter_readout_s": readout_s,
               "initial_pose": None if initial_pose is None else initial_pose.tolist(),
               "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
               "seed": args.seed,

@@ -43,9 +43,9 @@ def add_parser(sub) -> None:
                    "with torch; splat: surface splats fused from the frames, no training (seconds, not minutes); "
                    "views: the survey's sharpest frames re-projected into the asked view, no training")
     p.add_argument("--timing", choices=("auto", "none"), default="auto",
-                   help="auto: estimate when depth and colour were captured relative to the poses, from the data "
-                   "(for recordings with depth stamps and ground truth; the depth scale is left to the run's "
-                   "calibration); none: use the stamps")
+                   help="auto: estimate when depth and colour were captured relative to the poses, and the colour "
+                   "camera's rolling-shutter readout, from the data (for recordings with depth stamps and ground "
+                   "truth; the depth scale is left to the run's calibration); none: use the stamps")
     p.add_argument("--minutes", type=positive_float, default=5.0,
                    help="grid: optimisation budget in minutes (default 5)")
     p.add_argument("--steps", type=positive_int, default=None,
@@ -135,6 +135,10 @@ def summary(field, report: dict, out, report_path) -> str:
                      f"{timing['colour_offset_s'] * 1000:+.0f} ms, depth scale {timing['depth_scale']:.3f} (frames "
                      f"agree to {timing['agreement_mm']:.1f} mm, {timing['agreement_at_colour_stamps_mm']:.1f} mm "
                      "with the colour stamps)")
+        if timing.get("readout_s"):
+            lines.append(f"rolling shutter: colour rows read over {timing['readout_s'] * 1000:.0f} ms (matched "
+                         f"keypoints reproject to {timing['colour_error_px']:.2f} px, {timing['global_shutter_error_px']:.2f}"
+                         " px as a global shutter); runs align each keyframe as of its middle row")
     if held:
         lines.append(
             f"held-out ({held['render_size'][0]}x{held['render_size'][1]}): PSNR {held['psnr_db']:.2f} dB "

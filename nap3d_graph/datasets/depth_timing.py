@@ -30,7 +30,7 @@ from nap3d_graph.errors import DatasetError
 from ..camera import backproject_depth, project
 from ..conventions import inv_T, transform_points
 
-__all__ = ["CaptureTiming", "DepthTiming", "depth_agreement_mm", "frame_pairs", "estimate_depth_timing", "multiview_agreement_mm"]
+__all__ = ["CaptureTiming", "ColourTiming", "DepthTiming", "estimate_colour_timing", "depth_agreement_mm", "frame_pairs", "estimate_depth_timing", "multiview_agreement_mm"]
 
 log = logging.getLogger(__name__)
 
@@ -43,8 +43,12 @@ class CaptureTiming:
     get the capture instants on the ground truth's clock; ``depth_scale``: multiply the sensor's
     depth by it. The agreement figures (mm) say how well the frames agree with it
     (``agreement_mm``), at the depth stamps as they are and at the colour stamps, over
-    ``pairs`` frame pairs. Stored as a dict (a field's ``meta["timing"]``, reports, config
-    files): :meth:`to_dict` and :meth:`of`."""
+    ``pairs`` frame pairs. ``readout_s``: the colour camera's rolling shutter, first row to
+    last (``colour_offset_s`` is then its middle row's; 0: a global shutter), with the median
+    reprojection error of matched keypoints at this timing and at the best global-shutter one
+    (``colour_error_px``, ``global_shutter_error_px``). Stored as a dict (a field's
+    ``meta["timing"]``, reports, config files): :meth:`to_dict` and :meth:`of`; one stored
+    before the readout was estimated reads as a global shutter."""
 
     depth_offset_s: float = 0.0
     colour_offset_s: float = 0.0
@@ -53,6 +57,9 @@ class CaptureTiming:
     agreement_at_depth_stamps_mm: float = float("nan")
     agreement_at_colour_stamps_mm: float = float("nan")
     pairs: int = 0
+    readout_s: float = 0.0
+    colour_error_px: float = float("nan")
+    global_shutter_error_px: float = float("nan")
 
     def to_dict(self) -> dict:
         return {k: (float(v) if isinstance(v, (float, np.floating)) else int(v)) for k, v in asdict(self).items()}
@@ -203,13 +210,15 @@ def _bilinear(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def _depth_along_rays(depth: np.ndarray, K, uv: np.ndarray, T_depth_colour: np.ndarray) -> np.ndarray:
     """z-depth (colour camera) where the rays of colour pixels ``uv`` (N, 2) meet the surface a
-    depth image saw from another pose (``T_depth_colour`` maps colour-camera points into the
-    depth camera): a few fixed-point steps, looking the depth up where the current point
-    projects into the depth image. NaN where it leaves the image or hits a hole."""
+    depth image saw from another pose (``T_depth_colour`` (4, 4), or (N, 4, 4) one per pixel,
+    maps colour-camera points into the depth camera): a few fixed-point steps, looking the
+    depth up where the current point projects into the depth image. NaN where it leaves the
+    image or hits a hole."""
     z = _bilinear(depth, uv)
     rays = np.stack([(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(uv))], axis=1)
+    T = np.broadcast_to(T_depth_colour, (len(uv), 4, 4))
     for _ in range(3):
-        p_depth = (rays * z[:, None]) @ T_depth_colour[:3, :3].T + T_depth_colour[:3, 3]
+        p_depth = np.einsum("nij,nj->ni", T[:, :3, :3], rays * z[:, None]) + T[:, :3, 3]
         uv_d, z_d = project(p_depth, K)
         looked = _bilinear(depth, np.nan_to_num(uv_d))
         ok = np.all(np.isfinite(uv_d), axis=1) & (looked > 0) & (z_d > 0)
@@ -218,52 +227,123 @@ def _depth_along_rays(depth: np.ndarray, K, uv: np.ndarray, T_depth_colour: np.n
     return z
 
 
-def estimate_colour_offset(sequence, timing: DepthTiming, pairs: int = 30, gap_s: tuple[float, float] = (0.2, 0.5),
-                           offsets_s: np.ndarray | None = None) -> tuple[float, list]:
-    """Time offset to add to the colour stamps, from the reprojection of matched keypoints.
+#: A rolling-shutter readout is adopted only when it brings the matched keypoints closer (by 3%
+#: of the median reprojection error) than a global shutter at its own best offset, and lies
+#: inside the searched range: on a global-shutter camera the search's minimum is noise.
+READOUT_MIN_GAIN = 0.03
+READOUT_SEARCH_S = (0.0, 0.06)
 
-    For frame pairs, SIFT keypoints of colour image i are matched with image j; each is given
-    the depth its ray meets in depth image i (placed with the depth ``timing``), moved with
-    the poses at the two colour stamps plus the offset, and projected into image j. The
-    offset that brings them closest to their matches (median pixel distance) is returned,
-    with the search: ``(offset_s, [[offset, median px], ...])``.
-    """
-    from nap3d_graph.conventions import inv_T as _inv
-    from nap3d_graph.nap3d.matching import detect_features, match_features
 
-    chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
-    needed = sorted({i for pair in chosen for i in pair})
-    frames = {i: sequence[i] for i in needed}
-    features = {i: detect_features(frames[i].rgb, 1500) for i in needed}
-    K = sequence.intrinsics
-    T_depth = dict(zip(needed, sequence.ground_truth_at(sequence.depth_timestamps[needed] + timing.offset_s)))
-    matched = {}
-    for i, j in chosen:
-        m = match_features(features[i], features[j], ratio=0.7)
-        if len(m) >= 20:
-            matched[(i, j)] = m
-    search = []
+@dataclass
+class ColourTiming:
+    """When a recording's colour rows were captured: ``offset_s`` to add to a colour stamp to get
+    its middle row's instant on the ground truth's clock, ``readout_s`` from its first row to
+    its last (0: a global shutter, or none the data could tell); ``error_px`` the median
+    reprojection error of matched keypoints there, ``global_error_px`` the best a global
+    shutter gave; ``search``: ``[[offset, readout, median px], ...]``."""
 
-    def score(offset: float) -> float:
-        T_colour = dict(zip(needed, sequence.ground_truth_at(sequence.timestamps[needed] + offset)))
+    offset_s: float
+    readout_s: float
+    error_px: float
+    global_error_px: float
+    search: list = field(default_factory=list)
+
+
+class _MatchedPairs:
+    """The keypoints of colour frame pairs matched once, their depth frames, and the
+    reprojection error (px) of frame i's keypoints in frame j for a colour timing."""
+
+    def __init__(self, sequence, timing: DepthTiming, pairs: int, gap_s: tuple[float, float]):
+        from nap3d_graph.nap3d.matching import detect_features, match_features
+
+        self.sequence = sequence
+        self.scale = timing.scale
+        chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
+        needed = sorted({i for pair in chosen for i in pair})
+        frames = {i: sequence[i] for i in needed}
+        features = {i: detect_features(frames[i].rgb, 1500) for i in needed}
+        self.depth = {i: np.nan_to_num(frames[i].depth_m, nan=0.0) * timing.scale for i in needed}
+        self.T_world_depth = dict(zip(needed, sequence.ground_truth_at(
+            np.asarray(sequence.depth_timestamps)[needed] + timing.offset_s)))
+        self.matched = []
+        for i, j in chosen:
+            m = match_features(features[i], features[j], ratio=0.7)
+            if len(m) >= 20 and np.all(np.isfinite(self.T_world_depth[i])):
+                self.matched.append((i, j, m))
+
+    def errors_px(self, offset_s: float, readout_s: float) -> np.ndarray:
+        """Reprojection errors (px) of every matched keypoint of frame i in frame j, each pixel
+        placed with the ground truth at its own row's instant: stamp + ``offset_s`` +
+        ``readout_s`` * (row / height - 1/2)."""
+        K, t = self.sequence.intrinsics, np.asarray(self.sequence.timestamps, dtype=float)
+        stamps = [t[k] + offset_s + readout_s * (uv[:, 1] / K.height - 0.5)
+                  for i, j, m in self.matched for k, uv in ((i, m.uv_a), (j, m.uv_b))]
+        if not stamps:
+            return np.zeros(0)
+        # One interpolation for every keypoint of every pair: the interpolator is built per call.
+        poses = np.split(self.sequence.ground_truth_at(np.concatenate(stamps)),
+                         np.cumsum([len(s) for s in stamps])[:-1])
         errors = []
-        for (i, j), m in matched.items():
-            if not all(np.all(np.isfinite(T)) for T in (T_colour[i], T_colour[j], T_depth[i])):
+        for (i, j, m), T_i, T_j in zip(self.matched, poses[0::2], poses[1::2]):
+            if not (np.all(np.isfinite(T_i)) and np.all(np.isfinite(T_j))):
                 continue
-            depth = np.nan_to_num(frames[i].depth_m, nan=0.0) * timing.scale
-            z = _depth_along_rays(depth, K, m.uv_a, _inv(T_depth[i]) @ T_colour[i])
+            z = _depth_along_rays(self.depth[i], K, m.uv_a, inv_T(self.T_world_depth[i]) @ T_i)
             ok = np.isfinite(z) & (z > 0)
             rays = np.stack([(m.uv_a[ok, 0] - K.cx) / K.fx, (m.uv_a[ok, 1] - K.cy) / K.fy, np.ones(ok.sum())], 1)
-            world = transform_points(T_colour[i], rays * z[ok, None])
-            uv_j, _ = project(transform_points(_inv(T_colour[j]), world), K)
+            world = np.einsum("nij,nj->ni", T_i[ok, :3, :3], rays * z[ok, None]) + T_i[ok, :3, 3]
+            T_j_cam = np.linalg.inv(T_j[ok])
+            uv_j, _ = project(np.einsum("nij,nj->ni", T_j_cam[:, :3, :3], world) + T_j_cam[:, :3, 3], K)
             errors.append(np.linalg.norm(uv_j - m.uv_b[ok], axis=1))
         values = np.concatenate(errors) if errors else np.zeros(0)
-        values = values[np.isfinite(values)]
+        return values[np.isfinite(values)]
+
+
+def estimate_colour_timing(sequence, timing: DepthTiming, pairs: int = 30, gap_s: tuple[float, float] = (0.2, 0.5),
+                           offsets_s: np.ndarray | None = None, readouts_s: np.ndarray | None = None) -> ColourTiming:
+    """The colour stamps' offset and the rolling shutter's readout, from matched keypoints.
+
+    For frame pairs, SIFT keypoints of colour image i are matched with image j; each is given
+    the depth its ray meets in depth image i (placed with the depth ``timing``), moved with the
+    ground truth at its own row's instant in each image, and projected into image j. The
+    timing that brings them closest to their matches (median pixel distance) is returned.
+    Offset first (``offsets_s``, default -50 to +30 ms in 5 ms, then 1 ms) with a global
+    shutter, then offset and readout together (``readouts_s``, default 0-60 ms in 5 ms, offsets
+    within 6 ms in 2 ms; then both in 1 ms). A rolling shutter tilts the error with the row, so the two are told
+    apart; the readout is kept only when it helps (:data:`READOUT_MIN_GAIN`).
+    """
+    pairs_ = _MatchedPairs(sequence, timing, pairs, gap_s)
+    search = []
+
+    def score(offset: float, readout: float) -> float:
+        values = pairs_.errors_px(offset, readout)
         result = float(np.median(values)) if values.size >= 50 else float("inf")
-        search.append([round(offset, 4), result])
+        search.append([round(offset, 4), round(readout, 4), result])
         return result
 
+    def best_offset(candidates, readout: float) -> float:
+        return float(min(candidates, key=lambda o: score(float(o), readout)))
+
     offsets = np.arange(-0.05, 0.0301, 0.005) if offsets_s is None else np.asarray(offsets_s, dtype=float)
-    best = min(offsets, key=lambda o: score(float(o)))
-    best = min(np.arange(best - 0.005, best + 0.0051, 0.001), key=lambda o: score(float(o)))
-    return float(best), search
+    offset = best_offset(offsets, 0.0)
+    offset = best_offset(np.arange(offset - 0.005, offset + 0.0051, 0.001), 0.0)
+    global_error = score(offset, 0.0)
+    if not np.isfinite(global_error):
+        raise DatasetError("too few matched keypoints with depth and ground truth to estimate the colour timing")
+    # The two trade against each other (a later offset and a longer readout move the top rows
+    # alike), so the readout is searched on a grid of both around the global shutter's offset.
+    readouts = np.arange(READOUT_SEARCH_S[0], READOUT_SEARCH_S[1] + 1e-4, 0.005) if readouts_s is None \
+        else np.asarray(readouts_s, dtype=float)
+    grid = [(float(o), float(r)) for o in np.arange(offset - 0.006, offset + 0.0061, 0.002) for r in readouts]
+    rs_offset, readout = min(grid, key=lambda g: score(*g))
+    fine = [(float(o), float(r)) for o in np.arange(rs_offset - 0.002, rs_offset + 0.0021, 0.001)
+            for r in np.arange(max(readout - 0.004, 0.0), readout + 0.0041, 0.001)]
+    rs_offset, readout = min(fine, key=lambda g: score(*g))
+    error = score(rs_offset, readout)
+    inside = readout < READOUT_SEARCH_S[1] - 0.002
+    if not (error < (1.0 - READOUT_MIN_GAIN) * global_error and inside):
+        log.info("colour timing: offset %+.1f ms, global shutter (%.3f px; a %.0f ms readout gave %.3f px)",
+                 1000 * offset, global_error, 1000 * readout, error)
+        return ColourTiming(offset, 0.0, global_error, global_error, search)
+    log.info("colour timing: offset %+.1f ms, rolling shutter read in %.0f ms (%.3f px; global shutter %.3f px)",
+             1000 * rs_offset, 1000 * readout, error, global_error)
+    return ColourTiming(rs_offset, readout, error, global_error, search)

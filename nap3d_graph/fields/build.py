@@ -40,7 +40,7 @@ def estimate_timing(sequence) -> CaptureTiming | None:
     :mod:`nap3d_graph.datasets.depth_timing`), or None when it cannot be estimated (no ground
     truth, too few frames) or the data cannot tell it."""
     from nap3d_graph.datasets import DatasetError
-    from nap3d_graph.datasets.depth_timing import estimate_colour_offset, estimate_depth_timing
+    from nap3d_graph.datasets.depth_timing import estimate_colour_timing, estimate_depth_timing
 
     if getattr(sequence, "ground_truth_at", None) is None or getattr(sequence, "depth_timestamps", None) is None:
         return None
@@ -54,12 +54,13 @@ def estimate_timing(sequence) -> CaptureTiming | None:
         log.warning("capture timing not compensated: %s; using the stamps as they are", unclear)
         return None
     try:
-        colour_offset, _ = estimate_colour_offset(sequence, depth)
+        colour = estimate_colour_timing(sequence, depth)
     except DatasetError as exc:
         log.warning("colour timing not estimated (%s); using the stamps as they are", exc)
         return None
-    return CaptureTiming(depth.offset_s, colour_offset, depth.scale, depth.agreement_mm, depth.at_depth_stamps_mm,
-                         depth.at_colour_stamps_mm, depth.pairs)
+    return CaptureTiming(depth.offset_s, colour.offset_s, depth.scale, depth.agreement_mm, depth.at_depth_stamps_mm,
+                         depth.at_colour_stamps_mm, depth.pairs, colour.readout_s, colour.error_px,
+                         colour.global_error_px)
 
 
 #: An estimated depth offset is used only when it makes the frames agree better than (by 2%)

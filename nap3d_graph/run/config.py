@@ -51,11 +51,12 @@ class PipelineConfig:
         keyframe's depth to the colour's capture instant with the odometry's velocity, and
         the corrected pose back to the frame's stamp, before it enters the graph.
     rolling_shutter_s: the real colour camera's rolling-shutter readout, first row to last
-        (seconds; 0, the default: a global shutter). With the odometry's velocity at the
-        keyframe, each matched real point is moved to the middle row's instant before the
-        alignment (:mod:`nap3d_graph.nap3d.rolling_shutter`). A CMOS camera at its highest
-        frame rate reads for about a frame period (the Kinect's colour camera at 30 Hz:
-        ~0.033).
+        (seconds; 0: a global shutter). With the odometry's velocity at the keyframe, each
+        matched real point is moved to the middle row's instant before the alignment
+        (:mod:`nap3d_graph.nap3d.rolling_shutter`). None, the default: the readout the
+        capture timing records (``CaptureTiming.readout_s``, estimated by ``train-field`` from
+        the recording's ground truth; 0 without one). A CMOS camera at its highest frame rate
+        reads for up to a frame period (fr1/desk's Kinect colour camera: 24 ms estimated).
     timing: the sensor's capture timing (``depth_offset_s``, ``colour_offset_s``,
         ``depth_scale``) when the field does not record it (the oracle of a simulated room,
         a nerfstudio model): e.g. :func:`nap3d_graph.fields.build.estimate_timing` of any
@@ -141,7 +142,7 @@ class PipelineConfig:
     prior_trans_sigma_m: float = 1e-3
     relinearize_threshold: float = 1e-3
     compensate_timing: bool = True
-    rolling_shutter_s: float = 0.0
+    rolling_shutter_s: float | None = None
     timing: CaptureTiming | dict | None = None
     final_gnc: bool = True
     gnc_p: float = 0.997
@@ -187,8 +188,10 @@ class PipelineConfig:
                              f"got {self.keyframe_when_idle} with overlap={self.overlap}")
         if self.read_ahead < 0:
             raise ValueError(f"read_ahead must be >= 0 frames, got {self.read_ahead}")
-        if not (np.isfinite(self.rolling_shutter_s) and 0 <= self.rolling_shutter_s <= 1):
-            raise ValueError(f"rolling_shutter_s must be a readout time in [0, 1] seconds, got {self.rolling_shutter_s}")
+        if self.rolling_shutter_s is not None and not (np.isfinite(self.rolling_shutter_s)
+                                                       and 0 <= self.rolling_shutter_s <= 1):
+            raise ValueError(f"rolling_shutter_s must be a readout time in [0, 1] seconds or None (the capture "
+                             f"timing's), got {self.rolling_shutter_s}")
         if not self.land_within_s >= 0:
             raise ValueError(f"land_within_s must be >= 0 seconds, got {self.land_within_s}")
         if not self.field_sigma_depth_m > 0:

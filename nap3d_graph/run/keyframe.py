@@ -80,8 +80,8 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     scratch (as earlier versions did, for 21 of 28 keyframes on fr1/desk, +165 ms each) only
     repeated them.
 
-    With ``config.rolling_shutter_s`` the real points are aligned as of the frame's middle row,
-    moved there along ``job.twist`` (:mod:`nap3d_graph.nap3d.rolling_shutter`).
+    With a rolling-shutter readout (:func:`readout_of`) the real points are aligned as of the
+    frame's middle row, moved there along ``job.twist`` (:mod:`nap3d_graph.nap3d.rolling_shutter`).
     """
     t0 = time.perf_counter()
     align = config.align
@@ -96,8 +96,8 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         rendering = prepare_view_beside(field, job.T_field_cam_render, job.render_intrinsics, align)
     frame, twist = at_colour_time(job.frame, job.timing, job.twist, job.depth_scale)
     beside = _resolved(rendering, None, "the render") if rendering is not None else None
-    motion = RowMotion(job.twist, config.rolling_shutter_s) if (config.rolling_shutter_s > 0
-                                                                 and job.twist is not None) else None
+    readout_s = readout_of(config, job.timing)
+    motion = RowMotion(job.twist, readout_s) if readout_s > 0 and job.twist is not None else None
     correction = correct_pose(frame, field, job.T_field_cam_render, iterations=config.correction_iterations,
                               config=align, render_intrinsics=job.render_intrinsics, prepared=prepared or beside,
                               feats_real=feats_real, motion=motion)
@@ -115,6 +115,14 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         correction = dataclasses.replace(correction, covariance=correction.covariance + field_cov)
     correction.timings_s["measure"] = time.perf_counter() - t0
     return correction
+
+
+def readout_of(config, timing: CaptureTiming | None) -> float:
+    """The colour camera's rolling-shutter readout (s) a run compensates: the config's, else the
+    capture timing's (0: a global shutter)."""
+    if config.rolling_shutter_s is not None:
+        return float(config.rolling_shutter_s)
+    return float(timing.readout_s) if timing is not None else 0.0
 
 
 def usable_prepared_view(job: KeyframeJob, config) -> PreparedView | None:
