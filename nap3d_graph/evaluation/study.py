@@ -244,7 +244,9 @@ def summary_markdown(summary: dict) -> str:
     if f.get("timing"):
         t = f["timing"]
         lines += [f"Capture timing estimated from the data: depth {t['depth_offset_s'] * 1000:+.0f} ms from its stamp, "
-                  f"colour {t['colour_offset_s'] * 1000:+.0f} ms, depth scale {t['depth_scale']:.3f}.", ""]
+                  f"colour {t['colour_offset_s'] * 1000:+.0f} ms, depth scale {t['depth_scale']:.3f}"
+                  + (f", colour rows read over {t['readout_s'] * 1000:.0f} ms (rolling shutter; the runs align "
+                     "each keyframe as of its middle row)" if t.get("readout_s") else ", a global shutter") + ".", ""]
     lines += ["## Drift correction", "",
               "| odometry | ATE odometry | ATE with NAP3D | max error | corrections accepted | median inliers | "
               "s per keyframe |", "|---|---|---|---|---|---|---|"]
