@@ -17,7 +17,8 @@ that found their render made, and its time); and waiting as well as taking a key
 whenever the worker is idle (``--keyframe-when-idle 1``, ``keyframe_every`` the longest
 interval); and, fed twice as fast (a 30 Hz camera), inline, overlapped with a keyframe every
 ``--keyframe-every`` frames, and overlapped with those live settings, with and without reading
-the next frames ahead (``read_ahead``). Each
+the next frames ahead (``read_ahead``), and overlapped every ``--keyframe-every`` frames
+rendering ahead. Each
 overlapped setting fed at the camera's rate runs ``--paced-repeats`` times
 (when its corrections land varies), the median reported and every
 causal ATE kept. Writes ``benchmarks/results/realtime_fr1_desk.json``.
@@ -162,12 +163,14 @@ def main() -> None:
         # every second frame of the 30 Hz recording), inline, overlapped with a keyframe every
         # `every` frames (landing within a frame), overlapped with the live settings, and those
         # again with each frame read when its step comes (no read-ahead: its decoding, 11-12 ms,
-        # then runs on the odometry's thread).
-        for overlap, land, idle, ahead in ((False, 0.0, 0, 2), (True, land_s / 2, 0, 2), (True, land_s / 2, 1, 2),
-                                           (True, land_s / 2, 1, 0)):
+        # then runs on the odometry's thread), and overlapped every `every` frames rendering the
+        # next keyframe ahead (its correction then waits for matching and alignment only).
+        for overlap, land, idle, ahead, render_ahead in (
+                (False, 0.0, 0, 2, False), (True, land_s / 2, 0, 2, False), (True, land_s / 2, 1, 2, False),
+                (True, land_s / 2, 1, 0, False), (True, land_s / 2, 0, 2, True)):
             r = paced_runs(sequence, field, args.paced_repeats if overlap else 1, overlap=overlap,
                            keyframe_every=every, matcher=args.matcher, land_within_s=land, keyframe_when_idle=idle,
-                           pace_speed=2.0, read_ahead=ahead)
+                           pace_speed=2.0, read_ahead=ahead, render_ahead=render_ahead)
             r.update(field=name, frames_per_s_vs_first_inline=r["frames_per_s"] / reference[every])
             out["runs"].append(r)
             report(name, r)
