@@ -9,7 +9,7 @@ truth (6 dof: mean with the 95% band of a mean of k chi-square(6) values, median
 ATE (no alignment), corrections accepted. Writes JSON.
 
     python benchmarks/field_error_desk.py [--data ../shared/data/tum/rgbd_dataset_freiburg1_desk] \\
-        [--field FIELD.pt] [--matcher xfeat] [--out benchmarks/results/field_error_fr1_desk.json]
+        [--field FIELD.pt] [--matcher xfeat] [--error-growth] [--out benchmarks/results/field_error_fr1_desk.json]
 """
 
 from __future__ import annotations
@@ -56,12 +56,35 @@ def run_one(data: Path, field, matcher: str, field_sigma, field_sigma_rad=None) 
             "keyframes": len(result.keyframes), "accepted": result.num_accepted}
 
 
+def _add_growth(field, data: Path, matcher: str) -> dict | None:
+    """The growth of ``field``'s error away from its training frames, measured on the frames
+    it was built from (``meta["train_frames"]`` of frames 0:0.5) as train-field measures it."""
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.fields.build import ERROR_FRAMES
+    from nap3d_graph.fields.error_growth import add_error_growth
+    from nap3d_graph.fields.training_data import split_posed_frames
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    sequence = open_sequence(data, frames="0:0.5")
+    _, error_idx = split_posed_frames(sequence, 1, ERROR_FRAMES)
+    model = add_error_growth(field, sequence, field.meta["train_frames"], error_idx, field.meta.get("timing"),
+                             AlignConfig(matcher=matcher))
+    if model is not None:
+        print("error by gap: " + ", ".join(f"{g:.2f} m -> {m * 1000:.1f} mm / {np.degrees(r):.2f} deg" for g, m, r
+                                           in zip(model["gap_m"], model["sigma_m"], model["sigma_rad"])), flush=True)
+        return {k: v for k, v in model.items() if k != "views"}
+    return None
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=Path("../shared/data/tum/rgbd_dataset_freiburg1_desk"))
     p.add_argument("--field", type=Path, default=None, help="a field built on frames 0:0.5 by train-field (default: "
                    "build a splat field here)")
     p.add_argument("--matcher", default="xfeat")
+    p.add_argument("--error-growth", action="store_true",
+                   help="a grid or splat field: also measure how its error grows away from its training frames "
+                   "(what train-field --error-growth records) on this checkpoint, and run with it")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/field_error_fr1_desk.json"))
     args = p.parse_args(argv)
     from nap3d_graph.cli import main as cli
@@ -80,7 +103,12 @@ def main(argv=None) -> None:
     settings = [("measured (default)", (None, None)), ("exact (--field-sigma 0)", (0.0, None))]
     if getattr(field, "has_error_by_view", False):  # a view field: also its error near the views, everywhere
         settings.insert(1, ("measured near the views, everywhere", field_sigmas(field)))
+    growth = "measured, growing away from its frames (--error-growth)"
+    if args.error_growth and not hasattr(field, "hiding_near"):
+        settings.insert(1, (growth, (None, None)))
     for name, (sigma, sigma_rad) in settings:
+        if name == growth:
+            result["error_growth"] = _add_growth(field, args.data, args.matcher)
         result["runs"][name] = r = run_one(args.data, field, args.matcher, sigma, sigma_rad)
         print(f"{name:36s} NEES mean {r['nees_mean']:.1f} (band {r['nees_band_95'][0]:.2f}-{r['nees_band_95'][1]:.2f}), "
               f"median {r['nees_median']:.1f}; ATE {r['ate_estimate_m'] * 100:.2f} cm (odometry "

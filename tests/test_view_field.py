@@ -237,3 +237,40 @@ def test_a_run_with_a_view_field_from_the_command_line(built, survey, tmp_path, 
     # Measured: the odometry's drift 7.4 cm -> 1.1 cm, 19 of 20 accepted (the field was built on these frames:
     # the run warns so; this checks the path, not the field's generalisation).
     assert metrics["estimate"]["ate_m"]["rmse"] < 0.5 * metrics["odometry"]["ate_m"]["rmse"], metrics
+
+
+def test_a_splat_field_measures_its_error_growth_with_a_view_field_of_its_frames(built, survey, tmp_path):
+    """train-field --error-growth: a splat (or grid) field adds to its own error near its
+    training frames the growth a view field of the same frames measured, with the views'
+    geometry stored so a run finds each correction's gap; without the flag it records none."""
+    from nap3d_graph.cli import main
+    from nap3d_graph.fields.error_growth import error_sigmas_at, has_error_by_view
+    from nap3d_graph.run.config import PipelineConfig, with_field_error
+
+    out = tmp_path / "splat.pt"
+    assert main(["train-field", str(survey.path), "--out", str(out), "--model", "splat", "--eval-frames", "4",
+                 "--error-growth", "--quiet"]) == 0
+    field = load_field(out)
+    own = field.meta["field_error"]
+    model = own["by_view"]
+    views = built[1]["field_error"]["by_view"]  # the view field of the same frames, as train-field built it
+    assert model["growth_from"] == "views" and model["gap_m"] == views["gap_m"]
+    # sigma(gap)^2 = own^2 + (views(gap)^2 - views(near)^2): its own near its frames, growing as the views' do.
+    assert model["sigma_m"][0] == pytest.approx(own["sigma_m"], abs=1e-6)
+    grown = np.sqrt(own["sigma_m"] ** 2 + np.asarray(views["sigma_m"]) ** 2 - views["sigma_m"][0] ** 2)
+    assert np.allclose(model["sigma_m"], grown, atol=2e-6) and model["sigma_m"][-1] > model["sigma_m"][0]
+    assert has_error_by_view(field) and not hasattr(field, "error_sigmas_at")
+    near = built[0].T_world_cam[3]
+    far = near.copy()
+    far[:3, 3] += 3.0 * near[:3, 2]
+    (s_near, _), (s_far, r_far) = error_sigmas_at(field, near), error_sigmas_at(field, far)
+    assert s_near == pytest.approx(own["sigma_m"], rel=0.05) and s_far > 1.5 * s_near and r_far > own["sigma_rad"]
+    config = with_field_error(PipelineConfig(), field)
+    assert config.field_error_by_view
+    assert config.field_covariance(field, far)[3, 3] == pytest.approx(s_far**2)
+    # Without the flag: the error near its frames only, used everywhere.
+    plain = tmp_path / "plain.pt"
+    assert main(["train-field", str(survey.path), "--out", str(plain), "--model", "splat", "--eval-frames", "4",
+                 "--quiet"]) == 0
+    assert not has_error_by_view(load_field(plain)) and error_sigmas_at(load_field(plain), far) is None
+    assert not with_field_error(PipelineConfig(), load_field(plain)).field_error_by_view

@@ -86,7 +86,8 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                 every: int = 1, eval_frames: int = 8, seed: int = 0, voxel_size_m: float | None = None,
                 timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
                 device: str | None = None, progress: bool = True, measure_error: bool = True,
-                matcher: str = "sift", refine_poses: int = 0, refine_method: str = "depth"):
+                matcher: str = "sift", refine_poses: int = 0, refine_method: str = "depth",
+                error_growth: bool = False):
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
@@ -103,7 +104,9 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     ``"map"`` (each frame aligned with NAP3D to a splat map of the others:
     :mod:`~nap3d_graph.fields.pose_refinement`); the field is built with the refined poses,
     which it records (``meta["pose_corrections"]``), and the report holds each round and the
-    frames' multi-view depth agreement before and after.
+    frames' multi-view depth agreement before and after. ``error_growth``: a grid or splat
+    field also measures how its error grows away from its training frames, with a view field
+    of them (:mod:`~nap3d_graph.fields.error_growth`; a view field always measures its own).
     """
     from .training_data import split_posed_frames
 
@@ -142,7 +145,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
         field.meta["pose_corrections"] = {int(i): D.tolist() for i, D in sequence.corrections.items()}
     if measure_error:
         report["field_error"] = field.meta["field_error"] = _field_error(field, sequence, every, timing, render_size,
-                                                                         matcher)
+                                                                         matcher, train_idx if error_growth else None)
     report["total_seconds"] = round(time.perf_counter() - started, 2)
     return field, report
 
@@ -181,7 +184,7 @@ def _refined(sequence, train_idx, timing, rounds, method, matcher, render_size, 
 ERROR_FRAMES = 40
 
 
-def _field_error(field, sequence, every, timing, render_size, matcher) -> dict:
+def _field_error(field, sequence, every, timing, render_size, matcher, growth_train_idx=None) -> dict:
     from nap3d_graph.nap3d.config import AlignConfig
 
     from .field_error import measure_field_error
@@ -196,6 +199,11 @@ def _field_error(field, sequence, every, timing, render_size, matcher) -> dict:
         by_view = measure_error_by_view(field, sequence, error_idx, timing, AlignConfig(matcher=matcher), render_size)
         if by_view is not None:
             error["by_view"] = by_view
+    elif growth_train_idx is not None and error.get("sigma_m"):  # a grid or splat: its growth, from its frames' views
+        from .error_growth import add_error_growth
+
+        field.meta["field_error"] = error
+        add_error_growth(field, sequence, growth_train_idx, error_idx, timing, AlignConfig(matcher=matcher), render_size)
     error.update({"matcher": matcher, "seconds": round(time.perf_counter() - started, 2)})
     return error
 

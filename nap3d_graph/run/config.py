@@ -77,9 +77,10 @@ class PipelineConfig:
         exact oracle); :func:`with_field_error` resolves it. 0 adds nothing.
     field_error_by_view: set by :func:`with_field_error` when the field's error comes from
         the field and the field also measured how it grows away from what it saw (a view
-        field: ``error_sigmas_at``, larger the farther the asked pose is from its nearest
-        view): each correction then adds the field's error at its own render pose, with the
-        resolved sigmas as the floor.
+        field's own ``error_sigmas_at``, or a grid's or splat field's model from
+        ``train-field --error-growth``: :mod:`nap3d_graph.fields.error_growth`; larger the
+        farther the asked pose is from its nearest view): each correction then adds the
+        field's error at its own render pose, with the resolved sigmas as the floor.
     depth_scale_check, depth_scale_tolerance, depth_scale_sigmas, depth_scale_window: every
         correction also measures the real depth's scale against the field's (a similarity
         fit on its inliers). A running estimate (median of the last ``depth_scale_window``
@@ -203,8 +204,11 @@ class PipelineConfig:
         where it is larger than the resolved sigmas."""
         s_t = self.field_sigma_m or 0.0
         s_r = self.field_sigma_rad if self.field_sigma_rad is not None else s_t / self.field_sigma_depth_m
-        at = getattr(field, "error_sigmas_at", None) if self.field_error_by_view else None
-        local = at(T_field_cam) if at is not None and T_field_cam is not None else None
+        local = None
+        if self.field_error_by_view and field is not None and T_field_cam is not None:
+            from nap3d_graph.fields.error_growth import error_sigmas_at
+
+            local = error_sigmas_at(field, T_field_cam)
         if local is not None:
             s_t, s_r = max(s_t, local[0]), max(s_r, local[1])
         if s_t <= 0 and s_r <= 0:
@@ -235,5 +239,7 @@ def with_field_error(config: PipelineConfig, field) -> PipelineConfig:
 
     sigma_m, sigma_rad = field_sigmas(field) if field is not None else (0.0, 0.0)
     rad = config.field_sigma_rad if config.field_sigma_rad is not None else sigma_rad
-    by_view = bool(getattr(field, "has_error_by_view", False))
+    from nap3d_graph.fields.error_growth import has_error_by_view
+
+    by_view = field is not None and has_error_by_view(field)
     return dataclasses.replace(config, field_sigma_m=sigma_m, field_sigma_rad=rad, field_error_by_view=by_view)
