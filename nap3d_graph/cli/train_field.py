@@ -75,7 +75,7 @@ def add_parser(sub) -> None:
                    "a view field of the same frames (seconds), and record it: runs then add to each correction the "
                    "error at its own distance from the frames, not the error near them everywhere (a view field "
                    "always measures its own). On fr1/desk it took the grid's corrections' NEES into the chi-square "
-                   "band (README); off by default until the figures measured without it are measured again")
+                   "band; on simulated rooms it did not help (README), so it is off by default")
     p.add_argument("--no-field-error", action="store_true",
                    help="do not measure the field's own error (by default each held-out frame is aligned with the "
                    "render at its true pose, as a run would, and what the corrections miss beyond their covariance "
