@@ -60,7 +60,7 @@ def test_views_are_the_sharp_frames_of_each_stretch(survey):
     kept = np.array(report["view_frames"])
     assert report["sharpness_kept_median"] > report["sharpness_all_median"]
     # No two kept views see from within the spacing (camera centre plus viewing centre).
-    from nap3d_graph.fields.views import view_gap_m
+    from nap3d_graph.fields.gap_error import view_gap_m
 
     for a in range(len(field)):
         others = np.delete(np.arange(len(field)), a)
@@ -244,7 +244,7 @@ def test_a_splat_field_measures_its_error_growth_with_a_view_field_of_its_frames
     training frames the growth a view field of the same frames measured, with the views'
     geometry stored so a run finds each correction's gap; without the flag it records none."""
     from nap3d_graph.cli import main
-    from nap3d_graph.fields.error_growth import error_sigmas_at, has_error_by_view
+    from nap3d_graph.fields.gap_error import error_sigmas_at, has_error_by_view
     from nap3d_graph.run.config import PipelineConfig, with_field_error
 
     out = tmp_path / "splat.pt"

@@ -2,7 +2,7 @@
 
 ``train-field`` measures a field's error on held-out frames (:mod:`.field_error`), and those
 sit between training frames: 0.08 m from the nearest (camera plus viewing centre,
-:func:`~nap3d_graph.fields.views.view_gap_m`) on fr1/desk, where a later traversal's keyframes
+:func:`~nap3d_graph.fields.gap_error.view_gap_m`) on fr1/desk, where a later traversal's keyframes
 are 0.62 m away. A view field measures how its error grows by hiding its views near each
 held-out frame; a trained grid cannot hide what it learned. What grows with the distance is
 mostly the recording's own inconsistency (its poses, timing and depth registration seen from
@@ -13,7 +13,8 @@ near its frames as an independent source:
     sigma(gap)^2 = sigma_field^2 + max(sigma_views(gap)^2 - sigma_views(near)^2, 0)
 
 The model, with the views' geometry a run needs to find its gap, is stored as the field's
-``meta["field_error"]["by_view"]``; :func:`error_sigmas_at` reads it for any field.
+``meta["field_error"]["by_view"]``; :func:`~nap3d_graph.fields.gap_error.error_sigmas_at`
+reads it for any field.
 Measured on fr1/desk (`benchmarks/field_error_desk.py --error-growth`): the grid's
 corrections' NEES went from 9.0 to inside the chi-square band (5.4). On simulated rooms, where a
 grid renders true geometry at any distance and only the view field's warps degrade, it
@@ -27,7 +28,7 @@ import logging
 
 import numpy as np
 
-__all__ = ["add_error_growth", "combined_by_view", "error_sigmas_at", "has_error_by_view", "views_geometry"]
+__all__ = ["add_error_growth", "combined_by_view", "views_geometry"]
 
 log = logging.getLogger(__name__)
 
@@ -86,36 +87,3 @@ def add_error_growth(field, sequence, train_idx, error_idx, timing=None, align=N
              ", ".join(f"{g:.2f} m -> {m * 1000:.1f} mm / {np.degrees(r):.2f} deg"
                        for g, m, r in zip(model["gap_m"], model["sigma_m"], model["sigma_rad"])))
     return model
-
-
-def has_error_by_view(field) -> bool:
-    """Whether ``field`` knows how its error grows with the distance from what it saw: a view
-    field's own measurement, or a stored model with the views' geometry."""
-    if hasattr(field, "has_error_by_view"):
-        return bool(field.has_error_by_view)
-    model = ((getattr(field, "meta", None) or {}).get("field_error") or {}).get("by_view") or {}
-    return bool(model.get("gap_m")) and bool(model.get("views"))
-
-
-def error_sigmas_at(field, T_world_cam: np.ndarray) -> tuple[float, float] | None:
-    """``(sigma_m, sigma_rad)`` of ``field``'s error at ``T_world_cam`` (4x4, world <- camera)
-    by its distance from the nearest view, or None when the field has no such model."""
-    if hasattr(field, "error_sigmas_at"):
-        return field.error_sigmas_at(T_world_cam)
-    if not has_error_by_view(field):
-        return None
-    from .views import _interp_extend, view_gap_m
-
-    model = field.meta["field_error"]["by_view"]
-    geometry = model["views"]
-    axes = np.asarray(geometry["axes"], float)
-    T_world_views = np.tile(np.eye(4), (len(axes), 1, 1))  # only the centres and axes count
-    T_world_views[:, :3, 3], T_world_views[:, :3, 2] = np.asarray(geometry["centres"], float), axes
-    T = np.asarray(T_world_cam, float)
-    gap = view_gap_m(T_world_views, np.asarray(geometry["look_depth_m"], float), T)
-    gap[axes @ T[:3, 2] < np.cos(np.radians(geometry["max_angle_deg"]))] = np.inf
-    gaps = np.asarray(model["gap_m"], float)
-    nearest = float(gap.min()) if gap.size else np.inf
-    nearest = float(gaps[-1] * 4) if not np.isfinite(nearest) else nearest  # nothing looks its way: far
-    return (_interp_extend(nearest, gaps, np.asarray(model["sigma_m"], float)),
-            _interp_extend(nearest, gaps, np.asarray(model["sigma_rad"], float)))

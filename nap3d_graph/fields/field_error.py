@@ -156,7 +156,7 @@ def measure_field_error(field, sequence, indices, timing: CaptureTiming | None =
     return result
 
 
-#: Radii (metres of :func:`~nap3d_graph.fields.views.view_gap_m`: camera plus viewing centre),
+#: Radii (metres of :func:`~nap3d_graph.fields.gap_error.view_gap_m`: camera plus viewing centre),
 #: beyond each held-out frame's own nearest view, within which a view field's views are hidden
 #: from it, to measure its error from viewpoints it saw only from farther away. A held-out
 #: frame between training frames is near a view (fr1/desk: 0.08 m median), a later

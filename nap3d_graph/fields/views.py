@@ -52,8 +52,9 @@ from nap3d_graph.conventions import inv_T
 
 from .base import FieldError
 from .checkpoint import check_state, load_state, meta_json, save_state
+from .gap_error import interp_extend, view_gap_m
 
-__all__ = ["ViewFieldConfig", "ViewField", "build_view_field", "view_gap_m", "VIEW_FORMAT", "VIEW_VERSION"]
+__all__ = ["ViewFieldConfig", "ViewField", "build_view_field", "VIEW_FORMAT", "VIEW_VERSION"]
 
 log = logging.getLogger(__name__)
 
@@ -184,8 +185,8 @@ class ViewField:
         gaps = np.asarray(model["gap_m"], dtype=float)
         gap = self.nearest_gap_m(T_world_cam)
         gap = float(gaps[-1] * 4) if not np.isfinite(gap) else gap  # nothing looks its way: far
-        return (_interp_extend(gap, gaps, np.asarray(model["sigma_m"], dtype=float)),
-                _interp_extend(gap, gaps, np.asarray(model["sigma_rad"], dtype=float)))
+        return (interp_extend(gap, gaps, np.asarray(model["sigma_m"], dtype=float)),
+                interp_extend(gap, gaps, np.asarray(model["sigma_rad"], dtype=float)))
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
         """RGB, z-depth (m, 0 where no view sees) and opacity at ``T_world_cam`` (4x4,
@@ -333,26 +334,6 @@ class ViewField:
     def load(cls, path) -> "ViewField":
         path = Path(path)
         return cls.from_state_dict(load_state(path), source=str(path))
-
-
-def _interp_extend(x: float, xs: np.ndarray, ys: np.ndarray) -> float:
-    """``ys(x)`` interpolated on increasing ``xs``, extended with the last segment's slope
-    (never below the last value) beyond ``xs[-1]``; ``ys[0]`` before ``xs[0]``."""
-    if len(xs) > 1 and x > xs[-1]:
-        slope = max((ys[-1] - ys[-2]) / max(xs[-1] - xs[-2], 1e-9), 0.0)
-        return float(ys[-1] + slope * (x - xs[-1]))
-    return float(np.interp(x, xs, ys))
-
-
-def view_gap_m(T_world_views: np.ndarray, look_depth_m: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
-    """(V,) how differently each view sees from a camera at ``T_world_cam``: the distance of
-    the camera centres plus that of the viewing centres (the point ``look_depth_m`` ahead on
-    each optical axis; the asked camera's at each view's depth), in metres."""
-    T = np.asarray(T_world_cam)
-    centres = T_world_views[:, :3, 3]
-    looks = centres + T_world_views[:, :3, 2] * look_depth_m[:, None]
-    asked_looks = T[:3, 3] + T[:3, 2][None, :] * look_depth_m[:, None]
-    return np.linalg.norm(centres - T[:3, 3], axis=1) + np.linalg.norm(looks - asked_looks, axis=1)
 
 
 def _drop_cracks(z: np.ndarray, rel: float) -> np.ndarray:

@@ -206,7 +206,7 @@ class PipelineConfig:
         s_r = self.field_sigma_rad if self.field_sigma_rad is not None else s_t / self.field_sigma_depth_m
         local = None
         if self.field_error_by_view and field is not None and T_field_cam is not None:
-            from nap3d_graph.fields.error_growth import error_sigmas_at
+            from nap3d_graph.fields.gap_error import error_sigmas_at
 
             local = error_sigmas_at(field, T_field_cam)
         if local is not None:
@@ -239,7 +239,7 @@ def with_field_error(config: PipelineConfig, field) -> PipelineConfig:
 
     sigma_m, sigma_rad = field_sigmas(field) if field is not None else (0.0, 0.0)
     rad = config.field_sigma_rad if config.field_sigma_rad is not None else sigma_rad
-    from nap3d_graph.fields.error_growth import has_error_by_view
+    from nap3d_graph.fields.gap_error import has_error_by_view
 
     by_view = field is not None and has_error_by_view(field)
     return dataclasses.replace(config, field_sigma_m=sigma_m, field_sigma_rad=rad, field_error_by_view=by_view)
