@@ -266,7 +266,7 @@ def test_a_run_is_reproduced_from_its_config(walk, tmp_path, capsys):
     assert reproduced["pipeline"]["keyframe_every"] == 3 and reproduced["pipeline"]["gate_p"] == 0.99
     assert reproduced["pipeline"]["depth_scale_tolerance"] == 0.05
     assert reproduced["odometry"] == "vo" and reproduced["vo_width"] == 160
-    assert reproduced["pipeline"]["rolling_shutter_s"] == 0.02
+    assert reproduced["pipeline"]["rolling_shutter_s"] == 0.02 and reproduced["rolling_shutter_readout_s"] == 0.02
     # A flag given on the command line wins over the file.
     assert main(["run", "--config", str(config), "--keyframe-every", "4", "--rolling-shutter", "0.01",
                  "--out", str(tmp_path / "third")]) == 0

@@ -531,7 +531,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
               "--field-sigma 0 takes the field as exact")
     record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
               "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
-              "vo_width": getattr(args, "vo_width", None), "rolling_shutter_readout_s": readout_s,
+              "vo_width": getattr(args, "vo_width", None), "rolling_shutter_readout_s": round(readout_s, 6),
               "initial_pose": None if initial_pose is None else initial_pose.tolist(),
               "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
               "seed": args.seed,
