@@ -6,7 +6,7 @@ as the embedded default does, a grid field is trained on the survey as the embed
 builds it (its error near its frames measured), and the traversal is corrected with the
 default settings twice: with the error near the frames used everywhere (the default), and
 with its growth measured by a view field of the survey's training frames
-(:func:`~nap3d_graph.fields.error_growth.add_error_growth`). Per room and pooled: the
+(:func:`~nap3d_graph.fields.error_growth.measure_error_growth`). Per room and pooled: the
 corrections' NEES (mean against the 95% band of a mean of k chi-square(6) values, median),
 the ATE (smoothed and causal, no alignment) and corrections accepted. ``--workdir`` keeps the
 simulated rooms and fields (``drift_rooms.py`` writes the same ones) for a later run. Writes JSON.
@@ -74,7 +74,7 @@ def _run(walk, field) -> dict:
 
 def main(argv=None) -> None:
     from nap3d_graph.fields.build import ERROR_FRAMES
-    from nap3d_graph.fields.error_growth import add_error_growth
+    from nap3d_graph.fields.error_growth import measure_error_growth
     from nap3d_graph.fields.training_data import split_posed_frames
     from nap3d_graph.run.default import DEFAULT_TRAIN_STEPS
 
@@ -92,7 +92,10 @@ def main(argv=None) -> None:
         row = {"field_error": {k: v for k, v in (field.meta.get("field_error") or {}).items() if k != "by_view"},
                "near_frames_everywhere": _run(walk, field)}
         _, error_idx = split_posed_frames(survey, 1, ERROR_FRAMES)
-        model = add_error_growth(field, survey, field.meta["train_frames"], error_idx, field.meta.get("timing"))
+        model = measure_error_growth(field.meta["field_error"], survey, field.meta["train_frames"], error_idx,
+                                     field.meta.get("timing"))
+        if model is not None:
+            field.meta["field_error"]["by_view"] = model
         row["growth"] = None if model is None else {k: v for k, v in model.items() if k != "views"}
         row["with_growth"] = _run(walk, field) if model is not None else None
         out["per_room"][room] = row

@@ -61,15 +61,16 @@ def _add_growth(field, data: Path, matcher: str) -> dict | None:
     it was built from (``meta["train_frames"]`` of frames 0:0.5) as train-field measures it."""
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields.build import ERROR_FRAMES
-    from nap3d_graph.fields.error_growth import add_error_growth
+    from nap3d_graph.fields.error_growth import measure_error_growth
     from nap3d_graph.fields.training_data import split_posed_frames
     from nap3d_graph.nap3d.config import AlignConfig
 
     sequence = open_sequence(data, frames="0:0.5")
     _, error_idx = split_posed_frames(sequence, 1, ERROR_FRAMES)
-    model = add_error_growth(field, sequence, field.meta["train_frames"], error_idx, field.meta.get("timing"),
-                             AlignConfig(matcher=matcher))
+    model = measure_error_growth(field.meta["field_error"], sequence, field.meta["train_frames"], error_idx,
+                                 field.meta.get("timing"), AlignConfig(matcher=matcher))
     if model is not None:
+        field.meta["field_error"]["by_view"] = model
         print("error by gap: " + ", ".join(f"{g:.2f} m -> {m * 1000:.1f} mm / {np.degrees(r):.2f} deg" for g, m, r
                                            in zip(model["gap_m"], model["sigma_m"], model["sigma_rad"])), flush=True)
         return {k: v for k, v in model.items() if k != "views"}

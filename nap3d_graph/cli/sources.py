@@ -267,13 +267,9 @@ class Prepared:
 def _say_readout(config, field_obj) -> float:
     """The rolling-shutter readout (s) the run compensates, said in one line when it did not come
     from the command line."""
-    from nap3d_graph.datasets.depth_timing import CaptureTiming
-    from nap3d_graph.run.keyframe import readout_of
+    from nap3d_graph.run.keyframe import capture_timing, readout_of
 
-    timing = None
-    if config.compensate_timing:
-        timing = CaptureTiming.of(config.timing) or CaptureTiming.of((getattr(field_obj, "meta", None) or {}).get("timing"))
-    readout_s = readout_of(config, timing)
+    readout_s = readout_of(config, capture_timing(config, field_obj))
     if readout_s > 0 and config.rolling_shutter_s is None:
         print(f"rolling shutter: colour rows read over {readout_s * 1000:.0f} ms (estimated with the capture timing); "
               "each keyframe is aligned as of its middle row (--rolling-shutter 0: a global shutter)")

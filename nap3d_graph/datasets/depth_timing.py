@@ -257,7 +257,6 @@ class _MatchedPairs:
         from nap3d_graph.nap3d.matching import detect_features, match_features
 
         self.sequence = sequence
-        self.scale = timing.scale
         chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
         needed = sorted({i for pair in chosen for i in pair})
         frames = {i: sequence[i] for i in needed}
@@ -291,7 +290,7 @@ class _MatchedPairs:
             ok = np.isfinite(z) & (z > 0)
             rays = np.stack([(m.uv_a[ok, 0] - K.cx) / K.fx, (m.uv_a[ok, 1] - K.cy) / K.fy, np.ones(ok.sum())], 1)
             world = np.einsum("nij,nj->ni", T_i[ok, :3, :3], rays * z[ok, None]) + T_i[ok, :3, 3]
-            T_j_cam = np.linalg.inv(T_j[ok])
+            T_j_cam = inv_T(T_j[ok])
             uv_j, _ = project(np.einsum("nij,nj->ni", T_j_cam[:, :3, :3], world) + T_j_cam[:, :3, 3], K)
             errors.append(np.linalg.norm(uv_j - m.uv_b[ok], axis=1))
         values = np.concatenate(errors) if errors else np.zeros(0)

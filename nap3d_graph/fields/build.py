@@ -200,10 +200,12 @@ def _field_error(field, sequence, every, timing, render_size, matcher, growth_tr
         if by_view is not None:
             error["by_view"] = by_view
     elif growth_train_idx is not None and error.get("sigma_m"):  # a grid or splat: its growth, from its frames' views
-        from .error_growth import add_error_growth
+        from .error_growth import measure_error_growth
 
-        field.meta["field_error"] = error
-        add_error_growth(field, sequence, growth_train_idx, error_idx, timing, AlignConfig(matcher=matcher), render_size)
+        grown = measure_error_growth(error, sequence, growth_train_idx, error_idx, timing, AlignConfig(matcher=matcher),
+                                     render_size)
+        if grown is not None:
+            error["by_view"] = grown
     error.update({"matcher": matcher, "seconds": round(time.perf_counter() - started, 2)})
     return error
 

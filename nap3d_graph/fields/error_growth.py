@@ -28,7 +28,7 @@ import logging
 
 import numpy as np
 
-__all__ = ["add_error_growth", "combined_by_view", "views_geometry"]
+__all__ = ["measure_error_growth", "combined_by_view", "views_geometry"]
 
 log = logging.getLogger(__name__)
 
@@ -57,20 +57,19 @@ def combined_by_view(sigma_m: float, sigma_rad: float, views_by_view: dict, geom
             "views": geometry}
 
 
-def add_error_growth(field, sequence, train_idx, error_idx, timing=None, align=None,
-                     render_size=(320, 240)) -> dict | None:
-    """Measure how ``field``'s error grows away from its training frames ``train_idx`` of
-    ``sequence`` (a view field of them, measured on the held-out frames ``error_idx`` with its
-    views near each hidden)
-    and store the combined model in ``field.meta["field_error"]["by_view"]``, which must hold
-    the field's own ``sigma_m`` / ``sigma_rad`` already. Returns the model, or None (nothing
-    stored) when the growth could not be measured."""
+def measure_error_growth(error: dict, sequence, train_idx, error_idx, timing=None, align=None,
+                         render_size=(320, 240)) -> dict | None:
+    """How a field whose own error near its frames is ``error`` (its ``sigma_m`` /
+    ``sigma_rad``, :func:`~nap3d_graph.fields.field_error.measure_field_error`) errs away from
+    its training frames ``train_idx`` of ``sequence``: a view field of them, measured on the
+    held-out frames ``error_idx`` with its views near each hidden. Returns the combined model
+    (:func:`combined_by_view`, to store as ``meta["field_error"]["by_view"]``), or None when the
+    growth could not be measured."""
     from nap3d_graph.datasets.depth_timing import CaptureTiming
 
     from .field_error import measure_error_by_view
     from .views import ViewFieldConfig, build_view_field
 
-    error = (field.meta or {}).get("field_error") or {}
     if not error.get("sigma_m"):
         return None
     timing = CaptureTiming.of(timing) or CaptureTiming()
@@ -82,7 +81,6 @@ def add_error_growth(field, sequence, train_idx, error_idx, timing=None, align=N
         return None
     model = combined_by_view(float(error["sigma_m"]), float(error.get("sigma_rad") or 0.0), grown,
                              views_geometry(views))
-    field.meta.setdefault("field_error", {})["by_view"] = model
     log.info("field error by gap (its own near its frames, the view field's growth added): %s",
              ", ".join(f"{g:.2f} m -> {m * 1000:.1f} mm / {np.degrees(r):.2f} deg"
                        for g, m, r in zip(model["gap_m"], model["sigma_m"], model["sigma_rad"])))

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["view_gap_m", "interp_extend", "has_error_by_view", "error_sigmas_at"]
+__all__ = ["view_gap_m", "interp_extend", "sigmas_at_gap", "has_error_by_view", "error_sigmas_at"]
 
 
 def view_gap_m(T_world_views: np.ndarray, look_depth_m: np.ndarray, T_world_cam: np.ndarray) -> np.ndarray:
@@ -28,6 +28,16 @@ def interp_extend(x: float, xs: np.ndarray, ys: np.ndarray) -> float:
         slope = max((ys[-1] - ys[-2]) / max(xs[-1] - xs[-2], 1e-9), 0.0)
         return float(ys[-1] + slope * (x - xs[-1]))
     return float(np.interp(x, xs, ys))
+
+
+def sigmas_at_gap(model: dict, gap_m: float) -> tuple[float, float]:
+    """``(sigma_m, sigma_rad)`` of an error-by-gap ``model`` (``gap_m``, ``sigma_m``,
+    ``sigma_rad`` at increasing gaps) at ``gap_m``, interpolated and extended linearly beyond
+    the largest measured gap; an infinite gap (no view looks that way) counts as far."""
+    gaps = np.asarray(model["gap_m"], dtype=float)
+    gap_m = float(gaps[-1] * 4) if not np.isfinite(gap_m) else float(gap_m)
+    return (interp_extend(gap_m, gaps, np.asarray(model["sigma_m"], dtype=float)),
+            interp_extend(gap_m, gaps, np.asarray(model["sigma_rad"], dtype=float)))
 
 
 def has_error_by_view(field) -> bool:
@@ -54,8 +64,4 @@ def error_sigmas_at(field, T_world_cam: np.ndarray) -> tuple[float, float] | Non
     T = np.asarray(T_world_cam, float)
     gap = view_gap_m(T_world_views, np.asarray(geometry["look_depth_m"], float), T)
     gap[axes @ T[:3, 2] < np.cos(np.radians(geometry["max_angle_deg"]))] = np.inf
-    gaps = np.asarray(model["gap_m"], float)
-    nearest = float(gap.min()) if gap.size else np.inf
-    nearest = float(gaps[-1] * 4) if not np.isfinite(nearest) else nearest  # nothing looks its way: far
-    return (interp_extend(nearest, gaps, np.asarray(model["sigma_m"], float)),
-            interp_extend(nearest, gaps, np.asarray(model["sigma_rad"], float)))
+    return sigmas_at_gap(model, float(gap.min()) if gap.size else np.inf)

@@ -52,7 +52,7 @@ from nap3d_graph.conventions import inv_T
 
 from .base import FieldError
 from .checkpoint import check_state, load_state, meta_json, save_state
-from .gap_error import interp_extend, view_gap_m
+from .gap_error import sigmas_at_gap, view_gap_m
 
 __all__ = ["ViewFieldConfig", "ViewField", "build_view_field", "VIEW_FORMAT", "VIEW_VERSION"]
 
@@ -181,12 +181,7 @@ class ViewField:
         extended linearly beyond the largest measured one; None without that measurement."""
         if not self.has_error_by_view:
             return None
-        model = self.meta["field_error"]["by_view"]
-        gaps = np.asarray(model["gap_m"], dtype=float)
-        gap = self.nearest_gap_m(T_world_cam)
-        gap = float(gaps[-1] * 4) if not np.isfinite(gap) else gap  # nothing looks its way: far
-        return (interp_extend(gap, gaps, np.asarray(model["sigma_m"], dtype=float)),
-                interp_extend(gap, gaps, np.asarray(model["sigma_rad"], dtype=float)))
+        return sigmas_at_gap(self.meta["field_error"]["by_view"], self.nearest_gap_m(T_world_cam))
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
         """RGB, z-depth (m, 0 where no view sees) and opacity at ``T_world_cam`` (4x4,

@@ -35,7 +35,7 @@ from nap3d_graph.run.config import PipelineConfig, with_field_error
 from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
-from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
+from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, capture_timing, measure_keyframe
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
 from nap3d_graph.run.read_ahead import FrameReadAhead, reads_concurrently
 from nap3d_graph.run.records import KeyframeRecord, RunResult
@@ -457,11 +457,7 @@ class Pipeline:
 
     def _timing(self) -> CaptureTiming | None:
         """The capture timing the run compensates: the config's, else the field's (None: off)."""
-        if not self.config.compensate_timing:
-            return None
-        if self.config.timing is not None:
-            return CaptureTiming.of(self.config.timing)
-        return CaptureTiming.of((getattr(self.field, "meta", None) or {}).get("timing"))
+        return capture_timing(self.config, self.field)
 
     def _velocity(self, i: int) -> np.ndarray | None:
         """Body twist per second (GTSAM order) of the camera at frame i, by the motion model."""
