@@ -2,7 +2,8 @@
 
 For each held-out frame of a field built by ``train-field`` (the frames its
 ``FIELD.report.json`` evaluated), the field renders at the frame's colour pose (its capture
-timing, 320x240) as ``train-field`` evaluates it. Per frame: the raw PSNR; the PSNR over the
+timing, 320x240) as ``train-field`` evaluates it. Per frame, over the pixels the real image
+holds data for (not the undistortion's black corners): the raw PSNR; the PSNR over the
 pixels the field renders with depth (opaque); the dense optical flow (OpenCV's Farneback)
 from the real frame to the render, its median and p90 magnitude over opaque pixels (how far,
 in pixels, the render's texture sits from the image's: pose, timing and depth errors of the
@@ -35,25 +36,29 @@ def registration(sequence, field, frames: list[int], size: tuple[int, int]) -> l
     """Per held-out frame: PSNR raw / opaque / flow-warped, flow median and p90 (px)."""
     import cv2
 
+    from nap3d_graph.camera import colour_coverage
     from nap3d_graph.datasets.depth_timing import CaptureTiming
     from nap3d_graph.fields.evaluation import _poses
 
     K = sequence.intrinsics.without_distortion().scaled(*size)
     T_colour, _, _ = _poses(sequence, frames, CaptureTiming.of(field.meta.get("timing")))
     h, w = K.height, K.width
+    scored = colour_coverage(sequence, (w, h))
+    scored = np.ones((h, w), bool) if scored is None else scored
     gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
     rows = []
     for k, i in enumerate(frames):
         real = cv2.resize(sequence[int(i)].rgb, (w, h), interpolation=cv2.INTER_AREA)
         view = field.render(T_colour[k], K)
-        opaque = view.opacity > 0.5
+        opaque = (view.opacity > 0.5) & scored
         flow = cv2.calcOpticalFlowFarneback(cv2.cvtColor(real, cv2.COLOR_RGB2GRAY),
                                             cv2.cvtColor(view.rgb, cv2.COLOR_RGB2GRAY), None,
                                             0.5, 3, 15, 3, 5, 1.2, 0)
         magnitude = np.linalg.norm(flow, axis=2)[opaque]
         warped = cv2.remap(view.rgb, gx + flow[..., 0], gy + flow[..., 1], cv2.INTER_LINEAR)
-        rows.append({"index": int(i), "psnr_db": _psnr(view.rgb, real), "psnr_opaque_db": _psnr(view.rgb, real, opaque),
-                     "psnr_flow_warped_db": _psnr(warped, real), "opaque_fraction": float(opaque.mean()),
+        rows.append({"index": int(i), "psnr_db": _psnr(view.rgb, real, scored), "psnr_opaque_db": _psnr(view.rgb, real, opaque),
+                     "psnr_flow_warped_db": _psnr(warped, real, scored),
+                     "opaque_fraction": float(opaque[scored].mean()),
                      "flow_px_median": float(np.median(magnitude)) if magnitude.size else None,
                      "flow_px_p90": float(np.percentile(magnitude, 90)) if magnitude.size else None})
     return rows

@@ -6,6 +6,7 @@ Depth images are z-depth in metres (float32); 0 or NaN means missing.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,6 +22,7 @@ __all__ = [
     "RenderedView",
     "backproject",
     "backproject_depth",
+    "colour_coverage",
     "project",
     "valid_depth_mask",
     "warp_depth",
@@ -237,6 +239,35 @@ class RenderedView:
         _check_image("rgb", self.rgb, self.intrinsics)
         _check_image("depth_m", self.depth_m, self.intrinsics)
         _check_image("opacity", self.opacity, self.intrinsics)
+
+
+@functools.lru_cache(maxsize=8)
+def _undistorted_coverage(raw: Intrinsics, size: tuple[int, int] | None) -> np.ndarray:
+    import cv2
+
+    map_x, map_y = raw.undistortion_maps()
+    ones = np.full((raw.height, raw.width), 255, np.uint8)
+    # Bilinear: a pixel counts only when all four of its source pixels lie inside the raw image.
+    covered = cv2.remap(ones, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if size is not None and tuple(size) != (raw.width, raw.height):
+        # Area resampling, as the frames are shrunk: a small pixel is covered only when all of it is.
+        covered = cv2.resize(covered, tuple(size), interpolation=cv2.INTER_AREA)
+    mask = covered >= 255
+    mask.flags.writeable = False
+    return mask
+
+
+def colour_coverage(sequence, size: tuple[int, int] | None = None) -> np.ndarray | None:
+    """(H, W) bool, read-only: the pixels of ``sequence``'s delivered colour images that hold
+    data. A reader that undistorts (TUM, ROS bags, the simulator's distorted camera) remaps
+    the raw image, and where the remap reaches outside it the delivered image is black
+    (fr1/desk: 6% of it, in the corners): no measurement, so no training target, no view to
+    warp, nothing to score. None when every pixel holds data. ``size`` (width, height): the
+    mask of the frames shrunk to that size (by area, as the fields shrink them)."""
+    raw = getattr(sequence, "raw_intrinsics", None)
+    if raw is None or not getattr(sequence, "undistort", False) or not any(raw.distortion):
+        return None
+    return _undistorted_coverage(raw, None if size is None else (int(size[0]), int(size[1])))
 
 
 def valid_depth_mask(depth_m: np.ndarray, min_m: float = 0.0, max_m: float = np.inf) -> np.ndarray:

@@ -4,7 +4,8 @@ One protocol for every field type (grid, splat, oracle, nerfstudio), so candidat
 compared on the same frames: render at each frame's pose, at the resolution the pipeline
 renders at, and compare with the frame itself.
 
-* colour: PSNR raw, and after a per-image, per-channel affine colour fit of the render onto
+* colour: PSNR raw, over the pixels the real image holds data for (an undistorting reader's
+  black corners are no measurement, :func:`~nap3d_graph.camera.colour_coverage`), and after a per-image, per-channel affine colour fit of the render onto
   the image (a real camera's exposure and white balance change from frame to frame; the
   alignment's SIFT does not care, a raw PSNR does);
 * depth: the median / p90 of |field - reference| where the field is opaque, the reference
@@ -29,6 +30,7 @@ from typing import Sequence
 
 import numpy as np
 
+from nap3d_graph.camera import colour_coverage
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 
 __all__ = ["evaluate_field", "psnr", "oracle_for", "affine_fit_psnr"]
@@ -64,9 +66,11 @@ def oracle_for(sequence):
     return None
 
 
-def affine_fit_psnr(rendered01: np.ndarray, real01: np.ndarray, mask: np.ndarray) -> float:
+def affine_fit_psnr(rendered01: np.ndarray, real01: np.ndarray, mask: np.ndarray,
+                    scored: np.ndarray | None = None) -> float:
     """PSNR after mapping each channel of the render (H, W, 3) in [0, 1] onto the image by
-    the least-squares affine fit over ``mask`` (H, W) pixels (all pixels count in the PSNR)."""
+    the least-squares affine fit over ``mask`` (H, W) pixels (the ``scored`` (H, W) pixels
+    count in the PSNR; all when None)."""
     fitted = rendered01.copy()
     if mask.sum() >= 10:
         for k in range(3):
@@ -74,7 +78,8 @@ def affine_fit_psnr(rendered01: np.ndarray, real01: np.ndarray, mask: np.ndarray
             A = np.stack([x, np.ones_like(x)], axis=1)
             (a, b), *_ = np.linalg.lstsq(A, y, rcond=None)
             fitted[..., k] = a * rendered01[..., k] + b
-    return psnr(float(np.mean((np.clip(fitted, 0, 1) - real01) ** 2)))
+    err = (np.clip(fitted, 0, 1) - real01) ** 2
+    return psnr(float(np.mean(err if scored is None else err[scored])))
 
 
 def _poses(sequence, indices, timing):
@@ -106,6 +111,7 @@ def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: t
     K_full = sequence.intrinsics.without_distortion()
     K = K_full if size is None else K_full.scaled(*size)
     T_colour, T_depth, scale = _poses(sequence, indices, timing)
+    scored = colour_coverage(sequence, None if size is None else (K.width, K.height))
     sq_err, n_px = 0.0, 0
     abs_errs, opac, opaque, xs, ys, secs, per_frame, affine = [], [], [], [], [], [], [], []
     for k, i in enumerate(indices):
@@ -124,10 +130,13 @@ def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: t
             field.render(T_depth[k], K)
         real01 = rgb_real.astype(np.float64) / 255.0
         rend01 = view.rgb.astype(np.float64) / 255.0
-        frame_mse = float(np.mean((rend01 - real01) ** 2))
-        sq_err += frame_mse * real01[..., 0].size
-        n_px += real01[..., 0].size
-        frame_affine = affine_fit_psnr(rend01, real01, view.opacity > 0.5)
+        err2 = (rend01 - real01) ** 2
+        frame_mse = float(np.mean(err2 if scored is None else err2[scored]))
+        n_scored = real01[..., 0].size if scored is None else int(scored.sum())
+        sq_err += frame_mse * n_scored
+        n_px += n_scored
+        fit_mask = view.opacity > 0.5 if scored is None else (view.opacity > 0.5) & scored
+        frame_affine = affine_fit_psnr(rend01, real01, fit_mask, scored)
         affine.append(frame_affine)
         reference = oracle.render(T_depth[k], K).depth_m if oracle is not None else sensor
         surface = reference > 0

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics, RenderedView
+from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics, RenderedView, colour_coverage
 from nap3d_graph.camera import sharpness as image_sharpness
 from nap3d_graph.conventions import inv_T
 
@@ -269,8 +269,10 @@ def _sample_colour(rgb01: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def _frame_points(frame, T_world_depth: np.ndarray, T_world_colour: np.ndarray, scale: float,
-                  config: SplatConfig):
-    """World points (M, 3), colours (M, 3) in [0, 1] and weights (M,) of one frame."""
+                  config: SplatConfig, coverage: np.ndarray | None = None):
+    """World points (M, 3), colours (M, 3) in [0, 1] and weights (M,) of one frame; only
+    points whose colour lands where the image holds data (``coverage`` (H, W) bool, see
+    :func:`~nap3d_graph.camera.colour_coverage`; None: everywhere)."""
     K = frame.intrinsics
     depth = np.nan_to_num(frame.depth_m.astype(np.float64), nan=0.0) * scale
     depth[(depth < config.min_depth_m) | (depth > config.max_depth_m)] = 0.0
@@ -287,6 +289,10 @@ def _frame_points(frame, T_world_depth: np.ndarray, T_world_colour: np.ndarray, 
     uc = K.fx * p_colour[:, 0] / zc + K.cx
     vc = K.fy * p_colour[:, 1] / zc + K.cy
     inside = (zc > 0) & (uc >= 0) & (uc < K.width - 1) & (vc >= 0) & (vc < K.height - 1)
+    if coverage is not None:
+        # The bilinear sample's four pixels: the corner ones are enough on a convex border.
+        iu, iv = np.where(inside, uc, 0).astype(int), np.where(inside, vc, 0).astype(int)
+        inside &= coverage[iv, iu] & coverage[iv + 1, iu + 1] & coverage[iv, iu + 1] & coverage[iv + 1, iu]
     colours = _sample_colour(frame.rgb.astype(np.float32) / 255.0, np.stack([uc, vc], 1)[inside])
     sigma = config.depth_sigma_floor_m + config.depth_sigma_z2_per_m * z[inside] ** 2
     return world[inside].astype(np.float32), colours.astype(np.float32), (1.0 / sigma**2).astype(np.float32)
@@ -350,13 +356,14 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
     started = time.perf_counter()
     T_depth, T_colour = capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
     chunks, sharpness = [], np.ones(len(indices))
+    coverage = colour_coverage(sequence)
     for k, i in enumerate(tqdm(indices, desc="fuse frames", unit="frame", disable=not progress, leave=False)):
         if not (np.all(np.isfinite(T_depth[k])) and np.all(np.isfinite(T_colour[k]))):
             continue
         frame = sequence[int(i)]
         # Full resolution; the small offset keeps a featureless frame's weight above zero.
         sharpness[k] = image_sharpness(frame.rgb, width=None) + 1e-6
-        points, colours, weights = _frame_points(frame, T_depth[k], T_colour[k], depth_scale, config)
+        points, colours, weights = _frame_points(frame, T_depth[k], T_colour[k], depth_scale, config, coverage)
         chunks.append((np.full(len(points), k, np.int64), points, colours, weights))
     if not chunks:
         raise FieldError("no training frame has a usable depth pixel")

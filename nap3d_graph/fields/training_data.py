@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import torch
 
-from nap3d_graph.camera import Intrinsics, backproject_depth, valid_depth_mask
+from nap3d_graph.camera import Intrinsics, backproject_depth, colour_coverage, valid_depth_mask
 from nap3d_graph.conventions import transform_points
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.fields.grid import GridField, trilinear_corners
@@ -93,6 +93,7 @@ class TrainingRays:
             T_depth = np.where(bad[:, None, None], poses[idx], T_depth)
         intrinsics = sequence.intrinsics.without_distortion()
         h, w = intrinsics.height, intrinsics.width
+        coverage = colour_coverage(sequence)
         rgb = np.empty((len(indices), h, w, 3), dtype=np.uint8)
         depth = np.empty((len(indices), h, w), dtype=np.float32)
         for k, i in enumerate(tqdm(indices, desc="load frames", unit="frame", disable=not progress, leave=False)):
@@ -105,6 +106,8 @@ class TrainingRays:
             if timing is not None:
                 d = warp_depth(d, intrinsics, inv_T(T_colour[k]) @ T_depth[k], timing.depth_scale)
             d[~valid_depth_mask(d, config.min_depth_m, config.max_depth_m)] = 0.0
+            if coverage is not None:
+                d[~coverage] = 0.0  # a pixel without colour data is no training target
             depth[k] = d
         T = np.asarray(T_colour)
         num_valid = int(np.count_nonzero(depth))

@@ -46,7 +46,7 @@ import cv2
 import numpy as np
 import torch
 
-from nap3d_graph.camera import Intrinsics, RenderedView, backproject_depth, warp_depth
+from nap3d_graph.camera import Intrinsics, RenderedView, backproject_depth, colour_coverage, warp_depth
 from nap3d_graph.camera import sharpness as image_sharpness
 from nap3d_graph.conventions import inv_T
 
@@ -92,13 +92,16 @@ class ViewField:
 
     rgb: (V, H, W, 3) uint8; depth_m: (V, H, W) float32 z-depth in each view's colour camera
     (0 = none); T_world_cam: (V, 4, 4) float64 colour-camera poses (world <- camera);
-    intrinsics: the views' pinhole camera (H x W); meta: JSON-serialisable provenance.
+    intrinsics: the views' pinhole camera (H x W); meta: JSON-serialisable provenance;
+    coverage: (H, W) bool, the pixels of the views' images that hold data (an undistorted
+    camera's black corners do not, see :func:`~nap3d_graph.camera.colour_coverage`), None
+    for all.
     """
 
     name = "views"
 
     def __init__(self, rgb, depth_m, T_world_cam, intrinsics: Intrinsics, config: ViewFieldConfig | None = None,
-                 meta: dict | None = None):
+                 meta: dict | None = None, coverage: np.ndarray | None = None):
         self.rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
         self.depth_m = np.ascontiguousarray(depth_m, dtype=np.float32)
         self.T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
@@ -110,6 +113,9 @@ class ViewField:
                              f"with V >= 1; got {self.rgb.shape}, {self.depth_m.shape}, {self.T_world_cam.shape}")
         if not np.all(np.isfinite(self.T_world_cam)) or not np.all(np.isfinite(self.depth_m)):
             raise FieldError("a view field's poses and depths must be finite")
+        if coverage is not None and np.shape(coverage) != (h, w):
+            raise FieldError(f"a view field's coverage must be ({h}, {w}), got {np.shape(coverage)}")
+        self.coverage = None if coverage is None else np.array(coverage, dtype=bool)  # own, writable copy
         self.intrinsics = intrinsics.without_distortion()
         self.config = config or ViewFieldConfig(width=w, height=h)
         self.meta = dict(meta or {})
@@ -288,8 +294,9 @@ class ViewField:
             H = K_asked @ (T_cam_view[:3, :3] + np.outer(T_cam_view[:3, 3], [0.0, 0.0, 1.0 / self._look_depth_m[j]])) \
                 @ K_view_inv
             warped = cv2.warpPerspective(self.rgb[j], H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            inside = cv2.warpPerspective(np.ones(self.rgb[j].shape[:2], np.uint8), H, size, flags=cv2.INTER_NEAREST,
-                                         borderMode=cv2.BORDER_CONSTANT) > 0
+            has_data = np.ones(self.rgb[j].shape[:2], np.uint8) if self.coverage is None else \
+                self.coverage.astype(np.uint8)
+            inside = cv2.warpPerspective(has_data, H, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) > 0
             take = hole & inside
             out[take] = warped[take]
             hole &= ~take
@@ -305,7 +312,8 @@ class ViewField:
                 "intrinsics": json.dumps(self.intrinsics.to_dict()), "config": json.dumps(self.config.to_dict()),
                 "conventions": "units=metres; T_world_cam: world <- OpenCV colour camera at the colour's capture "
                                "instant; depth_m: z-depth in that camera, 0 = none; rgb: the frame's own colours",
-                "meta": meta_json(self.meta)}
+                "meta": meta_json(self.meta),
+                **({} if self.coverage is None else {"coverage": torch.from_numpy(self.coverage)})}
 
     def save(self, path) -> Path:
         """Write the checkpoint (:meth:`state_dict`, atomically); returns the path."""
@@ -322,8 +330,9 @@ class ViewField:
             meta = json.loads(state.get("meta", "{}"))
         except (TypeError, ValueError, KeyError) as exc:
             raise FieldError(f"{source}: unreadable checkpoint metadata ({exc})") from None
+        coverage = state.get("coverage")
         return cls(state["rgb"].numpy(), state["depth_m"].numpy(), state["T_world_cam"].numpy(), intrinsics,
-                   config, meta)
+                   config, meta, None if coverage is None else coverage.numpy())
 
     @classmethod
     def load(cls, path) -> "ViewField":
@@ -403,6 +412,7 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
         raise FieldError("no training frame has a finite pose")
     look_m = float(np.median(_median_depths(sequence, indices[np.flatnonzero(posed)])))
     chosen = _choose_views(T_colour, sharp, posed, look_m, config.min_spacing_m)
+    coverage = colour_coverage(sequence, (K.width, K.height))
     rgb = np.empty((len(chosen), K.height, K.width, 3), np.uint8)
     depth = np.empty((len(chosen), K.height, K.width), np.float32)
     for n, k in enumerate(tqdm(chosen, desc="store views", unit="view", disable=not progress, leave=False)):
@@ -411,8 +421,10 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
         d = warp_depth(np.nan_to_num(frame.depth_m, nan=0.0), K_full, inv_T(T_colour[k]) @ T_depth[k],
                        depth_scale, dst_intrinsics=K)
         d[(d < config.min_depth_m) | (d > config.max_depth_m)] = 0.0
+        if coverage is not None:
+            d[~coverage] = 0.0  # no colour there: the black corners must not be warped into other views
         depth[n] = d
-    field = ViewField(rgb, depth, T_colour[chosen], K, config)
+    field = ViewField(rgb, depth, T_colour[chosen], K, config, coverage=coverage)
     report = {"views": int(len(chosen)), "frames_rated": int(posed.sum()), "look_depth_m": round(look_m, 4),
               "view_frames": [int(indices[k]) for k in chosen],
               "sharpness_kept_median": float(np.median(sharp[chosen])),
