@@ -264,3 +264,24 @@ def test_real_nerfstudio_cameras_agree_with_our_rays(dataparser_file):  # pragma
     ours = ours @ T_world_cam[:3, :3].T
     ours /= np.linalg.norm(ours, axis=1, keepdims=True)
     np.testing.assert_allclose(dirs_world, ours, atol=1e-5)
+
+
+def test_export_masks_the_undistortion_corners_of_real_frames(tmp_path):
+    from conftest import TUM_FR1_XYZ
+
+    from nap3d_graph.camera import colour_coverage
+    from nap3d_graph.datasets import TumSequence
+
+    seq = TumSequence(TUM_FR1_XYZ)
+    path = export_nerfstudio(seq, tmp_path / "ns", every=6)
+    frames = json.loads(path.read_text())["frames"]
+    assert len(frames) == 2 and {f["mask_path"] for f in frames} == {"masks/coverage.png"}
+    mask = cv2.imread(str(path.parent / "masks" / "coverage.png"), cv2.IMREAD_UNCHANGED)
+    assert mask.shape == (480, 640) and set(np.unique(mask)) == {0, 255}
+    np.testing.assert_array_equal(mask > 0, colour_coverage(seq))
+    rgb = cv2.imread(str(path.parent / frames[0]["file_path"]))
+    assert (rgb[mask == 0].sum(axis=1) == 0).mean() > 0.85 and (rgb[mask > 0].sum(axis=1) > 0).all()
+    # A camera without distortion holds data everywhere: no masks.
+    plain = export_nerfstudio(_TinySequence(K.scaled(32, 24)), tmp_path / "plain")
+    assert not any("mask_path" in f for f in json.loads(plain.read_text())["frames"])
+    assert not (plain.parent / "masks").exists()

@@ -1,4 +1,5 @@
-"""Export posed RGB-D as a nerfstudio dataset (``transforms.json``, ``images/``, ``depth/``),
+"""Export posed RGB-D as a nerfstudio dataset (``transforms.json``, ``images/``, ``depth/``,
+``masks/`` where the images have pixels without data),
 and read its poses back. The conventions at this boundary are in
 :mod:`nap3d_graph.fields.nerfstudio`; nerfstudio itself is not needed here.
 """
@@ -11,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.camera import Intrinsics
+from nap3d_graph.camera import Intrinsics, colour_coverage
 
 from .base import FieldError
 from .nerfstudio import (
@@ -30,6 +31,10 @@ log = logging.getLogger(__name__)
 def export_nerfstudio(sequence, out_dir, every: int = 1, progress: bool = False) -> Path:
     """Write ``transforms.json``, ``images/`` (PNG) and ``depth/`` (uint16 mm PNG) for every
     ``every``-th frame of a posed RGB-D sequence; returns the path of ``transforms.json``.
+    When the delivered images hold pixels without data (an undistorting reader's black
+    corners, :func:`~nap3d_graph.camera.colour_coverage`), ``masks/coverage.png`` (255 where
+    there is data, 0 where not) is every frame's ``mask_path``, so nerfstudio does not learn
+    black corners.
 
     The world frame of the file is the sequence's (``T_world_cam_gt``), so a model trained on
     it maps back to our world with its ``dataparser_transforms.json`` alone. Train with e.g.
@@ -50,6 +55,11 @@ def export_nerfstudio(sequence, out_dir, every: int = 1, progress: bool = False)
     (out / "depth").mkdir(exist_ok=True)
     intrinsics = sequence.intrinsics.without_distortion() if getattr(sequence, "undistort", True) else sequence.intrinsics
     meta = nerfstudio_intrinsics(intrinsics)
+    coverage = colour_coverage(sequence)
+    if coverage is not None:
+        (out / "masks").mkdir(exist_ok=True)
+        if not cv2.imwrite(str(out / "masks" / "coverage.png"), coverage.astype(np.uint8) * 255):
+            raise FieldError(f"{out / 'masks' / 'coverage.png'}: cannot write the mask")
     frames = []
     indices = range(0, len(sequence), every)
     for i in tqdm(indices, desc="export", unit="frame", disable=not progress):
@@ -65,6 +75,8 @@ def export_nerfstudio(sequence, out_dir, every: int = 1, progress: bool = False)
             "depth_file_path": f"depth/{name}",
             "transform_matrix": opencv_to_opengl_pose(poses[i]).tolist(),
             "timestamp": float(frame.timestamp),
+            # nerfstudio takes a mask for every frame or for none.
+            **({} if coverage is None else {"mask_path": "masks/coverage.png"}),
         })
     if not frames:
         raise FieldError("no frames to export")
