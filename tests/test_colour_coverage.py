@@ -94,23 +94,38 @@ def test_the_held_out_psnr_scores_only_the_pixels_the_image_holds(seq):
 
 
 def test_the_trained_fields_take_no_colour_from_the_corners(seq):
+    import torch
+
+    from nap3d_graph.fields.grid import GridField
     from nap3d_graph.fields.splat import SplatConfig, _frame_points
-    from nap3d_graph.fields.training import TrainConfig
-    from nap3d_graph.fields.training_data import TrainingRays
+    from nap3d_graph.fields.training import TrainConfig, _Trainer
+    from nap3d_graph.fields.training_data import TrainingRays, ray_poses, scene_bounds_from_depth
 
     covered = colour_coverage(seq)
-    # The grid's training pixels: none where the image holds no colour (a black target).
+    # The grid's training rays: every pixel with a depth trains the geometry, only those
+    # holding colour data the colour (a black corner is no target).
     rays = TrainingRays.from_sequence(seq, [0, 4, 8], TrainConfig(), "cpu")
-    depth = rays.depth.numpy()
-    assert (depth[:, covered] > 0).mean() > 0.5 and not (depth[:, ~covered] > 0).any()
-    # The splats' colours: sampled only where all four bilinear neighbours hold data.
+    assert np.array_equal(rays.coverage.numpy(), covered)
+    assert (rays.depth.numpy()[:, ~covered] > 0).any()
+    config = TrainConfig(rays_per_step=20_000)
+    bounds = scene_bounds_from_depth(rays.depth.numpy(), ray_poses(rays), rays.intrinsics)
+    grid = GridField.empty(bounds, 0.05, device="cpu", color_voxel_size=0.025)
+    trainer = _Trainer(grid, rays, config, torch.Generator().manual_seed(0))
+    origins, dirs, z, target, has_colour = trainer.sample_batch()
+    assert has_colour.float().mean() > 0.9
+    # Rays without colour data come from the few corner pixels that hold a depth.
+    corner_share = (rays.depth.numpy()[:, ~covered] > 0).sum() / (rays.depth.numpy() > 0).sum()
+    assert 0 < int((~has_colour).sum()) and float((~has_colour).float().mean()) < 2 * corner_share
+    # The splats' colours: sampled only where all four bilinear neighbours hold data; the
+    # points elsewhere keep their geometry without a colour.
     frame, T = seq[0], seq.T_world_cam_gt[0]
     everywhere = _frame_points(frame, T, T, 1.0, SplatConfig(), None)
     inside = _frame_points(frame, T, T, 1.0, SplatConfig(), covered)
     nowhere = _frame_points(frame, T, T, 1.0, SplatConfig(), np.zeros_like(covered))
-    assert len(nowhere[0]) == 0 and 0 < len(inside[0]) <= len(everywhere[0])
+    assert everywhere[3].all() and not nowhere[3].any() and (nowhere[1] == 0).all()
+    np.testing.assert_array_equal(inside[0], everywhere[0])
     K = frame.intrinsics
     p = inside[0] @ np.linalg.inv(T)[:3, :3].T + np.linalg.inv(T)[:3, 3]
     u = np.round(K.fx * p[:, 0] / p[:, 2] + K.cx).astype(int)
     v = np.round(K.fy * p[:, 1] / p[:, 2] + K.cy).astype(int)
-    assert covered[v, u].all()
+    assert covered[v, u][inside[3]].all() and 0 < (~inside[3]).sum() and not covered[v, u][~inside[3]].all()

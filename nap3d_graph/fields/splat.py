@@ -270,9 +270,10 @@ def _sample_colour(rgb01: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def _frame_points(frame, T_world_depth: np.ndarray, T_world_colour: np.ndarray, scale: float,
                   config: SplatConfig, coverage: np.ndarray | None = None):
-    """World points (M, 3), colours (M, 3) in [0, 1] and weights (M,) of one frame; only
-    points whose colour lands where the image holds data (``coverage`` (H, W) bool, see
-    :func:`~nap3d_graph.camera.colour_coverage`; None: everywhere)."""
+    """World points (M, 3), colours (M, 3) in [0, 1], weights (M,) and whether each has a
+    colour (M,) bool of one frame: a point whose colour lands where the image holds no data
+    (outside ``coverage`` (H, W) bool, see :func:`~nap3d_graph.camera.colour_coverage`; None:
+    it holds data everywhere) keeps its geometry, with colour 0 and no colour."""
     K = frame.intrinsics
     depth = np.nan_to_num(frame.depth_m.astype(np.float64), nan=0.0) * scale
     depth[(depth < config.min_depth_m) | (depth > config.max_depth_m)] = 0.0
@@ -289,13 +290,16 @@ def _frame_points(frame, T_world_depth: np.ndarray, T_world_colour: np.ndarray, 
     uc = K.fx * p_colour[:, 0] / zc + K.cx
     vc = K.fy * p_colour[:, 1] / zc + K.cy
     inside = (zc > 0) & (uc >= 0) & (uc < K.width - 1) & (vc >= 0) & (vc < K.height - 1)
-    if coverage is not None:
-        # The bilinear sample's four pixels: the corner ones are enough on a convex border.
-        iu, iv = np.where(inside, uc, 0).astype(int), np.where(inside, vc, 0).astype(int)
-        inside &= coverage[iv, iu] & coverage[iv + 1, iu + 1] & coverage[iv, iu + 1] & coverage[iv + 1, iu]
     colours = _sample_colour(frame.rgb.astype(np.float32) / 255.0, np.stack([uc, vc], 1)[inside])
+    has_colour = np.ones(len(colours), bool)
+    if coverage is not None:
+        # All four pixels of the bilinear sample must hold data.
+        iu, iv = uc[inside].astype(int), vc[inside].astype(int)
+        has_colour = coverage[iv, iu] & coverage[iv + 1, iu + 1] & coverage[iv, iu + 1] & coverage[iv + 1, iu]
+        colours[~has_colour] = 0.0
     sigma = config.depth_sigma_floor_m + config.depth_sigma_z2_per_m * z[inside] ** 2
-    return world[inside].astype(np.float32), colours.astype(np.float32), (1.0 / sigma**2).astype(np.float32)
+    return world[inside].astype(np.float32), colours.astype(np.float32), (1.0 / sigma**2).astype(np.float32), \
+        has_colour
 
 
 def _fuse(keys, frame_of, points, colours, weights, colour_weights, gains, offsets):
@@ -363,15 +367,17 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
         frame = sequence[int(i)]
         # Full resolution; the small offset keeps a featureless frame's weight above zero.
         sharpness[k] = image_sharpness(frame.rgb, width=None) + 1e-6
-        points, colours, weights = _frame_points(frame, T_depth[k], T_colour[k], depth_scale, config, coverage)
-        chunks.append((np.full(len(points), k, np.int64), points, colours, weights))
+        points, colours, weights, has_colour = _frame_points(frame, T_depth[k], T_colour[k], depth_scale, config,
+                                                             coverage)
+        chunks.append((np.full(len(points), k, np.int64), points, colours, weights, has_colour))
     if not chunks:
         raise FieldError("no training frame has a usable depth pixel")
     frame_of = np.concatenate([c[0] for c in chunks])
     points = np.concatenate([c[1] for c in chunks])
     colours = np.concatenate([c[2] for c in chunks])
     weights = np.concatenate([c[3] for c in chunks]).astype(np.float64)
-    colour_weights = weights * (sharpness / np.median(sharpness))[frame_of] ** 2
+    has_colour = np.concatenate([c[4] for c in chunks])
+    colour_weights = weights * (sharpness / np.median(sharpness))[frame_of] ** 2 * has_colour
     voxel = config.voxel_size_m or _auto_voxel(sequence, config)
     config = replace(config, voxel_size_m=voxel)
     cell = np.floor(points / voxel).astype(np.int64)
@@ -384,8 +390,10 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
                                                      gains, offsets)
         if _ == config.exposure_rounds:
             break
-        gains, offsets = _exposure_fit(frame_of, colours, mean_c[inverse], weights, len(indices))
-    keep = views >= config.min_views
+        gains, offsets = _exposure_fit(frame_of, colours, mean_c[inverse], weights * has_colour, len(indices))
+    # A voxel only ever seen where the images hold no colour data has no colour: not a splat.
+    coloured = np.bincount(inverse, weights=has_colour.astype(np.float64), minlength=len(views)) > 0
+    keep = (views >= config.min_views) & coloured
     if not keep.any():
         raise FieldError(f"no voxel was seen by {config.min_views} frames; use more or overlapping frames")
     confidence = wsum[keep] / wsum[keep].mean()

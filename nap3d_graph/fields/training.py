@@ -88,7 +88,9 @@ class _Trainer:
     def sample_batch(self):
         """Rays of ``rays_per_step // patch**2`` random square pixel patches of random training
         frames (neighbouring rays touch the same voxels, which keeps the grid lookups in cache),
-        without the pixels that have no depth."""
+        without the pixels that have no depth. Returns ray origins (N, 3) in the grid's frame,
+        directions (N, 3) with unit camera z, depths (N,), colours (N, 3) in [0, 1] and whether
+        each colour is data (N,) bool (see ``TrainingRays.coverage``)."""
         cfg, rays = self.config, self.rays
         fx, fy, cx, cy, w, h = self.K
         p = max(1, min(cfg.patch_size, w, h))
@@ -108,7 +110,9 @@ class _Trainer:
         dirs = torch.einsum("nij,nj->ni", rays.R_world_cam[frame], d_cam)
         origins = self.t_local[frame]
         target = rays.rgb.reshape(-1, 3)[flat].float() / 255.0
-        return origins, dirs, z, target
+        has_colour = torch.ones_like(z, dtype=torch.bool) if rays.coverage is None else \
+            rays.coverage[v.long(), u.long()]
+        return origins, dirs, z, target, has_colour
 
     def sample_t(self, origins, dirs, z):
         """Stratified free-space samples, then window samples around the measured depth."""
@@ -134,7 +138,7 @@ class _Trainer:
 
     def step(self):
         cfg, fld = self.config, self.field
-        origins, dirs, z, target = self.sample_batch()
+        origins, dirs, z, target, has_colour = self.sample_batch()
         t, dt = self.sample_t(origins, dirs, z)
         n, s = t.shape
         norms = dirs.norm(dim=-1, keepdim=True)
@@ -166,7 +170,8 @@ class _Trainer:
         window_mass = weights[:, nf:].sum(dim=1)
         spread = (weights[:, nf:] * (t[:, nf:] - z[:, None]).abs()).sum(dim=1) * norms[:, 0]
         free_mass = weights[:, :nf].sum(dim=1)
-        rgb_loss = F.mse_loss(color, target)
+        # Every ray trains the geometry; only those whose pixel holds colour data the colour.
+        rgb_loss = F.mse_loss(color[has_colour], target[has_colour]) if bool(has_colour.any()) else color.sum() * 0.0
         loss = (cfg.weight_rgb * rgb_loss
                 + cfg.weight_window * ((1.0 - window_mass) ** 2).mean()
                 + cfg.weight_empty * free_mass.mean()

@@ -59,7 +59,9 @@ class TrainingRays:
 
     rgb (F, H, W, 3) uint8; depth (F, H, W) float32 z-depth metres (0 = missing);
     R_world_cam (F, 3, 3) float32; t_world_cam (F, 3) float64; num_valid: how many pixels
-    have a usable depth.
+    have a usable depth; coverage: (H, W) bool, the pixels whose colour is data (None: all;
+    an undistorting reader's black corners are not, :func:`~nap3d_graph.camera.colour_coverage`):
+    elsewhere a pixel's depth trains the geometry and its colour nothing.
     """
 
     rgb: torch.Tensor
@@ -68,6 +70,7 @@ class TrainingRays:
     t_world_cam: np.ndarray
     num_valid: int
     intrinsics: Intrinsics
+    coverage: torch.Tensor | None = None
 
     @classmethod
     def from_sequence(cls, sequence, indices: Sequence[int], config: TrainConfig, device,
@@ -106,8 +109,6 @@ class TrainingRays:
             if timing is not None:
                 d = warp_depth(d, intrinsics, inv_T(T_colour[k]) @ T_depth[k], timing.depth_scale)
             d[~valid_depth_mask(d, config.min_depth_m, config.max_depth_m)] = 0.0
-            if coverage is not None:
-                d[~coverage] = 0.0  # a pixel without colour data is no training target
             depth[k] = d
         T = np.asarray(T_colour)
         num_valid = int(np.count_nonzero(depth))
@@ -120,6 +121,7 @@ class TrainingRays:
             t_world_cam=T[:, :3, 3].copy(),
             num_valid=num_valid,
             intrinsics=intrinsics,
+            coverage=None if coverage is None else torch.from_numpy(coverage.copy()).to(device),
         )
 
     @property
@@ -214,6 +216,8 @@ def splat_init(field: GridField, rays: TrainingRays, config: TrainConfig) -> Gri
         weight_sum.index_add_(0, idx.reshape(-1), wts.reshape(-1))
         idx, wts = trilinear_corners(points, field.color_shape_xyz, field.color_voxel_size)
         rgb = rays.rgb[k, v, u].reshape(-1, 3)[ok].float() / 255.0
+        if rays.coverage is not None:  # no colour where the image holds no data
+            wts = wts * rays.coverage[v, u].reshape(-1)[ok, None]
         color_weight.index_add_(0, idx.reshape(-1), wts.reshape(-1))
         color_sum.index_add_(1, idx.reshape(-1), (rgb.T[:, :, None] * wts[None]).reshape(3, -1))
     seen = color_weight > 0
