@@ -268,9 +268,26 @@ def test_a_splat_field_measures_its_error_growth_with_a_view_field_of_its_frames
     config = with_field_error(PipelineConfig(), field)
     assert config.field_error_by_view
     assert config.field_covariance(field, far)[3, 3] == pytest.approx(s_far**2)
-    # Without the flag: the error near its frames only, used everywhere.
+    # Without the flag on a simulated survey (auto: off, its poses are exact): the error near
+    # its frames only, used everywhere; the report says why.
     plain = tmp_path / "plain.pt"
     assert main(["train-field", str(survey.path), "--out", str(plain), "--model", "splat", "--eval-frames", "4",
                  "--quiet"]) == 0
     assert not has_error_by_view(load_field(plain)) and error_sigmas_at(load_field(plain), far) is None
     assert not with_field_error(PipelineConfig(), load_field(plain)).field_error_by_view
+    report = json.loads(plain.with_name("plain.report.json").read_text())
+    assert report["error_growth"] == {"measured": False, "why": "auto: a simulated recording (exact poses)"}
+
+
+def test_error_growth_is_on_by_default_for_a_cameras_recording():
+    from types import SimpleNamespace
+
+    from nap3d_graph.fields.build import error_growth_for
+
+    camera, simulated = SimpleNamespace(simulated=False), SimpleNamespace(simulated=True)
+    assert error_growth_for("auto", camera) == (True, "auto: a camera's recording")
+    assert error_growth_for("auto", simulated)[0] is False
+    assert error_growth_for("auto", object())[0] is True  # a source that does not say is a camera's
+    assert error_growth_for(True, simulated) == (True, "as given") and error_growth_for(False, camera)[0] is False
+    with pytest.raises(FieldError, match="error_growth"):
+        error_growth_for("sometimes", camera)
