@@ -6,7 +6,10 @@ The field is built on the first half of TUM fr1/desk (``--field``, default: a sp
 with its error measured here); the second half, which it never saw, is corrected with
 visual odometry. Per setting: the NEES of every successful correction against the ground
 truth (6 dof: mean with the 95% band of a mean of k chi-square(6) values, median, p90), the
-ATE (no alignment), corrections accepted. Writes JSON.
+ATE (no alignment), corrections accepted. A field that records how its error grows away
+from its frames (a view field; a grid or splat field built on a camera's recording, where
+``train-field --error-growth`` is on by default) also runs with its error near its frames
+used at every distance, what it was before. Writes JSON.
 
     python benchmarks/field_error_desk.py [--data ../shared/data/tum/rgbd_dataset_freiburg1_desk] \\
         [--field FIELD.pt] [--matcher xfeat] [--error-growth] [--out benchmarks/results/field_error_fr1_desk.json]
@@ -84,8 +87,9 @@ def main(argv=None) -> None:
                    "build a splat field here)")
     p.add_argument("--matcher", default="xfeat")
     p.add_argument("--error-growth", action="store_true",
-                   help="a grid or splat field: also measure how its error grows away from its training frames "
-                   "(what train-field --error-growth records) on this checkpoint, and run with it")
+                   help="a grid or splat field built without it (--error-growth off, or before it was the default "
+                   "for a camera's recording): also measure how its error grows away from its training frames "
+                   "on this checkpoint, and run with it")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/field_error_fr1_desk.json"))
     args = p.parse_args(argv)
     from nap3d_graph.cli import main as cli
@@ -100,12 +104,15 @@ def main(argv=None) -> None:
     result = {"data": str(args.data), "field": str(field_path), "frames": "0.5:1 (field from 0:0.5)",
               "odometry": "vo", "matcher": args.matcher, "field_error": field.meta.get("field_error"), "runs": {}}
     from nap3d_graph.fields.base import field_sigmas
+    from nap3d_graph.fields.gap_error import has_error_by_view
 
     settings = [("measured (default)", (None, None)), ("exact (--field-sigma 0)", (0.0, None))]
-    if getattr(field, "has_error_by_view", False):  # a view field: also its error near the views, everywhere
-        settings.insert(1, ("measured near the views, everywhere", field_sigmas(field)))
+    if has_error_by_view(field):  # its error grows with the distance from its frames: also without the growth
+        near = "measured near the views, everywhere" if hasattr(field, "hiding_near") else \
+            "measured near its frames, everywhere (--error-growth off)"
+        settings.insert(1, (near, field_sigmas(field)))
     growth = "measured, growing away from its frames (--error-growth)"
-    if args.error_growth and not hasattr(field, "hiding_near"):
+    if args.error_growth and not hasattr(field, "hiding_near") and not has_error_by_view(field):
         settings.insert(1, (growth, (None, None)))
     for name, (sigma, sigma_rad) in settings:
         if name == growth:
