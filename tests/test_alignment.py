@@ -1,7 +1,5 @@
 """NAP3D alignment: Procrustes, RANSAC, anisotropic residual, covariance honesty, bad input."""
 
-from dataclasses import replace
-
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -342,33 +340,3 @@ def test_self_calibration_recovers_pose_under_wrong_intrinsics(room, scenarios):
     print("self-calibrated translation errors (m):", np.round(errors, 4), "without:", np.round(plain_errors, 4))
     assert np.median(errors) < 0.005
     assert np.median(plain_errors) > 5 * np.median(errors)
-
-
-def test_auto_intrinsics_shares_the_consensus_and_gives_the_separate_fits_result(room, scenarios):
-    """``estimate_intrinsics="auto"`` finds the depth scale and the RANSAC consensus once for
-    both camera models: the result is bit for bit the choice between the two fits made apart,
-    with right intrinsics, wrong ones, and depth whose metre is off (the rescaled fit)."""
-    from nap3d_graph.nap3d.align import align_correspondences, choose_intrinsics_model, prepare_correspondences
-
-    _, field = room
-    cases = 0
-    for k, (frame, _, T_world_cam_est) in enumerate(scenarios[:4]):
-        given = frame.with_intrinsics(frame.intrinsics.shifted(1.10, 10.0)) if k % 2 else frame
-        if k >= 2:  # a real depth 3% long: the scale check refits to the rescaled points
-            given = given.with_depth(given.depth_m * 1.03)
-        corr, _ = prepare_correspondences(given, field.render(T_world_cam_est, frame.intrinsics))
-        config = AlignConfig(rescale_depth=True)
-        auto = align_correspondences(corr, given.intrinsics, config)
-        fixed = align_correspondences(corr, given.intrinsics, replace(config, estimate_intrinsics=False))
-        calibrated = align_correspondences(corr, given.intrinsics, replace(config, estimate_intrinsics=True))
-        apart = choose_intrinsics_model(corr, given.intrinsics, fixed, calibrated, config)
-        assert auto.success and apart.success
-        np.testing.assert_array_equal(auto.T_real_rendered, apart.T_real_rendered)
-        np.testing.assert_array_equal(auto.covariance, apart.covariance)
-        np.testing.assert_array_equal(auto.inlier_mask, apart.inlier_mask)
-        assert auto.diagnostics["intrinsics_model"] == apart.diagnostics["intrinsics_model"]
-        assert auto.diagnostics["depth_scale"] == apart.diagnostics["depth_scale"]
-        if k >= 2:  # the rescaled path was taken
-            assert abs(auto.diagnostics["depth_scale"] - 1.0) > config.scale_tolerance
-        cases += 1
-    assert cases == 4

@@ -58,24 +58,13 @@ def align_correspondences(corr: Correspondences, intrinsics: Intrinsics, config:
 
     With ``estimate_intrinsics="auto"`` both camera models are fitted and the self-calibrated
     one is kept only when it explains the correspondences clearly better
-    (:func:`choose_intrinsics_model`). The two fits share what does not depend on the camera
-    model: the depth scale and the RANSAC consensus are found once (they are deterministic, so
-    the result is the same as two separate fits; 10-50 ms less per keyframe on fr1/desk).
+    (:func:`choose_intrinsics_model`).
     """
     config = config or AlignConfig()
     if config.estimate_intrinsics == "auto" and config.method == "refined":
-        shared: dict = {}
-        fixed = _align(corr, intrinsics, replace(config, estimate_intrinsics=False), timings, shared)
-        calibrated = _align(corr, intrinsics, replace(config, estimate_intrinsics=True), {}, shared)
+        fixed = align_correspondences(corr, intrinsics, replace(config, estimate_intrinsics=False), timings)
+        calibrated = align_correspondences(corr, intrinsics, replace(config, estimate_intrinsics=True), {})
         return choose_intrinsics_model(corr, intrinsics, fixed, calibrated, config)
-    return _align(corr, intrinsics, config, timings, None)
-
-
-def _align(corr: Correspondences, intrinsics: Intrinsics, config: AlignConfig, timings: dict | None,
-           shared: dict | None, rescaled_by: float = 1.0) -> Alignment:
-    """:func:`align_correspondences` for one camera model. ``shared``: the depth scales and
-    RANSAC consensuses of fits of the same correspondences under another camera model, by
-    the factor their real depths were rescaled with (``rescaled_by``; filled as found)."""
     timings = {} if timings is None else timings
     method = f"nap3d-{config.method}"
     n = len(corr)
@@ -86,13 +75,13 @@ def _align(corr: Correspondences, intrinsics: Intrinsics, config: AlignConfig, t
                                  corr.num_matches, method=method, timings_s=timings)
     s_xy, s_z = noise_sigmas(corr, intrinsics, config)
     t0 = time.perf_counter()
-    scale, scale_sigma = _shared(shared, ("scale", rescaled_by), lambda: _depth_scale(corr, s_xy, s_z, config))
+    scale, scale_sigma = _depth_scale(corr, s_xy, s_z, config)
     if config.rescale_depth and np.isfinite(scale) and abs(scale - 1.0) > config.scale_tolerance:
         # The real depth's metre is not the field's: fit the pose to the rescaled points. When
         # that fit fails (a scale measured on a frame that matches badly), the fit as measured:
         # keeping it measured 15.4 -> 13.2 mm on a pose refinement, dropping it 14.0 mm.
         plain = replace(config, rescale_depth=False)
-        again = _align(replace(corr, y=corr.y / scale), intrinsics, plain, timings, shared, rescaled_by * scale)
+        again = align_correspondences(replace(corr, y=corr.y / scale), intrinsics, plain, timings)
         if again.success:
             residual = again.diagnostics.get("depth_scale", float("nan"))
             again.diagnostics["depth_scale"] = scale * residual if np.isfinite(residual) else scale
@@ -100,8 +89,7 @@ def _align(corr: Correspondences, intrinsics: Intrinsics, config: AlignConfig, t
         config = plain
         t0 = time.perf_counter()
     weights = corr.opacity if config.opacity_weighting else np.ones(n)
-    ransac = _shared(shared, ("ransac", rescaled_by),
-                     lambda: ransac_procrustes(corr.x, corr.y, weights, s_xy, s_z, config))
+    ransac = ransac_procrustes(corr.x, corr.y, weights, s_xy, s_z, config)
     timings["ransac"] = time.perf_counter() - t0
     if not ransac.success:
         return Alignment.failure(ransac.reason, corr.num_matches, method=method, timings_s=timings)
@@ -161,15 +149,6 @@ def _align(corr: Correspondences, intrinsics: Intrinsics, config: AlignConfig, t
         inlier_mask=inliers,
         diagnostics={**diagnostics, "intrinsics": K_refined.to_dict()} if config.estimate_intrinsics is True else diagnostics,
     )
-
-
-def _shared(shared: dict | None, key: tuple, compute):
-    """``compute()``, or what it gave for ``key`` before in ``shared`` (None: no sharing)."""
-    if shared is None:
-        return compute()
-    if key not in shared:
-        shared[key] = compute()
-    return shared[key]
 
 
 def _depth_scale(corr: Correspondences, s_xy: np.ndarray, s_z: np.ndarray, config: AlignConfig) -> tuple[float, float]:
