@@ -129,3 +129,16 @@ def test_the_trained_fields_take_no_colour_from_the_corners(seq):
     u = np.round(K.fx * p[:, 0] / p[:, 2] + K.cx).astype(int)
     v = np.round(K.fy * p[:, 1] / p[:, 2] + K.cy).astype(int)
     assert covered[v, u][inside[3]].all() and 0 < (~inside[3]).sum() and not covered[v, u][~inside[3]].all()
+
+
+def test_train_field_reports_the_share_without_colour_data(tmp_path, capsys):
+    import json
+
+    from nap3d_graph.cli import main
+
+    out = tmp_path / "views.pt"
+    assert main(["train-field", str(TUM_FR1_XYZ), "--model", "views", "--out", str(out), "--eval-frames", "2",
+                 "--quiet"]) == 0
+    report = json.loads(out.with_name("views.report.json").read_text())
+    assert 0.05 < report["colour_without_data"] < 0.07
+    assert "6.0% of each image holds no data" in capsys.readouterr().out

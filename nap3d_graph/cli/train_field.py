@@ -148,6 +148,9 @@ def summary(field, report: dict, out, report_path) -> str:
             lines.append(f"rolling shutter: colour rows read over {timing['readout_s'] * 1000:.0f} ms (matched "
                          f"keypoints reproject to {timing['colour_error_px']:.2f} px, {timing['global_shutter_error_px']:.2f}"
                          " px as a global shutter); runs align each keyframe as of its middle row")
+    if report.get("colour_without_data"):
+        lines.append(f"colour: {report['colour_without_data'] * 100:.1f}% of each image holds no data (the "
+                     "undistortion's black corners): no colour is taken from there, and the PSNR does not score it")
     if held:
         lines.append(
             f"held-out ({held['render_size'][0]}x{held['render_size'][1]}): PSNR {held['psnr_db']:.2f} dB "

@@ -22,6 +22,7 @@ from __future__ import annotations
 import logging
 import time
 
+from nap3d_graph.camera import colour_coverage
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 
 from .base import FieldError
@@ -161,6 +162,9 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     held = evaluate_field(field, sequence, held_idx, oracle, size=render_size, timing=timing) if len(held_idx) else None
     report.update({"model": model, "timing": stored_timing, "timing_seconds": round(timing_seconds, 2),
                    "train_frames": int(len(train_idx)), "held_out": held})
+    coverage = colour_coverage(sequence)
+    if coverage is not None:  # the undistortion's black corners: no colour target, not scored
+        report["colour_without_data"] = round(float(1.0 - coverage.mean()), 4)
     if refinement is not None:
         report["pose_refinement"] = refinement
         field.meta["pose_corrections"] = {int(i): D.tolist() for i, D in sequence.corrections.items()}
