@@ -19,7 +19,9 @@ Measured on fr1/desk (`benchmarks/field_error_desk.py --error-growth`): the grid
 corrections' NEES went from 9.0 to inside the chi-square band (5.4). On simulated rooms, where a
 grid renders true geometry at any distance and only the view field's warps degrade, it
 lowered a NEES that was mostly in the band already and cost 4% of ATE
-(`benchmarks/error_growth_rooms.py`): ``train-field --error-growth`` is opt-in.
+(`benchmarks/error_growth_rooms.py`). So ``train-field --error-growth auto`` (the default)
+measures it on a camera's recording and not on a simulated one
+(:func:`~nap3d_graph.fields.build.error_growth_for`).
 """
 
 from __future__ import annotations

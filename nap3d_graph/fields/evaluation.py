@@ -112,6 +112,8 @@ def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: t
     K = K_full if size is None else K_full.scaled(*size)
     T_colour, T_depth, scale = _poses(sequence, indices, timing)
     scored = colour_coverage(sequence, None if size is None else (K.width, K.height))
+    if scored is None:
+        scored = np.ones((K.height, K.width), bool)  # every pixel holds data
     sq_err, n_px = 0.0, 0
     abs_errs, opac, opaque, xs, ys, secs, per_frame, affine = [], [], [], [], [], [], [], []
     for k, i in enumerate(indices):
@@ -131,12 +133,10 @@ def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: t
         real01 = rgb_real.astype(np.float64) / 255.0
         rend01 = view.rgb.astype(np.float64) / 255.0
         err2 = (rend01 - real01) ** 2
-        frame_mse = float(np.mean(err2 if scored is None else err2[scored]))
-        n_scored = real01[..., 0].size if scored is None else int(scored.sum())
-        sq_err += frame_mse * n_scored
-        n_px += n_scored
-        fit_mask = view.opacity > 0.5 if scored is None else (view.opacity > 0.5) & scored
-        frame_affine = affine_fit_psnr(rend01, real01, fit_mask, scored)
+        frame_mse = float(np.mean(err2[scored]))
+        sq_err += frame_mse * int(scored.sum())
+        n_px += int(scored.sum())
+        frame_affine = affine_fit_psnr(rend01, real01, (view.opacity > 0.5) & scored, scored)
         affine.append(frame_affine)
         reference = oracle.render(T_depth[k], K).depth_m if oracle is not None else sensor
         surface = reference > 0

@@ -90,7 +90,7 @@ class _Trainer:
         frames (neighbouring rays touch the same voxels, which keeps the grid lookups in cache),
         without the pixels that have no depth. Returns ray origins (N, 3) in the grid's frame,
         directions (N, 3) with unit camera z, depths (N,), colours (N, 3) in [0, 1] and whether
-        each colour is data (N,) bool (see ``TrainingRays.coverage``)."""
+        each colour is data (N,) bool (see ``TrainingRays.coverage``; None: all are)."""
         cfg, rays = self.config, self.rays
         fx, fy, cx, cy, w, h = self.K
         p = max(1, min(cfg.patch_size, w, h))
@@ -110,8 +110,7 @@ class _Trainer:
         dirs = torch.einsum("nij,nj->ni", rays.R_world_cam[frame], d_cam)
         origins = self.t_local[frame]
         target = rays.rgb.reshape(-1, 3)[flat].float() / 255.0
-        has_colour = torch.ones_like(z, dtype=torch.bool) if rays.coverage is None else \
-            rays.coverage[v.long(), u.long()]
+        has_colour = None if rays.coverage is None else rays.coverage[v.long(), u.long()]
         return origins, dirs, z, target, has_colour
 
     def sample_t(self, origins, dirs, z):
@@ -171,7 +170,10 @@ class _Trainer:
         spread = (weights[:, nf:] * (t[:, nf:] - z[:, None]).abs()).sum(dim=1) * norms[:, 0]
         free_mass = weights[:, :nf].sum(dim=1)
         # Every ray trains the geometry; only those whose pixel holds colour data the colour.
-        rgb_loss = F.mse_loss(color[has_colour], target[has_colour]) if bool(has_colour.any()) else color.sum() * 0.0
+        if has_colour is None:
+            rgb_loss = F.mse_loss(color, target)
+        else:
+            rgb_loss = F.mse_loss(color[has_colour], target[has_colour]) if bool(has_colour.any()) else color.sum() * 0.0
         loss = (cfg.weight_rgb * rgb_loss
                 + cfg.weight_window * ((1.0 - window_mass) ** 2).mean()
                 + cfg.weight_empty * free_mass.mean()

@@ -288,14 +288,14 @@ class ViewField:
         size = (K.width, K.height)
         K_asked, K_view_inv = K.K, np.linalg.inv(self.intrinsics.K)
         T_cam_world = inv_T(T_world_cam)
+        # Where a view's image holds data (the same for every view): only those pixels are warped.
+        has_data = np.ones(self.rgb.shape[1:3], np.uint8) if self.coverage is None else self.coverage.astype(np.uint8)
         for j in views:
             T_cam_view = T_cam_world @ self.T_world_cam[j]
             # Plane n.X = d in the view's camera (n = +z, d its median depth): X_cam = (R + t n^T / d) X_view.
             H = K_asked @ (T_cam_view[:3, :3] + np.outer(T_cam_view[:3, 3], [0.0, 0.0, 1.0 / self._look_depth_m[j]])) \
                 @ K_view_inv
             warped = cv2.warpPerspective(self.rgb[j], H, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-            has_data = np.ones(self.rgb[j].shape[:2], np.uint8) if self.coverage is None else \
-                self.coverage.astype(np.uint8)
             inside = cv2.warpPerspective(has_data, H, size, flags=cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT) > 0
             take = hole & inside
             out[take] = warped[take]
