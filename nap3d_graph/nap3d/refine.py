@@ -16,7 +16,7 @@ from ..conventions import exp_se3, make_T, skew
 from .config import AlignConfig
 from .correspondences import Correspondences
 
-__all__ = ["refine_pose", "plain_covariance", "consensus_cost", "point_jacobian", "reprojection_terms", "stack_rows",
+__all__ = ["refine_pose", "plain_covariance", "consensus_cost", "point_jacobian", "reprojection_terms", "stack_rows", "information_matrices",
            "variance_factors"]
 
 
@@ -98,6 +98,7 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
     f_mean = 0.5 * (intrinsics.fx + intrinsics.fy)
     K_prior_info = 1.0 / np.array([config.intrinsics_focal_sigma * f_mean] * 2
                                   + [config.intrinsics_principal_sigma_px] * 2) ** 2
+    information = None  # ((scale_px, scale_z), W) for the current variance factors
     for iteration in range(config.refine_iterations + 2):
         p = x @ T[:3, :3].T + T[:3, 3]
         if np.any(p[:, 2] <= 1e-6):
@@ -108,8 +109,13 @@ def refine_pose(R: np.ndarray, t: np.ndarray, corr: Correspondences, intrinsics:
         if calibrate:
             J_px = np.concatenate([J_px, _intrinsics_jacobian(p)], axis=2)
             J_z = np.concatenate([J_z, np.zeros((n, 4))], axis=1)
+        if information is None or information[0] != (scale_px, scale_z):
+            # The information matrices change only with the variance factors (twice per
+            # refinement): inverting N 3x3 covariances every iteration was a quarter of it.
+            information = ((scale_px, scale_z), information_matrices(grad, var_px0 * scale_px, var_z0 * scale_z,
+                                                                     use_reprojection, use_depth))
         r, J, W = stack_rows(r_px, J_px, r_z, J_z, grad, var_px0 * scale_px, var_z0 * scale_z,
-                              use_reprojection, use_depth)
+                             use_reprojection, use_depth, W=information[1])
         Wr = _apply(W, r)
         norm_sq = np.sum(r * Wr, axis=1)
         rob = _huber_weights(np.sqrt(norm_sq / rows), config.huber_k)
@@ -202,21 +208,34 @@ def _weighted_rows(w: np.ndarray, J: np.ndarray) -> np.ndarray:
     return _rows(J * w[:, None, None])
 
 
-def stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use_depth):
+def stack_rows(r_px, J_px, r_z, J_z, grad, var_px, var_z, use_reprojection, use_depth, W=None):
     """Residuals (N, m), Jacobians (N, m, 6) and information matrices (N, m, m) per
-    correspondence, m = 3 (pixels + depth), 2 (pixels) or 1 (depth)."""
-    n = len(r_z)
+    correspondence, m = 3 (pixels + depth), 2 (pixels) or 1 (depth). ``W``: the information
+    matrices when already computed (:func:`information_matrices` of the same arguments)."""
+    if W is None:
+        W = information_matrices(grad, var_px, var_z, use_reprojection, use_depth)
+    if use_reprojection and use_depth:
+        return np.concatenate([r_px, r_z[:, None]], 1), np.concatenate([J_px, J_z[:, None]], 1), W
+    if use_reprojection:
+        return r_px, J_px, W
+    return r_z[:, None], J_z[:, None], W
+
+
+def information_matrices(grad, var_px, var_z, use_reprojection, use_depth) -> np.ndarray:
+    """Information matrices (N, m, m) of :func:`stack_rows`' residuals: the pixel noise
+    ``var_px`` on both pixel rows, and on the depth row ``var_z`` (N,) plus the pixel noise
+    carried through the depth gradient ``grad`` (N, 2), which also correlates the rows."""
+    n = len(grad)
     if use_reprojection and use_depth:
         C = np.zeros((n, 3, 3))
         C[:, 0, 0] = C[:, 1, 1] = var_px
         C[:, :2, 2] = C[:, 2, :2] = var_px * grad
         C[:, 2, 2] = var_px * np.sum(grad**2, axis=1) + var_z
-        return np.concatenate([r_px, r_z[:, None]], 1), np.concatenate([J_px, J_z[:, None]], 1), np.linalg.inv(C)
+        return np.linalg.inv(C)
     if use_reprojection:
-        W = np.broadcast_to(np.eye(2) / var_px, (n, 2, 2))
-        return r_px, J_px, W
+        return np.broadcast_to(np.eye(2) / var_px, (n, 2, 2))
     var = var_px * np.sum(grad**2, axis=1) + var_z
-    return r_z[:, None], J_z[:, None], (1.0 / var)[:, None, None]
+    return (1.0 / var)[:, None, None]
 
 
 def variance_factors(r_px, r_z, grad, rob, var_px0, var_z0, use_reprojection, use_depth):
