@@ -38,6 +38,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nap3d_graph.torch_threads import torch_threads
+
 __all__ = ["Features", "Matches", "MATCHERS", "AUTO", "choose_matcher", "NN_SEARCHES", "MATCHER_THREADS", "MatcherUnavailable",
            "detect_features", "match_features", "refine_matches_subpixel"]
 
@@ -58,9 +60,6 @@ XFEAT_MIN_COSINE = 0.82
 #: LighterGlue's match confidence threshold (the package's default).
 LIGHTERGLUE_MIN_CONFIDENCE = 0.1
 
-# One lock for the learned models: torch's thread count is process-wide, and the overlapped
-# run detects features on two threads.
-_TORCH_LOCK = threading.Lock()
 # Loading a learned model, one thread at a time: functools.lru_cache lets two threads that miss
 # at once both run the loader, and two redirect_stdout blocks interleaved across threads leave
 # the process's stdout pointing at one of them (an overlapped run with XFeat lost every line
@@ -168,17 +167,12 @@ def _detect_sift(rgb: np.ndarray, max_features: int, mask: np.ndarray | None) ->
 
 @contextlib.contextmanager
 def _torch_threads():
-    """The learned models' fixed thread count, restored afterwards, one caller at a time."""
+    """The learned models' fixed thread count (shared with any other thread's block of the
+    same count: two detections of an overlapped run go on at once), in inference mode."""
     import torch
 
-    with _TORCH_LOCK:
-        before = torch.get_num_threads()
-        torch.set_num_threads(MATCHER_THREADS)
-        try:
-            with torch.inference_mode():
-                yield torch
-        finally:
-            torch.set_num_threads(before)
+    with torch_threads(MATCHER_THREADS), torch.inference_mode():
+        yield torch
 
 
 def _xfeat():
