@@ -50,7 +50,7 @@ def parse_args(argv=None):
     p.add_argument("--novel-frames", type=int, default=40, help="frames of the second survey path (default 40)")
     p.add_argument("--nap3d-frames", type=int, default=12, help="frames for the NAP3D check (default 12)")
     p.add_argument("--threads", type=int, default=None,
-                   help="torch threads for training and rendering (default 1, see grid.torch_threads)")
+                   help="torch threads for training and rendering (default 1, see nap3d_graph.torch_threads)")
     p.add_argument("--workdir", type=Path, default=None, help="where to simulate (default: a temp folder)")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/field.json"))
     p.add_argument("--seed", type=int, default=0)

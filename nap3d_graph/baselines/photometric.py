@@ -70,7 +70,7 @@ def photometric_align(real: RGBDFrame, view: RenderedView, field, T_world_cam_es
     field is not differentiable, the interest region is too small or the solve diverges."""
     from ..conventions import inv_T, pose_error
     from ..fields.grid import GridField
-    from ..fields.grid_render import torch_threads
+    from ..torch_threads import torch_threads
 
     config = config or PhotometricConfig()
     if not isinstance(field, GridField):

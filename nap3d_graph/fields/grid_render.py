@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 #: Raw density 0 maps to a near-transparent softplus(-DENSITY_SHIFT) (see grid.py).
 DENSITY_SHIFT = 10.0
 
-__all__ = ["DENSITY_SHIFT", "GridRenderer", "RenderConfig", "pixel_directions", "torch_threads"]
+__all__ = ["DENSITY_SHIFT", "GridRenderer", "RenderConfig", "pixel_directions"]
 
 _LN2 = math.log(2.0)
 

@@ -21,7 +21,7 @@ class TrainConfig:
     frame is used for training; ``eval_frames`` held-out frames are evaluated.
     Sampling: ``rays_per_step``, ``free_samples`` and ``window_samples`` per ray; the window
     half-width is ``max(window_min_m, window_sigmas * depth_sigma_z2 * z^2)``.
-    ``threads``: torch CPU threads during training (1: see ``grid.torch_threads``; None keeps
+    ``threads``: torch CPU threads during training (1: see ``nap3d_graph.torch_threads``; None keeps
     torch's setting).
     """
 

@@ -22,7 +22,7 @@ What makes a grid converge in minutes on a CPU (a prototype's findings, then our
   interpolation by explicit gathers, gradients scattered by hand and a lazy Adam that updates
   only the touched vertices (:class:`_LazyAdam`) -- a dense optimiser and ``grid_sample``'s
   backward cost O(grid) per step, most of a CPU step; colour only where a sample's weight
-  exceeds ``color_weight_eps``; one torch thread (see ``grid.torch_threads``);
+  exceeds ``color_weight_eps``; one torch thread (see ``nap3d_graph.torch_threads``);
 * colour on a grid 1.5x finer than density: texture needs more detail than geometry;
 * a learning rate that decays with the *time* budget (the budget is minutes, not steps).
 """
@@ -40,7 +40,8 @@ import torch.nn.functional as F
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.fields.grid import CHECKPOINT_VERSION, GridField, default_device, trilinear_corners
-from nap3d_graph.fields.grid_render import DENSITY_SHIFT, torch_threads
+from nap3d_graph.fields.grid_render import DENSITY_SHIFT
+from nap3d_graph.torch_threads import torch_threads
 
 from .base import FieldError
 from .evaluation import evaluate_field, oracle_for, psnr

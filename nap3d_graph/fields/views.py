@@ -193,7 +193,7 @@ class ViewField:
         """RGB, z-depth (m, 0 where no view sees) and opacity at ``T_world_cam`` (4x4,
         world <- OpenCV camera). Above the stored size the render is made at the stored size
         and enlarged (no texture is invented)."""
-        from nap3d_graph.fields.grid_render import torch_threads
+        from nap3d_graph.torch_threads import torch_threads
 
         T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
         if T_world_cam.shape != (4, 4) or not np.all(np.isfinite(T_world_cam)):
