@@ -45,7 +45,13 @@ def run_one(data: Path, field: Path, odom: str, matcher: str, extra: list, out: 
             "median_inliers": float(np.median(inliers)) if inliers else 0.0,
             "postponed": sum(int(r["postponed_frames"]) > 0 for r in rows),
             "doubt_keyframes": sum(r["keyframe_why"] == "doubt" for r in rows),
-            "keyframe_sharpness_median": float(np.nanmedian([float(r["sharpness"]) for r in rows]))}
+            "keyframe_sharpness_median": _nan_median([float(r["sharpness"]) for r in rows])}
+
+
+def _nan_median(values: list) -> float | None:
+    """Median of the finite values; None where none is (keyframes as they come are not scored)."""
+    finite = [v for v in values if np.isfinite(v)]
+    return float(np.median(finite)) if finite else None
 
 
 def main(argv=None) -> None:
