@@ -102,9 +102,7 @@ def warm_up(sequence, field, matcher: str) -> None:
     its camera starts (else the first run's first keyframe carries 1-3 s of loading)."""
     from nap3d_graph.nap3d.matching import detect_features
 
-    frame = sequence[0]
-    intrinsics = frame.intrinsics.scaled(320, 240)
-    view = field.render(sequence.T_world_cam_gt[0], intrinsics)
+    view = field.render(sequence.T_world_cam_gt[0], sequence.intrinsics.scaled(320, 240))
     detect_features(view.rgb, matcher=matcher)
 
 
