@@ -517,3 +517,40 @@ def test_the_feature_odometry_at_the_renders_width_hands_its_features_to_the_cor
     assert not VisualOdometry(width=128).shares_features(seq.intrinsics.scaled(160, 120), config.align)
     with pytest.raises(ValueError, match="--vo-width is for --odom vo"):
         make_odometry("dense", seq, vo_width=160)
+
+
+def test_a_run_holds_the_libraries_thread_pools_to_one_and_its_trajectory_does_not_change(kinect_walk):
+    """``library_threads``: OpenCV (the dense odometry) and OpenBLAS (numpy) work on one
+    thread each while the run goes, their counts come back after it, and the run's poses
+    are the same to the last bit as with the pools as they come."""
+    import cv2
+    from threadpoolctl import threadpool_info
+
+    seq = SimSequence(kinect_walk)
+    seen = []
+
+    class Counting:  # the dense odometry, reporting the pools' sizes it ran with
+        def __init__(self, inner):
+            self.inner = inner
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def increment(self, *args, **kwargs):
+            blas = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+            seen.append((cv2.getNumThreads(), max(blas)))
+            return self.inner.increment(*args, **kwargs)
+
+    before = cv2.getNumThreads()
+    config = dataclasses.replace(CONFIG, keyframe_every=8, max_frames=24)
+    runs = {}
+    for count in (1, None):
+        seen.clear()
+        odometry = Counting(make_odometry("dense", seq))
+        runs[count] = Pipeline(seq, seq.oracle_field(), odometry, dataclasses.replace(config, library_threads=count)).run()
+        assert cv2.getNumThreads() == before
+        if count == 1:
+            assert seen and set(seen) == {(1, 1)}
+    np.testing.assert_array_equal(runs[1].T_world_cam_estimate, runs[None].T_world_cam_estimate)
+    np.testing.assert_array_equal(runs[1].T_world_cam_odometry, runs[None].T_world_cam_odometry)
+    assert ate(runs[1]) < ate_odometry(runs[1])

@@ -116,6 +116,10 @@ class PipelineConfig:
         the current one (:mod:`nap3d_graph.run.read_ahead`; 0: read each frame when its step
         comes). Only for sequences whose frames can be read from another thread; the frames
         are the same either way.
+    library_threads: the threads OpenBLAS (numpy) and OpenCV each work with while the run
+        goes (:mod:`nap3d_graph.run.library_threads`; None: as they come, every core). The run's
+        own threads are its parallelism; on two cores the libraries' pools beside them slowed
+        an overlapped fr1/desk run with XFeat from 29-35 to 24-26 frame/s. Same results.
     graph_window: keyframes kept in iSAM2 (0: all, the default). With N > 0, once more than
         1.5 N keyframes are in the graph the oldest are marginalised down to N (iSAM2's
         ``marginalizeLeaves``: their information stays as a linear prior on the window's
@@ -167,6 +171,7 @@ class PipelineConfig:
     render_ahead_deg: float = 3.0
     land_within_s: float = 0.0
     read_ahead: int = 2
+    library_threads: int | None = 1
     graph_window: int = 0
     max_frames: int | None = None
     progress: bool = False
@@ -187,6 +192,8 @@ class PipelineConfig:
         if self.keyframe_when_idle < 0 or (self.keyframe_when_idle and not self.overlap):
             raise ValueError(f"keyframe_when_idle must be >= 0 and needs overlap (the worker it waits to be idle), "
                              f"got {self.keyframe_when_idle} with overlap={self.overlap}")
+        if self.library_threads is not None and self.library_threads < 1:
+            raise ValueError(f"library_threads must be >= 1 or None (as the libraries come), got {self.library_threads}")
         if self.read_ahead < 0:
             raise ValueError(f"read_ahead must be >= 0 frames, got {self.read_ahead}")
         if self.rolling_shutter_s is not None and not (np.isfinite(self.rolling_shutter_s)

@@ -36,6 +36,7 @@ from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
 from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, capture_timing, measure_keyframe
+from nap3d_graph.run.library_threads import library_threads
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
 from nap3d_graph.run.read_ahead import FrameReadAhead, reads_concurrently
 from nap3d_graph.run.records import KeyframeRecord, RunResult
@@ -109,7 +110,12 @@ class Pipeline:
     def run(self, on_keyframe=None, stop=None) -> RunResult:
         """Run over the sequence. ``on_keyframe(record)`` hears about each keyframe as soon as
         it is done (a results writer appends it); ``stop()`` is asked before each frame and,
-        when it says so, the run ends there with what it has (``RunResult.partial``)."""
+        when it says so, the run ends there with what it has (``RunResult.partial``).
+        OpenBLAS and OpenCV work with ``config.library_threads`` threads meanwhile."""
+        with library_threads(self.config.library_threads):
+            return self._run(on_keyframe, stop)
+
+    def _run(self, on_keyframe, stop) -> RunResult:
         from tqdm import tqdm
 
         t_start = time.perf_counter()

@@ -1,0 +1,48 @@
+"""The thread pools of the libraries a run calls (OpenBLAS through numpy, OpenCV), held to a
+fixed size while the run goes.
+
+A run brings its own parallelism: the odometry on one thread, the keyframe's measurement
+(``--overlap``) or the real frame's detection (inline) on another. Each library call would
+add its own pool on top: OpenCV's dense odometry spreads over every core and numpy's small
+matrix products over OpenBLAS's threads, which spin while they wait for work. On two cores
+that is four or five busy threads for two, and the overlapped fr1/desk run with XFeat
+measured 24-26 frame/s with the pools as they come against 29-35 with one thread each
+(``benchmarks/realtime_desk.py``); the inline run went from 19-22 to 24-26. The results do
+not change: the same trajectories to the last bit (``tests/test_pipeline.py``).
+
+torch's thread count is set per block where torch is called
+(:mod:`nap3d_graph.torch_threads`); numba's kernels are single-threaded.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from collections.abc import Iterator
+
+__all__ = ["library_threads"]
+
+log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def library_threads(count: int | None) -> Iterator[None]:
+    """OpenBLAS's and OpenCV's pools at ``count`` threads inside the block (None: as they
+    are), set back after it. Without ``threadpoolctl`` the BLAS pool stays as it is (logged)."""
+    if count is None:
+        yield
+        return
+    import cv2
+
+    with contextlib.ExitStack() as stack:
+        try:
+            from threadpoolctl import threadpool_limits
+        except ImportError:
+            log.info("threadpoolctl is not installed: numpy's BLAS threads are left as they are "
+                     "(pip install threadpoolctl; a run on two cores is slower with them)")
+        else:
+            stack.enter_context(threadpool_limits(limits=count, user_api="blas"))
+        before = cv2.getNumThreads()
+        cv2.setNumThreads(count)
+        stack.callback(cv2.setNumThreads, before)
+        yield
