@@ -4,7 +4,9 @@ corrections measured inline or overlapped with the odometry (``--overlap``).
 On a TUM recording (default: the second half of fr1/desk, with the field the study trained
 on its first half) the run goes with ``--odom dense`` (OpenCV's RGB-D odometry) at each
 keyframe spacing of ``--keyframe-every``, inline and overlapped in turn ``--repeats`` times
-(the run with the median rate kept): frames per second end to end
+(the run with the median rate kept; at the smallest spacing also with OpenBLAS's and
+OpenCV's thread pools left as they come beside each pair, where a run holds them to one
+thread each, ``PipelineConfig.library_threads``): frames per second end to end
 (reading, odometry, corrections, iSAM2, final solve), the smoothed and the causal ATE (evo
 style, no alignment) against the odometry's, accepted corrections, and per-stage
 milliseconds per keyframe (median and p90): the whole measurement, its render, the features
@@ -59,12 +61,13 @@ def stage_ms(records, key: str) -> dict | None:
 
 def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str, paced: bool = False,
         render_ahead: bool = False, land_within_s: float = 0.0, keyframe_when_idle: int = 0,
-        pace_speed: float = 1.0, read_ahead: int = 2) -> dict:
+        pace_speed: float = 1.0, read_ahead: int = 2, library_threads: int | None = 1) -> dict:
     from nap3d_graph.nap3d.config import AlignConfig
 
     config = PipelineConfig(overlap=overlap, keyframe_every=keyframe_every, align=AlignConfig(matcher=matcher),
                             render_ahead=render_ahead, land_within_s=land_within_s,
-                            keyframe_when_idle=keyframe_when_idle, read_ahead=read_ahead)
+                            keyframe_when_idle=keyframe_when_idle, read_ahead=read_ahead,
+                            library_threads=library_threads)
     pacer = CameraPace(sequence.timestamps, pace_speed) if paced else None
     t0 = time.perf_counter()
     result = Pipeline(sequence, field, make_odometry("dense", sequence), config).run(stop=pacer)
@@ -73,7 +76,7 @@ def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str, paced
     late = [r.timings_s["landed_frame"] - r.frame_index for r in result.keyframes if "landed_frame" in r.timings_s]
     return {
         "overlap": overlap, "render_ahead": overlap and render_ahead, "land_within_s": land_within_s,
-        "keyframe_when_idle": keyframe_when_idle, "read_ahead": read_ahead,
+        "keyframe_when_idle": keyframe_when_idle, "read_ahead": read_ahead, "library_threads": library_threads,
         "keyframe_interval_mean": float(np.mean(np.diff(result.keyframe_indices))) if len(result.keyframe_indices) > 1
         else None,
         "rendered_ahead_fraction": float(np.mean([r.timings_s.get("prepared", 0.0) for r in result.keyframes])),
@@ -150,16 +153,22 @@ def main() -> None:
             # As fast as it goes, inline and overlapped in turn --repeats times (the machine is
             # shared: one pair's rates moved by 15% between runs of the command): the run
             # with the median rate is kept per setting, every rate and each pair's ratio beside.
-            pairs = [[run(sequence, field, overlap, every, args.matcher) for overlap in (False, True)]
-                     for _ in range(args.repeats)]
-            ratios = [b["frames_per_s"] / a["frames_per_s"] for a, b in pairs]
-            for k in (0, 1):
+            # At the smallest spacing, also with OpenBLAS's and OpenCV's pools as they come
+            # (library_threads None) beside each pair: what holding them to one thread gives.
+            pools = (1, None) if every == min(args.keyframe_every) else (1,)
+            pairs = [[run(sequence, field, overlap, every, args.matcher, library_threads=threads)
+                      for threads in pools for overlap in (False, True)] for _ in range(args.repeats)]
+            for k in range(len(pools) * 2):
                 runs = [pair[k] for pair in pairs]
                 r = sorted(runs, key=lambda x: x["frames_per_s"])[len(runs) // 2]
                 r["field"] = name
                 r["frames_per_s_repeats"] = [x["frames_per_s"] for x in runs]
-                if k:
-                    r["overlapped_vs_inline_repeats"] = ratios
+                if k % 2:
+                    r["overlapped_vs_inline_repeats"] = [pair[k]["frames_per_s"] / pair[k - 1]["frames_per_s"]
+                                                         for pair in pairs]
+                if k >= 2:  # the libraries' pools as they come, against the same repeat's run with them at one
+                    r["vs_library_threads_1_repeats"] = [pair[k]["frames_per_s"] / pair[k - 2]["frames_per_s"]
+                                                         for pair in pairs]
                 reference.setdefault(every, r["frames_per_s"])
                 r["frames_per_s_vs_first_inline"] = r["frames_per_s"] / reference[every]
                 out["runs"].append(r)
@@ -213,6 +222,8 @@ def report(name: str, r: dict) -> None:
         mode += f", {r['rendered_ahead_fraction'] * 100:.0f}% rendered ahead"
     if r.get("land_within_s"):
         mode += f", landing within {r['land_within_s'] * 1000:.0f} ms of a frame"
+    if r.get("library_threads", 1) is None:
+        mode += ", OpenBLAS's and OpenCV's thread pools as they come"
     if not r.get("read_ahead", 2):
         mode += ", each frame read when its step comes"
     if r.get("keyframe_when_idle"):
@@ -224,6 +235,9 @@ def report(name: str, r: dict) -> None:
         behind += "; rates of the repeats " + ", ".join(f"{x:.1f}" for x in r["frames_per_s_repeats"])
     if r.get("overlapped_vs_inline_repeats"):
         behind += " (each against its inline run: " + ", ".join(f"{x:.2f}x" for x in r["overlapped_vs_inline_repeats"]) + ")"
+    if r.get("vs_library_threads_1_repeats"):
+        behind += " (against the same run with one thread each: " + \
+            ", ".join(f"{x:.2f}x" for x in r["vs_library_threads_1_repeats"]) + ")"
     if len(r.get("causal_ate_m_repeats") or []) > 1:
         behind += "; causal ATE of the repeats " + ", ".join(f"{x * 100:.2f}" for x in r["causal_ate_m_repeats"]) + " cm"
     print(f"{name:8s} keyframe every {every:2d}, {mode}: {r['frames_per_s']:5.1f} "
