@@ -339,7 +339,7 @@ def warp_depth(depth_m: np.ndarray, intrinsics: Intrinsics, T_dst_src: np.ndarra
     h, w = depth.shape
     T = np.asarray(T_dst_src, dtype=float)
     splat = _compiled_splat() if iterations <= 0 else None
-    if splat is not None:  # the same bytes as the numpy splat below, 15 ms -> 1 ms at 640x480
+    if splat is not None:  # the same bytes as the numpy splat below, 13 -> 4 ms at 640x480
         zbuf = splat(depth, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy, np.ascontiguousarray(T[:3, :3]),
                      np.ascontiguousarray(T[:3, 3]), K_dst.fx, K_dst.fy, K_dst.cx, K_dst.cy, K_dst.width, K_dst.height)
         zbuf[~np.isfinite(zbuf)] = 0.0

@@ -1,10 +1,11 @@
 """Compiled z-buffered forward splat of a depth image into another camera (numba).
 
 :func:`nap3d_graph.camera.warp_depth` moves every keyframe's depth to its colour's capture
-instant, on the run's critical path: in numpy (``np.minimum.at`` over 300k pixels) that was
-15 ms per 640x480 frame, here a loop over the pixels is about 1 ms. The arithmetic is the
-numpy path's, operation for operation and in the same order (no ``fastmath``), so both give
-the same bytes; ``tests/test_camera.py`` checks that they do.
+instant, on the run's critical path: with the splat in numpy (``np.minimum.at`` over 300k
+pixels) the warp of a 640x480 frame took 13 ms, with this loop over the pixels 4 ms (most of
+it now the float64 copy and the NaN fill before it). The arithmetic is the numpy path's,
+operation for operation and in the same order (no ``fastmath``), so both give the same
+bytes; ``tests/test_depth_warp.py`` checks that they do.
 
 Frames and units: ``depth_m`` (H, W) float64 metres in the source camera (0 where missing);
 ``R``, ``t``: source-camera points into the destination camera, metres; pixel centres at

@@ -118,8 +118,8 @@ class PipelineConfig:
         are the same either way.
     library_threads: the threads OpenBLAS (numpy) and OpenCV each work with while the run
         goes (:mod:`nap3d_graph.run.library_threads`; None: as they come, every core). The run's
-        own threads are its parallelism; on two cores the libraries' pools beside them slowed
-        an overlapped fr1/desk run with XFeat from 29-35 to 24-26 frame/s. Same results.
+        own threads are its parallelism; on two cores the libraries' pools beside them made an
+        overlapped fr1/desk run with XFeat 0.85-0.88x as fast. Same results.
     graph_window: keyframes kept in iSAM2 (0: all, the default). With N > 0, once more than
         1.5 N keyframes are in the graph the oldest are marginalised down to N (iSAM2's
         ``marginalizeLeaves``: their information stays as a linear prior on the window's
