@@ -4,9 +4,9 @@ corrections measured inline or overlapped with the odometry (``--overlap``).
 On a TUM recording (default: the second half of fr1/desk, with the field the study trained
 on its first half) the run goes with ``--odom dense`` (OpenCV's RGB-D odometry) at each
 keyframe spacing of ``--keyframe-every``, inline and overlapped in turn ``--repeats`` times
-(the run with the median rate kept; at the smallest spacing also with OpenBLAS's and
-OpenCV's thread pools left as they come beside each pair, where a run holds them to one
-thread each, ``PipelineConfig.library_threads``): frames per second end to end
+(the run with the median rate kept; at the smallest spacing also overlapped with OpenBLAS's
+and OpenCV's thread pools left as they come beside each pair, where an overlapped run holds
+them to one thread each, ``PipelineConfig.library_threads``): frames per second end to end
 (reading, odometry, corrections, iSAM2, final solve), the smoothed and the causal ATE (evo
 style, no alignment) against the odometry's, accepted corrections, and per-stage
 milliseconds per keyframe (median and p90): the whole measurement, its render, the features
@@ -76,7 +76,8 @@ def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str, paced
     late = [r.timings_s["landed_frame"] - r.frame_index for r in result.keyframes if "landed_frame" in r.timings_s]
     return {
         "overlap": overlap, "render_ahead": overlap and render_ahead, "land_within_s": land_within_s,
-        "keyframe_when_idle": keyframe_when_idle, "read_ahead": read_ahead, "library_threads": library_threads,
+        "keyframe_when_idle": keyframe_when_idle, "read_ahead": read_ahead,
+        "library_threads": library_threads if overlap else None,
         "keyframe_interval_mean": float(np.mean(np.diff(result.keyframe_indices))) if len(result.keyframe_indices) > 1
         else None,
         "rendered_ahead_fraction": float(np.mean([r.timings_s.get("prepared", 0.0) for r in result.keyframes])),
@@ -153,21 +154,22 @@ def main() -> None:
             # As fast as it goes, inline and overlapped in turn --repeats times (the machine is
             # shared: one pair's rates moved by 15% between runs of the command): the run
             # with the median rate is kept per setting, every rate and each pair's ratio beside.
-            # At the smallest spacing, also with OpenBLAS's and OpenCV's pools as they come
-            # (library_threads None) beside each pair: what holding them to one thread gives.
-            pools = (1, None) if every == min(args.keyframe_every) else (1,)
+            # At the smallest spacing, also overlapped with OpenBLAS's and OpenCV's pools as they
+            # come (library_threads None; an inline run always leaves them so) beside each pair:
+            # what holding them to one thread gives.
+            settings = [(False, 1), (True, 1)] + ([(True, None)] if every == min(args.keyframe_every) else [])
             pairs = [[run(sequence, field, overlap, every, args.matcher, library_threads=threads)
-                      for threads in pools for overlap in (False, True)] for _ in range(args.repeats)]
-            for k in range(len(pools) * 2):
+                      for overlap, threads in settings] for _ in range(args.repeats)]
+            for k in range(len(settings)):
                 runs = [pair[k] for pair in pairs]
                 r = sorted(runs, key=lambda x: x["frames_per_s"])[len(runs) // 2]
                 r["field"] = name
                 r["frames_per_s_repeats"] = [x["frames_per_s"] for x in runs]
-                if k % 2:
-                    r["overlapped_vs_inline_repeats"] = [pair[k]["frames_per_s"] / pair[k - 1]["frames_per_s"]
+                if k:
+                    r["overlapped_vs_inline_repeats"] = [pair[k]["frames_per_s"] / pair[0]["frames_per_s"]
                                                          for pair in pairs]
-                if k >= 2:  # the libraries' pools as they come, against the same repeat's run with them at one
-                    r["vs_library_threads_1_repeats"] = [pair[k]["frames_per_s"] / pair[k - 2]["frames_per_s"]
+                if k == 2:  # the libraries' pools as they come, against the same repeat's run with them at one
+                    r["vs_library_threads_1_repeats"] = [pair[2]["frames_per_s"] / pair[1]["frames_per_s"]
                                                          for pair in pairs]
                 reference.setdefault(every, r["frames_per_s"])
                 r["frames_per_s_vs_first_inline"] = r["frames_per_s"] / reference[every]
@@ -222,7 +224,7 @@ def report(name: str, r: dict) -> None:
         mode += f", {r['rendered_ahead_fraction'] * 100:.0f}% rendered ahead"
     if r.get("land_within_s"):
         mode += f", landing within {r['land_within_s'] * 1000:.0f} ms of a frame"
-    if r.get("library_threads", 1) is None:
+    if r["overlap"] and r.get("library_threads", 1) is None:
         mode += ", OpenBLAS's and OpenCV's thread pools as they come"
     if not r.get("read_ahead", 2):
         mode += ", each frame read when its step comes"

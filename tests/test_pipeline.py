@@ -519,10 +519,10 @@ def test_the_feature_odometry_at_the_renders_width_hands_its_features_to_the_cor
         make_odometry("dense", seq, vo_width=160)
 
 
-def test_a_run_holds_the_libraries_thread_pools_to_one_and_its_trajectory_does_not_change(kinect_walk):
-    """``library_threads``: OpenCV (the dense odometry) and OpenBLAS (numpy) work on one
-    thread each while the run goes, their counts come back after it, and the run's poses
-    are the same to the last bit as with the pools as they come."""
+def test_an_overlapped_run_holds_the_libraries_thread_pools_to_one_and_its_trajectory_does_not_change(kinect_walk):
+    """``library_threads``: while an overlapped run goes, OpenCV (the dense odometry) and
+    OpenBLAS (numpy) work on one thread each, and their counts come back after it; an inline
+    run leaves them as they are. The poses are the same to the last bit either way."""
     import cv2
     from threadpoolctl import threadpool_info
 
@@ -542,15 +542,24 @@ def test_a_run_holds_the_libraries_thread_pools_to_one_and_its_trajectory_does_n
             return self.inner.increment(*args, **kwargs)
 
     before = cv2.getNumThreads()
+    cv2.setNumThreads(2)  # a pool of two where the machine has one core, so inline is told apart
     config = dataclasses.replace(CONFIG, keyframe_every=8, max_frames=24)
     runs = {}
-    for count in (1, None):
-        seen.clear()
-        odometry = Counting(make_odometry("dense", seq))
-        runs[count] = Pipeline(seq, seq.oracle_field(), odometry, dataclasses.replace(config, library_threads=count)).run()
-        assert cv2.getNumThreads() == before
-        if count == 1:
-            assert seen and set(seen) == {(1, 1)}
-    np.testing.assert_array_equal(runs[1].T_world_cam_estimate, runs[None].T_world_cam_estimate)
-    np.testing.assert_array_equal(runs[1].T_world_cam_odometry, runs[None].T_world_cam_odometry)
-    assert ate(runs[1]) < ate_odometry(runs[1])
+    try:
+        for overlap, count in ((True, 1), (True, None), (False, 1)):
+            seen.clear()
+            odometry = Counting(make_odometry("dense", seq))
+            run_config = dataclasses.replace(config, library_threads=count, overlap=overlap)
+            runs[overlap, count] = Pipeline(seq, seq.oracle_field(), odometry, run_config).run()
+            assert cv2.getNumThreads() == 2
+            held = overlap and count == 1
+            assert seen and {opencv for opencv, _ in seen} == ({1} if held else {2})
+            if held:
+                assert {blas for _, blas in seen} == {1}
+    finally:
+        cv2.setNumThreads(before)
+    reference = runs[False, 1]
+    for key in ((True, 1), (True, None)):
+        np.testing.assert_array_equal(runs[key].T_world_cam_estimate, reference.T_world_cam_estimate)
+        np.testing.assert_array_equal(runs[key].T_world_cam_odometry, reference.T_world_cam_odometry)
+    assert ate(reference) < ate_odometry(reference)

@@ -1,14 +1,15 @@
 """The thread pools of the libraries a run calls (OpenBLAS through numpy, OpenCV), held to a
 fixed size while the run goes.
 
-A run brings its own parallelism: the odometry on one thread, the keyframe's measurement
-(``--overlap``) or the real frame's detection (inline) on another. Each library call would
-add its own pool on top: OpenCV's dense odometry spreads over every core and numpy's small
-matrix products over OpenBLAS's threads, which spin while they wait for work. On two cores
-that is four or five busy threads for two: the overlapped fr1/desk run with XFeat went
-0.85-0.88x as fast with the pools as they come as with one thread each, in three pairs of
-runs (``benchmarks/results/realtime_fr1_desk_xfeat.json``). The results do not change: the
-same trajectories to the last bit (``tests/test_pipeline.py``).
+An overlapped run (``--overlap``) brings its own parallelism: the odometry on one thread,
+the keyframe's measurement on another. Each library call would add its own pool on top:
+OpenCV's dense odometry spreads over every core and numpy's matrix products over OpenBLAS's
+threads, which spin while they wait for work. On two cores that is four or five busy threads
+for two: the overlapped fr1/desk run with XFeat went 0.85-0.88x as fast with the pools as
+they come as with one thread each, in three pairs of runs
+(``benchmarks/results/realtime_fr1_desk_xfeat.json``; with SIFT no difference beyond the
+noise). An inline run's keyframe has the machine to itself and keeps the pools. The results
+do not change: the same trajectories to the last bit (``tests/test_pipeline.py``).
 
 torch's thread count is set per block where torch is called
 (:mod:`nap3d_graph.torch_threads`); numba's kernels are single-threaded.

@@ -110,16 +110,18 @@ class Pipeline:
     def run(self, on_keyframe=None, stop=None) -> RunResult:
         """Run over the sequence. ``on_keyframe(record)`` hears about each keyframe as soon as
         it is done (a results writer appends it); ``stop()`` is asked before each frame and,
-        when it says so, the run ends there with what it has (``RunResult.partial``).
-        OpenBLAS and OpenCV work with ``config.library_threads`` threads meanwhile."""
-        with library_threads(self.config.library_threads):
-            return self._run(on_keyframe, stop)
-
-    def _run(self, on_keyframe, stop) -> RunResult:
-        from tqdm import tqdm
-
+        when it says so, the run ends there with what it has (``RunResult.partial``). An
+        overlapped run holds OpenBLAS and OpenCV to ``config.library_threads`` threads."""
         t_start = time.perf_counter()
         self._start()
+        with library_threads(self.config.library_threads if self.overlaps() else None):
+            result = self._run_frames(on_keyframe, stop)
+        result.wall_time_s = time.perf_counter() - t_start
+        return result
+
+    def _run_frames(self, on_keyframe, stop) -> RunResult:
+        from tqdm import tqdm
+
         n = len(self.sequence) if self.config.max_frames is None else min(len(self.sequence), self.config.max_frames)
         done, partial = n, False
         worker = CorrectionWorker(self.field, self.config) if self.overlaps() else None
@@ -149,7 +151,6 @@ class Pipeline:
             self._frames = self.sequence
         result = self._finish(max(done, 1))
         result.partial = partial
-        result.wall_time_s = time.perf_counter() - t_start
         return result
 
     def start(self) -> None:
