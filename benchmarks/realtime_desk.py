@@ -5,8 +5,9 @@ On a TUM recording (default: the second half of fr1/desk, with the field the stu
 on its first half) the run goes with ``--odom dense`` (OpenCV's RGB-D odometry) at each
 keyframe spacing of ``--keyframe-every``, inline and overlapped in turn ``--repeats`` times
 (the run with the median rate kept; at the smallest spacing also overlapped with OpenBLAS's
-and OpenCV's thread pools left as they come beside each pair, where an overlapped run holds
-them to one thread each, ``PipelineConfig.library_threads``): frames per second end to end
+and OpenCV's thread pools left as they come beside each pair, where a run holds OpenBLAS's
+to one thread and an overlapped run OpenCV's too, ``PipelineConfig.library_threads``):
+frames per second end to end
 (reading, odometry, corrections, iSAM2, final solve), the smoothed and the causal ATE (evo
 style, no alignment) against the odometry's, accepted corrections, and per-stage
 milliseconds per keyframe (median and p90): the whole measurement, its render, the features
@@ -77,7 +78,7 @@ def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str, paced
     return {
         "overlap": overlap, "render_ahead": overlap and render_ahead, "land_within_s": land_within_s,
         "keyframe_when_idle": keyframe_when_idle, "read_ahead": read_ahead,
-        "library_threads": library_threads if overlap else None,
+        "library_threads": library_threads,
         "keyframe_interval_mean": float(np.mean(np.diff(result.keyframe_indices))) if len(result.keyframe_indices) > 1
         else None,
         "rendered_ahead_fraction": float(np.mean([r.timings_s.get("prepared", 0.0) for r in result.keyframes])),
@@ -155,8 +156,7 @@ def main() -> None:
             # shared: one pair's rates moved by 15% between runs of the command): the run
             # with the median rate is kept per setting, every rate and each pair's ratio beside.
             # At the smallest spacing, also overlapped with OpenBLAS's and OpenCV's pools as they
-            # come (library_threads None; an inline run always leaves them so) beside each pair:
-            # what holding them to one thread gives.
+            # come (library_threads None) beside each pair: what holding them to one thread gives.
             settings = [(False, 1), (True, 1)] + ([(True, None)] if every == min(args.keyframe_every) else [])
             pairs = [[run(sequence, field, overlap, every, args.matcher, library_threads=threads)
                       for overlap, threads in settings] for _ in range(args.repeats)]

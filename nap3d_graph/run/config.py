@@ -116,13 +116,12 @@ class PipelineConfig:
         the current one (:mod:`nap3d_graph.run.read_ahead`; 0: read each frame when its step
         comes). Only for sequences whose frames can be read from another thread; the frames
         are the same either way.
-    library_threads: with ``overlap``, the threads OpenBLAS (numpy) and OpenCV each work with
-        while the run goes (:mod:`nap3d_graph.run.library_threads`; None: as they come, every
-        core). The run's two threads are its parallelism; on two cores the libraries' pools
-        beside them made an overlapped fr1/desk run with XFeat 0.85-0.88x as fast. An inline
-        run leaves them as they come: its keyframe has the machine to itself, and SIFT's
-        detection and matching at 320x240 took 27 and 5 ms on one thread against 19 and 3 on
-        two. Same results either way.
+    library_threads: the threads OpenBLAS (numpy) works with while the run goes, and
+        OpenCV too with ``overlap`` (:mod:`nap3d_graph.run.library_threads`; None: as they
+        come, every core). The run's own threads are its parallelism, and OpenBLAS's idle
+        threads spin: on two cores an fr1/desk run with XFeat went 1.1x as fast inline with
+        OpenBLAS on one thread, 1.3x overlapped with both. An inline run keeps OpenCV's pool
+        for SIFT's detection and matching. Same results either way.
     graph_window: keyframes kept in iSAM2 (0: all, the default). With N > 0, once more than
         1.5 N keyframes are in the graph the oldest are marginalised down to N (iSAM2's
         ``marginalizeLeaves``: their information stays as a linear prior on the window's

@@ -110,11 +110,12 @@ class Pipeline:
     def run(self, on_keyframe=None, stop=None) -> RunResult:
         """Run over the sequence. ``on_keyframe(record)`` hears about each keyframe as soon as
         it is done (a results writer appends it); ``stop()`` is asked before each frame and,
-        when it says so, the run ends there with what it has (``RunResult.partial``). An
-        overlapped run holds OpenBLAS and OpenCV to ``config.library_threads`` threads."""
+        when it says so, the run ends there with what it has (``RunResult.partial``).
+        OpenBLAS works with ``config.library_threads`` threads meanwhile, and OpenCV too in an
+        overlapped run."""
         t_start = time.perf_counter()
         self._start()
-        with library_threads(self.config.library_threads if self.overlaps() else None):
+        with library_threads(self.config.library_threads, opencv=self.overlaps()):
             result = self._run_frames(on_keyframe, stop)
         result.wall_time_s = time.perf_counter() - t_start
         return result
