@@ -12,6 +12,11 @@ trajectory for the same inputs.
         update = corrector.add_frame(rgb, depth_m, intrinsics, stamp, T_prev_cur)
         use(update.T_world_cam)                  # causal estimate at this frame
     trajectory = corrector.finish()             # the smoothed run (RunResult)
+
+The batch run holds numpy's BLAS pool (and, overlapped, OpenCV's) to
+``config.library_threads`` while it goes; a loop of one's own that wants the same wraps
+itself in ``with library_threads(1, opencv=config.overlap):``
+(:mod:`nap3d_graph.run.library_threads`), since these settings are the whole process's.
 """
 
 from __future__ import annotations
