@@ -37,8 +37,6 @@ def library_threads(count: int | None, opencv: bool = True) -> Iterator[None]:
     if count is None:
         yield
         return
-    import cv2
-
     with contextlib.ExitStack() as stack:
         try:
             from threadpoolctl import threadpool_limits
@@ -48,6 +46,8 @@ def library_threads(count: int | None, opencv: bool = True) -> Iterator[None]:
         else:
             stack.enter_context(threadpool_limits(limits=count, user_api="blas"))
         if opencv:
+            import cv2
+
             stack.callback(cv2.setNumThreads, cv2.getNumThreads())
             cv2.setNumThreads(count)
         yield
