@@ -4,10 +4,9 @@ corrections measured inline or overlapped with the odometry (``--overlap``).
 On a TUM recording (default: the second half of fr1/desk, with the field the study trained
 on its first half) the run goes with ``--odom dense`` (OpenCV's RGB-D odometry) at each
 keyframe spacing of ``--keyframe-every``, inline and overlapped in turn ``--repeats`` times
-(the run with the median rate kept; at the smallest spacing also overlapped with OpenBLAS's
-and OpenCV's thread pools left as they come beside each pair, where a run holds OpenBLAS's
-to one thread and an overlapped run OpenCV's too, ``PipelineConfig.library_threads``):
-frames per second end to end
+(the run with the median rate kept; at the smallest spacing also overlapped with numpy's
+BLAS pool left as it comes beside each pair, where a run holds it to one thread,
+``PipelineConfig.library_threads``): frames per second end to end
 (reading, odometry, corrections, iSAM2, final solve), the smoothed and the causal ATE (evo
 style, no alignment) against the odometry's, accepted corrections, and per-stage
 milliseconds per keyframe (median and p90): the whole measurement, its render, the features
@@ -155,8 +154,8 @@ def main() -> None:
             # As fast as it goes, inline and overlapped in turn --repeats times (the machine is
             # shared: one pair's rates moved by 15% between runs of the command): the run
             # with the median rate is kept per setting, every rate and each pair's ratio beside.
-            # At the smallest spacing, also overlapped with OpenBLAS's and OpenCV's pools as they
-            # come (library_threads None) beside each pair: what holding them to one thread gives.
+            # At the smallest spacing, also overlapped with numpy's BLAS pool as it comes
+            # (library_threads None) beside each pair: what holding it to one thread gives.
             settings = [(False, 1), (True, 1)] + ([(True, None)] if every == min(args.keyframe_every) else [])
             pairs = [[run(sequence, field, overlap, every, args.matcher, library_threads=threads)
                       for overlap, threads in settings] for _ in range(args.repeats)]
@@ -168,7 +167,7 @@ def main() -> None:
                 if k:
                     r["overlapped_vs_inline_repeats"] = [pair[k]["frames_per_s"] / pair[0]["frames_per_s"]
                                                          for pair in pairs]
-                if k == 2:  # the libraries' pools as they come, against the same repeat's run with them at one
+                if k == 2:  # BLAS's pool as it comes, against the same repeat's run with it at one thread
                     r["vs_library_threads_1_repeats"] = [pair[2]["frames_per_s"] / pair[1]["frames_per_s"]
                                                          for pair in pairs]
                 reference.setdefault(every, r["frames_per_s"])
@@ -225,7 +224,7 @@ def report(name: str, r: dict) -> None:
     if r.get("land_within_s"):
         mode += f", landing within {r['land_within_s'] * 1000:.0f} ms of a frame"
     if r["overlap"] and r.get("library_threads", 1) is None:
-        mode += ", OpenBLAS's and OpenCV's thread pools as they come"
+        mode += ", numpy's BLAS pool as it comes"
     if not r.get("read_ahead", 2):
         mode += ", each frame read when its step comes"
     if r.get("keyframe_when_idle"):

@@ -116,12 +116,11 @@ class PipelineConfig:
         the current one (:mod:`nap3d_graph.run.read_ahead`; 0: read each frame when its step
         comes). Only for sequences whose frames can be read from another thread; the frames
         are the same either way.
-    library_threads: the threads OpenBLAS (numpy) works with while the run goes, and
-        OpenCV too with ``overlap`` (:mod:`nap3d_graph.run.library_threads`; None: as they
-        come, every core). The run's own threads are its parallelism, and OpenBLAS's idle
-        threads spin: on two cores an fr1/desk run with XFeat went 1.1x as fast inline with
-        OpenBLAS on one thread, 1.3x overlapped with both. An inline run keeps OpenCV's pool
-        for SIFT's detection and matching. Same results either way.
+    library_threads: the threads numpy's BLAS (OpenBLAS) works with while the run goes
+        (:mod:`nap3d_graph.run.library_threads`; None: as it comes, every core). The run's
+        own threads are its parallelism, and OpenBLAS's idle threads spin: on two cores an
+        fr1/desk run with XFeat went 1.1x as fast inline with it on one thread, 1.2x
+        overlapped. OpenCV's pool is left as it is. Same results either way.
     graph_window: keyframes kept in iSAM2 (0: all, the default). With N > 0, once more than
         1.5 N keyframes are in the graph the oldest are marginalised down to N (iSAM2's
         ``marginalizeLeaves``: their information stays as a linear prior on the window's
@@ -195,7 +194,7 @@ class PipelineConfig:
             raise ValueError(f"keyframe_when_idle must be >= 0 and needs overlap (the worker it waits to be idle), "
                              f"got {self.keyframe_when_idle} with overlap={self.overlap}")
         if self.library_threads is not None and self.library_threads < 1:
-            raise ValueError(f"library_threads must be >= 1 or None (as the libraries come), got {self.library_threads}")
+            raise ValueError(f"library_threads must be >= 1 or None (BLAS's pool as it comes), got {self.library_threads}")
         if self.read_ahead < 0:
             raise ValueError(f"read_ahead must be >= 0 frames, got {self.read_ahead}")
         if self.rolling_shutter_s is not None and not (np.isfinite(self.rolling_shutter_s)

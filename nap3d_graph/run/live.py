@@ -13,10 +13,9 @@ trajectory for the same inputs.
         use(update.T_world_cam)                  # causal estimate at this frame
     trajectory = corrector.finish()             # the smoothed run (RunResult)
 
-The batch run holds numpy's BLAS pool (and, overlapped, OpenCV's) to
-``config.library_threads`` while it goes; a loop of one's own that wants the same wraps
-itself in ``with library_threads(1, opencv=config.overlap):``
-(:mod:`nap3d_graph.run.library_threads`), since these settings are the whole process's.
+The batch run holds numpy's BLAS pool to ``config.library_threads`` while it goes; a loop
+of one's own that wants the same wraps itself in ``with library_threads(1):``
+(:mod:`nap3d_graph.run.library_threads`), since the setting is the whole process's.
 """
 
 from __future__ import annotations

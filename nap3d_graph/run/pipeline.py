@@ -111,11 +111,10 @@ class Pipeline:
         """Run over the sequence. ``on_keyframe(record)`` hears about each keyframe as soon as
         it is done (a results writer appends it); ``stop()`` is asked before each frame and,
         when it says so, the run ends there with what it has (``RunResult.partial``).
-        OpenBLAS works with ``config.library_threads`` threads meanwhile, and OpenCV too in an
-        overlapped run."""
+        numpy's BLAS works with ``config.library_threads`` threads meanwhile."""
         t_start = time.perf_counter()
         self._start()
-        with library_threads(self.config.library_threads, opencv=self.overlaps()):
+        with library_threads(self.config.library_threads):
             result = self._run_frames(on_keyframe, stop)
         result.wall_time_s = time.perf_counter() - t_start
         return result
