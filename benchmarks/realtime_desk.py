@@ -237,7 +237,7 @@ def report(name: str, r: dict) -> None:
     if r.get("overlapped_vs_inline_repeats"):
         behind += " (each against its inline run: " + ", ".join(f"{x:.2f}x" for x in r["overlapped_vs_inline_repeats"]) + ")"
     if r.get("vs_library_threads_1_repeats"):
-        behind += " (against the same run with one thread each: " + \
+        behind += " (against the same run with BLAS on one thread: " + \
             ", ".join(f"{x:.2f}x" for x in r["vs_library_threads_1_repeats"]) + ")"
     if len(r.get("causal_ate_m_repeats") or []) > 1:
         behind += "; causal ATE of the repeats " + ", ".join(f"{x * 100:.2f}" for x in r["causal_ate_m_repeats"]) + " cm"
