@@ -174,6 +174,16 @@ class ViewField:
         other._hidden = hidden if self._hidden is None else (hidden | self._hidden)
         return other
 
+    def only_views(self, indices) -> "ViewField":
+        """This field with every view but ``indices`` (view numbers) hidden (they share the
+        data): rendered at one kept view's own pose it gives that frame as it was stored, so a
+        frame can be aligned to each training view alone."""
+        keep = np.zeros(len(self), dtype=bool)
+        keep[np.asarray(indices, dtype=int)] = True
+        other = copy.copy(self)
+        other._hidden = ~keep if self._hidden is None else (~keep | self._hidden)
+        return other
+
     @property
     def has_error_by_view(self) -> bool:
         """Whether the field measured how its error grows away from its views
