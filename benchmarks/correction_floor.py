@@ -3,13 +3,17 @@ ground-truth pose, and runs with ever denser keyframes.
 
 A correction that starts at the *true* pose, with the camera's true motion for the rolling
 shutter and the depth moved to the colour's instant along the ground truth, measures only
-what the map and the sensor disagree on: whatever it reports is the floor of every run on
-that recording (the ground truth's own consistency between the map's frames and the test
-frame, the depth camera's distortion, the field's rendering). With a view field (the map's
+what the map and the sensor disagree on, which no run with that map averages away where it
+is shared by neighbouring keyframes (the ground truth's own consistency between the map's
+frames and the test frame, the depth camera's distortion seen from two viewpoints, the
+field's rendering). With a view field (the map's
 sharpest frames, re-projected) each test frame is also aligned to each of its ``--views``
 nearest training frames *alone*, from that frame's own pose: if the views' errors were
 independent, their mean would beat any one of them by sqrt(n); the share of the error they
-have in common says how much of it no number of views can average away.
+have in common says how much of it no number of views can average away (they share the test
+frame too: its depth, its blur, its own ground-truth pose). ``--also-field`` aligns the same
+frames, with the same motion, to other maps (a grid, a splat field): what two maps' errors have
+in common belongs to the test frame and the ground truth, what they do not to the maps.
 
 Per test frame (every ``--step``-th of ``--frames``): the error of the corrected pose
 against the ground truth (translation mm, rotation deg) aligned to the field's render, with
@@ -18,7 +22,8 @@ and without the rolling shutter's motion; per view alone; the camera's speed. Th
 frames: ATE (no alignment) as keyframes get denser, down to every frame. Writes JSON.
 
     python benchmarks/correction_floor.py --field VIEW_FIELD.pt [--data ../shared/data/tum/rgbd_dataset_freiburg1_desk] \\
-        [--frames 0.5:1] [--step 3] [--views 5] [--keyframe-every 1 2 5] [--out benchmarks/results/correction_floor_fr1_desk.json]
+        [--also-field grid=G.pt] [--frames 0.5:1] [--step 3] [--views 5] [--keyframe-every 1 2 5] \\
+        [--out benchmarks/results/correction_floor_fr1_desk.json]
 """
 
 from __future__ import annotations
@@ -77,10 +82,15 @@ def errors(correction, T_true: np.ndarray) -> tuple[np.ndarray, float]:
     return t_err, pose_error(correction.T_world_cam_corrected, T_true)[1]
 
 
-def measure_frame(sequence, i: int, field, config: AlignConfig, K, views: int, readout_s: float) -> dict:
+def measure_frame(sequence, i: int, field, config: AlignConfig, K, views: int, readout_s: float,
+                  others: dict) -> dict:
     frame, T_true, twist = at_true_pose(sequence, i, field.meta.get("timing") or {})
     motion = RowMotion(twist, readout_s) if readout_s > 0 else None
     row: dict = {"frame": i, "speed_m_per_s": float(np.linalg.norm(twist[3:]))}
+    for name, other in others.items():  # the same frame, the same motion, another map
+        c = correct_pose(frame, other, T_true, iterations=1, config=config, render_intrinsics=K, motion=motion)
+        t_err, r_err = errors(c, T_true)
+        row[f"field:{name}"] = {"t_err_mm": t_err.tolist(), "r_err_deg": r_err, "inliers": c.alignment.num_inliers}
     for name, m in (("composite", motion), ("composite_no_shutter", None)):
         if name == "composite_no_shutter" and motion is None:
             continue
@@ -105,9 +115,26 @@ def spread(values) -> dict:
             "max": float(v.max()), "rms": float(np.sqrt(np.mean(v**2)))}
 
 
+def shared_with(a: np.ndarray, b: np.ndarray) -> dict:
+    """How much two maps' errors (N, 3) mm on the same frames have in common: per-axis
+    correlation, and the share of the error power in their mean (0.5 when independent with
+    equal spread, 1 when the same)."""
+    ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
+    a, b = a[ok], b[ok]
+    mean, half_diff = (a + b) / 2, (a - b) / 2
+    return {"frames": int(ok.sum()), "correlation_xyz": [float(np.corrcoef(a[:, k], b[:, k])[0, 1]) for k in range(3)],
+            "share_of_power_in_common": float(np.sum(mean**2) / (np.sum(mean**2) + np.sum(half_diff**2)))}
+
+
 def summarise(rows: list[dict]) -> dict:
     out: dict = {}
     fast = np.array([r["speed_m_per_s"] > FAST_M_PER_S for r in rows])
+    main_err = np.array([r["composite"]["t_err_mm"] for r in rows], dtype=float)
+    for key in [k for k in rows[0] if k.startswith("field:")]:
+        e = np.array([r[key]["t_err_mm"] for r in rows], dtype=float)
+        t = np.linalg.norm(e, axis=1)
+        out[key] = {"translation_mm": spread(t), "rotation_deg": spread([r[key]["r_err_deg"] for r in rows]),
+                    "failed": int(np.sum(~np.isfinite(t))), "shared_with_composite": shared_with(main_err, e)}
     for name in ("composite", "composite_no_shutter"):
         if name not in rows[0]:
             continue
@@ -165,6 +192,9 @@ def main(argv=None) -> None:
     p.add_argument("--frames", default="0.5:1", help="the test frames (the field must not be built on them)")
     p.add_argument("--step", type=int, default=3, help="align every STEP-th test frame at its true pose")
     p.add_argument("--views", type=int, default=5, help="a view field: align to each of this many nearest views alone")
+    p.add_argument("--also-field", action="append", default=[], metavar="NAME=FIELD.pt",
+                   help="also align each test frame to this map at its true pose (no runs), and say how much its "
+                        "errors share with --field's")
     p.add_argument("--matcher", default="xfeat")
     p.add_argument("--odom", default="vo")
     p.add_argument("--keyframe-every", type=int, nargs="*", default=[1, 2, 5], help="runs at these spacings")
@@ -177,15 +207,16 @@ def main(argv=None) -> None:
     config = AlignConfig(matcher=args.matcher)
     timing = field.meta.get("timing") or {}
     readout_s = float(timing.get("readout_s") or 0.0)
+    others = {name: load_field(path) for name, path in (spec.split("=", 1) for spec in args.also_field)}
     test = frame_range(args.frames, len(sequence))
     rows = []
     with library_threads(1):
         for i in test[::args.step]:
-            rows.append(row := measure_frame(sequence, i, field, config, K, args.views, readout_s))
+            rows.append(row := measure_frame(sequence, i, field, config, K, args.views, readout_s, others))
             c = row["composite"]
             print(f"frame {i}: {np.linalg.norm(c['t_err_mm']):.1f} mm at the true pose "
                   f"({row['speed_m_per_s']:.2f} m/s)", flush=True)
-    result = {"data": str(args.data), "field": str(args.field), "frames": args.frames, "step": args.step,
+    result = {"data": str(args.data), "field": str(args.field), "also_fields": args.also_field, "frames": args.frames, "step": args.step,
               "matcher": args.matcher, "readout_s": readout_s, "timing": timing,
               "ground_truth_agreement_mm": timing.get("agreement_mm"),
               "fast_above_m_per_s": FAST_M_PER_S, "at_true_pose": summarise(rows), "per_frame": rows, "runs": []}
