@@ -14,6 +14,7 @@ from nap3d_graph.datasets import SimSequence, TumSequence, read_tum_trajectory
 from nap3d_graph.odometry import make_odometry
 from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.intrinsics_model import FIXED_ONLY
 from nap3d_graph.run.output import write_results
 from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.sims.sensors import CameraTiming, OdometryNoise
@@ -559,3 +560,81 @@ def test_a_run_holds_blas_to_one_thread_and_its_trajectory_does_not_change(kinec
         np.testing.assert_array_equal(runs[key].T_world_cam_estimate, reference.T_world_cam_estimate)
         np.testing.assert_array_equal(runs[key].T_world_cam_odometry, reference.T_world_cam_odometry)
     assert ate(reference) < ate_odometry(reference)
+
+
+def _correction(model: str | None, success: bool = True) -> Correction:
+    from nap3d_graph.results import Alignment
+
+    diagnostics = {} if model is None else {"intrinsics_model": model}
+    alignment = Alignment(success=success, diagnostics=diagnostics, reason="" if success else "too few inliers")
+    return Correction(np.eye(4), np.eye(4), np.eye(6), alignment, 1, success, alignment.reason, {})
+
+
+def test_the_intrinsics_tracker_settles_after_wins_in_a_row_and_a_calibrated_win_unsettles_it():
+    """``IntrinsicsModelTracker``: both camera models until the given intrinsics won
+    ``check_every`` keyframes in a row, then the given alone but every ``check_every``-th; a
+    self-calibrated win brings back both at every keyframe; failures count for nothing."""
+    from nap3d_graph.run.intrinsics_model import IntrinsicsModelTracker
+
+    tracker = IntrinsicsModelTracker(3, active=True)
+    plan = []
+    choices = iter(["fixed", "fixed", None, "fixed",  # a failure between the wins does not count
+                    FIXED_ONLY, FIXED_ONLY, "fixed", FIXED_ONLY, FIXED_ONLY,
+                    "calibrated", "fixed", "fixed", "fixed", FIXED_ONLY])
+    for k in range(14):
+        both = tracker.fits_both(k)
+        plan.append(both)
+        choice = next(choices)
+        failed = choice is None
+        label = tracker.observe(k, _correction(None if (failed or choice == FIXED_ONLY) else choice, not failed))
+        assert label == ("" if failed else choice), (k, label, choice)
+    assert plan == [True, True, True, True, False, False, True, False, False, True, True, True, True, False]
+    # Off (0), or alignments that do not fit both anyway: every job as AlignConfig says.
+    for tracker in (IntrinsicsModelTracker(0, active=True), IntrinsicsModelTracker(3, active=False)):
+        for k in range(6):
+            assert tracker.fits_both(k) and tracker.observe(k, _correction("fixed")) == "fixed"
+    with pytest.raises(ValueError, match="intrinsics_check_every"):
+        PipelineConfig(intrinsics_check_every=-1)
+
+
+def test_a_run_stops_fitting_the_self_calibrated_camera_once_the_given_one_keeps_winning(walk, baseline):
+    """The given intrinsics are right: after ``intrinsics_check_every`` keyframes the run fits
+    them alone (both again every ``intrinsics_check_every``-th), and the trajectory is the one
+    a run fitting both at every keyframe gives, to the bit."""
+    seq = SimSequence(walk)
+    both_always = Pipeline(seq, seq.oracle_field(), make_odometry("recorded", seq),
+                           dataclasses.replace(CONFIG, intrinsics_check_every=0)).run()
+    np.testing.assert_array_equal(baseline.T_world_cam_estimate, both_always.T_world_cam_estimate)
+    models = [k.intrinsics_model for k in baseline.keyframes]
+    assert CONFIG.intrinsics_check_every == 5 and models[:5] == ["fixed"] * 5, models
+    assert models[5:] == [("fixed" if (k + 1) % 5 == 0 else FIXED_ONLY) for k in range(5, len(models))], models
+    assert all(k.intrinsics_model == "fixed" for k in both_always.keyframes)
+
+
+def test_a_run_whose_camera_is_wrong_keeps_fitting_both_models(walk):
+    """Frames whose intrinsics are 10% and 10 px off (Evaluation K's HARSH cell): the
+    self-calibrated model wins again and again, so the run never settles on the given
+    camera, and its trajectory is that of a run fitting both at every keyframe."""
+    seq = SimSequence(walk)
+
+    class WrongCamera:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def __len__(self):
+            return len(self.inner)
+
+        def __getitem__(self, i):
+            frame = self.inner[i]
+            return frame.with_intrinsics(frame.intrinsics.shifted(1.10, 10.0))
+
+    wrong = WrongCamera(seq)
+    runs = {every: Pipeline(wrong, seq.oracle_field(), make_odometry("recorded", seq),
+                            dataclasses.replace(CONFIG, intrinsics_check_every=every)).run() for every in (5, 0)}
+    models = [k.intrinsics_model for k in runs[5].keyframes]
+    # Measured: 4 of 12 keyframes kept the self-calibrated model, never 5 fixed in a row.
+    assert FIXED_ONLY not in models and sum(m.startswith("calibrated") for m in models) >= 3, models
+    np.testing.assert_array_equal(runs[5].T_world_cam_estimate, runs[0].T_world_cam_estimate)

@@ -88,6 +88,13 @@ class PipelineConfig:
         is a few percent off is calibrated on the fly; a frame whose scale still differs
         from it by more than ``depth_scale_tolerance`` and ``depth_scale_sigmas`` of its
         sigma is a failed correction (its depth or its match is wrong).
+    intrinsics_check_every: where the alignment fits the self-calibrated camera model beside
+        the given one (``AlignConfig.estimate_intrinsics="auto"``), the run stops fitting it once
+        the given intrinsics won this many keyframes in a row, and fits both again every this
+        many keyframes (a win for the self-calibrated model resumes fitting both at every
+        keyframe); 0: both at every keyframe. The camera does not change during a run, and
+        the second fit is a quarter of a keyframe's measurement
+        (:mod:`~nap3d_graph.run.intrinsics_model`).
     overlap: measure each keyframe's correction on a worker thread while the odometry goes
         on (the second core); the correction enters the graph, at its keyframe, at the first
         frame after it is ready, and a new keyframe waits for the one in flight. The causal
@@ -156,6 +163,7 @@ class PipelineConfig:
     depth_scale_tolerance: float = 0.02
     depth_scale_sigmas: float = 4.0
     depth_scale_window: int = 15
+    intrinsics_check_every: int = 5
     odom_drift_fraction: float = 0.03
     odom_drift_rad_per_m: float = 0.0175
     odom_drift_rad_per_rad: float = 0.03
@@ -195,6 +203,9 @@ class PipelineConfig:
                              f"got {self.keyframe_when_idle} with overlap={self.overlap}")
         if self.library_threads is not None and self.library_threads < 1:
             raise ValueError(f"library_threads must be >= 1 or None (BLAS's pool as it comes), got {self.library_threads}")
+        if self.intrinsics_check_every < 0:
+            raise ValueError(f"intrinsics_check_every must be >= 0 keyframes (0: both models at every keyframe), "
+                             f"got {self.intrinsics_check_every}")
         if self.read_ahead < 0:
             raise ValueError(f"read_ahead must be >= 0 frames, got {self.read_ahead}")
         if self.rolling_shutter_s is not None and not (np.isfinite(self.rolling_shutter_s)

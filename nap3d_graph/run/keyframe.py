@@ -42,7 +42,9 @@ class KeyframeJob:
     the worker's future of one), used when it is near ``T_field_cam_render``; feats_real: the
     frame's features at the render size, detected as soon as it arrived (the worker's future
     of ``(features, seconds)``), or as the feature odometry detected them (``(features, 0.0)``),
-    or None."""
+    or None; fit_intrinsics: whether the alignment also fits the self-calibrated camera model
+    where ``AlignConfig.estimate_intrinsics`` is "auto" (False once the run has settled on the
+    given intrinsics, :class:`~nap3d_graph.run.intrinsics_model.IntrinsicsModelTracker`)."""
 
     frame_index: int
     frame: RGBDFrame
@@ -53,6 +55,7 @@ class KeyframeJob:
     render_intrinsics: Intrinsics
     prepared: Any = None
     feats_real: Any = None
+    fit_intrinsics: bool = True
 
 
 def at_colour_time(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, depth_scale: float):
@@ -87,6 +90,8 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     align = config.align
     if config.depth_scale_check and not align.rescale_depth:
         align = dataclasses.replace(align, rescale_depth=True)
+    if not job.fit_intrinsics and align.estimate_intrinsics == "auto":
+        align = dataclasses.replace(align, estimate_intrinsics=False)
     prepared = usable_prepared_view(job, config)
     feats_real, detect_s = _resolved(job.feats_real, (None, 0.0), "the frame's features detected ahead")
     rendering = None

@@ -33,7 +33,7 @@ TIMING_STAGES = ("render", "detect", "match", "ransac", "refine", "gate", "isam"
                  "render_beside", "render_ahead", "detect_ahead")  # the last three: overlapped runs (--overlap)
 CORRECTION_COLUMNS = ["frame_index", "run_index", "timestamp", "key", "matches", "inliers", "iterations", "accepted",
                       "reason", "gate_d2", "correction_m", "correction_deg", "trained_frame", "keyframe_why",
-                      "sharpness", "postponed_frames", *[f"t_{s}_s" for s in TIMING_STAGES]]
+                      "sharpness", "postponed_frames", "intrinsics_model", *[f"t_{s}_s" for s in TIMING_STAGES]]
 
 
 def new_run_dir(root: str | Path, name: str = "") -> Path:
@@ -123,7 +123,7 @@ def _correction_row(k, frame_index: int) -> list:
     return [frame_index, k.frame_index, f"{k.timestamp:.6f}", k.key, k.matches, k.inliers, k.iterations, int(k.accepted),
             k.reason, f"{k.gate_d2:.4g}", f"{k.correction_m:.6f}", f"{k.correction_deg:.5f}",
             int(getattr(k, "trained_frame", False)), k.why, f"{k.sharpness:.4g}", k.postponed,
-            *[k.timings_s.get(s, "") for s in TIMING_STAGES]]
+            getattr(k, "intrinsics_model", ""), *[k.timings_s.get(s, "") for s in TIMING_STAGES]]
 
 
 class RunWriter:

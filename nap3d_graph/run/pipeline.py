@@ -35,6 +35,7 @@ from nap3d_graph.run.config import PipelineConfig, with_field_error
 from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
+from nap3d_graph.run.intrinsics_model import IntrinsicsModelTracker
 from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, capture_timing, measure_keyframe
 from nap3d_graph.run.library_threads import library_threads
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
@@ -227,6 +228,7 @@ class Pipeline:
         self.selector = KeyframeSelector(self.config)
         timing = self._timing()
         self.depth_scale = DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, self.config)
+        self.intrinsics_model = IntrinsicsModelTracker.for_run(self.config)
         # The measurement stream, for estimators compared on the same inputs
         # (nap3d_graph.estimators): each keyframe interval's odometry as its factor has it,
         # and every successful correction (gated out or not) with its covariance.
@@ -303,7 +305,8 @@ class Pipeline:
             T_field_cam_render = inv_T(self.graph.anchor()) @ self.T_world_kf_pred  # the field's frame
         render_intrinsics = self._render_intrinsics(frame.intrinsics)
         return KeyframeJob(i, frame, T_field_cam_render, self._velocity(i), self._timing(), self.depth_scale.scale,
-                           render_intrinsics, feats_real=self._odometry_features(i, render_intrinsics))
+                           render_intrinsics, feats_real=self._odometry_features(i, render_intrinsics),
+                           fit_intrinsics=self.intrinsics_model.fits_both(i))
 
     def _odometry_features(self, i: int, render_intrinsics: Intrinsics):
         """``(features, 0.0)``: frame i's features as the feature odometry detected them, when they
@@ -419,6 +422,7 @@ class Pipeline:
 
     def _gate_and_add(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render) -> None:
         """The graph half: depth-scale check, gate, factor (see the module docstring)."""
+        record.intrinsics_model = self.intrinsics_model.observe(i, correction)
         if correction.success and self.config.depth_scale_check:
             correction = self.depth_scale.check(correction, record)
         if correction.success:

@@ -35,6 +35,7 @@ class KeyframeRecord:
     sharpness: float = float("nan")
     postponed: int = 0  # frames it was taken after it was due (keyframe_window)
     depth_scale: float = float("nan")
+    intrinsics_model: str = ""  # the camera model its alignment kept (IntrinsicsModelTracker.observe)
 
 
 @dataclass
