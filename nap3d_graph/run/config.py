@@ -93,7 +93,7 @@ class PipelineConfig:
         the given intrinsics won this many keyframes in a row, and fits both again every this
         many keyframes (a win for the self-calibrated model resumes fitting both at every
         keyframe); 0: both at every keyframe. The camera does not change during a run, and
-        the second fit is a quarter of a keyframe's measurement
+        the second fit is 10-20% of a keyframe's measurement with XFeat
         (:mod:`~nap3d_graph.run.intrinsics_model`).
     overlap: measure each keyframe's correction on a worker thread while the odometry goes
         on (the second core); the correction enters the graph, at its keyframe, at the first
