@@ -90,12 +90,14 @@ class Trajectory:
     def write_tum(self, path, header: str | None = None, skip_unknown: bool = False) -> Path:
         """Write the poses as a TUM file that ``evo_ape tum`` reads: time with 6 decimals
         (microseconds, as TUM does), translations and quaternions with 9. Unknown poses are
-        refused, or left out with ``skip_unknown``. ``header``: comment lines above the
-        column names."""
+        refused, or left out with ``skip_unknown``; so are stamps that do not strictly increase
+        as written (evo's ``PoseTrajectory3D.check`` wants them ascending without duplicates).
+        ``header``: comment lines above the column names."""
         path = Path(path)
         trajectory = self.only_valid() if skip_unknown else self
         if not np.all(trajectory.valid):
             raise DatasetError(f"{path}: refusing to write non-finite timestamps or poses")
+        _check_increasing(trajectory.stamps, f"{path}: ")
         text = TUM_HEADER if header is None else f"{header}\n{TUM_HEADER}"
         # evo reads with a single-space delimiter: no trailing blanks, one space between columns.
         np.savetxt(path, trajectory._tum_rows(), fmt=_TUM_FORMAT, delimiter=" ", header=text, comments="# ")
@@ -103,9 +105,11 @@ class Trajectory:
 
     def append_tum(self, handle) -> None:
         """Append the poses as TUM rows (the format of :meth:`write_tum`, no header) to an open
-        text file: a long run writes its retired frames as it goes. Unknown poses are refused."""
+        text file: a long run writes its retired frames as it goes. Unknown poses are refused,
+        and so are stamps that do not strictly increase (within the rows appended)."""
         if not np.all(self.valid):
             raise DatasetError("refusing to write non-finite timestamps or poses")
+        _check_increasing(self.stamps, "")
         np.savetxt(handle, self._tum_rows(), fmt=_TUM_FORMAT, delimiter=" ")
 
     def _tum_rows(self) -> np.ndarray:
@@ -120,6 +124,20 @@ class Trajectory:
 
 
 _TUM_FORMAT = ["%.6f"] + ["%.9f"] * 7
+
+
+def _check_increasing(stamps: np.ndarray, where: str) -> None:
+    """Refuse (``DatasetError``, a ``ValueError``) stamps that do not strictly increase at the
+    precision a TUM file keeps (microseconds): evo reads such a file, but its trajectory
+    check fails ("not ascending or duplicates") and its association falls back to guessing."""
+    written = np.array([float(_TUM_FORMAT[0] % t) for t in stamps])
+    steps = np.diff(written)
+    bad = np.flatnonzero(steps <= 0)
+    if bad.size:
+        i = int(bad[0])
+        raise DatasetError(f"{where}refusing to write stamps that do not strictly increase: {bad.size} of "
+                           f"{len(stamps)} poses are at or before the one before them (first: pose {i} at "
+                           f"{stamps[i]:.6f} s, pose {i + 1} at {stamps[i + 1]:.6f} s)")
 
 
 def read_tum_trajectory(path) -> tuple[np.ndarray, np.ndarray]:

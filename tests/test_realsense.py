@@ -2,10 +2,12 @@
 registered depth, the drift-correction run on a recording, and the one-line errors."""
 
 import json
+import logging
 
 import numpy as np
 import pytest
 import yaml
+from conftest import DATA
 
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.cli import main
@@ -80,6 +82,7 @@ def test_simulated_recording_holds_every_frame_and_imu_sample(walk):
     rec = RealSenseRecording(noisy, groundtruth=sim / "groundtruth.txt")
     assert rec.simulated  # its sidecar says the simulator wrote it (the run's matcher follows)
     assert len(rec) == len(seq) and rec.intrinsics == seq.intrinsics
+    assert rec.pairing_clock == "sensor" and rec.depth_clock_offset == 0.0  # one clock: its own stamps
     np.testing.assert_allclose(rec.timestamps, seq.timestamps, atol=1e-6)
     np.testing.assert_allclose(rec.T_world_cam_gt, seq.T_world_cam_gt, atol=1e-6)
     for i in (0, 17, 35):
@@ -92,6 +95,32 @@ def test_simulated_recording_holds_every_frame_and_imu_sample(walk):
     # The sidecar YAML puts the IMU (co-located with the colour camera here) where it was.
     np.testing.assert_allclose(rec.imu_config.T_cam_imu, np.eye(4), atol=1e-9)
     # Depth to the file's depth scale: 1 mm units.
+    assert rec.raw.depth_units == pytest.approx(0.001)
+
+
+def test_real_d435_file_with_two_hardware_clocks_pairs_by_arrival(caplog):
+    """librealsense's own D435 sample (tests/data/realsense/README.md): depth and colour are
+    stamped in each sensor's hardware clock, so no pair within 20 ms by those stamps; the
+    frames' arrival on the host pairs them."""
+    path = DATA / "realsense" / "single_depth_color_640x480.bag"
+    with caplog.at_level(logging.INFO, logger="nap3d_graph.datasets.realsense"):
+        rec = open_sequence(path)
+    assert isinstance(rec, RealSenseRecording)
+    assert rec.pairing_clock == "arrival"
+    assert sum("paired by arrival time" in r.getMessage() for r in caplog.records) == 1  # said once
+    assert len(rec) == 1
+    assert rec.timestamps[0] == pytest.approx(360.713523, abs=1e-6)  # the colour frame's own stamp
+    # The depth frame that arrived 54 ms before the colour frame (not the one 114 ms after),
+    # its stamp moved onto the colour clock.
+    assert rec.raw.depth[1][rec._depth_index[0]] == 169
+    assert rec.depth_timestamps[0] - rec.timestamps[0] == pytest.approx(-0.054, abs=0.002)
+    frame = rec[0]
+    assert frame.rgb.shape == (480, 640, 3) and frame.rgb.dtype == np.uint8
+    depth = frame.depth_m
+    assert depth.shape == (480, 640) and depth.dtype == np.float32
+    valid = depth[depth > 0]
+    assert valid.size > 0.2 * depth.size
+    assert 0.2 < float(np.median(valid)) < 10.0  # metres
     assert rec.raw.depth_units == pytest.approx(0.001)
 
 

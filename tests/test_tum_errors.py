@@ -187,3 +187,77 @@ def test_ground_truth_outside_frames(tmp_path, caplog):
         TumSequence(folder)
     (folder / "groundtruth.txt").unlink()
     assert TumSequence(folder).T_world_cam_gt is None
+
+
+# --- stamps that go backwards -------------------------------------------------------------------
+
+
+def backwards_folder(tmp_path: Path) -> Path:
+    """Six tiny frames in TUM's layout whose lists' stamps go backwards at two lines, as a
+    recording script that prints a stamp's fraction without its leading zeros writes them
+    (``10.0154`` for 10.154 s after ``10.121``)."""
+    folder = tmp_path / "backwards"
+    (folder / "rgb").mkdir(parents=True)
+    (folder / "depth").mkdir()
+    stamps = ["10.000000", "10.033000", "10.066000", "10.010000", "10.132000", "10.016500"]  # lines 4 and 6 go back
+    for list_name, sub in (("rgb.txt", "rgb"), ("depth.txt", "depth")):
+        lines = ["# timestamp filename"]
+        for i, stamp in enumerate(stamps):
+            name = f"{sub}/{i:02d}.png"
+            if sub == "rgb":
+                cv2.imwrite(str(folder / name), np.full((8, 10, 3), 40 * i, np.uint8))
+            else:
+                cv2.imwrite(str(folder / name), np.full((8, 10), 5000 + 100 * i, np.uint16))
+            lines.append(f"{stamp} {name}")
+        (folder / list_name).write_text("\n".join(lines) + "\n")
+    return folder
+
+
+TINY = Intrinsics(10.0, 10.0, 4.5, 3.5, 10, 8)
+
+
+def test_stamps_that_go_backwards_are_refused(tmp_path):
+    folder = backwards_folder(tmp_path)
+    with pytest.raises(DatasetError) as caught:
+        TumSequence(folder, intrinsics=TINY)
+    message = str(caught.value)
+    assert "\n" not in message
+    assert re.search(r"rgb\.txt: stamps go backwards at 2 of 6 lines", message)
+    assert re.search(r"depth\.txt: stamps go backwards at 2 of 6 lines", message)
+    assert "stamps='file-order'" in message
+    with pytest.raises(DatasetError, match="stamps must be one of"):
+        TumSequence(folder, intrinsics=TINY, stamps="sorted")
+
+
+def test_stamps_file_order_keeps_the_file_order_with_increasing_stamps(tmp_path, caplog):
+    folder = backwards_folder(tmp_path)
+    with caplog.at_level(logging.WARNING, logger="nap3d_graph.datasets.tum"):
+        seq = TumSequence(folder, intrinsics=TINY, stamps="file-order")
+    assert seq.stamps_mode == "file-order"
+    assert len(seq) == 6
+    assert np.all(np.diff(seq.timestamps) > 0) and np.all(np.diff(seq.depth_timestamps) > 0)
+    # The median forward step of the stamps as written (33 ms, 33 ms, 122 ms, 6.5 ms: 33 ms).
+    np.testing.assert_allclose(seq.timestamps, 10.0 + 0.033 * np.arange(6), atol=1e-9)
+    assert [p.name for p in seq.rgb_paths] == [f"{i:02d}.png" for i in range(6)]  # file order
+    assert seq.rgb_line_index.tolist() == list(range(6))
+    assert seq[3].rgb[0, 0, 0] == 120 and seq[3].depth_m[0, 0] == pytest.approx(5300 / 5000)
+    warnings = [r.getMessage() for r in caplog.records if "go backwards" in r.getMessage()]
+    assert len(warnings) == 2 and all("at 2 of 6 lines" in w for w in warnings)
+    # A folder whose stamps increase is the same either way.
+    plain = small_copy(tmp_path / "plain")
+    np.testing.assert_array_equal(TumSequence(plain, stamps="file-order").timestamps, TumSequence(plain).timestamps)
+
+
+def test_trajectory_writer_refuses_stamps_out_of_order(tmp_path):
+    from nap3d_graph.trajectory import Trajectory
+
+    poses = np.repeat(np.eye(4)[None], 3, axis=0)
+    path = tmp_path / "traj.txt"
+    for stamps in ([0.0, 2.0, 1.0], [0.0, 1.0, 1.0], [0.0, 1.0, 1.0000001]):  # back, repeated, same microsecond
+        with pytest.raises(ValueError, match=r"traj\.txt: refusing to write stamps that do not strictly increase"):
+            write_tum_trajectory(path, stamps, poses)
+        assert not path.exists()
+    with open(tmp_path / "appended.txt", "w") as handle, pytest.raises(ValueError, match="strictly increase"):
+        Trajectory(np.array([1.0, 0.5, 2.0]), poses).append_tum(handle)
+    write_tum_trajectory(path, [0.0, 1.0, 2.0], poses)
+    assert read_tum_trajectory(path)[0].tolist() == [0.0, 1.0, 2.0]

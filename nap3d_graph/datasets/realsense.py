@@ -11,6 +11,13 @@ TUM file of poses, or None), plus ``imu`` (accel resampled at the gyro's stamps)
 ``imu_config`` (noise, gravity and the camera-IMU extrinsics, which recordings do not store:
 from a YAML file, by default ``<recording>.yaml`` beside it, else D435i values).
 
+Pairing: by the frames' own stamps within ``max_difference``; when those pair fewer than half
+of the colour frames and the file has every frame's arrival time (librealsense's
+``time_of_arrival``), the sensors stamp in clocks of their own (a D435 recorded without global
+time) and the frames are paired by arrival instead, within half a frame period.
+``pairing_clock`` says which ("sensor" or "arrival"; logged once), ``depth_clock_offset`` (s)
+what was added to the depth stamps to put them on the colour clock.
+
 :func:`capture_live` records a connected camera (depth, colour, accel, gyro) to a ``.bag``
 for a given time; the run then reads that recording like any other.
 """
@@ -156,21 +163,69 @@ class RealSenseRecording(GroundTruthLookup):
         return Intrinsics(K.fx, K.fy, K.ppx, K.ppy, K.width, K.height)
 
     def _pair(self, raw) -> None:
+        """Pair colour with depth frames: by the frames' own (sensor) stamps, or, when those are
+        not on one clock, by their arrival on the host (see :meth:`_pair_by_arrival`). Sets
+        ``pairing_clock`` ("sensor" or "arrival") and ``depth_clock_offset`` (s, added to the
+        depth stamps to put them on the colour stream's clock; 0 when paired by sensor)."""
         from .association import associate
 
         c_stamps, d_stamps = raw.colour[0], raw.depth[0]
-        pairs = associate(c_stamps, d_stamps, self.config.max_difference)
+        tolerance = self.config.max_difference
+        pairs = associate(c_stamps, d_stamps, tolerance)
+        self.pairing_clock, self.depth_clock_offset = "sensor", 0.0
+        # A file whose depth and colour sensors stamp in their own hardware clocks (a D435's
+        # recording: colour 360713.5 ms, depth 360815.1 ms for frames 54 ms apart on arrival)
+        # pairs few or none of its frames by those stamps; the host's arrival times are one clock.
+        if len(pairs) < len(c_stamps) / 2:
+            by_arrival = self._pair_by_arrival(raw)
+            if by_arrival is not None and len(by_arrival[0]) > len(pairs):
+                pairs, tolerance, self.depth_clock_offset = by_arrival
+                self.pairing_clock = "arrival"
         if not len(pairs):
             raise DatasetError(f"{self.path}: no depth frame within {self.config.max_difference * 1000:.0f} ms of "
-                               "any colour frame")
+                               "any colour frame (by the frames' own stamps or by their arrival times)")
+        if self.pairing_clock == "arrival":
+            log.warning("%s: the depth and colour frames' own stamps are not on one clock (each sensor's hardware "
+                        "clock: %d of %d colour frames have a depth frame within %.0f ms by them); paired by "
+                        "arrival time instead (%d pairs within %.0f ms), depth stamps moved onto the colour clock by "
+                        "%+.1f ms", self.path, len(associate(c_stamps, d_stamps, self.config.max_difference)),
+                        len(c_stamps), self.config.max_difference * 1000, len(pairs), tolerance * 1000,
+                        self.depth_clock_offset * 1000)
+        else:
+            log.info("%s: depth and colour paired by the frames' own (sensor) stamps", self.path)
         lost = len(c_stamps) - len(pairs)
         if lost:
             log.warning("%s: %d of %d colour frames have no depth frame within %.0f ms and are left out", self.path,
-                        lost, len(c_stamps), self.config.max_difference * 1000)
+                        lost, len(c_stamps), tolerance * 1000)
         self._colour_index, self._depth_index = pairs[:, 0], pairs[:, 1]
         self.timestamps = c_stamps[self._colour_index]
-        self.depth_timestamps = d_stamps[self._depth_index]
+        self.depth_timestamps = d_stamps[self._depth_index] + self.depth_clock_offset
         self.rgb_line_index = None
+
+    def _pair_by_arrival(self, raw):
+        """``(pairs, tolerance, depth_clock_offset)`` pairing by the frames' arrival times, or
+        None when the file has no arrival time for every frame.
+
+        Arrival on the host carries the USB transfer's delay and jitter, so the tolerance is
+        half the slower stream's frame period (at least ``max_difference``): each colour frame
+        gets at most its nearest depth frame. The depth stamps' offset onto the colour clock is
+        the difference of the two streams' median (arrival - own stamp): a depth frame stamped
+        d arrived about when a colour frame stamped d + offset did."""
+        from .association import associate
+
+        c_arrival, d_arrival = raw.arrival.get("colour"), raw.arrival.get("depth")
+        if c_arrival is None or d_arrival is None or len(c_arrival) != len(raw.colour[0]) \
+                or len(d_arrival) != len(raw.depth[0]) or not len(c_arrival) or not len(d_arrival) \
+                or not (np.all(np.isfinite(c_arrival)) and np.all(np.isfinite(d_arrival))):
+            return None
+        rates = [raw.fps[k] for k in ("colour", "depth") if raw.fps.get(k, 0) > 0]
+        if not rates:  # no nominal rate: from the stamps
+            steps = [np.median(np.diff(s)) for s in (raw.colour[0], raw.depth[0]) if len(s) > 1]
+            rates = [1.0 / step for step in steps if step > 0]
+        tolerance = max(self.config.max_difference, 0.5 / min(rates)) if rates else self.config.max_difference
+        pairs = associate(c_arrival, d_arrival, tolerance)
+        offset = float(np.median(d_arrival - raw.depth[0]) - np.median(c_arrival - raw.colour[0]))
+        return pairs, tolerance, offset
 
     def _imu(self, raw) -> dict | None:
         (a_t, a_xyz), (g_t, g_xyz) = raw.accel, raw.gyro

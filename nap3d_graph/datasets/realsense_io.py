@@ -64,6 +64,10 @@ class RawRecording:
     depth: (stamps (D,), frame numbers (D,), list of (H, W) uint16); colour: the same with
     (H, W, 3) uint8 RGB; accel / gyro: (stamps (M,), (M, 3) float32 samples);
     depth_units: metres per depth unit; T_colour_depth (4, 4) or None.
+    arrival: ``{"depth": (D,), "colour": (C,)}`` each frame's arrival on the host (librealsense's
+    ``time_of_arrival``, seconds, the recording computer's system clock; NaN where the file has
+    none), in the order of the stamps above: the one clock the streams share when their own
+    stamps are each sensor's hardware clock. fps: ``{"depth": ..., "colour": ...}`` nominal rates.
     """
 
     depth: tuple
@@ -75,6 +79,8 @@ class RawRecording:
     depth_units: float
     T_colour_depth: np.ndarray | None
     info: dict = field(default_factory=dict)
+    arrival: dict = field(default_factory=dict)
+    fps: dict = field(default_factory=dict)
 
 
 def _intrinsics(profile) -> StreamIntrinsics:
@@ -136,6 +142,17 @@ def read_recording(path, timeout_s: float = 600.0) -> RawRecording:
     return _collect(rs, device, frames, path)
 
 
+def _arrival_s(rs, frame) -> float:
+    """A frame's ``time_of_arrival`` metadata (host system clock) in seconds, NaN if absent."""
+    key = rs.frame_metadata_value.time_of_arrival
+    try:
+        if frame.supports_frame_metadata(key):
+            return float(frame.get_frame_metadata(key)) / 1000.0
+    except RuntimeError:
+        pass
+    return float("nan")
+
+
 def _collect(rs, device, frames, path: Path) -> RawRecording:
     streams: dict = {"depth": [], "colour": [], "accel": [], "gyro": []}
     names = {rs.stream.depth: "depth", rs.stream.color: "colour", rs.stream.accel: "accel", rs.stream.gyro: "gyro"}
@@ -151,15 +168,26 @@ def _collect(rs, device, frames, path: Path) -> RawRecording:
             d = frame.as_motion_frame().get_motion_data()
             streams[kind].append((stamp, frame.get_frame_number(), np.array([d.x, d.y, d.z], dtype=np.float32)))
         else:
-            streams[kind].append((stamp, frame.get_frame_number(), np.asanyarray(frame.get_data()).copy()))
-    out = {}
+            streams[kind].append((stamp, frame.get_frame_number(), np.asanyarray(frame.get_data()).copy(),
+                                  _arrival_s(rs, frame)))
+    out, arrival = {}, {}
     for kind, items in streams.items():
         items.sort(key=lambda item: item[0])
         stamps = np.array([item[0] for item in items], dtype=float)
         numbers = np.array([item[1] for item in items], dtype=np.int64)
         data = [item[2] for item in items]
-        out[kind] = (stamps, numbers, data) if kind in ("depth", "colour") else (
-            stamps, np.array(data, dtype=np.float32).reshape(-1, 3))
+        if kind in ("depth", "colour"):
+            out[kind] = (stamps, numbers, data)
+            arrival[kind] = np.array([item[3] for item in items], dtype=float)
+        else:
+            out[kind] = (stamps, np.array(data, dtype=np.float32).reshape(-1, 3))
+    fps = {}
+    for kind in ("depth", "colour"):
+        if kind in profiles:
+            try:
+                fps[kind] = float(profiles[kind].fps())
+            except RuntimeError:
+                pass
     T_colour_depth = None
     if "depth" in profiles and "colour" in profiles:
         try:
@@ -179,7 +207,7 @@ def _collect(rs, device, frames, path: Path) -> RawRecording:
     return RawRecording(out["depth"], out["colour"], out["accel"], out["gyro"],
                         _intrinsics(profiles["depth"]) if "depth" in profiles else None,
                         _intrinsics(profiles["colour"]) if "colour" in profiles else None,
-                        depth_units, T_colour_depth, info)
+                        depth_units, T_colour_depth, info, arrival, fps)
 
 
 def _rs_intrinsics(rs, K: StreamIntrinsics):

@@ -41,6 +41,7 @@ from .frames import frame_index, parse_frame_range
 __all__ = [
     "TumSequence",
     "read_file_list",
+    "file_order_stamps",
     "tum_intrinsics_for",
     "TUM_DEPTH_SCALE",
 ]
@@ -79,6 +80,42 @@ def read_file_list(path) -> tuple[np.ndarray, list[str]]:
         stamps.append(parse_float(path, number, fields[0]))
         names.append(" ".join(fields[1:]))
     return np.asarray(stamps, dtype=float), names
+
+
+#: ``stamps=`` of :class:`TumSequence`: the lists' stamps as written (refused when they go
+#: backwards), or the frames in file order with stamps derived from that order.
+STAMPS_OPTIONS = ("as-written", "file-order")
+
+
+_FILE_ORDER_HINT = "pass stamps='file-order' to keep the frames in file order with stamps derived from it"
+
+
+def _backwards_problem(path: Path, stamps: np.ndarray) -> str | None:
+    """What is wrong when some stamps are smaller than the one before them (file order)."""
+    back = np.flatnonzero(np.diff(stamps) < 0) + 1
+    if not back.size:
+        return None
+    first = int(back[0])
+    return (f"{path}: stamps go backwards at {back.size} of {len(stamps)} lines (first at data line {first + 1}: "
+            f"{stamps[first - 1]:.6f} then {stamps[first]:.6f})")
+
+
+def file_order_stamps(path, stamps: np.ndarray) -> np.ndarray:
+    """Strictly increasing stamps for a list's lines in file order: its first stamp, then one
+    median positive step (of the stamps as written) per line. Stamps that never go backwards
+    are returned as they are; otherwise a warning says how many went backwards."""
+    stamps = np.asarray(stamps, dtype=float)
+    problem = _backwards_problem(Path(path), stamps)
+    if problem is None:
+        return stamps
+    steps = np.diff(stamps)
+    positive = steps[steps > 0]
+    if not positive.size:
+        raise DatasetError(f"{path}: no two consecutive stamps increase; cannot derive a frame rate from them")
+    step = float(np.median(positive))
+    logger.warning("%s; keeping the frames in file order with stamps from %.6f s every %.6f s (the median forward "
+                   "step)", problem, stamps[0], step)
+    return stamps[0] + np.arange(len(stamps)) * step
 
 
 # --- intrinsics -----------------------------------------------------------------------------
@@ -168,6 +205,13 @@ class TumSequence(GroundTruthLookup):
     ``frames``: ``START:STOP`` keeps part of the associated frames (indices, or fractions
     such as ``0:0.5`` for the first half; see :func:`parse_frame_range`).
 
+    ``stamps``: ``"as-written"`` (default) uses the lists' stamps and refuses a list whose
+    stamps go backwards (a one-line :class:`DatasetError` naming the file and how many lines);
+    ``"file-order"`` keeps such a list's frames in file order and replaces its stamps with
+    strictly increasing ones at its median forward step (a warning says how many went
+    backwards; a list whose stamps never go backwards is kept as written). Attribute
+    ``stamps_mode``.
+
     On the Kinect, depth is stamped 12-20 ms before colour; for geometric checks with depth,
     interpolate the ground truth at ``depth_timestamps`` (:func:`interpolate_poses`): on
     fr1/xyz that takes neighbouring frames' depth agreement from 3.2 to 2.4 mm.
@@ -186,10 +230,14 @@ class TumSequence(GroundTruthLookup):
         association: str = "optimal",
         offset: float | str = "auto",
         frames: str | None = None,
+        stamps: str = "as-written",
     ):
         self.path = Path(path)
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: sequence folder not found")
+        if stamps not in STAMPS_OPTIONS:
+            raise DatasetError(f"{self.path}: stamps must be one of {STAMPS_OPTIONS}, got {stamps!r}")
+        self.stamps_mode = stamps
         if association not in ASSOCIATION_METHODS:
             raise DatasetError(f"{self.path}: association must be one of {ASSOCIATION_METHODS}, got {association!r}")
         self.name = self.path.name
@@ -220,6 +268,17 @@ class TumSequence(GroundTruthLookup):
                 raise DatasetError(f"{listed}: file not found")
         rgb_stamps, rgb_names = read_file_list(rgb_list)
         depth_stamps, depth_names = read_file_list(depth_list)
+        # Stamps that go backwards (a recording script's badly formatted fractions) would be
+        # re-sorted by the association and written out of order downstream: refuse them, or
+        # keep the file order when asked.
+        if self.stamps_mode == "as-written":
+            problems = [_backwards_problem(listed, listed_stamps)
+                        for listed, listed_stamps in ((rgb_list, rgb_stamps), (depth_list, depth_stamps))]
+            if any(problems):
+                raise DatasetError("; ".join(p for p in problems if p) + "; " + _FILE_ORDER_HINT)
+        else:
+            rgb_stamps = file_order_stamps(rgb_list, rgb_stamps)
+            depth_stamps = file_order_stamps(depth_list, depth_stamps)
         if self.offset == "auto":
             self.offset, pairs = pair_streams(rgb_stamps, depth_stamps, self.max_difference, self.association)
         else:
