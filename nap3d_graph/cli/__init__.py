@@ -18,7 +18,7 @@ __all__ = ["main", "build_parser", "UsageError", "SUBCOMMANDS"]
 log = logging.getLogger("nap3d_graph")
 
 #: Subcommand modules of this package, in the order ``--help`` lists them.
-SUBCOMMANDS = ("run", "compare", "study", "sweep", "simulate", "train_field", "export_nerfstudio", "eval_k", "eval_j",
+SUBCOMMANDS = ("run", "compare", "study", "sweep", "simulate", "map", "train_field", "export_nerfstudio", "eval_k", "eval_j",
                "bench_peers")
 
 EPILOG = """examples:
@@ -30,6 +30,8 @@ EPILOG = """examples:
   nap3d-graph train-field rgbd_dataset_freiburg1_desk --frames 0:0.5 --out desk.pt
   nap3d-graph run --traj tum --data rgbd_dataset_freiburg1_desk --frames 0.5:1 --field desk.pt --odom vo
   nap3d-graph study rgbd_dataset_freiburg1_desk --out desk_study   # the three lines above, and Evaluation K
+  nap3d-graph map my_survey --out my_map           # no ground truth: poses from the camera, loops, field
+  nap3d-graph run --traj tum --data my_walk --field my_map --odom vo   # starts where the map recognises
   nap3d-graph compare --traj sim --data data/room_walk --field room.pt --odom imu --out cmp
   nap3d-graph simulate data/rs_walk --frames 90 --realsense data/rs_walk.db3
   nap3d-graph run --traj realsense --data data/rs_walk.db3 --groundtruth data/rs_walk/groundtruth.txt --field data/rs_walk

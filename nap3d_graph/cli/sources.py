@@ -169,9 +169,12 @@ def add_source_arguments(p) -> None:
                    help="auto: move each keyframe's depth to its colour's capture instant with the capture timing the "
                    "field records, or, for a field that records none (the oracle, nerfstudio), the timing estimated "
                    "from this sequence's ground truth; none: take the stamps as they are")
-    p.add_argument("--initial-pose", metavar="'tx ty tz qx qy qz qw'",
-                   help="where the camera starts in the field's frame (for --odom vo on a recording without ground "
-                   "truth; default: the ground truth's first pose)")
+    p.add_argument("--initial-pose", metavar="auto|'tx ty tz qx qy qz qw'",
+                   help="where the camera starts in the field's frame, for --odom vo / dense. auto: found in the map "
+                   "(the map's keyframes most like the first frame, the field rendered there, NAP3D aligned and "
+                   "verified; a clear error when none verifies); the default with a map from 'nap3d-graph map' "
+                   "(its frame is not the ground truth's). Otherwise the default is the ground truth's first pose, "
+                   "and with --field none and no ground truth the identity")
     p.add_argument("--initial-pose-file", type=Path, metavar="TUM_FILE",
                    help="the same from the first line of a TUM trajectory file")
     p.add_argument("--odom-rot-sigma", type=positive_float, default=2e-3,
@@ -464,6 +467,82 @@ def _checked_gravity(args, odometry):
     return config
 
 
+def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
+    """``(sequence, initial_pose, record)``: with a map from ``nap3d-graph map`` the run's
+    world is the map's, so the sequence's ground truth is moved into it through the *survey's*
+    alignment (survey_ate.json; none where the survey had no ground truth) and the start is
+    found in the map (``--initial-pose auto``, the default there). With ``--field none`` and
+    nothing to start from, the odometry starts at the identity."""
+    import numpy as np
+
+    from nap3d_graph.conventions import inv_T
+
+    map_dir = (getattr(field_obj, "meta", None) or {}).get("map")
+    record: dict = {}
+    if map_dir is not None:
+        from nap3d_graph.mapping import reframed
+        from nap3d_graph.mapping.build import load_map_info
+
+        info = load_map_info(map_dir)
+        T_gt_map = (info.get("survey_ate") or {}).get("T_gt_map")
+        record["map"] = str(map_dir)
+        if sequence.T_world_cam_gt is not None:
+            if T_gt_map is None:
+                print("ground truth: the map's survey had none, so this run's ground truth is not in the map's frame; "
+                      "metrics.json scores the run SE(3)-aligned only", file=__import__("sys").stderr)
+                record["ground_truth_frame"] = "unknown (per-run alignment only)"
+            else:
+                sequence = reframed(sequence, inv_T(np.asarray(T_gt_map)), "ground truth in the map's frame")
+                record["ground_truth_frame"] = "moved into the map's frame by the survey's own alignment"
+                if info.get("recording_id") not in (None, getattr(sequence, "recording_id", None)):
+                    print("note: this recording is not the map's survey; its ground truth is taken to share the "
+                          "survey's frame (as a dataset's recordings of one place do)")
+        if initial_pose is None and args.initial_pose_file is None and args.odom in (None, "vo", "dense"):
+            auto_start = True
+    if auto_start:
+        if field_obj is None:
+            raise UsageError("--initial-pose auto finds the start in a map: give --field MAP_DIR")
+        if map_dir is None:
+            raise UsageError("--initial-pose auto needs a map from 'nap3d-graph map' (--field MAP_DIR): a field "
+                             "checkpoint alone holds no keyframes to retrieve from")
+        if args.odom in ("noisy", "recorded", "imu"):
+            raise UsageError(f"--initial-pose auto is for --odom vo / dense (--odom {args.odom} starts where its poses do)")
+        if args.odom is None:
+            args.odom = "vo"
+        located = relocalise_first(map_dir, field_obj, sequence, args)
+        print(f"start: {located.describe()}")
+        if not located.success:
+            raise UsageError(f"could not find the first frame in the map {map_dir}: {located.reason}; give "
+                             "--initial-pose, or start where the survey went")
+        record["initial_pose"] = located.to_dict()
+        return sequence, located.T_map_cam, record
+    if (field_obj is None and initial_pose is None and args.initial_pose_file is None
+            and args.odom in ("vo", "dense") and _no_start(sequence)):
+        print("start: the identity (odometry only, no field and no ground truth to place it in)")
+        return sequence, np.eye(4), record
+    return sequence, initial_pose, record
+
+
+def _no_start(sequence) -> bool:
+    import numpy as np
+
+    gt = sequence.T_world_cam_gt
+    return gt is None or not np.all(np.isfinite(np.asarray(gt)[0]))
+
+
+def relocalise_first(map_dir, field_obj, sequence, args):
+    """The first readable frame of ``sequence`` found in the map (a
+    :class:`~nap3d_graph.mapping.relocalise.Relocalisation`)."""
+    from nap3d_graph.mapping.relocalise import Relocaliser
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    width, height = parse_size(args.render_size)
+    K = sequence.intrinsics
+    render = K.scaled(width, height) if (K.width, K.height) != (width, height) else K
+    relocaliser = Relocaliser(map_dir, field_obj, AlignConfig(matcher=args.matcher), render)
+    return relocaliser.locate(sequence[0])
+
+
 def prepare(args, use_anchor: bool = False) -> Prepared:
     """Open the sequence and the field, make the odometry and the pipeline's config."""
     from nap3d_graph.datasets import open_sequence
@@ -476,7 +555,10 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
         raise UsageError("--groundtruth, --realsense-config and --record are for --traj realsense")
     width, height = parse_size(args.render_size)
-    initial_pose = parse_pose(args.initial_pose, args.initial_pose_file)
+    auto_start = args.initial_pose == "auto"
+    initial_pose = None if auto_start else parse_pose(args.initial_pose, args.initial_pose_file)
+    if auto_start and args.initial_pose_file is not None:
+        raise UsageError("give --initial-pose auto or --initial-pose-file, not both")
     data, field_obj, field_desc, name = _inputs(args)
     if args.topics and args.traj != "rosbag":
         raise UsageError("--topics is for --traj rosbag")
@@ -489,6 +571,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     warn_depth_units(sequence)
     warn_guessed_camera(sequence)
     args.matcher = chosen_matcher(args.matcher, sequence)
+    sequence, initial_pose, start_record = _start_in_map(args, sequence, field_obj, initial_pose, auto_start)
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
     live_defaults(args, odom_kind)
     if args.render_ahead and not args.overlap:
@@ -534,6 +617,8 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
               "pipeline": {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in vars(config).items()
                            if k != "align"},
               "align": vars(config.align)}
+    if start_record:
+        record["start"] = start_record
     if odom_kind == "imu":
         record["imu"] = {**odometry.stream.config.to_dict(),
                          "fallback_odometry": getattr(odometry.fallback, "name", "none")}

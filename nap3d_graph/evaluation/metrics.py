@@ -63,5 +63,15 @@ def trajectory_metrics(timestamps, T_world_cam_gt, trajectories: dict[str, np.nd
             "ate_first_half_m": ate(timestamps[:half], T_world_cam_gt[:half], T[:half])["rmse"] if half >= 2 else None,
             "ate_second_half_m": ate(timestamps[half:], T_world_cam_gt[half:], T[half:])["rmse"] if n - half >= 2 else None,
             "frames_with_ground_truth": int(n),
+            "ate_se3_aligned_m": _aligned_rmse(timestamps, T_world_cam_gt, T),
         }
     return out
+
+
+def _aligned_rmse(timestamps, T_ref, T_est) -> float | None:
+    """ATE RMSE (m) after the run's own SE(3) alignment (evo's Umeyama fit): beside the
+    unaligned ATE, it says how much of the error is one rigid offset of the whole run."""
+    from .alignment import aligned_errors
+
+    aligned = aligned_errors(timestamps, T_ref, T_est)
+    return None if aligned is None else aligned.rmse_m

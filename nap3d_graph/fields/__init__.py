@@ -54,7 +54,8 @@ def load_field(path: str | Path):
 
 def resolve_field(field_arg: str, sequence=None):
     """What a ``--field`` argument names: ``oracle`` (the exact simulated room ``sequence``
-    came from), ``none`` (no field: None), or a path for :func:`load_field`."""
+    came from), ``none`` (no field: None), a map folder (``nap3d-graph map``: its field, with
+    ``meta["map"]`` naming the folder), or a path for :func:`load_field`."""
     if field_arg == "none":
         return None
     if field_arg == "oracle":
@@ -63,6 +64,17 @@ def resolve_field(field_arg: str, sequence=None):
             where = getattr(sequence, "path", "the data")
             raise FieldError(f"--field oracle needs a simulated sequence (with scene.json); {where} is not one")
         return oracle()
+    from pathlib import Path
+
+    folder = Path(field_arg)
+    if folder.is_dir() and (folder / "map.json").is_file():  # a map from 'nap3d-graph map'
+        checkpoint = folder / "field.pt"
+        if not checkpoint.is_file():
+            raise FieldError(f"{folder}: the map has no field (its 'nap3d-graph map' stopped before the field stage, "
+                             "or ran with --no-field); run the same map command again to finish it")
+        field = load_field(checkpoint)
+        field.meta["map"] = str(folder.resolve())
+        return field
     return load_field(field_arg)
 
 

@@ -1,0 +1,107 @@
+"""``nap3d-graph map``: a map of a place from a survey posed by the camera alone.
+
+No ground truth is read to build it: the survey's poses come from the frames' own odometry,
+loop closures verified with NAP3D real-vs-real, a robust pose graph (GTSAM GNC), then the
+field of ``--model`` is trained at those poses. Where the recording has ground truth,
+``survey_ate.json`` says how far the map's poses are from it (SE(3)-aligned), and runs on this
+map score themselves in the ground truth's frame through that one alignment.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .common import (
+    RUN_MATCHER,
+    UsageError,
+    add_frames_argument,
+    add_matcher_argument,
+    add_topics_argument,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    warn_depth_units,
+)
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "map", help="a map from a survey posed by the camera alone (no ground truth): poses, loops, field",
+        description=__doc__ + "\nMAP_DIR receives: poses.txt (TUM, every frame of the survey in the map's frame: the "
+        "first frame's camera), odometry.txt (the odometry alone), loops.csv (every candidate pair: inliers, verified, "
+        "accepted or why not), map.png, field.pt and field.report.json, keyframes.npz (what --initial-pose auto "
+        "retrieves from), map.json, and survey_ate.json where the recording has ground truth. Interrupted, the same "
+        "command resumes from the last finished stage. Use the map with: nap3d-graph run --field MAP_DIR ...")
+    p.add_argument("data", type=Path, help="the survey: a TUM-layout or 7-Scenes folder, a ROS bag, or a RealSense "
+                   "recording (.bag/.db3); its ground truth, if any, is ignored until the map is made")
+    p.add_argument("--out", type=Path, required=True, help="the map folder (created; an unfinished one resumes)")
+    add_topics_argument(p)
+    add_frames_argument(p, "the survey")
+    p.add_argument("--odom", choices=("vo", "dense"), default="vo",
+                   help="frame-to-frame odometry of the survey: vo (features, the matcher's; default) or dense "
+                   "(OpenCV's RGB-D odometry at 320 px)")
+    add_matcher_argument(p, RUN_MATCHER)
+    p.add_argument("--width", type=positive_int, default=None, metavar="PX",
+                   help="keyframes and --odom vo work at this width (default: the frames' own)")
+    p.add_argument("--keyframe-every", type=positive_int, default=5,
+                   help="a keyframe every N frames, sooner after 10 cm or 10 deg of motion (default 5)")
+    p.add_argument("--model", choices=("grid", "splat", "views"), default="grid", help="the field (default grid)")
+    p.add_argument("--minutes", type=positive_float, default=5.0, help="grid: training budget in minutes (default 5)")
+    p.add_argument("--steps", type=positive_int, default=None,
+                   help="grid: training budget in steps instead of minutes (the same field on any machine)")
+    p.add_argument("--refine-rounds", type=non_negative_int, default=0, metavar="N",
+                   help="rounds of the depth refinement of the training poses (each frame's depth aligned with its "
+                   "neighbours', the poses solved again) before the field is trained (default 0)")
+    p.add_argument("--no-field", action="store_true", help="stop after the poses (no field)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (vocabulary, training; default 0)")
+    p.add_argument("--device", default=None, help="torch device for the grid (default: cuda if available, else cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.mapping.build import MapSettings, build_map
+
+    from .sources import chosen_matcher, warn_guessed_camera
+
+    if args.out.exists() and not args.out.is_dir():
+        raise UsageError(f"--out {args.out} is a file, not a folder")
+    sequence = open_sequence(args.data, frames=args.frames, topics=args.topics)
+    if len(sequence) < 3:
+        raise UsageError(f"{args.data}: a survey needs at least 3 frames, got {len(sequence)}")
+    warn_depth_units(sequence)
+    warn_guessed_camera(sequence)
+    matcher = chosen_matcher(args.matcher, sequence)
+    settings = MapSettings(odometry=args.odom, matcher=matcher, width=args.width, keyframe_every=args.keyframe_every,
+                           model=args.model, minutes=None if args.steps else args.minutes, steps=args.steps,
+                           refine_rounds=args.refine_rounds, seed=args.seed)
+    try:
+        result = build_map(sequence, args.out, settings, progress=not args.quiet, say=print,
+                           build_field_stage=not args.no_field, device=args.device)
+    except FileExistsError as exc:
+        raise UsageError(str(exc)) from None
+    print(summary(result.info, args.out))
+    return 0
+
+
+def summary(info: dict, out: Path) -> str:
+    loops = info["loops"]
+    segment = info["segment"]
+    lines = [f"map: {out}  ({info['keyframes']} keyframes over frames {segment['start']}:{segment['stop']}; loops: "
+             f"{loops['candidates']} candidates, {loops['verified']} verified, {loops['accepted']} accepted, "
+             f"{loops['rejected']} rejected by the graph)"]
+    ate = info.get("survey_ate")
+    if ate:
+        lines.append(f"survey poses against the recording's ground truth (SE(3)-aligned, read only now): ATE "
+                     f"{ate['map']['rmse_m'] * 100:.2f} cm (p90 {ate['map']['p90_m'] * 100:.2f}, max "
+                     f"{ate['map']['max_m'] * 100:.2f}); the odometry alone {ate['odometry_only']['rmse_m'] * 100:.2f} cm")
+        if "warning" in ate:
+            lines.append(f"warning: {ate['warning']}")
+    stages = info.get("stages", {})
+    if "field" in stages:
+        lines.append(f"field: {out / 'field.pt'} ({stages['field']['model']}, {stages['field']['seconds']:.0f} s)")
+    total = sum(s.get("seconds", 0.0) for s in stages.values())
+    lines.append(f"time: {total:.0f} s in all stages; use it with: nap3d-graph run --field {out} --data ... (the start "
+                 "is found in the map: --initial-pose auto)")
+    return "\n".join(lines)

@@ -1,0 +1,180 @@
+"""Loop candidates between the survey's keyframes and their verification.
+
+Candidates come two ways: by appearance (the most similar keyframes by VLAD,
+:mod:`.retrieval`) and by proximity in the current estimate (camera centres close and
+looking the same way). Each candidate pair is verified with NAP3D's own aligner run
+real-vs-real: keyframe j plays the rendered view with its own depth (opaque where the sensor
+measured), keyframe i the real frame, so a verified loop is ``T_i_j`` (keyframe j's camera
+in keyframe i's) with the alignment's 6x6 covariance, as a correction would be.
+Verification cannot tell a repeated texture from a revisit; the robust pose graph does
+(:mod:`.pose_graph`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from nap3d_graph.camera import RenderedView, RGBDFrame
+from nap3d_graph.conventions import inv_T, rotation_angle_deg
+from nap3d_graph.nap3d.align import align_views
+from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.matching import Features
+
+from .retrieval import similarities
+
+__all__ = ["Keyframe", "Loop", "LoopSettings", "as_view", "candidates", "verify", "verify_pair"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Keyframe:
+    """One survey keyframe: its frame index, the frame (at the map's working size), its
+    features, its global descriptor."""
+
+    index: int
+    frame: RGBDFrame
+    features: Features
+    descriptor: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """How loops are found and verified.
+
+    appearance_k: candidates per keyframe by appearance; proximity_m / proximity_deg: camera
+    centres this close and optical axes within this angle are candidates (at most
+    ``proximity_k`` nearest per keyframe); min_gap: keyframes nearer in time than this are
+    not loop candidates (their consecutive edge already ties them); min_inliers, max_sigma_m,
+    max_sigma_deg: what a verified loop must reach."""
+
+    appearance_k: int = 4
+    proximity_m: float = 0.6
+    proximity_deg: float = 40.0
+    proximity_k: int = 4
+    min_gap: int = 2
+    min_inliers: int = 30
+    max_sigma_m: float = 0.02
+    max_sigma_deg: float = 1.5
+
+
+@dataclass
+class Loop:
+    """A candidate pair (keyframe positions ``a`` < ``b`` in the keyframe list; ``i``, ``j``
+    their frame indices) and what its verification gave. ``T_a_b`` (4, 4): keyframe b's
+    camera in keyframe a's; ``covariance`` (6, 6) of ``T_a_b`` (right perturbation, GTSAM
+    order). ``status``: 'verified', 'refused' (the aligner's reason in ``reason``) and after
+    the graph 'accepted' or 'rejected'."""
+
+    a: int
+    b: int
+    i: int
+    j: int
+    source: str
+    matches: int = 0
+    inliers: int = 0
+    rmse_m: float = float("nan")
+    sigma_m: float = float("nan")
+    sigma_deg: float = float("nan")
+    T_a_b: np.ndarray = field(default_factory=lambda: np.eye(4))
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.inf))
+    status: str = "candidate"
+    reason: str = ""
+
+    CSV_HEADER = ("keyframe_a", "keyframe_b", "frame_i", "frame_j", "source", "matches", "inliers", "rmse_m",
+                  "sigma_m", "sigma_deg", "status", "reason")
+
+    def csv_row(self) -> list:
+        return [self.a, self.b, self.i, self.j, self.source, self.matches, self.inliers, f"{self.rmse_m:.5f}",
+                f"{self.sigma_m:.5f}", f"{self.sigma_deg:.4f}", self.status, self.reason]
+
+
+def as_view(frame: RGBDFrame) -> RenderedView:
+    """A real frame as the 'rendered' side of an alignment: its colour, its own depth, opaque
+    exactly where the sensor measured depth."""
+    depth = np.nan_to_num(frame.depth_m).astype(np.float32)
+    opacity = (np.isfinite(frame.depth_m) & (frame.depth_m > 0)).astype(np.float32)
+    return RenderedView(frame.rgb, depth, opacity, frame.intrinsics)
+
+
+def candidates(T_map_key: np.ndarray, descriptors: np.ndarray, settings: LoopSettings) -> list[tuple[int, int, str]]:
+    """``(a, b, source)`` with a < b: the pairs worth verifying, by appearance, proximity or
+    both. ``T_map_key`` (K, 4, 4): the keyframes' current poses; ``descriptors`` (K, D)."""
+    n = len(T_map_key)
+    found: dict[tuple[int, int], set] = {}
+    if settings.appearance_k > 0 and len(descriptors):
+        for a in range(n):
+            score = similarities(descriptors[a], descriptors)
+            far = np.abs(np.arange(n) - a) >= settings.min_gap
+            order = [b for b in np.argsort(-score) if far[b]][: settings.appearance_k]
+            for b in order:
+                found.setdefault((min(a, b), max(a, b)), set()).add("appearance")
+    centres = T_map_key[:, :3, 3]
+    axes = T_map_key[:, :3, 2]
+    for a in range(n):
+        distance = np.linalg.norm(centres - centres[a], axis=1)
+        angle = np.degrees(np.arccos(np.clip(axes @ axes[a], -1.0, 1.0)))
+        near = (distance <= settings.proximity_m) & (angle <= settings.proximity_deg)
+        near &= np.abs(np.arange(n) - a) >= settings.min_gap
+        for b in [b for b in np.argsort(distance) if near[b]][: settings.proximity_k]:
+            found.setdefault((min(a, b), max(a, b)), set()).add("proximity")
+    return [(a, b, "+".join(sorted(s))) for (a, b), s in sorted(found.items())]
+
+
+def verify_pair(key_a: Keyframe, key_b: Keyframe, config: AlignConfig) -> tuple[np.ndarray, np.ndarray, object]:
+    """``(T_a_b, covariance, alignment)``: keyframe b's camera in keyframe a's by NAP3D (a real,
+    b as the view), the covariance moved onto ``T_a_b`` (the alignment gives it for the
+    corrected pose of a's camera; ``T_a_b``'s right perturbation is b's)."""
+    from nap3d_graph.conventions import adjoint
+
+    alignment = align_views(key_a.frame, as_view(key_b.frame), config, feats_real=key_a.features,
+                            feats_view=key_b.features.where(as_view(key_b.frame).opacity >= config.min_opacity))
+    if not alignment.success:
+        return np.eye(4), np.full((6, 6), np.inf), alignment
+    # T_real_rendered = T_a_b (b's points into a's camera). The alignment's covariance is of
+    # T_world_a_true = T_world_b @ inv(T_a_b) perturbed on the right (a's frame); the same
+    # uncertainty on T_a_b, perturbed on the right (b's frame), is Ad(T_b_a) cov Ad(T_b_a)^T.
+    T_a_b = alignment.T_real_rendered
+    A = adjoint(inv_T(T_a_b))
+    cov = A @ alignment.covariance @ A.T
+    return T_a_b, 0.5 * (cov + cov.T), alignment
+
+
+def verify(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config: AlignConfig,
+           settings: LoopSettings, progress: bool = True) -> list[Loop]:
+    """Every candidate pair aligned and checked; returns each with its status and reason."""
+    from tqdm import tqdm
+
+    loops = []
+    for a, b, source in tqdm(pairs, desc="loop verification", unit="pair", disable=not progress, mininterval=2.0):
+        loop = Loop(a, b, keyframes[a].index, keyframes[b].index, source)
+        T_a_b, cov, alignment = verify_pair(keyframes[a], keyframes[b], config)
+        loop.matches, loop.inliers = alignment.num_matches, alignment.num_inliers
+        if not alignment.success:
+            loop.status, loop.reason = "refused", alignment.reason
+            loops.append(loop)
+            continue
+        loop.rmse_m = float(alignment.inlier_rmse_m)
+        loop.sigma_m = float(np.sqrt(np.max(np.linalg.eigvalsh(cov[3:, 3:]))))
+        loop.sigma_deg = float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov[:3, :3])))))
+        loop.T_a_b, loop.covariance = T_a_b, cov
+        if loop.inliers < settings.min_inliers:
+            loop.status, loop.reason = "refused", f"{loop.inliers} inliers < {settings.min_inliers}"
+        elif not np.isfinite(loop.sigma_m) or loop.sigma_m > settings.max_sigma_m:
+            loop.status, loop.reason = "refused", f"translation sigma {loop.sigma_m * 100:.1f} cm > " \
+                f"{settings.max_sigma_m * 100:.1f} cm"
+        elif loop.sigma_deg > settings.max_sigma_deg:
+            loop.status, loop.reason = "refused", f"rotation sigma {loop.sigma_deg:.2f} deg > {settings.max_sigma_deg} deg"
+        else:
+            loop.status = "verified"
+        loops.append(loop)
+    return loops
+
+
+def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """(metres, degrees) between two poses."""
+    T = inv_T(T_a) @ T_b
+    return float(np.linalg.norm(T[:3, 3])), float(rotation_angle_deg(T[:3, :3]))

@@ -1,0 +1,147 @@
+"""Finding a frame in a map: retrieval, alignment to the field, verification.
+
+The map's keyframes carry a global descriptor (:mod:`.retrieval`) and their pose. For a
+query frame: its descriptor against theirs gives the ``top_k`` most similar keyframes; at
+each, the field renders and NAP3D aligns the frame to it, re-rendering at the corrected pose
+(:func:`~nap3d_graph.nap3d.correct.correct_pose`); a candidate is verified when its alignment
+succeeded with enough inliers and a tight covariance. Among the verified ones the tightest
+wins, and how many others land within ``agree_m`` of it says how sure the answer is. No
+verified candidate: a clear refusal, never a guess.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from nap3d_graph.camera import Intrinsics, RGBDFrame
+from nap3d_graph.nap3d.config import AlignConfig
+
+from .retrieval import Vocabulary, similarities, vlad
+
+__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class RelocaliseSettings:
+    """top_k: keyframes tried; min_inliers, max_sigma_m, max_sigma_deg: what a verified
+    start must reach; agree_m / agree_deg: candidates this close count as agreeing."""
+
+    top_k: int = 5
+    iterations: int = 2
+    min_inliers: int = 30
+    max_sigma_m: float = 0.03
+    max_sigma_deg: float = 2.0
+    agree_m: float = 0.05
+    agree_deg: float = 3.0
+
+
+@dataclass
+class Relocalisation:
+    """``T_map_cam`` (4, 4) where the frame is in the map, ``covariance`` (6, 6), the
+    keyframe (frame index in the survey) it was found from, its inliers and sigmas,
+    ``agreeing``: how many other verified candidates land within the agreement radius,
+    ``tried`` the candidates aligned, ``seconds``; ``success`` False with ``reason``."""
+
+    success: bool
+    T_map_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.inf))
+    keyframe: int = -1
+    inliers: int = 0
+    sigma_m: float = float("inf")
+    sigma_deg: float = float("inf")
+    agreeing: int = 0
+    tried: int = 0
+    seconds: float = 0.0
+    reason: str = ""
+
+    def describe(self) -> str:
+        """One line: where it started and how sure it is (or why it could not)."""
+        if not self.success:
+            return f"not found in the map: {self.reason}"
+        t = self.T_map_cam[:3, 3]
+        return (f"found in the map at ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}) m from survey keyframe {self.keyframe}: "
+                f"{self.inliers} inliers, sigma {self.sigma_m * 100:.1f} cm / {self.sigma_deg:.2f} deg, "
+                f"{self.agreeing} of {self.tried - 1} other candidates agree ({self.seconds:.2f} s)")
+
+    def to_dict(self) -> dict:
+        return {"success": self.success, "T_map_cam": self.T_map_cam.tolist(), "keyframe": self.keyframe,
+                "inliers": self.inliers, "sigma_m": self.sigma_m, "sigma_deg": self.sigma_deg,
+                "agreeing": self.agreeing, "tried": self.tried, "seconds": round(self.seconds, 3),
+                "reason": self.reason}
+
+
+class Relocaliser:
+    """Relocalise frames in a map folder (``nap3d-graph map``) with its field."""
+
+    def __init__(self, map_dir, field_obj, config: AlignConfig | None = None,
+                 render_intrinsics: Intrinsics | None = None, settings: RelocaliseSettings | None = None):
+        folder = Path(map_dir)
+        with np.load(folder / "keyframes.npz") as data:
+            self.indices = data["indices"].astype(int)
+            self.descriptors = data["descriptors"]
+            self.vocabulary = Vocabulary(data["centres"])
+            self.matcher = str(data["matcher"])
+            width = int(data["width"])
+            self.width = None if width < 0 else width
+        self.T_map_key = np.load(folder / "keyframe_poses.npy")
+        self.field = field_obj
+        self.config = config or AlignConfig(matcher=self.matcher)
+        self.render_intrinsics = render_intrinsics
+        self.settings = settings or RelocaliseSettings()
+
+    def descriptor(self, frame: RGBDFrame) -> np.ndarray:
+        """The frame's global descriptor, its features detected as the map's keyframes' were."""
+        from nap3d_graph.nap3d.correct import resize_frame
+        from nap3d_graph.nap3d.matching import detect_features
+
+        K = frame.intrinsics
+        if self.width is not None and K.width > self.width:
+            frame = resize_frame(frame, self.width, int(round(K.height * self.width / K.width)))
+        features = detect_features(frame.rgb, 0, matcher=self.matcher)
+        return vlad(features.descriptors, self.vocabulary)
+
+    def locate(self, frame: RGBDFrame) -> Relocalisation:
+        """Where ``frame`` is in the map; never raises on data (``success`` False, ``reason``)."""
+        from nap3d_graph.conventions import inv_T, log_se3
+        from nap3d_graph.nap3d.correct import correct_pose
+
+        started = time.perf_counter()
+        s = self.settings
+        order = np.argsort(-similarities(self.descriptor(frame), self.descriptors))[: s.top_k]
+        found, reasons = [], []
+        for k in order:
+            correction = correct_pose(frame, self.field, self.T_map_key[k], iterations=s.iterations,
+                                      config=self.config, render_intrinsics=self.render_intrinsics)
+            a = correction.alignment
+            if not correction.success:
+                reasons.append(correction.reason)
+                continue
+            cov = correction.covariance
+            sigma_m = float(np.sqrt(np.max(np.linalg.eigvalsh(cov[3:, 3:]))))
+            sigma_deg = float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov[:3, :3])))))
+            if a.num_inliers < s.min_inliers:
+                reasons.append(f"{a.num_inliers} inliers < {s.min_inliers}")
+            elif not (sigma_m <= s.max_sigma_m and sigma_deg <= s.max_sigma_deg):
+                reasons.append(f"sigma {sigma_m * 100:.1f} cm / {sigma_deg:.1f} deg")
+            else:
+                found.append((sigma_m, int(k), correction.T_world_cam_corrected, cov, a.num_inliers, sigma_deg))
+        seconds = time.perf_counter() - started
+        if not found:
+            why = "; ".join(sorted(set(reasons))[:3]) or "no candidate"
+            return Relocalisation(False, tried=len(order), seconds=seconds,
+                                  reason=f"none of the {len(order)} most similar keyframes verified ({why})")
+        found.sort(key=lambda f: f[0])
+        sigma_m, k, T, cov, inliers, sigma_deg = found[0]
+        agreeing = 0
+        for other in found[1:]:
+            d = log_se3(inv_T(T) @ other[2])
+            agreeing += bool(np.linalg.norm(d[3:]) <= s.agree_m and np.degrees(np.linalg.norm(d[:3])) <= s.agree_deg)
+        return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, agreeing, len(order),
+                              seconds)
