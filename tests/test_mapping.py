@@ -1,0 +1,191 @@
+"""``nap3d-graph map`` and finding a frame in a map: the survey posed by the camera alone
+(real TUM fr1/xyz frames), the robust pose graph against a false loop, relocalisation, and a
+run that starts in a self-made map and scores in the ground truth's frame."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from nap3d_graph.conventions import exp_se3, inv_T, log_se3
+from nap3d_graph.mapping.build import MapSettings, build_map, place_frames
+from nap3d_graph.mapping.pose_graph import Edge, solve
+from nap3d_graph.mapping.survey import tracked_segment
+
+
+class _GroundTruthWatch:
+    """A sequence whose ground truth says when it was first read."""
+
+    def __init__(self, base, out):
+        self._base, self._out, self.read_with_poses_written = base, out, None
+
+    def __getattr__(self, name):
+        if name == "T_world_cam_gt":
+            if self.read_with_poses_written is None:
+                self.read_with_poses_written = (self._out / "poses.txt").is_file()
+            return self._base.T_world_cam_gt
+        return getattr(self._base, name)
+
+    def __len__(self):
+        return len(self._base)
+
+    def __getitem__(self, i):
+        return self._base[i]
+
+
+@pytest.fixture(scope="module")
+def xyz_map(tum_path, tmp_path_factory):
+    """A splat map of the 12 real fr1/xyz frames, posed by the camera alone (SIFT)."""
+    from nap3d_graph.datasets import open_sequence
+
+    out = tmp_path_factory.mktemp("map") / "xyz"
+    sequence = _GroundTruthWatch(open_sequence(tum_path), out)
+    settings = MapSettings(matcher="sift", keyframe_every=2, model="splat")
+    result = build_map(sequence, out, settings, progress=False)
+    return sequence, result
+
+
+def test_map_poses_come_from_the_camera_and_match_the_ground_truth(xyz_map):
+    sequence, result = xyz_map
+    out = result.folder
+    # The ground truth was read only once the poses were final.
+    assert sequence.read_with_poses_written is True
+    for name in ("poses.txt", "odometry.txt", "loops.csv", "map.png", "field.pt", "field.report.json",
+                 "survey_ate.json", "keyframes.npz"):
+        assert (out / name).is_file(), name
+    from evo.tools import file_interface
+
+    poses = file_interface.read_tum_trajectory_file(str(out / "poses.txt"))
+    assert poses.num_poses == len(sequence)
+    np.testing.assert_allclose(poses.poses_se3[0], np.eye(4), atol=1e-9)  # gauge: the first camera
+    ate = json.loads((out / "survey_ate.json").read_text())
+    # fr1/xyz's 12 frames move 8 cm: the survey's poses sit within 5 mm of the motion capture
+    # (the odometry alone is as good over so short a path); a map worse than its odometry says so.
+    assert ate["map"]["rmse_m"] < 0.005
+    assert ("warning" in ate) == (ate["map"]["rmse_m"] > ate["odometry_only"]["rmse_m"])
+    rows = list(csv.DictReader(open(out / "loops.csv")))
+    assert sum(r["status"] == "accepted" for r in rows) >= 3
+    assert all(r["status"] in ("accepted", "rejected", "refused") for r in rows)
+    assert all(r["reason"] for r in rows if r["status"] != "accepted")
+
+
+def test_map_resumes_and_refuses_other_settings(xyz_map, tum_path):
+    from nap3d_graph.datasets import open_sequence
+
+    _, result = xyz_map
+    before = json.loads((result.folder / "map.json").read_text())["stages"]
+    again = build_map(open_sequence(tum_path), result.folder, MapSettings(matcher="sift", keyframe_every=2,
+                                                                           model="splat"), progress=False)
+    assert again.info["stages"]["odometry"] == before["odometry"]  # reused, not measured again
+    assert again.info["stages"]["field"] == before["field"]
+    with pytest.raises(FileExistsError, match="other data or settings"):
+        build_map(open_sequence(tum_path), result.folder, MapSettings(matcher="sift", keyframe_every=3), progress=False)
+
+
+def test_relocalisation_finds_frames_in_the_map(xyz_map):
+    from nap3d_graph.mapping.relocalise import Relocaliser
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    sequence, result = xyz_map
+    from nap3d_graph.fields import resolve_field
+
+    field = resolve_field(str(result.folder))
+    assert field.meta["map"] == str(result.folder.resolve())
+    relocaliser = Relocaliser(result.folder, field, AlignConfig(matcher="sift"))
+    T_gt_map = np.asarray(json.loads((result.folder / "survey_ate.json").read_text())["T_gt_map"])
+    T_map_gt = inv_T(T_gt_map)
+    for i in (1, 6, 11):
+        found = relocaliser.locate(sequence[i])
+        assert found.success, found.reason
+        error = log_se3(inv_T(T_map_gt @ sequence.T_world_cam_gt[i]) @ found.T_map_cam)
+        assert np.linalg.norm(error[3:]) < 0.03 and np.degrees(np.linalg.norm(error[:3])) < 2.0
+        assert "found in the map" in found.describe()
+
+
+def test_relocalisation_refuses_a_frame_from_elsewhere(xyz_map):
+    from nap3d_graph.camera import RGBDFrame
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping.relocalise import Relocaliser
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    sequence, result = xyz_map
+    frame = sequence[0]
+    rng = np.random.default_rng(0)
+    noise = RGBDFrame(rng.integers(0, 255, frame.rgb.shape, dtype=np.uint8), np.full_like(frame.depth_m, 2.0),
+                      frame.intrinsics)
+    found = Relocaliser(result.folder, resolve_field(str(result.folder)), AlignConfig(matcher="sift")).locate(noise)
+    assert not found.success and "verified" in found.reason
+
+
+def _line_survey(rng, n=30):
+    """A camera that walks 3 m out and comes back along the same line (true poses), its
+    odometry edges with 5 mm / 0.3 deg noise per step."""
+    T = [np.eye(4)]
+    for k in range(1, n):
+        step = exp_se3(np.array([0, 0, 0, 0.2 if k < n // 2 else -0.2, 0, 0]))
+        T.append(T[-1] @ step)
+    T = np.array(T)
+    sigma = np.array([0.005] * 3 + [0.005] * 3)
+    cov = np.diag(sigma**2)
+    chain = []
+    for k in range(n - 1):
+        true = inv_T(T[k]) @ T[k + 1]
+        chain.append(Edge(k, k + 1, true @ exp_se3(rng.normal(0, sigma)), cov, "odometry"))
+    return T, chain, cov
+
+
+def _loop(T, a, b, cov, rng, wrong=None):
+    true = inv_T(T[a]) @ T[b]
+    measured = true @ exp_se3(rng.normal(0, np.sqrt(np.diag(cov))))
+    if wrong is not None:
+        measured = measured @ wrong
+    return Edge(a, b, measured, cov, "loop")
+
+
+def _ate(T_est, T_true):
+    return float(np.sqrt(np.mean(np.sum((T_est[:, :3, 3] - T_true[:, :3, 3]) ** 2, axis=1))))
+
+
+def test_pose_graph_rejects_a_false_loop_and_keeps_the_true_ones():
+    rng = np.random.default_rng(3)
+    T, chain, cov = _line_survey(rng)
+    n = len(T)
+    loop_cov = np.diag([0.003**2] * 3 + [0.003**2] * 3)
+    true_loops = [_loop(T, k, n - 1 - k, loop_cov, rng) for k in range(2, 12, 2)]
+    # A repeated texture: keyframe 3 matched to keyframe 20 as if it were 60 cm away from the truth.
+    false_loop = _loop(T, 3, 20, loop_cov, rng, wrong=exp_se3(np.array([0, 0, 0.05, 0.6, 0, 0.1])))
+    T_init = [np.eye(4)]
+    for edge in chain:
+        T_init.append(T_init[-1] @ edge.T_a_b)
+    T_init = np.array(T_init)
+    clean = solve(T_init, chain, true_loops)
+    attacked = solve(T_init, chain, true_loops + [false_loop])
+    assert attacked.loop_kept[:-1].all() and not attacked.loop_kept[-1]
+    assert clean.loop_kept.all()
+    ate_clean, ate_attacked = _ate(clean.T_map_key, T), _ate(attacked.T_map_key, T)
+    assert ate_attacked <= 1.1 * ate_clean
+    assert ate_clean < 0.9 * _ate(T_init, T)  # the loops took part of the drift out
+
+
+def test_frames_between_keyframes_follow_the_odometry_and_meet_both_keyframes():
+    rng = np.random.default_rng(1)
+    T_odom = np.array([exp_se3(rng.normal(0, 0.05, 6)) for _ in range(11)])
+    keys = np.array([0, 5, 10])
+    T_key = T_odom[keys] @ exp_se3(np.array([0, 0, 0.01, 0.02, 0, 0]))
+    placed = place_frames(T_odom, keys, T_key, 0, 11)
+    for k, T in zip(keys, T_key):
+        np.testing.assert_allclose(placed[k], T, atol=1e-9)
+    assert np.all(np.isfinite(placed))
+
+
+def test_tracked_segment_keeps_the_longest_stretch():
+    ok = np.ones(20, dtype=bool)
+    ok[[4]] = False          # a lone guess is bridged
+    ok[[12, 13, 14]] = False  # lost for three steps
+    assert tracked_segment(ok, max_guesses=3) == (0, 12)
+    ok = np.ones(20, dtype=bool)
+    ok[[2, 3, 4]] = False
+    assert tracked_segment(ok, max_guesses=3) == (4, 20)
