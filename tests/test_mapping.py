@@ -189,3 +189,42 @@ def test_tracked_segment_keeps_the_longest_stretch():
     ok = np.ones(20, dtype=bool)
     ok[[2, 3, 4]] = False
     assert tracked_segment(ok, max_guesses=3) == (4, 20)
+
+
+def test_a_camera_without_ground_truth_maps_then_runs_in_its_map(tum_path, tmp_path, capsys):
+    """A user's own camera: no groundtruth.txt anywhere. The odometry-only run needs no start
+    pose; ``map`` builds the map; ``run --field MAP`` finds its start in it by itself."""
+    import shutil
+
+    from nap3d_graph.cli import main
+
+    survey = tmp_path / "my_camera"
+    shutil.copytree(tum_path, survey)
+    (survey / "groundtruth.txt").unlink()
+    assert main(["run", "--traj", "tum", "--data", str(survey), "--field", "none", "--odom", "vo",
+                 "--matcher", "sift", "--out", str(tmp_path / "odom_only")]) == 0
+    assert "start: the identity" in capsys.readouterr().out
+    assert main(["map", str(survey), "--out", str(tmp_path / "map"), "--model", "splat", "--matcher", "sift",
+                 "--keyframe-every", "2", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "accepted" in printed and not (tmp_path / "map" / "survey_ate.json").exists()
+    assert main(["run", "--traj", "tum", "--data", str(survey), "--frames", "6:12", "--field", str(tmp_path / "map"),
+                 "--matcher", "sift", "--out", str(tmp_path / "runs")]) == 0
+    printed = capsys.readouterr().out
+    assert "start: found in the map" in printed
+    from evo.tools import file_interface
+
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    estimate = file_interface.read_tum_trajectory_file(str(tmp_path / "runs" / "latest" / "estimate.txt"))
+    _, T_map = read_tum_trajectory(tmp_path / "map" / "poses.txt")
+    # Frame 6 of the run is frame 6 of the survey: it starts where the map put that frame.
+    assert np.linalg.norm(estimate.poses_se3[0][:3, 3] - T_map[6][:3, 3]) < 0.02
+
+
+def test_auto_start_without_a_map_is_a_clear_error(tum_path, tmp_path, capsys):
+    from nap3d_graph.cli import main
+
+    assert main(["run", "--traj", "tum", "--data", str(tum_path), "--field", "none", "--odom", "vo",
+                 "--initial-pose", "auto", "--out", str(tmp_path)]) == 2
+    assert "--initial-pose auto finds the start in a map" in capsys.readouterr().err

@@ -30,11 +30,14 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class RelocaliseSettings:
-    """top_k: keyframes tried; min_inliers, max_sigma_m, max_sigma_deg: what a verified
+    """top_k: keyframes tried at most, in order of similarity, each with ``iterations``
+    render-align rounds; ``enough``: stop once this many verified (the best then gets one more
+    round from where it landed); min_inliers, max_sigma_m, max_sigma_deg: what a verified
     start must reach; agree_m / agree_deg: candidates this close count as agreeing."""
 
     top_k: int = 5
-    iterations: int = 2
+    iterations: int = 1
+    enough: int = 2
     min_inliers: int = 30
     max_sigma_m: float = 0.03
     max_sigma_deg: float = 2.0
@@ -68,7 +71,7 @@ class Relocalisation:
         t = self.T_map_cam[:3, 3]
         return (f"found in the map at ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}) m from survey keyframe {self.keyframe}: "
                 f"{self.inliers} inliers, sigma {self.sigma_m * 100:.1f} cm / {self.sigma_deg:.2f} deg, "
-                f"{self.agreeing} of {self.tried - 1} other candidates agree ({self.seconds:.2f} s)")
+                f"{self.agreeing} of {max(self.tried - 1, 0)} other candidates tried agree ({self.seconds:.2f} s)")
 
     def to_dict(self) -> dict:
         return {"success": self.success, "T_map_cam": self.T_map_cam.tolist(), "keyframe": self.keyframe,
@@ -132,16 +135,28 @@ class Relocaliser:
                 reasons.append(f"sigma {sigma_m * 100:.1f} cm / {sigma_deg:.1f} deg")
             else:
                 found.append((sigma_m, int(k), correction.T_world_cam_corrected, cov, a.num_inliers, sigma_deg))
+                if len(found) >= s.enough:
+                    break
+        tried = len(reasons) + len(found)
+        if found:  # one more round for the tightest, from where it landed (a nearer render)
+            found.sort(key=lambda f: f[0])
+            sigma_m, k, T, cov, inliers, sigma_deg = found[0]
+            again = correct_pose(frame, self.field, T, iterations=1, config=self.config,
+                                 render_intrinsics=self.render_intrinsics)
+            if again.success and again.alignment.num_inliers >= s.min_inliers:
+                cov2 = again.covariance
+                s2 = float(np.sqrt(np.max(np.linalg.eigvalsh(cov2[3:, 3:]))))
+                if s2 <= s.max_sigma_m:
+                    found[0] = (s2, k, again.T_world_cam_corrected, cov2, again.alignment.num_inliers,
+                                float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov2[:3, :3]))))))
         seconds = time.perf_counter() - started
         if not found:
             why = "; ".join(sorted(set(reasons))[:3]) or "no candidate"
-            return Relocalisation(False, tried=len(order), seconds=seconds,
-                                  reason=f"none of the {len(order)} most similar keyframes verified ({why})")
-        found.sort(key=lambda f: f[0])
+            return Relocalisation(False, tried=tried, seconds=seconds,
+                                  reason=f"none of the {tried} most similar keyframes verified ({why})")
         sigma_m, k, T, cov, inliers, sigma_deg = found[0]
         agreeing = 0
         for other in found[1:]:
             d = log_se3(inv_T(T) @ other[2])
             agreeing += bool(np.linalg.norm(d[3:]) <= s.agree_m and np.degrees(np.linalg.norm(d[:3])) <= s.agree_deg)
-        return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, agreeing, len(order),
-                              seconds)
+        return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, agreeing, tried, seconds)

@@ -1,0 +1,206 @@
+"""A map from the camera alone against one pinned to the ground truth, on a real recording.
+
+Protocol (issue 42): the first part of a recording (``--split``) is the survey, the rest the
+query.
+
+1. ``nap3d-graph map`` on the survey (its ground truth never read to build it): the survey
+   poses' ATE against the ground truth (SE(3)-aligned), and against ``--second-gt`` where a
+   second ground truth exists (7-Scenes' SfM pseudo ground truth), with the odometry alone beside.
+2. A field of the same model trained on the survey at its ground-truth poses
+   (``train-field``), the comparison map.
+3. The query corrected on each map with ``run --odom vo``: on the self-posed map it starts
+   with ``--initial-pose auto`` and is scored in the ground truth's frame through the
+   *survey's* alignment (no alignment of its own); on the ground-truth-posed map it starts
+   at the ground truth's first pose. With a second ground truth, both runs are scored
+   against it too, each through its survey's alignment to it.
+4. Relocalisation: ``--relocalise`` random query frames (seeded) found in the self-posed
+   map: share within 5 cm / 3 deg of the ground truth moved into the map, any accepted farther
+   than 10 cm, seconds per attempt (one core: torch and BLAS held to one thread).
+
+    python benchmarks/map_survey.py --data ../shared/data/tum/rgbd_dataset_freiburg1_desk \\
+        --out benchmarks/results/map_survey_fr1_desk.json
+    python benchmarks/map_survey.py --data ../shared/data/7scenes/redkitchen --traj 7scenes \\
+        --second-gt ../shared/data/7scenes/redkitchen/pseudo_gt_sfm.txt --out benchmarks/results/map_survey_redkitchen.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nap3d_graph.conventions import inv_T, log_se3, quat_xyzw_to_R
+
+
+def read_sfm_pseudo_gt(path: Path) -> dict[int, np.ndarray]:
+    """7-Scenes' SfM pseudo ground truth: frame number -> T_world_cam (4, 4) of the colour
+    camera (the file holds world-to-camera, quaternion w x y z, translation)."""
+    out = {}
+    for line in Path(path).read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        name, qw, qx, qy, qz, tx, ty, tz = line.split()[:8]
+        T_cam_world = np.eye(4)
+        T_cam_world[:3, :3] = quat_xyzw_to_R(np.array([qx, qy, qz, qw], dtype=float))
+        T_cam_world[:3, 3] = [float(tx), float(ty), float(tz)]
+        out[int(name.split("-")[1])] = inv_T(T_cam_world)
+    return out
+
+
+def second_gt_for(sequence, table: dict[int, np.ndarray]) -> np.ndarray:
+    numbers = np.rint(np.asarray(sequence.timestamps) * 30.0).astype(int)
+    return np.stack([table.get(int(k), np.full((4, 4), np.nan)) for k in numbers])
+
+
+def cli(*args: str) -> float:
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "nap3d_graph", *args], check=True, stdout=subprocess.DEVNULL)
+    return time.perf_counter() - t0
+
+
+def run_query(data, traj, frames, field, out: Path, extra=()) -> dict:
+    seconds = cli("run", "--traj", traj, "--data", str(data), "--frames", frames, "--field", str(field), "--odom", "vo",
+                  "--out", str(out), *extra)
+    metrics = json.loads((out / "latest" / "metrics.json").read_text())
+    config = (out / "latest" / "config.yaml").read_text()
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    stamps, T_est = read_tum_trajectory(out / "latest" / "estimate.txt")
+    _, T_online = read_tum_trajectory(out / "latest" / "estimate_online.txt")
+    return {"ate_m": metrics["estimate"]["ate_m"]["rmse"], "ate_causal_m": metrics["estimate_online"]["ate_m"]["rmse"],
+            "ate_se3_aligned_m": metrics["estimate"].get("ate_se3_aligned_m"),
+            "odometry_ate_m": metrics["odometry"]["ate_m"]["rmse"],
+            "accepted": metrics.get("corrections_accepted"), "seconds": round(seconds, 1),
+            "start": "auto" if "initial_pose:" in config and "found" in config else "ground truth",
+            "_stamps": stamps, "_T": T_est, "_T_online": T_online}
+
+
+def errors_in(T_ref_of_stamp, stamps, T_est, T_ref_est) -> float:
+    T_ref = T_ref_of_stamp(stamps)
+    p = (T_ref_est @ T_est)[:, :3, 3]
+    ok = np.all(np.isfinite(T_ref), axis=(1, 2))
+    return float(np.sqrt(np.mean(np.sum((p[ok] - T_ref[ok, :3, 3]) ** 2, axis=1))))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--traj", default="tum")
+    parser.add_argument("--split", type=float, default=0.5)
+    parser.add_argument("--model", default="splat", help="the field of both maps (default splat: seconds)")
+    parser.add_argument("--matcher", default="xfeat")
+    parser.add_argument("--second-gt", type=Path, default=None)
+    parser.add_argument("--relocalise", type=int, default=40)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--work", type=Path, default=None, help="folder for the maps and runs (default: temporary)")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="map_survey_"))
+    survey_frames, query_frames = f"0:{args.split}", f"{args.split}:1"
+    result: dict = {"command": " ".join(sys.argv), "data": str(args.data), "survey_frames": survey_frames,
+                    "query_frames": query_frames, "model": args.model, "matcher": args.matcher, "odometry": "vo"}
+
+    # 1. the self-posed map
+    map_dir = work / "map"
+    result["map_seconds"] = round(cli("map", str(args.data), "--frames", survey_frames, "--out", str(map_dir),
+                                      "--model", args.model, "--matcher", args.matcher, "--quiet"), 1)
+    info = json.loads((map_dir / "map.json").read_text())
+    result["survey"] = {"ate": info["survey_ate"], "loops": info["loops"], "keyframes": info["keyframes"],
+                        "segment": info["segment"], "stages_s": {k: v["seconds"] for k, v in info["stages"].items()}}
+
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.evaluation.alignment import aligned_errors
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    survey = open_sequence(args.data, frames=survey_frames)
+    query = open_sequence(args.data, frames=query_frames)
+    _, T_map_survey = read_tum_trajectory(map_dir / "poses.txt")
+    T_map_full = np.full((len(survey), 4, 4), np.nan)
+    seg = info["segment"]
+    T_map_full[seg["start"]:seg["stop"]] = T_map_survey
+    second = None
+    if args.second_gt is not None:
+        table = read_sfm_pseudo_gt(args.second_gt)
+        second = {"survey": second_gt_for(survey, table), "query": second_gt_for(query, table)}
+        sfm = aligned_errors(survey.timestamps, second["survey"], T_map_full)
+        result["survey"]["ate_second_gt"] = sfm.summary()
+        T_kf = np.asarray(survey.T_world_cam_gt)
+        result["ground_truths_disagree_on_survey_m"] = aligned_errors(survey.timestamps, second["survey"], T_kf).summary()
+
+    # 2. the map pinned to the ground truth
+    gt_field = work / "gt_field.pt"
+    result["gt_field_seconds"] = round(cli("train-field", str(args.data), "--frames", survey_frames, "--out",
+                                           str(gt_field), "--model", args.model, "--matcher", args.matcher,
+                                           "--quiet"), 1)
+
+    # 3. the query on both maps
+    runs = {"self_posed": run_query(args.data, args.traj, query_frames, map_dir, work / "run_self",
+                                    ("--matcher", args.matcher)),
+            "gt_posed": run_query(args.data, args.traj, query_frames, gt_field, work / "run_gt",
+                                  ("--matcher", args.matcher))}
+    if second is not None:
+        from nap3d_graph.datasets.association import interpolate_poses
+
+        def sfm_at(stamps):
+            return interpolate_poses(np.asarray(query.timestamps), second["query"], stamps, max_gap=0.2)
+
+        T_gt_map = np.asarray(info["survey_ate"]["T_gt_map"])
+        T_sfm_map = aligned_errors(survey.timestamps, second["survey"], T_map_full).T_ref_est
+        T_sfm_kf = aligned_errors(survey.timestamps, second["survey"], np.asarray(survey.T_world_cam_gt)).T_ref_est
+        for name, T_ref_frame in (("self_posed", T_sfm_map), ("gt_posed", T_sfm_kf)):
+            r = runs[name]
+            r["ate_second_gt_m"] = errors_in(sfm_at, r["_stamps"], r["_T"], T_ref_frame)
+            r["ate_second_gt_causal_m"] = errors_in(sfm_at, r["_stamps"], r["_T_online"], T_ref_frame)
+        # The same self-posed map pinned to the SfM poses instead: what the nearer ground truth makes of it.
+        del T_gt_map
+    for r in runs.values():
+        for k in ("_stamps", "_T", "_T_online"):
+            r.pop(k)
+    result["runs"] = runs
+    result["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
+
+    # 4. relocalisation from random query frames
+    import torch
+
+    torch.set_num_threads(1)
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping.relocalise import Relocaliser
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    field = resolve_field(str(map_dir))
+    K = query.intrinsics
+    relocaliser = Relocaliser(map_dir, field, AlignConfig(matcher=args.matcher), K.scaled(320, 240))
+    T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
+    rng = np.random.default_rng(args.seed)
+    picks = rng.choice(len(query), size=min(args.relocalise, len(query)), replace=False)
+    attempts = []
+    for i in sorted(picks):
+        found = relocaliser.locate(query[int(i)])
+        row = {"frame": int(i), "success": found.success, "seconds": found.seconds, "reason": found.reason}
+        if found.success and np.all(np.isfinite(query.T_world_cam_gt[i])):
+            e = log_se3(inv_T(T_map_gt @ query.T_world_cam_gt[i]) @ found.T_map_cam)
+            row.update(error_m=float(np.linalg.norm(e[3:])), error_deg=float(np.degrees(np.linalg.norm(e[:3]))),
+                       inliers=found.inliers, agreeing=found.agreeing)
+        attempts.append(row)
+    good = [a for a in attempts if a["success"] and a.get("error_m", 1) <= 0.05 and a.get("error_deg", 9) <= 3]
+    far = [a for a in attempts if a["success"] and a.get("error_m", 0) > 0.10]
+    seconds = np.array([a["seconds"] for a in attempts])
+    result["relocalisation"] = {"attempts": len(attempts), "within_5cm_3deg": len(good),
+                                "share_within": len(good) / max(len(attempts), 1),
+                                "accepted_farther_than_10cm": len(far), "refused": sum(not a["success"] for a in attempts),
+                                "seconds_median": float(np.median(seconds)), "seconds_p90": float(np.percentile(seconds, 90)),
+                                "seconds_max": float(seconds.max()), "threads": 1, "per_attempt": attempts}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1, default=float))
+    print(json.dumps({k: v for k, v in result.items() if k != "relocalisation"}, indent=1, default=float)[:4000])
+    print({k: v for k, v in result["relocalisation"].items() if k != "per_attempt"})
+
+
+if __name__ == "__main__":
+    main()
