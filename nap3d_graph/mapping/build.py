@@ -32,6 +32,7 @@ import numpy as np
 
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
 
+from .bundle import BundleSettings, PairMatches, bundle_adjust
 from .loops import Keyframe, Loop, LoopSettings, candidates, verify, verify_pair
 from .pose_graph import Edge, floor_covariance, mahalanobis_sq, solve
 from .retrieval import Vocabulary, vlad
@@ -55,7 +56,9 @@ class MapSettings:
     work at this width in pixels (None: as read); keyframe_*: a keyframe every so many frames
     or after so much motion; ``edge_floor_m`` / ``edge_floor_rad``: added to every edge's
     sigma (what pairwise residuals cannot see); ``model`` and the field's budget;
-    ``refine_rounds``: the depth refinement of the training poses before the field."""
+    ``refine_rounds``: the depth refinement of the training poses before the field;
+    ``bundle``: refine the pose graph's keyframes by the bundle adjustment over every verified
+    match (:mod:`.bundle`)."""
 
     odometry: str = "vo"
     matcher: str = "xfeat"
@@ -73,7 +76,9 @@ class MapSettings:
     steps: int | None = None
     refine_rounds: int = 0
     seed: int = 0
+    bundle: bool = True
     loops: LoopSettings = field(default_factory=LoopSettings)
+    bundle_settings: BundleSettings = field(default_factory=BundleSettings)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -172,7 +177,7 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     loops_csv = out / "loops.csv"
     T_init = survey.T_odom_cam[keys]
     if "loops" in info["stages"] and edges_path.is_file():
-        chain, loops = _load_edges(edges_path)
+        chain, loops, chain_matches = _load_edges(edges_path)
         _say(say, "loops: finished before, reused")
     else:
         t0 = time.perf_counter()
@@ -180,10 +185,10 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
             keyframes = _keyframes(sequence, keys, settings, progress)
             for k, d in zip(keyframes, descriptors):
                 k.descriptor = d
-        chain, chain_kinds = _chain(keyframes, survey, settings)
+        chain, chain_kinds, chain_matches = _chain(keyframes, survey, settings)
         pairs = candidates(T_init, descriptors, settings.loops)
         loops = verify(keyframes, pairs, _align_config(settings), settings.loops, progress)
-        _save_edges(edges_path, chain, loops)
+        _save_edges(edges_path, chain, loops, chain_matches)
         done("loops", time.perf_counter() - t0, candidates=len(pairs),
              verified=sum(lp.status == "verified" for lp in loops),
              consecutive_aligned=chain_kinds.count("alignment"), consecutive_odometry=chain_kinds.count("odometry"))
@@ -199,7 +204,18 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
         lp.status = "accepted" if kept else "rejected"
         lp.reason = "" if kept else (f"inconsistent with the graph (GNC weight {weight:.2f}, d2 {d2:.1f})")
     _write_loops_csv(loops_csv, loops)
-    T_map_cam = place_frames(survey.T_odom_cam, keys, graph.T_map_key, start, stop)
+    T_map_key = graph.T_map_key
+    if settings.bundle:
+        pair_matches = chain_matches + [lp.matches_kept for lp in verified if lp.status == "accepted"
+                                        and lp.matches_kept is not None]
+        K = _working_intrinsics(sequence, settings)
+        T_map_key, bundle_report = bundle_adjust(graph.T_map_key, pair_matches, K, settings.bundle_settings)
+        info["bundle"] = bundle_report
+        _say(say, f"bundle adjustment: {bundle_report.get('landmarks', 0)} landmarks, "
+                  f"{bundle_report.get('observations', 0)} observations; keyframes moved "
+                  f"{bundle_report.get('median_keyframe_move_mm', 0):.1f} mm (median)")
+    T_graph_cam = place_frames(survey.T_odom_cam, keys, graph.T_map_key, start, stop)
+    T_map_cam = place_frames(survey.T_odom_cam, keys, T_map_key, start, stop)
     from nap3d_graph.trajectory import write_tum_trajectory
 
     stamps = np.asarray(sequence.timestamps, dtype=float)
@@ -211,7 +227,7 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
          loops_rejected=len(verified) - accepted)
     if accepted == 0:
         _say(say, "no loop closure found: the map's poses are the odometry's alone (they drift as it does)")
-    np.save(out / "keyframe_poses.npy", graph.T_map_key)
+    np.save(out / "keyframe_poses.npy", T_map_key)
 
     # 5. the field at the map's poses
     from .posed import PosedSequence
@@ -234,12 +250,13 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
         done("field", time.perf_counter() - t0, model=settings.model, settings=field_settings)
 
     # Outputs: the plot and, only now, the comparison with the recording's ground truth.
-    info["survey_ate"] = _survey_ate(out, sequence, T_map_cam, survey, start, stop)
+    info["survey_ate"] = _survey_ate(out, sequence, T_map_cam, survey, start, stop,
+                                     T_graph_cam if settings.bundle else None)
     info["loops"] = {"candidates": len(loops), "verified": len(verified), "accepted": accepted,
                      "rejected": len(verified) - accepted}
     info["keyframes"] = int(len(keys))
     _write_json(info_path, info)
-    _plot(out / "map.png", T_map_cam, graph.T_map_key, verified, sequence, info.get("survey_ate"))
+    _plot(out / "map.png", T_map_cam, T_map_key, verified, sequence, info.get("survey_ate"))
     return MapResult(out, info)
 
 
@@ -255,7 +272,16 @@ def _ranges(start: int, stop: int, n: int) -> list[str]:
 def _align_config(settings: MapSettings):
     from nap3d_graph.nap3d.config import AlignConfig
 
-    return AlignConfig(matcher=settings.matcher, min_opacity=0.5)
+    # Both sides are the same camera: no self-calibration of the intrinsics between them.
+    return AlignConfig(matcher=settings.matcher, min_opacity=0.5, estimate_intrinsics=False)
+
+
+def _working_intrinsics(sequence, settings: MapSettings):
+    """The keyframes' camera at the map's working width."""
+    K = sequence.intrinsics
+    if settings.width is not None and K.width > settings.width:
+        return K.scaled(settings.width, int(round(K.height * settings.width / K.width)))
+    return K
 
 
 def _keyframes(sequence, keys: np.ndarray, settings: MapSettings, progress: bool) -> list[Keyframe]:
@@ -277,34 +303,46 @@ def _keyframes(sequence, keys: np.ndarray, settings: MapSettings, progress: bool
     return out
 
 
-def _chain(keyframes: list[Keyframe], survey: SurveyOdometry, settings: MapSettings) -> tuple[list[Edge], list[str]]:
+def _chain(keyframes: list[Keyframe], survey: SurveyOdometry, settings: MapSettings
+           ) -> tuple[list[Edge], list[str], list[PairMatches]]:
     """Consecutive keyframes tied by their own alignment where it verified and agrees with the
-    odometry's chained steps (chi-square gate), else by the chain."""
+    odometry's chained steps (chi-square gate), else by the chain; and the inlier matches of
+    the aligned ones."""
     from scipy.stats import chi2
 
     config = _align_config(settings)
-    edges, kinds = [], []
+    edges, kinds, matches = [], [], []
     threshold = chi2.ppf(settings.gate_p, 6)
     for a in range(len(keyframes) - 1):
         i, j = keyframes[a].index, keyframes[a + 1].index
         T_odom, cov_odom = survey.between(i, j)
         cov_odom = floor_covariance(cov_odom, settings.edge_floor_rad, settings.edge_floor_m)
-        T_align, cov_align, alignment = verify_pair(keyframes[a], keyframes[a + 1], config)
+        T_align, cov_align, alignment = verify_pair(keyframes[a], keyframes[a + 1], config, a, a + 1)
         if alignment.success and alignment.num_inliers >= settings.loops.min_inliers:
             cov_align = floor_covariance(cov_align, settings.edge_floor_rad, settings.edge_floor_m)
             d2 = mahalanobis_sq(np.eye(4), T_odom, Edge(0, 1, T_align, cov_align + cov_odom, "alignment"))
             if d2 <= threshold:
                 edges.append(Edge(a, a + 1, T_align, cov_align, "alignment"))
                 kinds.append("alignment")
+                matches.append(alignment.diagnostics["matches"])
                 continue
         edges.append(Edge(a, a + 1, T_odom, cov_odom, "odometry"))
         kinds.append("odometry")
-    return edges, kinds
+    return edges, kinds, matches
 
 
-def _save_edges(path: Path, chain: list[Edge], loops: list[Loop]) -> None:
+def _save_edges(path: Path, chain: list[Edge], loops: list[Loop], chain_matches: list[PairMatches]) -> None:
+    pairs = list(chain_matches) + [lp.matches_kept for lp in loops if lp.matches_kept is not None]
+    owner = [-1] * len(chain_matches) + [n for n, lp in enumerate(loops) if lp.matches_kept is not None]
+    sizes = [len(p.z_a) for p in pairs]
     np.savez_compressed(
         path,
+        pm_owner=np.array(owner, dtype=int), pm_ab=np.array([[p.a, p.b] for p in pairs], dtype=int).reshape(-1, 2),
+        pm_size=np.array(sizes, dtype=int),
+        pm_uv_a=np.concatenate([p.uv_a for p in pairs]).reshape(-1, 2) if pairs else np.zeros((0, 2)),
+        pm_uv_b=np.concatenate([p.uv_b for p in pairs]).reshape(-1, 2) if pairs else np.zeros((0, 2)),
+        pm_z_a=np.concatenate([p.z_a for p in pairs]) if pairs else np.zeros(0),
+        pm_z_b=np.concatenate([p.z_b for p in pairs]) if pairs else np.zeros(0),
         chain_ab=np.array([[e.a, e.b] for e in chain], dtype=int).reshape(-1, 2),
         chain_T=np.array([e.T_a_b for e in chain]).reshape(-1, 4, 4),
         chain_cov=np.array([e.covariance for e in chain]).reshape(-1, 6, 6),
@@ -316,8 +354,12 @@ def _save_edges(path: Path, chain: list[Edge], loops: list[Loop]) -> None:
         loop_text=np.array([[lp.source, lp.status, lp.reason] for lp in loops], dtype=str).reshape(-1, 3))
 
 
-def _load_edges(path: Path) -> tuple[list[Edge], list[Loop]]:
+def _load_edges(path: Path) -> tuple[list[Edge], list[Loop], list[PairMatches]]:
     with np.load(path) as d:
+        bounds = np.concatenate([[0], np.cumsum(d["pm_size"])]).astype(int)
+        pairs = [PairMatches(int(a), int(b), d["pm_uv_a"][s:e], d["pm_uv_b"][s:e], d["pm_z_a"][s:e], d["pm_z_b"][s:e])
+                 for (a, b), s, e in zip(d["pm_ab"], bounds[:-1], bounds[1:])]
+        owners = d["pm_owner"]
         chain = [Edge(int(a), int(b), T, c, str(k)) for (a, b), T, c, k in
                  zip(d["chain_ab"], d["chain_T"], d["chain_cov"], d["chain_kind"])]
         loops = []
@@ -326,7 +368,10 @@ def _load_edges(path: Path) -> tuple[list[Edge], list[Loop]]:
             status = "verified" if status in ("accepted", "rejected") else str(status)
             loops.append(Loop(int(a), int(b), int(i), int(j), str(source), int(m), int(n), float(rmse), float(sm),
                               float(sd), T, c, status, str(reason)))
-    return chain, loops
+    for owner, pair in zip(owners, pairs):
+        if owner >= 0:
+            loops[owner].matches_kept = pair
+    return chain, loops, [p for o, p in zip(owners, pairs) if o < 0]
 
 
 def _write_loops_csv(path: Path, loops: list[Loop]) -> None:
@@ -357,7 +402,8 @@ def place_frames(T_odom_cam: np.ndarray, keys: np.ndarray, T_map_key: np.ndarray
     return out
 
 
-def _survey_ate(out: Path, sequence, T_map_cam: np.ndarray, survey: SurveyOdometry, start: int, stop: int) -> dict | None:
+def _survey_ate(out: Path, sequence, T_map_cam: np.ndarray, survey: SurveyOdometry, start: int, stop: int,
+                T_graph_cam: np.ndarray | None = None) -> dict | None:
     """``survey_ate.json`` where the recording has ground truth: the map's poses and the
     odometry's alone against it, each SE(3)-aligned, with per-frame errors and the transform
     ``T_gt_map`` that runs use to score in the ground truth's frame."""
@@ -373,8 +419,10 @@ def _survey_ate(out: Path, sequence, T_map_cam: np.ndarray, survey: SurveyOdomet
     if mapped is None:
         return None
     odometry = aligned_errors(stamps, T_gt, T_odom)
+    graph_only = None if T_graph_cam is None else aligned_errors(stamps, T_gt, T_graph_cam)
     report = {"ground_truth": "the recording's own (never read to build the map)",
               "map": mapped.summary(), "odometry_only": None if odometry is None else odometry.summary(),
+              "pose_graph_only": None if graph_only is None else graph_only.summary(),
               "T_gt_map": mapped.T_ref_est.tolist(),
               "per_frame": {"timestamp": mapped.stamps.tolist(), "error_m": mapped.errors_m.round(6).tolist()}}
     if odometry is not None and mapped.rmse_m > odometry.rmse_m:
@@ -382,7 +430,7 @@ def _survey_ate(out: Path, sequence, T_map_cam: np.ndarray, survey: SurveyOdomet
                              f"{odometry.rmse_m * 100:.2f} cm ATE): a wrong loop or a bad edge bent it")
         log.warning(report["warning"])
     _write_json(out / "survey_ate.json", report)
-    return {k: report[k] for k in ("map", "odometry_only", "T_gt_map")} | (
+    return {k: report[k] for k in ("map", "odometry_only", "pose_graph_only", "T_gt_map")} | (
         {"warning": report["warning"]} if "warning" in report else {})
 
 

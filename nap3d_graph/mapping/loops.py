@@ -19,7 +19,6 @@ import numpy as np
 
 from nap3d_graph.camera import RenderedView, RGBDFrame
 from nap3d_graph.conventions import inv_T, rotation_angle_deg
-from nap3d_graph.nap3d.align import align_views
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.matching import Features
 
@@ -83,6 +82,7 @@ class Loop:
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.inf))
     status: str = "candidate"
     reason: str = ""
+    matches_kept: object = None  # PairMatches of a verified pair, for the bundle adjustment
 
     CSV_HEADER = ("keyframe_a", "keyframe_b", "frame_i", "frame_j", "source", "matches", "inliers", "rmse_m",
                   "sigma_m", "sigma_deg", "status", "reason")
@@ -124,16 +124,34 @@ def candidates(T_map_key: np.ndarray, descriptors: np.ndarray, settings: LoopSet
     return [(a, b, "+".join(sorted(s))) for (a, b), s in sorted(found.items())]
 
 
-def verify_pair(key_a: Keyframe, key_b: Keyframe, config: AlignConfig) -> tuple[np.ndarray, np.ndarray, object]:
+def verify_pair(key_a: Keyframe, key_b: Keyframe, config: AlignConfig, a: int = 0, b: int = 0
+                ) -> tuple[np.ndarray, np.ndarray, object]:
     """``(T_a_b, covariance, alignment)``: keyframe b's camera in keyframe a's by NAP3D (a real,
     b as the view), the covariance moved onto ``T_a_b`` (the alignment gives it for the
-    corrected pose of a's camera; ``T_a_b``'s right perturbation is b's)."""
+    corrected pose of a's camera; ``T_a_b``'s right perturbation is b's). On success
+    ``alignment.diagnostics["matches"]`` holds the inlier pixel pairs (a
+    :class:`~nap3d_graph.mapping.bundle.PairMatches` of positions ``a``, ``b``) for the bundle
+    adjustment."""
+    from nap3d_graph.camera import project
     from nap3d_graph.conventions import adjoint
+    from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
+    from nap3d_graph.results import Alignment
 
-    alignment = align_views(key_a.frame, as_view(key_b.frame), config, feats_real=key_a.features,
-                            feats_view=key_b.features.where(as_view(key_b.frame).opacity >= config.min_opacity))
+    from .bundle import PairMatches
+
+    view = as_view(key_b.frame)
+    try:
+        corr, reason = prepare_correspondences(key_a.frame, view, config, feats_real=key_a.features,
+                                               feats_view=key_b.features.where(view.opacity >= config.min_opacity))
+        alignment = Alignment.failure(reason) if corr is None else align_correspondences(corr, key_a.frame.intrinsics,
+                                                                                         config)
+    except (ValueError, np.linalg.LinAlgError) as exc:  # numerical trouble is a refused pair, not a crash
+        alignment = Alignment.failure(f"numerical failure: {exc}")
     if not alignment.success:
         return np.eye(4), np.full((6, 6), np.inf), alignment
+    mask = alignment.inlier_mask if alignment.inlier_mask is not None else np.ones(len(corr), bool)
+    uv_b, z_b = project(corr.x[mask], key_b.frame.intrinsics)
+    alignment.diagnostics["matches"] = PairMatches(a, b, corr.uv_real[mask], uv_b, corr.y[mask, 2], z_b)
     # T_real_rendered = T_a_b (b's points into a's camera). The alignment's covariance is of
     # T_world_a_true = T_world_b @ inv(T_a_b) perturbed on the right (a's frame); the same
     # uncertainty on T_a_b, perturbed on the right (b's frame), is Ad(T_b_a) cov Ad(T_b_a)^T.
@@ -151,7 +169,8 @@ def verify(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config:
     loops = []
     for a, b, source in tqdm(pairs, desc="loop verification", unit="pair", disable=not progress, mininterval=2.0):
         loop = Loop(a, b, keyframes[a].index, keyframes[b].index, source)
-        T_a_b, cov, alignment = verify_pair(keyframes[a], keyframes[b], config)
+        T_a_b, cov, alignment = verify_pair(keyframes[a], keyframes[b], config, a, b)
+        loop.matches_kept = alignment.diagnostics.get("matches")
         loop.matches, loop.inliers = alignment.num_matches, alignment.num_inliers
         if not alignment.success:
             loop.status, loop.reason = "refused", alignment.reason
