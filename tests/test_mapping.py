@@ -228,3 +228,56 @@ def test_auto_start_without_a_map_is_a_clear_error(tum_path, tmp_path, capsys):
     assert main(["run", "--traj", "tum", "--data", str(tum_path), "--field", "none", "--odom", "vo",
                  "--initial-pose", "auto", "--out", str(tmp_path)]) == 2
     assert "--initial-pose auto finds the start in a map" in capsys.readouterr().err
+
+
+class _JumpingOdometry:
+    """A visual odometry that loses track once: at frame ``at`` its step is off by ``jump``
+    (and says it guessed), as a camera shaken or covered for a moment."""
+
+    def __init__(self, inner, at: int, jump: np.ndarray):
+        self.inner, self.at, self.jump = inner, at, jump
+        self.name, self.needs_frames = inner.name, True
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def increment(self, i, frame=None):
+        step = self.inner.increment(i, frame)
+        if i == self.at:
+            step.T_prev_cur = step.T_prev_cur @ self.jump
+            step.ok, step.covariance = False, np.diag([0.05**2] * 3 + [0.05**2] * 3)
+        return step
+
+
+def test_a_run_that_loses_track_recovers_by_relocalising_in_the_map(xyz_map):
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping import reframed
+    from nap3d_graph.mapping.relocalise import Relocaliser
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.odometry import VisualOdometry
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.pipeline import Pipeline
+
+    sequence, result = xyz_map
+    field = resolve_field(str(result.folder))
+    T_gt_map = np.asarray(json.loads((result.folder / "survey_ate.json").read_text())["T_gt_map"])
+    in_map = reframed(sequence._base, inv_T(T_gt_map), "ground truth in the map's frame")
+    jump = exp_se3(np.array([0.0, 0.25, 0.0, 0.35, 0.0, 0.0]))  # 35 cm and 14 deg, all at once
+    errors = {}
+    for recover in (False, True):
+        odometry = _JumpingOdometry(VisualOdometry(in_map.T_world_cam_gt[0], AlignConfig(matcher="sift",
+                                                                                          min_opacity=0.5)), 4, jump)
+        pipeline = Pipeline(in_map, field, odometry, PipelineConfig(keyframe_every=1, align=AlignConfig(matcher="sift")))
+        if recover:
+            pipeline.relocaliser = Relocaliser(result.folder, field, AlignConfig(matcher="sift"))
+        run = pipeline.run()
+        # What the robot had at each frame (causal): the final smoothing can mend a jump afterwards,
+        # a robot needs its pose back while it moves.
+        errors[recover] = np.linalg.norm(run.T_world_cam_online[-1][:3, 3] - in_map.T_world_cam_gt[-1][:3, 3])
+        if recover:
+            assert any(r["success"] for r in pipeline.recoveries)
+            assert all(r["jump_m"] > 0.1 for r in pipeline.recoveries if r["success"])
+        else:
+            assert pipeline.recoveries == []
+    assert errors[False] > 0.1  # lost: the corrections alone could not bring it back
+    assert errors[True] < 0.03

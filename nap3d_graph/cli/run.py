@@ -96,7 +96,10 @@ def run(args) -> int:
         writer.close()
         if recorder is not None and sys.exc_info()[0] is not None:
             recorder.close()  # what was recorded stays readable
-    metrics = writer.finish(result, partial=result.partial, extra=None if pace is None else {"paced": pace.summary()})
+    extra = {} if pace is None else {"paced": pace.summary()}
+    if prepared.record.get("start"):  # a run in a self-made map: where it started, how it was scored
+        extra["map"] = {**prepared.record["start"], "recoveries": pipeline.recoveries}
+    metrics = writer.finish(result, partial=result.partial, extra=extra or None)
     if pace is not None:
         late = metrics["paced"].get("behind_camera_s") or {}
         config = pipeline.config

@@ -260,11 +260,14 @@ class Prepared:
     config: object
     record: dict
     name: str
+    relocaliser: object = None
 
     def pipeline(self):
         from nap3d_graph.run.pipeline import Pipeline
 
-        return Pipeline(self.sequence, self.field, self.odometry, self.config)
+        pipeline = Pipeline(self.sequence, self.field, self.odometry, self.config)
+        pipeline.relocaliser = self.relocaliser  # a map's: recovers a run lost K keyframes in a row
+        return pipeline
 
 
 def _say_readout(config, field_obj) -> float:
@@ -486,6 +489,8 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
         info = load_map_info(map_dir)
         T_gt_map = (info.get("survey_ate") or {}).get("T_gt_map")
         record["map"] = str(map_dir)
+        if args.odom is None:  # the map's world is the camera's own: so is the run's motion, by default
+            args.odom = "vo"
         if sequence.T_world_cam_gt is not None:
             if T_gt_map is None:
                 print("ground truth: the map's survey had none, so this run's ground truth is not in the map's frame; "
@@ -530,17 +535,22 @@ def _no_start(sequence) -> bool:
     return gt is None or not np.all(np.isfinite(np.asarray(gt)[0]))
 
 
-def relocalise_first(map_dir, field_obj, sequence, args):
-    """The first readable frame of ``sequence`` found in the map (a
-    :class:`~nap3d_graph.mapping.relocalise.Relocalisation`)."""
+def map_relocaliser(map_dir, field_obj, sequence, args):
+    """A :class:`~nap3d_graph.mapping.relocalise.Relocaliser` of the map, rendering at the
+    run's size with the run's matcher."""
     from nap3d_graph.mapping.relocalise import Relocaliser
     from nap3d_graph.nap3d.config import AlignConfig
 
     width, height = parse_size(args.render_size)
     K = sequence.intrinsics
     render = K.scaled(width, height) if (K.width, K.height) != (width, height) else K
-    relocaliser = Relocaliser(map_dir, field_obj, AlignConfig(matcher=args.matcher), render)
-    return relocaliser.locate(sequence[0])
+    return Relocaliser(map_dir, field_obj, AlignConfig(matcher=args.matcher), render)
+
+
+def relocalise_first(map_dir, field_obj, sequence, args):
+    """The first readable frame of ``sequence`` found in the map (a
+    :class:`~nap3d_graph.mapping.relocalise.Relocalisation`)."""
+    return map_relocaliser(map_dir, field_obj, sequence, args).locate(sequence[0])
 
 
 def prepare(args, use_anchor: bool = False) -> Prepared:
@@ -600,6 +610,12 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
                             timing=_timing(args, field_obj, sequence),
                             align=with_overrides(AlignConfig(matcher=args.matcher), getattr(args, "align_overrides", None)))
     config = with_overrides(config, getattr(args, "pipeline_overrides", None))  # run --config: unflagged settings
+    found = start_record.get("initial_pose")
+    if found:  # a start found in the map is as sure as its alignment, not pinned to a millimetre
+        import dataclasses
+
+        config = dataclasses.replace(config, prior_trans_sigma_m=max(config.prior_trans_sigma_m, found["sigma_m"]),
+                                     prior_rot_sigma_rad=max(config.prior_rot_sigma_rad, np.radians(found["sigma_deg"])))
     config = with_field_error(config, field_obj)
     readout_s = _say_readout(config, field_obj)
     if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
@@ -622,4 +638,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     if odom_kind == "imu":
         record["imu"] = {**odometry.stream.config.to_dict(),
                          "fallback_odometry": getattr(odometry.fallback, "name", "none")}
-    return Prepared(sequence, field_obj, odometry, config, record, name)
+    relocaliser = None
+    if start_record.get("map") and not config.overlap:
+        relocaliser = map_relocaliser(start_record["map"], field_obj, sequence, args)
+    return Prepared(sequence, field_obj, odometry, config, record, name, relocaliser)

@@ -184,6 +184,7 @@ class PipelineConfig:
     graph_window: int = 0
     max_frames: int | None = None
     progress: bool = False
+    relocalise_after: int = 3
     align: AlignConfig = field(default_factory=AlignConfig)
 
     def __post_init__(self) -> None:

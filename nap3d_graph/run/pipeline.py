@@ -94,6 +94,13 @@ class Pipeline:
         # The field's own error, as it measured it when it was built, unless told otherwise.
         self.config = with_field_error(config or PipelineConfig(), field)
         self.correction_hook = correction_hook
+        # A map's relocaliser (nap3d_graph.mapping.relocalise.Relocaliser), set by whoever has the
+        # map: after config.relocalise_after keyframes refused in a row, the frame is found in the
+        # map afresh and enters as a correction past the gate (the prediction it would be gated
+        # against is what went wrong). Each recovery is listed in ``recoveries``.
+        self.relocaliser = None
+        self.recoveries: list[dict] = []
+        self._refused_in_a_row = 0
         motion = motion_kind(odometry)
         if self.config.use_anchor and motion.estimates_field_frame:
             raise ValueError("--anchor does not apply with --odom imu: the IMU path estimates the field's frame's "
@@ -280,6 +287,7 @@ class Pipeline:
         job = self._job(i, frame)
         if job is not None:
             self._apply_correction(record, i, measure_keyframe(job, self.field, self.config), job.T_field_cam_render)
+            self._recover_if_lost(record, i, frame, job.T_field_cam_render)
         if notes := self.motion.interval_notes():
             record.reason = f"{record.reason}; {notes}" if record.reason else notes
         self.motion.after_correction(i, frame, record.accepted)
@@ -398,6 +406,43 @@ class Pipeline:
         corrections keep failing for one reason."""
         self._gate_and_add(record, i, correction, T_field_cam_render)
         self._watch_refusals(record)
+
+    def _recover_if_lost(self, record: KeyframeRecord, i: int, frame, T_field_cam_render) -> None:
+        """After ``relocalise_after`` keyframes refused in a row (the estimate drifted off the
+        map, or the odometry lost track), find this frame in the map with the relocaliser and
+        put it in the graph without the gate: the gate would compare it with the prediction
+        that is lost. Only a relocalisation that verifies (inliers, covariance, agreeing
+        candidates) enters."""
+        self._refused_in_a_row = 0 if record.accepted else self._refused_in_a_row + 1
+        after = self.config.relocalise_after
+        if self.relocaliser is None or not after or self._refused_in_a_row < after or self.anchored:
+            return
+        from nap3d_graph.results import Alignment
+
+        found = self.relocaliser.locate(frame)
+        entry = {"frame": int(i), "refused_in_a_row": self._refused_in_a_row, "success": bool(found.success),
+                 "seconds": round(found.seconds, 3)}
+        if found.success:
+            alignment = Alignment(success=True, num_inliers=found.inliers, covariance=found.covariance)
+            correction = Correction(T_field_cam_render, found.T_map_cam, found.covariance, alignment, 1, True, "", {})
+            try:
+                factor = self.graph.nap3d_factor(record.key, correction, self.config.robust)
+            except ValueError as exc:
+                entry["reason"] = f"covariance not usable: {exc}"
+            else:
+                self.graph.new_factors.add(factor)  # as gated_correction adds one, without the gate
+                self.graph.factor_log.append((self.graph.nap3d_factor(record.key, correction, None), True, i))
+                jump_m, jump_deg = pose_error(found.T_map_cam, T_field_cam_render)
+                entry.update(jump_m=round(jump_m, 4), jump_deg=round(jump_deg, 3), keyframe=found.keyframe,
+                             inliers=found.inliers)
+                record.accepted = True
+                record.reason = f"relocalised in the map after {self._refused_in_a_row} refused keyframes"
+                self._refused_in_a_row = 0
+                self._update_isam(extra_step=True, record=record)
+                log.warning("frame %d: %s; the estimate jumped %.2f m / %.1f deg", i, found.describe(), jump_m, jump_deg)
+        else:
+            entry["reason"] = found.reason
+        self.recoveries.append(entry)
 
     #: Consecutive keyframes refused for one reason before the run says so.
     REFUSAL_STREAK = 5
