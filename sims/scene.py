@@ -163,7 +163,79 @@ class Sphere:
                 "texture": self.texture.to_dict()}
 
 
+@dataclass(frozen=True)
+class Poster:
+    """A flat picture hung on a wall of the room: a ``2 half_m`` rectangle ``standoff_m`` in
+    front of wall ``wall`` (0: x = 0, 1: x = size_x, 2: y = 0, 3: y = size_y, as the room's
+    faces), centred at ``centre_m`` (along the wall, height). Its pattern is drawn in its own
+    frame (right as seen facing it, up), so two posters with one texture look the same
+    wherever they hang: the repeated texture a map's loop closure must not be fooled by."""
+
+    wall: int
+    wall_m: float
+    centre_m: tuple[float, float]
+    half_m: tuple[float, float]
+    texture: TextureSpec
+    standoff_m: float = 0.01
+
+    def _axis(self) -> int:
+        return 0 if self.wall < 2 else 1
+
+    def _plane(self) -> float:
+        return self.wall_m + (self.standoff_m if self.wall in (0, 2) else -self.standoff_m)
+
+    def _right(self) -> np.ndarray:
+        """The direction to the right of someone facing the poster (world +Z up)."""
+        return np.array([[0.0, 1.0, 0.0], [0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]][self.wall])
+
+    def centre3(self) -> np.ndarray:
+        centre = np.zeros(3)
+        axis = self._axis()
+        centre[axis], centre[1 - axis], centre[2] = self._plane(), self.centre_m[0], self.centre_m[1]
+        return centre
+
+    def intersect(self, origin: np.ndarray, dirs: np.ndarray):
+        axis = self._axis()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (self._plane() - origin[axis]) / dirs[:, axis]
+        points = origin + np.where(np.isfinite(t), t, 0.0)[:, None] * dirs
+        along, z = points[:, 1 - axis], points[:, 2]
+        hit = (np.isfinite(t) & (t > _EPS) & (np.abs(along - self.centre_m[0]) <= self.half_m[0])
+               & (np.abs(z - self.centre_m[1]) <= self.half_m[1]))
+        normal = np.zeros_like(dirs)
+        normal[:, axis] = 1.0 if self.wall in (0, 2) else -1.0
+        return np.where(hit, t, np.inf), normal
+
+    def local_points(self, points: np.ndarray) -> np.ndarray:
+        """World points on the poster (N, 3) in its own frame (right, up, 0): what its texture
+        is drawn in."""
+        rel = points - self.centre3()
+        return np.stack([rel @ self._right(), rel[:, 2], np.zeros(len(rel))], axis=1)
+
+    def to_dict(self) -> dict:
+        return {"type": "poster", "wall": self.wall, "wall_m": self.wall_m, "centre_m": list(self.centre_m),
+                "half_m": list(self.half_m), "standoff_m": self.standoff_m, "texture": self.texture.to_dict()}
+
+
+def with_twin_posters(scene: "Scene", seed: int = 0, identical: bool = True) -> "Scene":
+    """``scene`` with one picture hung twice, on the two walls across the room from each other
+    (x = 0 and x = size_x, same place along the wall, above the furniture): a survey sees the
+    same 1.2 x 0.8 m pattern in two places 5-7 m apart. ``identical`` False hangs two
+    different pictures there instead (the control: the same room without a repeated texture)."""
+    textures = [TextureSpec.random(np.random.default_rng([seed, 99 + k])).as_kind("standard") for k in range(2)]
+    if identical:
+        textures[1] = textures[0]
+    size = scene.room.size_m
+    along, height = size[1] / 2, min(2.0, size[2] - 0.5)
+    posters = tuple(Poster(wall, wall_m, (along, height), (0.6, 0.4), texture)
+                    for (wall, wall_m), texture in zip(((0, 0.0), (1, float(size[0]))), textures))
+    return Scene(room=scene.room, objects=scene.objects + posters, free_xy_m=scene.free_xy_m, seed=scene.seed,
+                 ambient=scene.ambient)
+
+
 def _bounding_sphere(obj) -> tuple[np.ndarray, float]:
+    if isinstance(obj, Poster):
+        return obj.centre3(), float(np.hypot(*obj.half_m)) + obj.standoff_m
     if isinstance(obj, Box):
         return np.asarray(obj.center_m), float(np.linalg.norm(obj.half_m))
     if isinstance(obj, Cylinder):
@@ -191,6 +263,9 @@ def _object_from_dict(d: dict):
                         float(d["z1_m"]), texture)
     if kind == "sphere":
         return Sphere(tuple(d["center_m"]), float(d["radius_m"]), texture)
+    if kind == "poster":
+        return Poster(int(d["wall"]), float(d["wall_m"]), tuple(d["centre_m"]), tuple(d["half_m"]), texture,
+                      float(d["standoff_m"]))
     raise ValueError(f"unknown scene object type {kind!r}")
 
 
@@ -273,7 +348,10 @@ class Scene:
         textures = list(self.room.textures) + [o.texture for o in self.objects]
         for owner_id in np.unique(owner[valid]):
             sel = valid & (owner == owner_id)
-            albedo[sel] = shade_texture(textures[owner_id], points[sel])
+            obj = self.objects[owner_id - 6] if owner_id >= 6 else None
+            # A poster's pattern is drawn in its own frame (the same picture wherever it hangs).
+            local = obj.local_points(points[sel]) if isinstance(obj, Poster) else points[sel]
+            albedo[sel] = shade_texture(textures[owner_id], local)
         return t, points, normal, albedo
 
     def render_depth(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:

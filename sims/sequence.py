@@ -27,7 +27,7 @@ import numpy as np
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.trajectory import Trajectory
 
-from .scene import make_scene
+from .scene import make_scene, with_twin_posters
 from .sensors import (
     CameraTiming,
     DepthNoise,
@@ -72,6 +72,9 @@ class SimConfig:
     exposure: ExposureNoise | None = field(default_factory=ExposureNoise)
     odometry: OdometryNoise = field(default_factory=OdometryNoise)
     imu: ImuNoise = field(default_factory=ImuNoise)
+    #: "identical": one picture on two opposite walls (:func:`~nap3d_graph.sims.scene.with_twin_posters`);
+    #: "different": two pictures there (its control); None: neither.
+    twin_posters: str | None = None
 
     def __post_init__(self) -> None:
         if self.fps is None:
@@ -89,6 +92,8 @@ class SimConfig:
         d["exposure"] = None if self.exposure is None else self.exposure.to_dict()
         d["odometry"] = self.odometry.to_dict()
         d["imu"] = self.imu.to_dict()
+        if self.twin_posters is not None:  # only when set: every other sequence's record stays as it was
+            d["twin_posters"] = self.twin_posters
         return d
 
 
@@ -186,6 +191,10 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     (out / "depth").mkdir(exist_ok=True)
 
     scene = make_scene(config.scene_seed)
+    if config.twin_posters is not None:
+        if config.twin_posters not in ("identical", "different"):
+            raise ValueError(f"twin_posters must be 'identical', 'different' or None, got {config.twin_posters!r}")
+        scene = with_twin_posters(scene, config.scene_seed, identical=config.twin_posters == "identical")
     # Separate streams: the path, the image noise, the odometry and the IMU each get their
     # own generator, so changing one model does not reshuffle the others.
     path_rng, image_rng, odom_rng, imu_rng, stamp_rng, exposure_rng = (

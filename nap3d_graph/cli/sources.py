@@ -614,8 +614,8 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     if found:  # a start found in the map is as sure as its alignment, not pinned to a millimetre
         import dataclasses
 
-        config = dataclasses.replace(config, prior_trans_sigma_m=max(config.prior_trans_sigma_m, found["sigma_m"]),
-                                     prior_rot_sigma_rad=max(config.prior_rot_sigma_rad, np.radians(found["sigma_deg"])))
+        config = dataclasses.replace(config, prior_trans_sigma_m=float(max(config.prior_trans_sigma_m, found["sigma_m"])),
+                                     prior_rot_sigma_rad=float(max(config.prior_rot_sigma_rad, np.radians(found["sigma_deg"]))))
     config = with_field_error(config, field_obj)
     readout_s = _say_readout(config, field_obj)
     if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
