@@ -31,13 +31,16 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class RelocaliseSettings:
     """top_k: keyframes tried at most, in order of similarity, each with ``iterations``
-    render-align rounds; ``enough``: stop once this many verified (the best then gets one more
-    round from where it landed); min_inliers, max_sigma_m, max_sigma_deg: what a verified
-    start must reach; agree_m / agree_deg: candidates this close count as agreeing."""
+    render-align rounds, until one verified candidate has ``min_agreeing`` others within
+    ``agree_m`` / ``agree_deg`` (the tightest of them then gets one more round from where it
+    landed); min_inliers, max_sigma_m, max_sigma_deg: what a verified candidate must reach.
+    One candidate alone, however many inliers it has, can be a wrong view of a similar
+    place (on fr1/desk 3 of 40 lone answers were 7-13 cm off); two renders from different
+    keyframes that land together rarely are."""
 
-    top_k: int = 5
+    top_k: int = 6
     iterations: int = 1
-    enough: int = 2
+    min_agreeing: int = 1
     min_inliers: int = 30
     max_sigma_m: float = 0.03
     max_sigma_deg: float = 2.0
@@ -110,9 +113,21 @@ class Relocaliser:
         features = detect_features(frame.rgb, 0, matcher=self.matcher)
         return vlad(features.descriptors, self.vocabulary)
 
+    def _agreeing(self, found: list) -> list:
+        """The largest group of verified candidates that agree with one of them (that one
+        first), or all of them when none agree (each its own group)."""
+        from nap3d_graph.conventions import inv_T, log_se3
+
+        s = self.settings
+        best: list = found[:1]
+        for f in found:
+            group = [f] + [g for g in found if g is not f and _close(f[2], g[2], s.agree_m, s.agree_deg, inv_T, log_se3)]
+            if len(group) > len(best):
+                best = group
+        return best
+
     def locate(self, frame: RGBDFrame) -> Relocalisation:
         """Where ``frame`` is in the map; never raises on data (``success`` False, ``reason``)."""
-        from nap3d_graph.conventions import inv_T, log_se3
         from nap3d_graph.nap3d.correct import correct_pose
 
         started = time.perf_counter()
@@ -135,9 +150,14 @@ class Relocaliser:
                 reasons.append(f"sigma {sigma_m * 100:.1f} cm / {sigma_deg:.1f} deg")
             else:
                 found.append((sigma_m, int(k), correction.T_world_cam_corrected, cov, a.num_inliers, sigma_deg))
-                if len(found) >= s.enough:
+                if len(self._agreeing(found)) > s.min_agreeing:
                     break
         tried = len(reasons) + len(found)
+        found = self._agreeing(found)
+        if len(found) <= s.min_agreeing:
+            if found:
+                reasons.append(f"{len(found)} verified candidate(s) but fewer than {s.min_agreeing} other(s) agreeing")
+            found = []
         if found:  # one more round for the tightest, from where it landed (a nearer render)
             found.sort(key=lambda f: f[0])
             sigma_m, k, T, cov, inliers, sigma_deg = found[0]
@@ -155,8 +175,10 @@ class Relocaliser:
             return Relocalisation(False, tried=tried, seconds=seconds,
                                   reason=f"none of the {tried} most similar keyframes verified ({why})")
         sigma_m, k, T, cov, inliers, sigma_deg = found[0]
-        agreeing = 0
-        for other in found[1:]:
-            d = log_se3(inv_T(T) @ other[2])
-            agreeing += bool(np.linalg.norm(d[3:]) <= s.agree_m and np.degrees(np.linalg.norm(d[:3])) <= s.agree_deg)
+        agreeing = len(found) - 1
         return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, agreeing, tried, seconds)
+
+
+def _close(T_a: np.ndarray, T_b: np.ndarray, metres: float, degrees: float, inv_T, log_se3) -> bool:
+    d = log_se3(inv_T(T_a) @ T_b)
+    return bool(np.linalg.norm(d[3:]) <= metres and np.degrees(np.linalg.norm(d[:3])) <= degrees)
