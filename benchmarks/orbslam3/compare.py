@@ -153,6 +153,7 @@ def track(slam, rgb, depth, stamps, pace: bool):
 
 def worker(args) -> int:
     import pyorbslam3 as pos
+
     from nap3d_graph.datasets import open_sequence
 
     work = Path(args.work)

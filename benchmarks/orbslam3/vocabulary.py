@@ -176,7 +176,7 @@ def build_tree(desc: np.ndarray, k: int, L: int, rng: np.random.Generator, max_i
         if not rows.any():
             idx = idx[:0]
             break
-        l_idx, l_node = idx[rows], node[rows]
+        l_idx = idx[rows]
         l_counts = counts[~small]
         l_starts = np.concatenate([[0], np.cumsum(l_counts)[:-1]])
         labels, centers, valid = k_majority(desc[l_idx], bits[l_idx], l_starts, l_counts, k, rng, max_iter)
