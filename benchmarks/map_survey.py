@@ -187,7 +187,9 @@ def main() -> None:
     if args.only_relocalise:
         from nap3d_graph.datasets import open_sequence
 
-        result = json.loads(args.out.read_text())
+        result = (json.loads(args.out.read_text()) if args.out.is_file()
+                  else {"data": str(args.data), "survey_frames": survey_frames, "query_frames": query_frames,
+                        "matcher": args.matcher})
         info = json.loads((work / "map" / "map.json").read_text())
         survey, query = open_sequence(args.data, frames=survey_frames), open_sequence(args.data, frames=query_frames)
         from nap3d_graph.trajectory import read_tum_trajectory

@@ -85,6 +85,14 @@ def map_checks_table() -> str:
             f"{forced['pairs_tried']} twin-view pairs forced: {forced['verified']} verified at "
             f"{forced['min_inliers']} inliers, at {relaxed['min_inliers']}: {relaxed['verified']} verified "
             f"({relaxed['verified_false']} false), {relaxed['kept_by_graph']} kept by the graph |")
+    path = RESULTS / "map_relocalise_fr1_desk_grid.json"
+    if path.is_file():
+        r = json.loads(path.read_text())["relocalisation"]
+        rows.append(
+            f"| relocalisation in fr1/desk's map with its {r['field']} field, 40 random second-half frames, one thread "
+            f"(`map_relocalise_fr1_desk_grid.json`) | {r['within_5cm_3deg']}/{r['attempts']} within 5 cm / 3 deg, "
+            f"{r['accepted_farther_than_10cm']} accepted beyond 10 cm, {r['refused']} refused; "
+            f"{r['seconds_median']:.2f} s per attempt (p90 {r['seconds_p90']:.2f}, max {r['seconds_max']:.2f}) |")
     path = RESULTS / "orbslam3_fr1_desk.json"
     survey = RESULTS / "map_survey_fr1_desk.json"
     if path.is_file() and survey.is_file():
