@@ -34,6 +34,8 @@ import time
 import traceback
 from pathlib import Path
 
+from nap3d_graph.textfiles import write_json_atomic
+
 __all__ = ["run_sweep", "SweepLocked", "cell_status", "LocalPool", "RayPool"]
 
 log = logging.getLogger(__name__)
@@ -82,13 +84,6 @@ def _cli(argv: list[str], log_path: Path) -> int:
             logging.root.handlers.clear()
 
 
-def _write_json(path: Path, data: dict) -> None:
-    """Atomically: a reader never sees half a file, a killed writer leaves none."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=str))
-    os.replace(tmp, path)
-
-
 def _tail(path: Path, lines: int = 5) -> str:
     try:
         text = path.read_text(errors="replace").strip().splitlines()
@@ -106,10 +101,10 @@ def build_field(argv: list[str], pt: str) -> dict:
         code = _cli(argv + ["--force"], log_path)
         if code == 0 and pt.is_file():
             result = {"status": "ok", "seconds": time.perf_counter() - t0, "attempts": attempt}
-            _write_json(done, result)
+            write_json_atomic(done, result)
             return result
     result = {"status": "failed", "error": _tail(log_path) or f"exit {code}", "attempts": 2}
-    _write_json(done, result)
+    write_json_atomic(done, result)
     return result
 
 
@@ -126,11 +121,11 @@ def run_cell(argv: list[str], cell_dir: str) -> dict:
         if code == 0 and metrics_path.is_file():
             result = {"status": "ok", "seconds": time.perf_counter() - t0, "attempts": attempt,
                       **_cell_metrics(json.loads(metrics_path.read_text()))}
-            _write_json(cell_dir / "result.json", result)
+            write_json_atomic(cell_dir / "result.json", result)
             return result
     result = {"status": "failed", "error": _tail(log_path) or f"exit {code}", "attempts": 2,
               "seconds": time.perf_counter() - t0}
-    _write_json(cell_dir / "error.json", result)
+    write_json_atomic(cell_dir / "error.json", result)
     return result
 
 
@@ -318,7 +313,7 @@ def run_sweep(spec, folder, pool, progress: bool = True, retry_failed: bool = Fa
                 built = {} if field_path is None else (_field_done(folder, task) or {})
                 if field_path is not None and built.get("status") != "ok":
                     error = built.get("error", "not built")
-                    _write_json(cell_dir / "error.json", {"status": "failed", "error": f"field {task.id} failed: {error}",
+                    write_json_atomic(cell_dir / "error.json", {"status": "failed", "error": f"field {task.id} failed: {error}",
                                                           "attempts": 0})
                     counts["failed"] += 1
                     bar.update(1)

@@ -1,15 +1,17 @@
 """Reading the datasets' text files: data lines and numbers, each error one line with its
-file and line number."""
+file and line number; and writing a JSON file atomically."""
 
 from __future__ import annotations
 
+import json
 import math
+import os
 from pathlib import Path
 from typing import Iterator
 
 from nap3d_graph.errors import DatasetError
 
-__all__ = ["data_lines", "parse_float"]
+__all__ = ["data_lines", "parse_float", "write_json_atomic"]
 
 
 def data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
@@ -35,3 +37,12 @@ def parse_float(path: Path, number: int, token: str) -> float:
     if not math.isfinite(value):
         raise DatasetError(f"{path}:{number}: non-finite value {token!r}")
     return value
+
+
+def write_json_atomic(path: Path, data: dict, default=str) -> None:
+    """``data`` as JSON in ``path``, atomically: a reader never sees half a file, a killed
+    writer leaves none. ``default``: how values JSON does not know are written."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1, default=default))
+    os.replace(tmp, path)

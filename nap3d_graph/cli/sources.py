@@ -476,6 +476,8 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
     alignment (survey_ate.json; none where the survey had no ground truth) and the start is
     found in the map (``--initial-pose auto``, the default there). With ``--field none`` and
     nothing to start from, the odometry starts at the identity."""
+    import sys
+
     import numpy as np
 
     from nap3d_graph.conventions import inv_T
@@ -494,7 +496,7 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
         if sequence.T_world_cam_gt is not None:
             if T_gt_map is None:
                 print("ground truth: the map's survey had none, so this run's ground truth is not in the map's frame; "
-                      "metrics.json scores the run SE(3)-aligned only", file=__import__("sys").stderr)
+                      "metrics.json scores the run SE(3)-aligned only", file=sys.stderr)
                 record["ground_truth_frame"] = "unknown (per-run alignment only)"
             else:
                 sequence = reframed(sequence, inv_T(np.asarray(T_gt_map)), "ground truth in the map's frame")

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
+from nap3d_graph.textfiles import write_json_atomic
 
 from .bundle import BundleSettings, PairMatches, bundle_adjust
 from .loops import Keyframe, Loop, LoopSettings, candidates, verify, verify_pair
@@ -101,9 +102,7 @@ def load_map_info(folder) -> dict:
 
 
 def _write_json(path: Path, data: dict) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=float))
-    tmp.replace(path)
+    write_json_atomic(path, data, default=float)
 
 
 def _say(say, text: str) -> None:

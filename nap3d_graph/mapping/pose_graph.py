@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from nap3d_graph.conventions import T_to_pose3, log_se3, pose3_to_T
+from nap3d_graph.conventions import T_to_pose3, inv_T, log_se3, pose3_to_T
 
 __all__ = ["Edge", "GraphResult", "solve", "floor_covariance", "mahalanobis_sq"]
 
@@ -58,7 +58,7 @@ def floor_covariance(covariance: np.ndarray, rot_sigma_rad: float, trans_sigma_m
 def mahalanobis_sq(T_a: np.ndarray, T_b: np.ndarray, edge: Edge) -> float:
     """Squared Mahalanobis distance of ``edge`` at poses ``T_a``, ``T_b`` (unwhitened error
     ``Log(T_a_b^-1 T_a^-1 T_b)`` under the edge's covariance)."""
-    error = log_se3(np.linalg.inv(edge.T_a_b) @ np.linalg.inv(T_a) @ T_b)
+    error = log_se3(inv_T(edge.T_a_b) @ inv_T(T_a) @ T_b)
     return float(error @ np.linalg.solve(edge.covariance, error))
 
 

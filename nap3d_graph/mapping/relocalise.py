@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RGBDFrame
+from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.nap3d.config import AlignConfig
 
 from .retrieval import Vocabulary, similarities, vlad
@@ -116,12 +117,10 @@ class Relocaliser:
     def _agreeing(self, found: list) -> list:
         """The largest group of verified candidates that agree with one of them (that one
         first), or all of them when none agree (each its own group)."""
-        from nap3d_graph.conventions import inv_T, log_se3
-
         s = self.settings
         best: list = found[:1]
         for f in found:
-            group = [f] + [g for g in found if g is not f and _close(f[2], g[2], s.agree_m, s.agree_deg, inv_T, log_se3)]
+            group = [f] + [g for g in found if g is not f and _close(f[2], g[2], s.agree_m, s.agree_deg)]
             if len(group) > len(best):
                 best = group
         return best
@@ -179,6 +178,7 @@ class Relocaliser:
         return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, agreeing, tried, seconds)
 
 
-def _close(T_a: np.ndarray, T_b: np.ndarray, metres: float, degrees: float, inv_T, log_se3) -> bool:
+def _close(T_a: np.ndarray, T_b: np.ndarray, metres: float, degrees: float) -> bool:
+    """Whether two poses are within ``metres`` and ``degrees`` of each other."""
     d = log_se3(inv_T(T_a) @ T_b)
     return bool(np.linalg.norm(d[3:]) <= metres and np.degrees(np.linalg.norm(d[:3])) <= degrees)
