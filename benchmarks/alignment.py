@@ -11,12 +11,12 @@ exactly 500 hypotheses (target <= 5 ms on the 2-core reference CPU).
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def stage_timings(width: int, height: int, repeats: int) -> dict:
@@ -101,7 +101,7 @@ def main() -> None:
         st = result[key]
         print(f"{key}: " + ", ".join(f"{k} {v:.1f}" for k, v in st.items()))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -10,11 +10,11 @@ TUM's greedy one. The aim is well under 0.5 s each, so opening a long sequence i
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def main() -> None:
@@ -39,7 +39,7 @@ def main() -> None:
         print(f"{method:8s} association of {args.frames} frames: {np.median(times) * 1000:.1f} ms median "
               f"(max {np.max(times) * 1000:.1f} ms, {len(pairs)} pairs)")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -18,10 +18,10 @@ trajectories, figures) is written to ``benchmarks/results/compare_default_<path>
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def sequences(cache: Path, workdir: Path, rooms) -> list[tuple[str, Path, object, dict | None]]:
@@ -121,7 +121,7 @@ def main(argv=None) -> None:
                      if "bias_z_final" in per_sequence[name] else ""), flush=True)
         result["paths"][path] = {"per_sequence": per_sequence, "pooled": pooled(per_sequence)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1, default=float))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

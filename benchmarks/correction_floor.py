@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 from nap3d_graph.camera import warp_depth
 from nap3d_graph.conventions import inv_T, log_se3, pose_error
@@ -230,7 +231,7 @@ def main(argv=None) -> None:
     s = result["at_true_pose"]
     print(json.dumps(s, indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

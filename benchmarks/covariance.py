@@ -21,10 +21,10 @@ mean over the trials is printed beside it. Writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 CONFIGS = {
     "pipeline": dict(size=(320, 240), rounds=1, max_trans_m=0.03, max_rot_deg=1.5, methods=("refined", "plain")),
@@ -104,7 +104,7 @@ def main(argv=None) -> None:
             print(f"{key:18s} pooled: " + ", ".join(f"{b} {pooled[b]:.2f} [{bands[b][0]:.2f}, {bands[b][1]:.2f}]"
                                                       for b in pooled), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

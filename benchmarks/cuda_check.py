@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def main() -> None:
@@ -90,7 +91,7 @@ def main() -> None:
                           "vs_gpu_depth_mm_p99": float(np.nanmax(p99) * 1000),
                           "vs_gpu_opacity_flips": float(np.mean(flips)), "vs_gpu_colour_levels": float(np.mean(colour))})
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1))
+    write_result(args.out, out, args)
     print(json.dumps(out, indent=1))
 
 

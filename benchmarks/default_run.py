@@ -19,6 +19,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from provenance import write_result
+
 
 def run_once(cache: Path, results: Path) -> tuple[float, dict]:
     env = dict(os.environ, NAP3D_GRAPH_CACHE=str(cache), MPLBACKEND="Agg")
@@ -57,7 +59,7 @@ def main(argv=None) -> None:
     }
     print(json.dumps(result, indent=1))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

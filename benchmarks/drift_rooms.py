@@ -22,6 +22,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def run_room(room: int, workdir: Path, steps: int, model: str = "grid") -> dict:
@@ -112,7 +113,7 @@ def main(argv=None) -> None:
               f"({s['ate_estimate_m']['min'] * 100:.2f}-{s['ate_estimate_m']['max'] * 100:.2f}), odometry "
               f"{s['ate_odometry_m']['mean'] * 100:.2f} cm, {s['accepted_fraction'] * 100:.0f}% accepted")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -23,6 +23,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def _room(room: int, workdir: Path, steps: int):
@@ -107,7 +108,7 @@ def main(argv=None) -> None:
                       f" cm (causal {r['ate_causal_m'] * 100:.2f}, odometry {r['ate_odometry_m'] * 100:.2f}); "
                       f"{r['accepted']}/{r['keyframes']} accepted", flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(out, indent=1))
+        write_result(args.out, out, args)
     print(f"wrote {args.out}")
 
 

@@ -13,12 +13,12 @@ that the fast ones are not fast by doing nothing, the ATE and the NEES at keyfra
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def bench(frames: int, imu: bool, seed: int) -> dict:
@@ -60,7 +60,7 @@ def main(argv=None) -> None:
         for imu in (False, True):
             result["runs"][f"{frames}_{'imu' if imu else 'odometry'}"] = bench(frames, imu, args.seed)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -19,6 +19,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence
@@ -122,7 +123,7 @@ def main() -> None:
     summary["scale_error_rel_max_abs"] = max(abs(r["every_frame_scaled_1.035"]["scale_error_rel"])
                                              for r in rooms.values())
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"benchmark": "faults", "rooms": rooms, "summary": summary}, indent=1))
+    write_result(args.out, {"benchmark": "faults", "rooms": rooms, "summary": summary}, args)
     print(json.dumps(summary, indent=1))
 
 

@@ -19,7 +19,6 @@ Prints a table and writes JSON (``--out``). Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
@@ -30,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from provenance import write_result
 
 TARGETS = {
     "psnr_db": (">=", 28.0),
@@ -209,7 +209,7 @@ def main(argv=None) -> int:
     }
     print_table(results)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(results, indent=1))
+    write_result(args.out, results, args)
     print(f"\nwrote {args.out}")
     if tmp is not None:
         tmp.cleanup()

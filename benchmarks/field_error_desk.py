@@ -18,11 +18,11 @@ used at every distance, what it was before. Writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def run_one(data: Path, field, matcher: str, field_sigma, field_sigma_rad=None) -> dict:
@@ -122,7 +122,7 @@ def main(argv=None) -> None:
               f"median {r['nees_median']:.1f}; ATE {r['ate_estimate_m'] * 100:.2f} cm (odometry "
               f"{r['ate_odometry_m'] * 100:.2f}); accepted {r['accepted']}/{r['keyframes']}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def measure(data: Path, field_path: Path, matcher: str, step: int, seed: int) -> dict:
@@ -106,7 +107,7 @@ def main(argv=None) -> None:
               f"{r['inliers_median']:.0f} inliers, render {r['render_ms_median']:.0f} ms, held-out "
               f"{psnr} dB, lag-1 correlation {r['lag1_correlation']:.2f} ({time.perf_counter() - started:.0f} s)", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -23,6 +23,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def _psnr(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
@@ -101,7 +102,7 @@ def main() -> None:
               f"({s['flow_px_median']['min']:.2f}-{s['flow_px_median']['max']:.2f}), p90 "
               f"{s['flow_px_p90']['median']:.1f} px (per frame medians over {len(rows)} frames)", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1))
+    write_result(args.out, out, args)
     print(f"wrote {args.out}")
 
 

@@ -18,7 +18,6 @@ seconds and the ATE. Writes ``benchmarks/results/graph_window.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import os
 import platform
@@ -27,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.odometry import make_odometry
@@ -149,7 +149,7 @@ def main() -> None:
               f"{out['rss_mb_at']} MB; final solve {out['final_solve_s']:.1f} s; ATE {out['ate_m'] * 100:.2f} cm; "
               f"{out['graph_variables_at_end']} variables at the end", flush=True)
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=1))
+        write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

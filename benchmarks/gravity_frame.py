@@ -14,11 +14,11 @@ gravity's angle to the truth, ATE and accepted corrections.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def turned(axis, angle_deg: float) -> np.ndarray:
@@ -99,7 +99,7 @@ def main() -> None:
                   f"{w['ate_max_m'] * 1000:8.1f}; gravity off {w['gravity_off_median_deg']:.2f} deg (max "
                   f"{w['gravity_off_max_deg']:.2f}); lost {w['runs_with_under_80pct_accepted']}/{w['runs']}")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1))
+    write_result(args.out, out, args)
 
 
 if __name__ == "__main__":

@@ -39,6 +39,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def nearest_real_frame(field, j: int):
@@ -210,7 +211,7 @@ def main() -> None:
     if args.by_baseline:
         result["by_baseline"] = measure_by_baseline(args.data, args.field, args.matcher, args.step, args.by_baseline)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     t = result["translation_mm"]
     print(f"{args.data.name}: {result['measured']} frames, each against its {args.nearest} nearest first-half frames (gap "
           f"{result['gap_m_median']:.2f} m median), {result['failed']} failed; error against the ground truth "

@@ -18,10 +18,10 @@ the predicted RMS at 1, 2, 5, 10, 20, 30, 60 s, and a figure.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 DURATION_S = 60.0
 EVAL_HZ = 10.0
@@ -110,7 +110,7 @@ def main(argv=None) -> None:
     result = {"seeds": args.seeds, "duration_s": DURATION_S, "table": table,
               "note": "RMS over seeds; with N seeds a ratio within about 1 +- 2/sqrt(2N) agrees (chi distribution)"}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     _plot(args.out.with_suffix(".png"), t, errors, mc_rms, predictions)
     print(f"wrote {args.out} and {args.out.with_suffix('.png')}")
 

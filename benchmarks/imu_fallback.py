@@ -14,11 +14,11 @@ the field was left, corrections accepted, and where the fallback started.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 ROOMS = (31, 32, 33)
 MAPPED_FRAMES = 30
@@ -68,8 +68,8 @@ def main() -> None:
               f"{pooled[name]['end_m']['max'] * 100:7.1f}); causal end {pooled[name]['end_causal_m']['median'] * 100:7.1f}"
               f" cm; worst after the field {pooled[name]['max_after_field_m']['max'] * 100:7.1f} cm")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"command": "python benchmarks/imu_fallback.py", "rooms": list(ROOMS),
-                                    "mapped_frames": MAPPED_FRAMES, "rows": rows, "pooled": pooled}, indent=1))
+    write_result(args.out, {"command": "python benchmarks/imu_fallback.py", "rooms": list(ROOMS),
+                            "mapped_frames": MAPPED_FRAMES, "rows": rows, "pooled": pooled}, args)
 
 
 if __name__ == "__main__":

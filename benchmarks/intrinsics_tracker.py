@@ -21,6 +21,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 from nap3d_graph.datasets import source_of
 
@@ -86,7 +87,7 @@ def main(argv=None) -> None:
               f"{b['measure_ms_median']:.0f} ms, {b['calibrated']} calibrated | "
               f"{'same trajectory' if same else 'trajectories differ'}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps({"settings": results}, indent=1))
+    write_result(args.out, {"settings": results}, args)
     print(f"wrote {args.out}")
 
 

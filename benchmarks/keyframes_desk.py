@@ -18,6 +18,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 SETTINGS = {
     "every 5 (as they come)": [],
@@ -72,7 +73,7 @@ def main(argv=None) -> None:
               f"{r['accepted']}/{r['keyframes']}, inliers {r['median_inliers']}, postponed {r['postponed']}, "
               f"doubt {r['doubt_keyframes']}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from map_survey import read_sfm_pseudo_gt, second_gt_for  # noqa: E402  (beside this file)
+from provenance import write_result
 
 
 def main() -> None:
@@ -76,7 +77,7 @@ def main() -> None:
                "residual_disparity_px": report["noise_rounds"][-1]["residual_disparity_px"], **score(T_key)}
         result["bundle"].append(row)
         print(ratio, {k: round(v["rmse_m"] * 100, 2) for k, v in row.items() if isinstance(v, dict)})
-    args.out.write_text(json.dumps(result, indent=1, default=float))
+    write_result(args.out, result, args)
 
 
 if __name__ == "__main__":

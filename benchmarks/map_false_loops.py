@@ -17,13 +17,13 @@ as loops beside the map's own.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def false_loops(map_dir: Path, sequence) -> dict:
@@ -173,7 +173,7 @@ def main() -> None:
         print(key, {k: v for k, v in result[key].items() if k != "pairs"})
     result["ate_ratio_identical_to_different"] = (result["identical"]["ate_map_m"]
                                                   / result["different"]["ate_map_m"])
-    args.out.write_text(json.dumps(result, indent=1, default=float))
+    write_result(args.out, result, args)
 
 
 if __name__ == "__main__":

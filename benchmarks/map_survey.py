@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 from nap3d_graph.conventions import inv_T, log_se3, quat_xyzw_to_R
 
@@ -200,7 +201,7 @@ def main() -> None:
         result["relocalisation"] = relocalisation(work / "map", info, query, args,
                                                   second_reference(args, survey, query, T_map_full))
         result["relocalisation"]["command"] = " ".join(sys.argv)
-        args.out.write_text(json.dumps(result, indent=1, default=float))
+        write_result(args.out, result, args)
         print({k: v for k, v in result["relocalisation"].items() if k != "per_attempt"})
         return
     result: dict = {"command": " ".join(sys.argv), "data": str(args.data), "survey_frames": survey_frames,
@@ -289,7 +290,7 @@ def main() -> None:
     result["relocalisation"] = relocalisation(map_dir, info, query, args, second_reference(args, survey, query,
                                                                                             T_map_full))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1, default=float))
+    write_result(args.out, result, args)
     print(json.dumps({k: v for k, v in result.items() if k != "relocalisation"}, indent=1, default=float)[:4000])
     print({k: v for k, v in result["relocalisation"].items() if k != "per_attempt"})
 

@@ -20,6 +20,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def run_one(data: Path, field: Path, matcher: str, out: Path) -> dict:
@@ -70,7 +71,7 @@ def main(argv=None) -> None:
               f"{r.get('ate_odometry_m', float('nan')) * 100:.2f} cm), accepted {r.get('accepted')}/{r.get('keyframes')}, "
               f"median inliers {r.get('median_inliers')}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -19,6 +19,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def walk_corrections(sequence, timing) -> dict:
@@ -69,7 +70,7 @@ def main(argv=None) -> None:
               f"{c['whitened_std_per_axis']}; estimators " + ", ".join(
                   f"{k} {v['nees_mean']:.1f}" for k, v in entry["estimators"].items() if v["nees_mean"] is not None))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1, default=float))
+    write_result(args.out, out, args)
     print(f"wrote {args.out}")
 
 

@@ -15,11 +15,11 @@ alone allows. One thread for torch and OpenCV, as the run's odometry has on a lo
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def profile(sequence, odometry) -> dict:
@@ -91,7 +91,7 @@ def main() -> None:
         print(f"{name:9s} step {result['step']['p50_ms']:.1f} ms p50 / {result['step']['p90_ms']:.1f} p90, read "
               f"{result['read']['p50_ms']:.1f}; {stages} (ms p50/p90); {result['frames_per_s_at_p50']} frame/s")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1))
+    write_result(args.out, out, args)
 
 
 if __name__ == "__main__":

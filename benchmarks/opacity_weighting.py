@@ -25,11 +25,11 @@ and prints median / p90 / max per variant.
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 class PartialOpacityField:
@@ -146,7 +146,7 @@ def main(argv=None) -> None:
                       f"{s['rot_deg']['median']:.3f} p90 {s['rot_deg']['p90']:.3f} deg | success {s['success_rate']:.2f}")
     result["pooled"] = {f: {name: stats(r) for name, r in d.items()} for f, d in pooled.items()}
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

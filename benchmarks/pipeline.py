@@ -12,13 +12,13 @@ keyframe (between factor + prior) is measured around 1,000 and 5,000 poses; aim 
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def keyframe_latency(field_arg: str, frames: int, iterations: int) -> dict:
@@ -107,7 +107,7 @@ def main() -> None:
     print(f"  total {per.get('total_per_keyframe', float('nan')):.3f} s (aim <= 0.5 s at 320x240)")
     print("iSAM2 update: " + ", ".join(f"{k} {v:.2f}" for k, v in result["isam2"].items()))
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

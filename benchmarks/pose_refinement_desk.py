@@ -19,6 +19,8 @@ import json
 import tempfile
 from pathlib import Path
 
+from provenance import write_result
+
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -63,7 +65,7 @@ def main(argv=None) -> None:
         print(f"{name:20s} agreement {refinement.get('agreement_before_mm', entry['timing_agreement_mm'])} -> "
               f"{refinement.get('agreement_after_mm', '-')} mm, PSNR {held['psnr_db']:.2f} dB; {runs}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

@@ -13,13 +13,13 @@ colour camera (what a run does per frame). Writes ``benchmarks/results/realsense
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def _timed(fn, repeats: int) -> tuple[list[float], object]:
@@ -75,7 +75,7 @@ def main() -> None:
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"{n} frames {args.width}x{args.height} + {imu} IMU samples ({size_mb:.0f} MB): "
           f"read {result['frames_per_s_read_raw']['median']:.0f} frame/s, opened as a sequence "
           f"{result['frames_per_s_open']['median']:.0f} frame/s, registered depth "

@@ -32,11 +32,11 @@ causal ATE kept. Writes ``benchmarks/results/realtime_fr1_desk.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 from nap3d_graph.cli.sources import LAND_WITHIN_FRAME_SHARE
 from nap3d_graph.conventions import pose_error
@@ -209,7 +209,7 @@ def main() -> None:
             out["runs"].append(r)
             report(name, r)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1))
+    write_result(args.out, out, args)
 
 
 def report(name: str, r: dict) -> None:

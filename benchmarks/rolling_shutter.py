@@ -20,10 +20,10 @@ Writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def run_one(data: Path, field, odom: str, readout_s: float | None, frames: str) -> dict:
@@ -112,7 +112,7 @@ def main() -> None:
                       f"{e.get('fast_half_median') or float('nan'):.1f}), NEES {row['nees_mean'] or float('nan'):.2f}",
                       flush=True)
                 args.out.parent.mkdir(parents=True, exist_ok=True)
-                args.out.write_text(json.dumps(out, indent=1))
+                write_result(args.out, out, args)
 
 
 if __name__ == "__main__":

@@ -27,6 +27,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum" / "rgbd_dataset_freiburg1_desk"
 
@@ -135,7 +136,7 @@ def main() -> None:
             run.pop("estimate")
         result["runs"] = runs
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     for name, source in result["sources"].items():
         print(f"{name}: {source['read_frames_per_s']:.0f} frame/s" + (
             f" ({source['bag_mb']} MB, opened in {source['open_s']:.1f} s, colour exact {source['colour_bit_exact']}, "

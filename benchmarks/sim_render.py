@@ -6,11 +6,11 @@
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 
 def main() -> None:
@@ -36,7 +36,7 @@ def main() -> None:
         result[f"{w}x{h}"] = {"median_s": float(np.median(times)), "min_s": float(np.min(times))}
         print(f"render {w}x{h}: {np.median(times):.3f} s per frame (median of {args.repeats})")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"wrote {args.out}")
 
 

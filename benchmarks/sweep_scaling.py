@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import argparse
 import csv
-import json
 import os
 import platform
 import tempfile
 import time
 from pathlib import Path
+
+from provenance import write_result
 
 SPEC = """
 recordings:
@@ -70,7 +71,7 @@ def main() -> None:
     result.update({"cells": cells, "fields": 2, "ratio_2_to_1_workers": ratio, "same_table_up_to_timings": same,
                    "target_ratio": 0.6})
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
     print(f"{cells} cells on {args.pool}: 1 worker {result['runs']['workers_1']['seconds']:.1f} s, 2 workers "
           f"{result['runs']['workers_2']['seconds']:.1f} s: ratio {ratio:.2f} (target <= 0.6); same table: {same}")
     print(f"wrote {args.out}")

@@ -12,11 +12,11 @@ error). Writes ``benchmarks/results/vo_fr1_desk.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import open_sequence
@@ -66,7 +66,7 @@ def main() -> None:
               f"{r['frames_per_s']:.1f} frame/s; drift ATE {r['ate_m'] * 100:.1f} cm, final {r['final_error_m'] * 100:.1f} cm, "
               f"{r['failed_steps']} failed steps")
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1))
+    write_result(args.out, result, args)
 
 
 if __name__ == "__main__":

@@ -19,11 +19,11 @@ shared), absolute figures beside. Writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
+from provenance import write_result
 
 from nap3d_graph.conventions import pose_error
 
@@ -139,7 +139,7 @@ def main() -> None:
                   f"({paced['frames_over_a_period_late']} frames over a period late), ATE {100 * paced['ate_m']:.2f} cm "
                   f"(causal {100 * paced['ate_causal_m']:.2f}), {paced['accepted']}/{paced['keyframes']}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(out, indent=1))
+    write_result(args.out, out, args)
 
 
 if __name__ == "__main__":

@@ -280,7 +280,7 @@ def _field_done(folder: Path, task) -> dict | None:
 def run_sweep(spec, folder, pool, progress: bool = True, retry_failed: bool = False) -> dict:
     """Run every unfinished field and cell of ``spec`` into ``folder`` on ``pool``; returns
     ``{"ran": n, "skipped": n, "failed": n, "fields_trained": n}``."""
-    from tqdm import tqdm
+    from nap3d_graph.progress import progress_bar
 
     folder = Path(folder)
     (folder / "fields").mkdir(parents=True, exist_ok=True)
@@ -296,7 +296,7 @@ def run_sweep(spec, folder, pool, progress: bool = True, retry_failed: bool = Fa
         todo = [c for c in cells if cell_status(folder, c) is None]
         counts = {"cells": len(cells), "skipped": len(cells) - len(todo), "ran": 0, "failed": 0,
                   "fields_trained": 0, "pool": pool.name, "workers": pool.workers}
-        bar = tqdm(total=len(todo_fields) + len(todo), desc="sweep", unit="task", disable=not progress,
+        bar = progress_bar(total=len(todo_fields) + len(todo), desc="sweep", unit="task", disable=not progress,
                    postfix={"running": 0, "failed": 0})
         try:
             # Fields first: every run of a field waits for it, and a field is built once.

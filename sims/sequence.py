@@ -179,7 +179,7 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     """
     import os
 
-    from tqdm import tqdm
+    from nap3d_graph.progress import progress_bar
 
     workers = min(os.cpu_count() or 1, 4) if workers is None else int(workers)
 
@@ -225,7 +225,7 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
             for k in range(config.frames)]
     pool = _pool(workers)
     try:
-        for _ in tqdm(pool.map(_render_and_write, jobs, chunksize=4), total=len(jobs), desc="render",
+        for _ in progress_bar(pool.map(_render_and_write, jobs, chunksize=4), total=len(jobs), desc="render",
                       unit="frame", disable=not progress):
             if stop is not None and stop():
                 raise KeyboardInterrupt("stopped")

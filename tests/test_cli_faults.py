@@ -60,11 +60,15 @@ def test_bad_output_paths_are_refused_before_any_work(walk, tmp_path, capsys):
         assert time.perf_counter() - started < 20  # checked first: no run happened
     rc, err = _cli(capsys, "train-field", walk, "--out", a_file / "f.pt", "--steps", "5")
     assert rc == 2 and "is a file" in err
-    if os.geteuid() != 0:  # root writes anywhere: the read-only case needs a user
-        read_only = tmp_path / "ro"
-        read_only.mkdir(mode=0o555)
-        rc, err = _cli(capsys, *RUN, "--data", walk, "--out", read_only)
-        assert rc == 2 and "not writable" in err
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a read-only folder: this case needs a non-root user")
+def test_a_read_only_output_folder_is_refused_before_any_work(walk, tmp_path, capsys):
+    read_only = tmp_path / "ro"
+    read_only.mkdir(mode=0o555)
+    rc, err = _cli(capsys, *RUN, "--data", walk, "--out", read_only)
+    assert rc == 2 and "not writable" in err and len(err.splitlines()) == 1, err
+    assert list(read_only.iterdir()) == []
 
 
 def test_wrong_sources_say_what_to_use(walk, tum_path, tmp_path, capsys):
@@ -127,7 +131,7 @@ def test_run_folders_created_at_the_same_moment_never_collide(tmp_path):
     from nap3d_graph.run.output import new_run_dir
 
     made, errors = [], []
-    barrier = threading.Barrier(16)
+    barrier = threading.Barrier(16, timeout=30)
 
     def create():
         barrier.wait()

@@ -308,7 +308,10 @@ def _idle_worker_before_each_frame(pipeline):
     import time
 
     def hook() -> bool:
+        deadline = time.monotonic() + 120.0  # a worker that never goes idle fails the test, never hangs it
         while pipeline.worker is not None and not pipeline.worker.idle():
+            if time.monotonic() > deadline:
+                raise AssertionError("the pipeline's worker stayed busy for 120 s")
             time.sleep(0.002)
         return False
 

@@ -279,12 +279,23 @@ def test_train_field_compare_and_study_read_bags(bags, tmp_path):
     assert load_field(field).meta["train_recording"] == RosbagSequence(bags["ros2_mcap_mm"]).recording_id
     assert main(["compare", "--traj", "rosbag", "--data", bag, "--field", str(field), "--odom", "noisy",
                  "--out", str(tmp_path / "cmp")]) == 0
-    rows = json.loads((tmp_path / "cmp" / "comparison.json").read_text())
-    assert rows, "compare wrote no rows"
+    rows = {r["estimator"]: r for r in json.loads((tmp_path / "cmp" / "comparison.json").read_text())["rows"]}
+    print("compare on the bag, ATE m:", {k: round(r["ate_rmse_m"], 4) for k, r in rows.items()})
+    assert "odometry" in rows and len(rows) >= 3, sorted(rows)
+    # The field was trained on this bag: the graph's rows beat its noisy odometry (measured
+    # 1.11 against 1.18 cm), and no estimator ends worse than the odometry.
+    odometry = rows["odometry"]["ate_rmse_m"]
+    assert rows["isam2-final"]["ate_rmse_m"] < 0.97 * odometry and rows["batch-lm"]["ate_rmse_m"] < 0.97 * odometry
+    assert all(r["ate_rmse_m"] <= odometry * 1.001 for r in rows.values()), rows
     assert main(["study", bag, "--model", "splat", "--odom", "noisy", "--scenarios", "4", "--out",
                  str(tmp_path / "study")]) == 0
     summary = json.loads((tmp_path / "study" / "summary.json").read_text())
-    assert summary["runs"]["noisy"]["ate_odometry_m"] > 0
+    noisy = summary["runs"]["noisy"]
+    # The bag's ground truth (from tf) scores the run: its noisy odometry drifts by millimetres
+    # on these few frames (measured 5.3 mm). The tiny field corrects nothing here (no
+    # correction accepted), so the estimate is the odometry's: the test is that the bag opens.
+    assert 0.001 < noisy["ate_odometry_m"] < 0.05
+    assert noisy["ate_estimate_m"] == pytest.approx(noisy["ate_odometry_m"], rel=0.05)
 
 
 def test_simulate_writes_a_bag_that_runs_with_its_folder_as_field(tmp_path):

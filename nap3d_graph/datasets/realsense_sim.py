@@ -22,13 +22,12 @@ __all__ = ["write_realsense_recording"]
 def write_realsense_recording(sim_dir, out_path, baseline_m: float = 0.015, depth_units: float = 0.001,
                               depth_noise: bool = True, seed: int = 0, progress: bool = False) -> Path:
     """Write ``out_path`` (``.db3``) and its ``.yaml`` from the simulated folder ``sim_dir``."""
-    from tqdm import tqdm
-
     from nap3d_graph.camera import Intrinsics
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.datasets.realsense import RealSenseConfig
     from nap3d_graph.datasets.realsense_io import RecordingWriter, StreamIntrinsics
     from nap3d_graph.imu import ImuConfig
+    from nap3d_graph.progress import progress_bar
     from nap3d_graph.sims.sensors import DepthNoise, add_depth_noise
 
     seq = SimSequence(sim_dir)
@@ -48,7 +47,7 @@ def write_realsense_recording(sim_dir, out_path, baseline_m: float = 0.015, dept
     T_depth_colour = np.linalg.inv(T_colour_depth)
     rng = np.random.default_rng(seed)
     noise = DepthNoise(**seq.config["depth"]) if depth_noise and "depth" in seq.config else DepthNoise()
-    for i in tqdm(range(len(seq)), desc="realsense", unit="frame", disable=not progress):
+    for i in progress_bar(range(len(seq)), desc="realsense", unit="frame", disable=not progress):
         writer.add_colour(float(seq.timestamps[i]), seq[i].rgb)
         depth_m = seq.scene.render_depth(T_world_colour[i] @ T_colour_depth, K)
         if depth_noise:

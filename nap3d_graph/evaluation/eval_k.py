@@ -190,7 +190,7 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
     """Run Evaluation K on ``sequence`` (with ground truth) and ``field_obj``; write
     ``results.csv``, ``summary.json``, ``table.md`` and heatmaps into ``out_dir``; return
     the summary."""
-    from tqdm import tqdm
+    from nap3d_graph.progress import progress_bar
 
     config = config or EvalKConfig()
     if sequence.T_world_cam_gt is None:
@@ -200,7 +200,7 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
     rng = np.random.default_rng(config.seed)
     rows: list[dict] = []
     cells = len(config.blur_sigmas) * len(config.intrinsics_noise)
-    bar = tqdm(total=config.scenarios * cells, desc="eval-k", unit="cell", disable=not progress)
+    bar = progress_bar(total=config.scenarios * cells, desc="eval-k", unit="cell", disable=not progress)
     posed = np.flatnonzero(np.all(np.isfinite(np.asarray(sequence.T_world_cam_gt)), axis=(1, 2)))
     if posed.size == 0:
         raise ValueError(f"{sequence.path}: no frame has a ground-truth pose")

@@ -45,13 +45,12 @@ class PeersConfig:
 
 def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None, progress: bool = False) -> dict:
     """Run the comparison; write the files into ``out_dir``; return the summary."""
-    from tqdm import tqdm
-
     from nap3d_graph.baselines import run_peers
     from nap3d_graph.conventions import inv_T, pose_error
     from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.nap3d.correct import render_safely, resize_frame
+    from nap3d_graph.progress import progress_bar
 
     from .eval_k import at_colour_instant
     from .perturb import random_perturbation
@@ -66,7 +65,7 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
     out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(config.seed)
     rows: list[dict] = []
-    for trial in tqdm(range(config.trials), desc="bench-peers", unit="trial", disable=not progress):
+    for trial in progress_bar(range(config.trials), desc="bench-peers", unit="trial", disable=not progress):
         index = int(posed[rng.integers(len(posed))])
         T_world_cam_gt = sequence.T_world_cam_gt[index]
         T_world_cam_est = T_world_cam_gt @ random_perturbation(rng, config.max_trans_m, config.max_rot_deg)

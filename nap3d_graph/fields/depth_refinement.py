@@ -162,10 +162,10 @@ def _pair_covariance(depth_dst: np.ndarray, intrinsics: Intrinsics, config: Dept
 def _measure_pairs(frames, T_world, depths, covariances, aligner, config, progress) -> tuple[list, int]:
     """``[(a, b, T_a_b measured, covariance)]`` for each neighbour pair whose alignment held
     (``covariances``: each frame's as a pair's destination), and how many pairs were tried."""
-    from tqdm import tqdm
+    from nap3d_graph.progress import progress_bar
 
     pairs, tried = [], 0
-    for a in tqdm(range(len(frames)), desc="align depth pairs", unit="frame", disable=not progress):
+    for a in progress_bar(range(len(frames)), desc="align depth pairs", unit="frame", disable=not progress):
         for k in config.neighbours:
             b = a + k
             if b >= len(frames):

@@ -41,7 +41,8 @@ def export_nerfstudio(sequence, out_dir, every: int = 1, progress: bool = False)
     ``ns-train depth-nerfacto --data OUT``.
     """
     import cv2
-    from tqdm import tqdm
+
+    from nap3d_graph.progress import progress_bar
 
     every = int(every)
     if every < 1:
@@ -62,7 +63,7 @@ def export_nerfstudio(sequence, out_dir, every: int = 1, progress: bool = False)
             raise FieldError(f"{out / 'masks' / 'coverage.png'}: cannot write the mask")
     frames = []
     indices = range(0, len(sequence), every)
-    for i in tqdm(indices, desc="export", unit="frame", disable=not progress):
+    for i in progress_bar(indices, desc="export", unit="frame", disable=not progress):
         frame = sequence[i]
         if not np.all(np.isfinite(poses[i])):
             continue

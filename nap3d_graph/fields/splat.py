@@ -348,7 +348,7 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
     ``ground_truth_at`` (poses at the frame stamps only) uses its poses for both. Returns
     ``(field, report)``.
     """
-    from tqdm import tqdm
+    from nap3d_graph.progress import progress_bar
 
     config = config or SplatConfig()
     indices = np.asarray(indices, dtype=int)
@@ -361,7 +361,7 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
     T_depth, T_colour = capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
     chunks, sharpness = [], np.ones(len(indices))
     coverage = colour_coverage(sequence)
-    for k, i in enumerate(tqdm(indices, desc="fuse frames", unit="frame", disable=not progress, leave=False)):
+    for k, i in enumerate(progress_bar(indices, desc="fuse frames", unit="frame", disable=not progress, leave=False)):
         if not (np.all(np.isfinite(T_depth[k])) and np.all(np.isfinite(T_colour[k]))):
             continue
         frame = sequence[int(i)]

@@ -271,9 +271,9 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
     steps = 0
     last_psnr, last_depth = float("nan"), float("nan")
 
-    from tqdm import tqdm
+    from nap3d_graph.progress import progress_bar
 
-    bar = tqdm(total=round(budget_s) if not config.max_steps else config.max_steps,
+    bar = progress_bar(total=round(budget_s) if not config.max_steps else config.max_steps,
                desc="train field", unit="s" if not config.max_steps else "step", disable=not progress,
                bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} {unit} [{elapsed}<{remaining}{postfix}]")
     trainer = None

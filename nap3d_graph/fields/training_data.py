@@ -80,10 +80,9 @@ class TrainingRays:
         each frame's depth is scaled and moved from the pose at its capture time to the pose
         at the colour's, so both images of a ray see the same instant."""
         timing = CaptureTiming.of(timing)
-        from tqdm import tqdm
-
         from nap3d_graph.camera import warp_depth
         from nap3d_graph.conventions import inv_T
+        from nap3d_graph.progress import progress_bar
 
         poses = _poses_of(sequence)
         T_colour = T_depth = poses[np.asarray(indices, dtype=int)]
@@ -99,7 +98,7 @@ class TrainingRays:
         coverage = colour_coverage(sequence)
         rgb = np.empty((len(indices), h, w, 3), dtype=np.uint8)
         depth = np.empty((len(indices), h, w), dtype=np.float32)
-        for k, i in enumerate(tqdm(indices, desc="load frames", unit="frame", disable=not progress, leave=False)):
+        for k, i in enumerate(progress_bar(indices, desc="load frames", unit="frame", disable=not progress, leave=False)):
             frame = sequence[int(i)]
             if frame.rgb.shape[:2] != (h, w):
                 raise FieldError(f"frame {i} is {frame.rgb.shape[1]}x{frame.rgb.shape[0]}, "

@@ -400,7 +400,7 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
     :mod:`nap3d_graph.datasets.depth_timing`); a sequence with poses at its frame stamps only
     uses them for both.
     """
-    from tqdm import tqdm
+    from nap3d_graph.progress import progress_bar
 
     from .splat import capture_poses
 
@@ -416,7 +416,7 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
     K_full = sequence.intrinsics.without_distortion()
     K = K_full.scaled(min(config.width, K_full.width), min(config.height, K_full.height))
     sharp = np.full(len(indices), -1.0)
-    for k in tqdm(np.flatnonzero(posed), desc="rate frames", unit="frame", disable=not progress, leave=False):
+    for k in progress_bar(np.flatnonzero(posed), desc="rate frames", unit="frame", disable=not progress, leave=False):
         sharp[k] = image_sharpness(sequence[int(indices[k])].rgb)
     if not posed.any():
         raise FieldError("no training frame has a finite pose")
@@ -425,7 +425,7 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
     coverage = colour_coverage(sequence, (K.width, K.height))
     rgb = np.empty((len(chosen), K.height, K.width, 3), np.uint8)
     depth = np.empty((len(chosen), K.height, K.width), np.float32)
-    for n, k in enumerate(tqdm(chosen, desc="store views", unit="view", disable=not progress, leave=False)):
+    for n, k in enumerate(progress_bar(chosen, desc="store views", unit="view", disable=not progress, leave=False)):
         frame = sequence[int(indices[k])]
         rgb[n] = cv2.resize(frame.rgb, (K.width, K.height), interpolation=cv2.INTER_AREA)
         d = warp_depth(np.nan_to_num(frame.depth_m, nan=0.0), K_full, inv_T(T_colour[k]) @ T_depth[k],

@@ -285,14 +285,13 @@ def _working_intrinsics(sequence, settings: MapSettings):
 
 def _keyframes(sequence, keys: np.ndarray, settings: MapSettings, progress: bool) -> list[Keyframe]:
     """The keyframes read, at the working width, with their local features."""
-    from tqdm import tqdm
-
     from nap3d_graph.nap3d.correct import resize_frame
     from nap3d_graph.nap3d.matching import detect_features
+    from nap3d_graph.progress import progress_bar
 
     config = _align_config(settings)
     out = []
-    for i in tqdm(keys, desc="keyframes", unit="frame", disable=not progress, mininterval=2.0):
+    for i in progress_bar(keys, desc="keyframes", unit="frame", disable=not progress, mininterval=2.0):
         frame = sequence[int(i)]
         K = frame.intrinsics
         if settings.width is not None and K.width > settings.width:

@@ -164,10 +164,10 @@ def verify_pair(key_a: Keyframe, key_b: Keyframe, config: AlignConfig, a: int = 
 def verify(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config: AlignConfig,
            settings: LoopSettings, progress: bool = True) -> list[Loop]:
     """Every candidate pair aligned and checked; returns each with its status and reason."""
-    from tqdm import tqdm
+    from nap3d_graph.progress import progress_bar
 
     loops = []
-    for a, b, source in tqdm(pairs, desc="loop verification", unit="pair", disable=not progress, mininterval=2.0):
+    for a, b, source in progress_bar(pairs, desc="loop verification", unit="pair", disable=not progress, mininterval=2.0):
         loop = Loop(a, b, keyframes[a].index, keyframes[b].index, source)
         T_a_b, cov, alignment = verify_pair(keyframes[a], keyframes[b], config, a, b)
         loop.matches_kept = alignment.diagnostics.get("matches")

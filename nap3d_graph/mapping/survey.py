@@ -57,9 +57,8 @@ def track(sequence, kind: str = "vo", matcher: str | None = None, width: int | N
           progress: bool = True) -> SurveyOdometry:
     """Run the odometry over every frame of ``sequence`` from the identity. An unreadable
     frame is a guessed step (the odometry restarts after it)."""
-    from tqdm import tqdm
-
     from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.progress import progress_bar
 
     odometry = make_odometry(kind, sequence, initial_pose=np.eye(4), matcher=matcher,
                              vo_width=width if kind == "vo" else None)
@@ -69,7 +68,7 @@ def track(sequence, kind: str = "vo", matcher: str | None = None, width: int | N
     ok = np.ones(n, dtype=bool)
     reasons = [""] * n
     odometry.prime(_read(sequence, 0))
-    for i in tqdm(range(1, n), desc="survey odometry", unit="frame", disable=not progress, mininterval=2.0):
+    for i in progress_bar(range(1, n), desc="survey odometry", unit="frame", disable=not progress, mininterval=2.0):
         increment = odometry.increment(i, _read(sequence, i))
         T[i] = T[i - 1] @ increment.T_prev_cur
         cov[i] = increment.covariance

@@ -128,7 +128,7 @@ class Pipeline:
         return result
 
     def _run_frames(self, on_keyframe, stop) -> RunResult:
-        from tqdm import tqdm
+        from nap3d_graph.progress import progress_bar
 
         n = len(self.sequence) if self.config.max_frames is None else min(len(self.sequence), self.config.max_frames)
         done, partial = n, False
@@ -143,7 +143,7 @@ class Pipeline:
             self._frames = FrameReadAhead(self.sequence, self.config.read_ahead, n,
                                           wanted=lambda: not self._waits_for_worker)
         try:
-            for i in tqdm(range(n), desc="run", unit="frame", disable=not self.config.progress):
+            for i in progress_bar(range(n), desc="run", unit="frame", disable=not self.config.progress):
                 if stop is not None and stop():
                     done, partial = i, True
                     break
