@@ -42,7 +42,7 @@ def room(tmp_path_factory):
     return field, report, SimSequence(walk), base
 
 
-def test_measured_field_error_makes_an_unseen_walks_corrections_honest(room):
+def test_measured_field_error_brings_an_unseen_walks_nees_to_about_twice_the_chi_square(room):
     field, report, walk, base = room
     error = report["field_error"]
     assert error == field.meta["field_error"] and error["frames"] >= 5
@@ -63,9 +63,10 @@ def test_measured_field_error_makes_an_unseen_walks_corrections_honest(room):
     np.testing.assert_allclose(np.diag(added), [sigma_rad**2] * 3 + [sigma_m**2] * 3, rtol=0.05, atol=1e-9)
     nees_measured, nees_exact = correction_nees(measured_result), correction_nees(exact_result)
     assert len(nees_measured) >= 8
-    # chi2(6) median is 5.35. The walk sees the room from viewpoints the survey did not
-    # (11.2 here): the held-out survey frames measure part of the field's error, not all.
-    assert 2.5 < np.median(nees_measured) < 14.0
+    # chi2(6) median is 5.35; measured 11.2: about twice, not honest. The walk sees the room
+    # from viewpoints the survey did not, and the held-out survey frames measure part of the
+    # field's error, not all (on a camera's recording, train-field also measures its growth).
+    assert 5.35 < np.median(nees_measured) < 2.25 * 5.35
     assert np.median(nees_exact) > 3.0 * np.median(nees_measured)
 
 

@@ -34,8 +34,9 @@ def test_study_runs_and_its_table_is_its_files(recording, tmp_path, capsys):
         assert run["ate_estimate_m"] == pytest.approx(metrics["estimate"]["ate_m"]["rmse"])
         assert run["ate_odometry_m"] == pytest.approx(metrics["odometry"]["ate_m"]["rmse"])
         assert f"| {odom} | {run['ate_odometry_m'] * 100:.2f} cm | {run['ate_estimate_m'] * 100:.2f} cm |" in table
-        # The field never saw these frames, and NAP3D still removes most of the drift.
-        assert run["ate_estimate_m"] < run["ate_odometry_m"]
+        # The field never saw these frames (300 training steps), and NAP3D still removes a
+        # third of the drift or more (measured: noisy 2.61 against 4.05 cm, 0.64x; vo below 0.5x).
+        assert run["ate_estimate_m"] < 0.7 * run["ate_odometry_m"], (odom, run["ate_estimate_m"], run["ate_odometry_m"])
     eval_k = summary["eval_k"]["nap3d-selfcal"]
     assert f"| nap3d-selfcal | {eval_k['success_rate'] * 100:.0f}% | {eval_k['trans_median_m'] * 1000:.1f} / " in table
     with open(out / "eval_k" / "results.csv") as fh:

@@ -83,6 +83,10 @@ def add_parser(sub) -> None:
                    "render at its true pose, as a run would, and what the corrections miss beyond their covariance "
                    "is recorded: runs of this field add it to every correction; --matcher picks the matcher "
                    "of those alignments, use the runs' own)")
+    p.add_argument("--depth-unit", choices=("check", "trust"), default="check",
+                   help="check (default): before any work, stop when the depth agrees across the posed frames only "
+                        "at another unit's scale (e.g. millimetre PNGs read at TUM's 5000 per metre, 5x short); "
+                        "trust: build with the depth as read")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=run)
 
@@ -91,7 +95,7 @@ def run(args) -> int:
     import torch
 
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.build import build_field
+    from nap3d_graph.fields.build import DepthUnitError, build_field
 
     if args.out.suffix != ".pt":
         raise UsageError(f"--out must name a .pt checkpoint, got {args.out}")
@@ -106,13 +110,18 @@ def run(args) -> int:
 
     warn_guessed_camera(sequence)
     args.matcher = chosen_matcher(args.matcher, sequence)
-    field, report = build_field(sequence, args.model, steps=args.steps, minutes=args.minutes, every=args.every,
-                                eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
-                                timing="auto" if args.timing == "auto" else None, device=args.device,
-                                progress=not args.quiet, measure_error=not args.no_field_error,
-                                matcher=args.matcher, refine_poses=args.refine_poses,
-                                refine_method=args.refine_method,
-                                error_growth={"on": True, "off": False}.get(args.error_growth, "auto"))
+    try:
+        field, report = build_field(sequence, args.model, steps=args.steps, minutes=args.minutes, every=args.every,
+                                    eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
+                                    timing="auto" if args.timing == "auto" else None, device=args.device,
+                                    progress=not args.quiet, measure_error=not args.no_field_error,
+                                    matcher=args.matcher, refine_poses=args.refine_poses,
+                                    refine_method=args.refine_method,
+                                    error_growth={"on": True, "off": False}.get(args.error_growth, "auto"),
+                                    depth_unit=args.depth_unit)
+    except DepthUnitError as exc:  # before any training: say it in the command's words
+        raise UsageError(f"{exc.check.message()}; fix the depth files, or add --depth-unit trust to train with the "
+                         "depth as read") from None
     report["data"] = str(args.data)
     report["frames"] = args.frames
     report["checkpoint"] = str(args.out)

@@ -106,7 +106,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                 timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
                 device: str | None = None, progress: bool = True, measure_error: bool = True,
                 matcher: str = "sift", refine_poses: int = 0, refine_method: str = "depth",
-                error_growth: bool | str = "auto"):
+                error_growth: bool | str = "auto", depth_unit: str = "check"):
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
@@ -127,7 +127,10 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     field also measures how its error grows away from its training frames, with a view field
     of them (:mod:`~nap3d_graph.fields.error_growth`; a view field always measures its own);
     ``"auto"`` (default): on for a camera's recording, off for a simulated one
-    (:func:`error_growth_for`).
+    (:func:`error_growth_for`). ``depth_unit``: ``"check"`` (default) looks, before any
+    work, whether the depth agrees across the posed frames only at another unit's scale
+    (:mod:`~nap3d_graph.datasets.depth_unit`) and raises :class:`DepthUnitError` if so;
+    ``"trust"`` builds with the depth as read.
     """
     from .training_data import split_posed_frames
 
@@ -135,6 +138,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     if model not in MODELS:
         raise FieldError(f"unknown field model {model!r}; choose from {', '.join(MODELS)}")
     started = time.perf_counter()
+    unit_check = _check_depth_unit(sequence, depth_unit)
     train_idx, held_idx = split_posed_frames(sequence, every, eval_frames)
     timing = estimate_timing(sequence) if timing == "auto" else CaptureTiming.of(timing)
     timing_seconds = time.perf_counter() - started
@@ -161,7 +165,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
         render_size = None  # never evaluate above the frames' own resolution
     held = evaluate_field(field, sequence, held_idx, oracle, size=render_size, timing=timing) if len(held_idx) else None
     report.update({"model": model, "timing": stored_timing, "timing_seconds": round(timing_seconds, 2),
-                   "train_frames": int(len(train_idx)), "held_out": held})
+                   "train_frames": int(len(train_idx)), "held_out": held, "depth_unit": unit_check})
     coverage = colour_coverage(sequence)
     if coverage is not None:  # the undistortion's black corners: no colour target, not scored
         report["colour_without_data"] = round(float(1.0 - coverage.mean()), 4)
@@ -175,6 +179,33 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                                                                          matcher, train_idx if error_growth else None)
     report["total_seconds"] = round(time.perf_counter() - started, 2)
     return field, report
+
+
+class DepthUnitError(FieldError):
+    """The depth is not in metres (see :mod:`~nap3d_graph.datasets.depth_unit`); ``check``
+    holds the evidence."""
+
+    def __init__(self, check):
+        super().__init__(f"{check.message()}; fix the depth files, or build with depth_unit='trust' to use them as read")
+        self.check = check
+
+
+def _check_depth_unit(sequence, depth_unit: str) -> dict | None:
+    """The unit check's figures for the report (None when trusted or not checkable); raises
+    :class:`DepthUnitError` when the depth agrees across views only at another unit's scale."""
+    from nap3d_graph.datasets.depth_unit import check_depth_unit
+
+    if depth_unit not in ("check", "trust"):
+        raise FieldError(f"depth_unit must be 'check' or 'trust', got {depth_unit!r}")
+    if depth_unit == "trust":
+        return None
+    check = check_depth_unit(sequence)
+    if check is None:
+        return None
+    if check.mistake is not None:
+        raise DepthUnitError(check)
+    return {"scale": check.scale, "pairs": check.pairs,
+            "disagreement": {f"x{s:g}": round(v, 5) for s, v in check.disagreement.items()}}
 
 
 REFINE_METHODS = ("depth", "map")
