@@ -7,8 +7,10 @@ an :class:`Alignment` like NAP3D's, with the covariance from the reprojection He
 ``estimate_intrinsics`` gives PnP the same help the self-calibrating NAP3D has: after the LM
 step, the pose *and* the real camera's fx, fy, cx, cy are refined on the reprojection
 residuals under the same prior (``"auto"``: kept only when the data support it, by the same
-test as NAP3D's, :func:`~nap3d_graph.nap3d.align.choose_intrinsics_model`, on pixels only).
-Evaluation K compares each NAP3D variant with the PnP that had the same help.
+test as NAP3D's, :func:`~nap3d_graph.nap3d.align.choose_intrinsics_model`, on pixels only;
+True: kept at every frame, the PnP at its best where the given calibration is wrong).
+Evaluation K compares each NAP3D variant with the PnP that had the same help, and the
+self-calibrating NAP3D also with the PnP that always calibrates.
 """
 
 from __future__ import annotations
@@ -45,15 +47,18 @@ def pnp_from_correspondences(corr: Correspondences, intrinsics: Intrinsics, conf
                              estimate_intrinsics: bool | str = False) -> Alignment:
     """PnP-RANSAC with the rendered 3D points ``corr.x`` and real pixels ``corr.uv_real``.
 
-    ``estimate_intrinsics``: False (the paper's baseline), True (also refine the real
-    camera's intrinsics, see the module docstring) or ``"auto"``.
+    ``estimate_intrinsics``: False (the paper's baseline, method ``"pnp-ransac"``), True
+    (also refine the real camera's intrinsics at every call, ``"pnp-calibrated"``; its
+    diagnostics' ``intrinsics_model`` is ``"calibrated"``, or ``"fixed (the calibration
+    failed)"`` where the joint refinement was singular) or ``"auto"`` (``"pnp-selfcal"``:
+    calibrated only when the data call for it, see the module docstring).
     """
     import cv2
 
     config = config or PnPConfig()
     align_config = align_config or AlignConfig()
     timings = {} if timings is None else timings
-    method = "pnp-ransac" if estimate_intrinsics is False else "pnp-selfcal"
+    method = {False: "pnp-ransac", True: "pnp-calibrated"}.get(estimate_intrinsics, "pnp-selfcal")
     n = len(corr)
     if n < max(4, config.min_inliers):
         return Alignment.failure(f"too few matches with valid depth ({n})", corr.num_matches, method=method,
@@ -82,8 +87,12 @@ def pnp_from_correspondences(corr: Correspondences, intrinsics: Intrinsics, conf
     if estimate_intrinsics is False:
         return fixed
     calibrated = _pnp_with_intrinsics(corr, intrinsics, R, t, mask, config, align_config, method, timings)
-    if estimate_intrinsics is True or calibrated is None:
-        return calibrated if calibrated is not None else fixed
+    if calibrated is None:
+        fixed.diagnostics["intrinsics_model"] = "fixed (the calibration failed)"
+        return fixed
+    if estimate_intrinsics is True:
+        calibrated.diagnostics["intrinsics_model"] = "calibrated"
+        return calibrated
     return _choose_pnp_model(corr, intrinsics, fixed, calibrated, align_config)
 
 

@@ -20,6 +20,11 @@ Methods, and which is compared with which:
   squares over every inlier's pixels and depth) against ``pnp``;
 * self-calibration, both estimating the real camera's intrinsics when the data call for it:
   ``nap3d-selfcal`` (the library's default, ``align_views``) against ``pnp-selfcal``;
+* the PnP at its best where the calibration is wrong (selected with ``methods``):
+  ``nap3d-selfcal`` against ``pnp-calibrated``, which estimates the real camera's intrinsics
+  at every frame. ``pnp-selfcal`` decides by NAP3D's own test on pixels alone, which can keep
+  the given calibration where calibrating would have helped it: this pair compares NAP3D
+  with a PnP that is never held back by that test;
 * optionally ``nap3d-iter`` (``correct_pose``: nap3d-selfcal re-rendered at the corrected pose).
 
 A failed correction counts: it scores the error of the uncorrected (perturbed) pose, and the
@@ -67,13 +72,18 @@ METHODS = {
     "pnp": "PnP-RANSAC + LM, the paper's baseline",
     "nap3d-refined": "NAP3D + refinement over pixels and depth, given intrinsics",
     "pnp-selfcal": "PnP-RANSAC + LM + intrinsics refinement when the data call for it",
+    "pnp-calibrated": "PnP-RANSAC + LM + intrinsics refinement at every frame",
     "nap3d-selfcal": "NAP3D refined + intrinsics estimated when the data call for it (the default)",
     "nap3d-iter": "correct_pose: nap3d-selfcal re-rendered at the corrected pose",
 }
 DEFAULT_METHODS = ("nap3d-plain", "pnp", "nap3d-refined", "pnp-selfcal", "nap3d-selfcal")
-#: (name, PnP-side method, NAP3D-side method): what each heatmap compares.
+#: (name, PnP-side method, NAP3D-side method): what each heatmap compares (a pair whose two
+#: methods both ran).
 PAIRS = (("paper", "pnp", "nap3d-plain"), ("refined", "pnp", "nap3d-refined"),
-         ("selfcal", "pnp-selfcal", "nap3d-selfcal"))
+         ("selfcal", "pnp-selfcal", "nap3d-selfcal"), ("calibrated", "pnp-calibrated", "nap3d-selfcal"))
+#: How each PnP method is told to treat the real camera's intrinsics
+#: (:func:`~nap3d_graph.baselines.pnp.pnp_from_correspondences`'s ``estimate_intrinsics``).
+PNP_INTRINSICS = {"pnp": False, "pnp-selfcal": "auto", "pnp-calibrated": True}
 METRICS = ("rot_err_deg", "trans_err_m", "rmse_3d_m")
 CSV_COLUMNS = ["scenario", "frame_index", "timestamp", "blur_sigma", "intrinsics", "method", "success", "reason",
                "rot_err_deg", "trans_err_m", "rmse_3d_m", "nees", "num_matches", "num_inliers", "intrinsics_model",
@@ -142,10 +152,10 @@ class _ToldShiftedIntrinsics:
 
 
 def _single_alignment(method: str, corr, K_real, config: EvalKConfig) -> Alignment:
-    if method == "pnp":
-        return pnp_from_correspondences(corr, K_real, align_config=config.align)
-    if method == "pnp-selfcal":
-        return pnp_from_correspondences(corr, K_real, align_config=config.align, estimate_intrinsics="auto")
+    """One method (other than ``nap3d-iter``) on one cell's correspondences, told ``K_real``."""
+    if method in PNP_INTRINSICS:
+        return pnp_from_correspondences(corr, K_real, align_config=config.align,
+                                        estimate_intrinsics=PNP_INTRINSICS[method])
     changes = {"nap3d-plain": {"method": "plain"}, "nap3d-refined": {"estimate_intrinsics": False},
                "nap3d-selfcal": {"estimate_intrinsics": "auto"}}[method]
     return align_correspondences(corr, K_real, replace(config.align, **changes))
