@@ -363,7 +363,7 @@ def test_depth_from_a_separate_depth_camera_is_warped_into_colour(sim_dir, tmp_p
 
 def test_sweep_cells_read_bags(bags, tmp_path):
     """A sweep's recording may be a bag: its cells run with --traj rosbag and its --topics."""
-    from nap3d_graph.sweep_spec import SweepSpec
+    from nap3d_graph.sweep.spec import SweepSpec
 
     spec = SweepSpec.from_dict({"recordings": [{"data": str(bags["ros2_sqlite"]), "topics": "gt=/tf"}],
                                 "field": {"model": "splat"}, "run": {"odom": "noisy"}})

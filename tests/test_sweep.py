@@ -14,9 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from nap3d_graph.cli.sweep import check_argv
 from nap3d_graph.sims.sensors import DepthNoise
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
-from nap3d_graph.sweep_spec import SweepError, SweepSpec
+from nap3d_graph.sweep.spec import SweepError, SweepSpec
 
 IDEAL = dict(width=160, height=120, timing=None, exposure=None, depth=DepthNoise(flying_fraction=0.0))
 
@@ -52,7 +53,7 @@ def _rows(folder: Path) -> list[dict]:
 
 def test_spec_grid_and_checks(recordings):
     root = recordings[0]
-    spec = SweepSpec.load(_spec(root, SMALL))
+    spec = SweepSpec.load(_spec(root, SMALL), check_argv)
     assert len(spec.fields()) == 4 and len(spec.cells()) == 8
     assert spec.swept_keys() == ["field.model"]
     ids = [c.id for c in spec.cells()]
@@ -65,7 +66,7 @@ def test_spec_grid_and_checks(recordings):
                          ("field: {model: [grud]}", "invalid choice: 'grud'"),
                          ("seeds: [a]", "seeds must be a list of integers")):
         with pytest.raises(SweepError, match=message):
-            SweepSpec.load(_spec(root, "recordings: [{data: walk}]\n" + bad))
+            SweepSpec.load(_spec(root, "recordings: [{data: walk}]\n" + bad), check_argv)
     with pytest.raises(SweepError, match="does not exist"):
         SweepSpec.load(_spec(root, "recordings: [{data: nowhere}]"))
 

@@ -59,13 +59,26 @@ def _same_sweep(out: Path, spec_path: Path) -> None:
         raise UsageError(f"{out} is not empty and holds no sweep: choose another --out")
 
 
-def run(args) -> int:
-    from nap3d_graph.sweep_report import write_report
-    from nap3d_graph.sweep_run import LocalPool, RayPool, SweepLocked, cell_status, run_sweep
-    from nap3d_graph.sweep_spec import SweepError, SweepSpec
+def check_argv(argv: list[str]) -> None:
+    """Parse ``argv`` with the command line's parser; a bad one raises ValueError (what a
+    sweep file's grids are checked with)."""
+    from . import build_parser
 
     try:
-        spec = SweepSpec.load(args.spec)
+        build_parser().parse_args(argv)
+    except UsageError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def run(args) -> int:
+    from nap3d_graph.sweep.report import write_report
+    from nap3d_graph.sweep.run import LocalPool, RayPool, SweepLocked, cell_status, run_sweep
+    from nap3d_graph.sweep.spec import SweepError, SweepSpec
+
+    from . import main
+
+    try:
+        spec = SweepSpec.load(args.spec, check_argv)
     except SweepError as exc:
         raise UsageError(str(exc)) from None
     _same_sweep(args.out, args.spec)
@@ -85,7 +98,7 @@ def run(args) -> int:
         except RuntimeError as exc:
             raise UsageError(str(exc)) from None
         try:
-            counts = run_sweep(spec, args.out, pool, progress=True, retry_failed=args.retry_failed)
+            counts = run_sweep(spec, args.out, pool, main, progress=True, retry_failed=args.retry_failed)
         except SweepLocked as exc:
             raise UsageError(str(exc)) from None
         finally:

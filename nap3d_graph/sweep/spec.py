@@ -161,21 +161,21 @@ def _grid(section: dict, where: str) -> list[dict]:
     return [dict(zip(keys, combo)) for combo in itertools.product(*values)]
 
 
-def _check_options(command: str, options: dict, reserved: set[str], where: str) -> None:
-    """Parse the options with the command's own parser: unknown options and bad values now."""
-    from nap3d_graph.cli import build_parser
-    from nap3d_graph.cli.common import UsageError
-
+def _check_options(command: str, options: dict, reserved: set[str], where: str, check_argv) -> None:
+    """Parse the options as the command's own parser would (``check_argv``, raising ValueError
+    on a bad command line): unknown options and bad values now, not in a worker later."""
     taken = sorted(reserved & set(options))
     if taken:
         raise SweepError(f"{where}: {', '.join(taken)} are set by the sweep for each cell (use recordings: and seeds:)")
+    if check_argv is None:
+        return
     if dict(options).get("model") in UNTRAINED:
         options = {k: v for k, v in options.items() if k != "model"}
     base = ["train-field", "x", "--out", "x.pt"] if command == "train-field" else \
         ["run", "--traj", "sim", "--data", "x", "--field", "none"]
     try:
-        build_parser().parse_args(base + option_argv(options))
-    except UsageError as exc:
+        check_argv(base + option_argv(options))
+    except ValueError as exc:
         raise SweepError(f"{where}: {exc}") from None
 
 
@@ -188,7 +188,9 @@ class SweepSpec:
     path: Path | None = None
 
     @classmethod
-    def load(cls, path) -> "SweepSpec":
+    def load(cls, path, check_argv=None) -> "SweepSpec":
+        """The sweep file at ``path``; ``check_argv(argv)`` (raising ValueError) checks each
+        grid's options against the commands' parsers (the CLI passes its own)."""
         import yaml
 
         path = Path(path)
@@ -198,10 +200,10 @@ class SweepSpec:
             raise SweepError(f"{path}: no such sweep file") from None
         except (OSError, yaml.YAMLError) as exc:
             raise SweepError(f"{path}: not a readable YAML file ({str(exc).splitlines()[0]})") from None
-        return cls.from_dict(data, path)
+        return cls.from_dict(data, path, check_argv)
 
     @classmethod
-    def from_dict(cls, data, path: Path | None = None) -> "SweepSpec":
+    def from_dict(cls, data, path: Path | None = None, check_argv=None) -> "SweepSpec":
         where = str(path or "sweep")
         if not isinstance(data, dict):
             raise SweepError(f"{where}: expected a mapping with recordings, field, run and seeds")
@@ -218,9 +220,9 @@ class SweepSpec:
         field_grid = _grid(data.get("field") or {}, f"{where}: field")
         run_grid = _grid(data.get("run") or {}, f"{where}: run")
         for options in field_grid:
-            _check_options("train-field", options, _RESERVED_FIELD, f"{where}: field")
+            _check_options("train-field", options, _RESERVED_FIELD, f"{where}: field", check_argv)
         for options in run_grid:
-            _check_options("run", options, _RESERVED_RUN, f"{where}: run")
+            _check_options("run", options, _RESERVED_RUN, f"{where}: run", check_argv)
         seeds = data.get("seeds", [0])
         seeds = seeds if isinstance(seeds, list) else [seeds]
         if not seeds or not all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):

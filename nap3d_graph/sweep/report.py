@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .sweep_run import cell_status
+from .run import cell_status
 
 __all__ = ["collect_rows", "write_report", "CSV_COLUMNS"]
 

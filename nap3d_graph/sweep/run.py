@@ -64,17 +64,16 @@ def _one_core() -> None:
     cv2.setNumThreads(1)
 
 
-def _cli(argv: list[str], log_path: Path) -> int:
-    """``nap3d-graph ARGV`` in this process, its output appended to ``log_path``."""
-    from nap3d_graph.cli import main
-
+def _cli(command, argv: list[str], log_path: Path) -> int:
+    """``command(argv)`` (the command line's entry point: ``nap3d-graph ARGV``) in this
+    process, its output appended to ``log_path``."""
     _one_core()
     with open(log_path, "a") as handle, contextlib.redirect_stdout(handle), contextlib.redirect_stderr(handle):
         logging.root.handlers.clear()  # the CLI configures logging to this cell's log, not the last one's
         handle.write("$ nap3d-graph " + " ".join(argv) + "\n")
         handle.flush()
         try:
-            return main(argv)
+            return command(argv)
         except SystemExit as exc:
             return int(exc.code or 0)
         except BaseException:
@@ -92,13 +91,13 @@ def _tail(path: Path, lines: int = 5) -> str:
     return " | ".join(t.strip() for t in text[-lines:] if t.strip())
 
 
-def build_field(argv: list[str], pt: str) -> dict:
+def build_field(command, argv: list[str], pt: str) -> dict:
     """Worker task: train one field (twice at most); writes its ``.done.json``."""
     pt = Path(pt)
     log_path, done = pt.with_suffix(".log.txt"), pt.with_suffix(".done.json")
     t0 = time.perf_counter()
     for attempt in (1, 2):
-        code = _cli(argv + ["--force"], log_path)
+        code = _cli(command, argv + ["--force"], log_path)
         if code == 0 and pt.is_file():
             result = {"status": "ok", "seconds": time.perf_counter() - t0, "attempts": attempt}
             write_json_atomic(done, result)
@@ -108,7 +107,7 @@ def build_field(argv: list[str], pt: str) -> dict:
     return result
 
 
-def run_cell(argv: list[str], cell_dir: str) -> dict:
+def run_cell(command, argv: list[str], cell_dir: str) -> dict:
     """Worker task: one run (twice at most); writes ``result.json`` or ``error.json``."""
     cell_dir = Path(cell_dir)
     log_path = cell_dir / "log.txt"
@@ -116,7 +115,7 @@ def run_cell(argv: list[str], cell_dir: str) -> dict:
     code = 1
     for attempt in (1, 2):
         shutil.rmtree(cell_dir / "run", ignore_errors=True)  # what an interrupted attempt left
-        code = _cli(argv, log_path)
+        code = _cli(command, argv, log_path)
         metrics_path = cell_dir / "run" / "latest" / "metrics.json"
         if code == 0 and metrics_path.is_file():
             result = {"status": "ok", "seconds": time.perf_counter() - t0, "attempts": attempt,
@@ -277,9 +276,11 @@ def _field_done(folder: Path, task) -> dict | None:
     return _read_json(_field_path(folder, task).with_suffix(".done.json"))
 
 
-def run_sweep(spec, folder, pool, progress: bool = True, retry_failed: bool = False) -> dict:
+def run_sweep(spec, folder, pool, command, progress: bool = True, retry_failed: bool = False) -> dict:
     """Run every unfinished field and cell of ``spec`` into ``folder`` on ``pool``; returns
-    ``{"ran": n, "skipped": n, "failed": n, "fields_trained": n}``."""
+    ``{"ran": n, "skipped": n, "failed": n, "fields_trained": n}``. ``command``: the command
+    line's entry point, ``command(argv) -> exit code`` (``nap3d_graph.cli.main``; a module-level
+    function, so a process or Ray worker can be handed it), which each field and cell runs."""
     from nap3d_graph.progress import progress_bar
 
     folder = Path(folder)
@@ -300,7 +301,7 @@ def run_sweep(spec, folder, pool, progress: bool = True, retry_failed: bool = Fa
                    postfix={"running": 0, "failed": 0})
         try:
             # Fields first: every run of a field waits for it, and a field is built once.
-            pending = {pool.submit(build_field, t.argv(_field_path(folder, t)), str(_field_path(folder, t))): t
+            pending = {pool.submit(build_field, command, t.argv(_field_path(folder, t)), str(_field_path(folder, t))): t
                        for t in todo_fields}
             _drain(pool, pending, bar, counts, field=True)
             pending = {}
@@ -319,7 +320,7 @@ def run_sweep(spec, folder, pool, progress: bool = True, retry_failed: bool = Fa
                     bar.update(1)
                     continue
                 argv = cell.argv(field_path, cell_dir / "run")
-                pending[pool.submit(run_cell, argv, str(cell_dir))] = cell
+                pending[pool.submit(run_cell, command, argv, str(cell_dir))] = cell
             _drain(pool, pending, bar, counts, field=False)
         finally:
             bar.close()

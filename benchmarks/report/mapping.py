@@ -1,0 +1,108 @@
+"""The map built from the camera alone (``nap3d-graph map``) against maps pinned to ground
+truth, and its checks (false loops, relocalisation, ORB-SLAM3 beside it)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from report import RESULTS, Section
+
+MAP_SURVEY_FILES = ("map_survey_fr1_desk.json", "map_survey_redkitchen.json")
+
+
+def _cm(value) -> str:
+    return "n/a" if value is None else f"{value * 100:.2f}"
+
+
+def map_survey_table() -> str:
+    """The self-posed map against the maps posed by each ground truth, per recording. The
+    ratio is against the map posed by the ground truth the survey came nearer to, in that
+    ground truth's frame."""
+    rows = ["| recording (file) | survey ATE cm: map / odometry alone [2nd GT] | loops accepted / verified | query ATE "
+            "cm (causal) [2nd GT]: self-posed map | GT-posed map | 2nd-GT-posed map | ratio to the nearer GT's map | "
+            "relocalised within 5 cm / 3 deg [2nd GT]; >10 cm; s per attempt (median, max) | map s |",
+            "|---|---|---|---|---|---|---|---|---|"]
+    for name in MAP_SURVEY_FILES:
+        path = RESULTS / name
+        if not path.is_file():
+            continue
+        r = json.loads(path.read_text())
+        survey, runs, reloc = r["survey"], r["runs"], r["relocalisation"]
+        ate, second = survey["ate"], survey.get("ate_second_gt")
+
+        def run_cell(key):
+            run = runs.get(key)
+            if run is None:
+                return "n/a"
+            if key == "sfm_posed":  # its world is the second ground truth's: scored there only
+                return f"[{_cm(run['ate_second_gt_m'])}] ([{_cm(run['ate_second_gt_causal_m'])}])"
+            extra = f" [{_cm(run['ate_second_gt_m'])}]" if "ate_second_gt_m" in run else ""
+            return f"{_cm(run['ate_m'])} ({_cm(run['ate_causal_m'])}){extra}"
+
+        nearer_second = second is not None and second["rmse_m"] < ate["map"]["rmse_m"]
+        ratio = (r["ratio_self_to_sfm_posed_in_sfm_frame"] if nearer_second and "sfm_posed" in runs
+                 else r["ratio_self_to_gt_posed"])
+        second_text = f" [{_cm(second['rmse_m'])}]" if second else ""
+        reloc_second = (f" [{reloc['within_5cm_3deg_second_gt']}]" if "within_5cm_3deg_second_gt" in reloc else "")
+        rows.append(
+            f"| {Path(r['data']).name} `{name}` "
+            f"| {_cm(ate['map']['rmse_m'])} / {_cm(ate['odometry_only']['rmse_m'])}{second_text} "
+            f"| {survey['loops']['accepted']} / {survey['loops']['verified']} "
+            f"| {run_cell('self_posed')} | {run_cell('gt_posed')} | {run_cell('sfm_posed')} "
+            f"| {ratio:.2f}{' (2nd GT)' if nearer_second else ''} "
+            f"| {reloc['within_5cm_3deg']}/{reloc['attempts']}{reloc_second}; {reloc['accepted_farther_than_10cm']}; "
+            f"{reloc['seconds_median']:.2f}, {reloc['seconds_max']:.2f} "
+            f"| {sum(survey['stages_s'].values()):.0f} |")
+    return "\n".join(rows)
+
+
+def _range_cm(summary: dict) -> str:
+    return f"{summary['median'] * 100:.2f} ({summary['min'] * 100:.2f}-{summary['max'] * 100:.2f})"
+
+
+def map_checks_table() -> str:
+    """False loops from twin pictures, and ORB-SLAM3 beside the map on fr1/desk."""
+    rows = ["| check (file) | figure |", "|---|---|"]
+    path = RESULTS / "map_false_loops.json"
+    if path.is_file():
+        r = json.loads(path.read_text())
+        ident, diff = r["identical"], r["different"]
+        forced, relaxed = r["forced_twin_pairs"], r["forced_twin_pairs_relaxed"]
+        rows.append(
+            f"| twin pictures on opposite walls, simulated survey (`map_false_loops.json`) | false loops in the final "
+            f"graph {ident['loops']['false_accepted']} of {ident['loops']['accepted']} accepted; survey ATE "
+            f"{_cm(ident['ate_map_m'])} cm against {_cm(diff['ate_map_m'])} with two different pictures; "
+            f"{forced['pairs_tried']} twin-view pairs forced: {forced['verified']} verified at "
+            f"{forced['min_inliers']} inliers, at {relaxed['min_inliers']}: {relaxed['verified']} verified "
+            f"({relaxed['verified_false']} false), {relaxed['kept_by_graph']} kept by the graph |")
+    path = RESULTS / "map_relocalise_fr1_desk_grid.json"
+    if path.is_file():
+        r = json.loads(path.read_text())["relocalisation"]
+        rows.append(
+            f"| relocalisation in fr1/desk's map with its {r['field']} field, 40 random second-half frames, one thread "
+            f"(`map_relocalise_fr1_desk_grid.json`) | {r['within_5cm_3deg']}/{r['attempts']} within 5 cm / 3 deg, "
+            f"{r['accepted_farther_than_10cm']} accepted beyond 10 cm, {r['refused']} refused; "
+            f"{r['seconds_median']:.2f} s per attempt (p90 {r['seconds_p90']:.2f}, max {r['seconds_max']:.2f}) |")
+    path = RESULTS / "orbslam3_fr1_desk.json"
+    survey = RESULTS / "map_survey_fr1_desk.json"
+    if path.is_file() and survey.is_file():
+        o, m = json.loads(path.read_text())["summary"], json.loads(survey.read_text())
+        rows.append(
+            f"| fr1/desk first half, ORB-SLAM3 RGB-D with a vocabulary built from other images "
+            f"(`orbslam3_fr1_desk.json`) against `nap3d-graph map` (`map_survey_fr1_desk.json`) | survey ATE cm, median "
+            f"(range) of {o['a_survey_ate_rmse_m']['n']} runs: ORB-SLAM3 {_range_cm(o['a_survey_ate_rmse_m'])} "
+            f"(lost at frame {o['a_survey_first_not_ok_frame']['median']:.0f}; before: "
+            f"{_range_cm(o['a_survey_ate_before_first_loss_rmse_m'])}); map {_cm(m['survey']['ate']['map']['rmse_m'])} |")
+    return "\n".join(rows)
+
+
+SECTIONS = [
+    Section("A map from the camera alone against maps posed by ground truth (first half the survey, second half the "
+            "query, --odom vo, XFeat, splat fields; in brackets against 7-Scenes' second ground truth, the SfM poses)",
+            MAP_SURVEY_FILES, "python benchmarks/map_survey.py [--data D --out ...]", map_survey_table),
+    Section("The map's checks: twin pictures, relocalisation, ORB-SLAM3 beside it",
+            ("map_false_loops.json", "map_relocalise_fr1_desk_grid.json", "orbslam3_fr1_desk.json"),
+            "python benchmarks/map_false_loops.py; python benchmarks/map_survey.py --only-relocalise ...; "
+            "python benchmarks/orbslam3/compare.py", map_checks_table),
+]
