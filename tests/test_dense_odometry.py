@@ -4,7 +4,7 @@ import numpy as np
 
 from nap3d_graph.conventions import inv_T, pose_error
 from nap3d_graph.datasets import TumSequence
-from nap3d_graph.odometry import DenseVisualOdometry, make_odometry
+from nap3d_graph.motion.odometry import DenseVisualOdometry, make_odometry
 
 
 def _step_errors(seq, odometry):

@@ -24,8 +24,8 @@ from nap3d_graph.estimators import (
 )
 from nap3d_graph.estimators.synthetic import synthetic_stream
 from nap3d_graph.evaluation.compare import compare, comparison_rows
-from nap3d_graph.imu import ImuConfig, ImuStream
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.imu import ImuConfig, ImuStream
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.imu import ImuOdometry
 from nap3d_graph.run.pipeline import Pipeline

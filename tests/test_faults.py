@@ -11,7 +11,7 @@ import pytest
 
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pipeline import Pipeline

@@ -14,7 +14,7 @@ from nap3d_graph.fields import load_field
 from nap3d_graph.fields.base import field_sigmas
 from nap3d_graph.fields.build import build_field
 from nap3d_graph.fields.field_error import sigma_for_median_nees
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence

@@ -17,7 +17,7 @@ import nap3d_graph
 from nap3d_graph.cli import SUBCOMMANDS, main
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets import read_tum_trajectory
-from nap3d_graph.odometry import NoisyGroundTruthOdometry, bridge_pose_gaps
+from nap3d_graph.motion.odometry import NoisyGroundTruthOdometry, bridge_pose_gaps
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
 MODULES = sorted(m.name for m in pkgutil.walk_packages(nap3d_graph.__path__, "nap3d_graph.")
@@ -226,7 +226,7 @@ def test_a_streak_of_refusals_is_said_during_the_run(walk, caplog):
     """A field of another room: every correction is refused, and the run says so while it
     goes (once), not only in its summary."""
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pipeline import Pipeline
     from nap3d_graph.sims.scene import OracleField, make_scene

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from nap3d_graph.conventions import pose_error
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.sims.trajectories import ImagelessWalk

@@ -9,7 +9,7 @@ import pytest
 
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import SimSequence
-from nap3d_graph.imu import ImuConfig, estimate_gravity, gravity_angle_deg
+from nap3d_graph.motion.imu import ImuConfig, estimate_gravity, gravity_angle_deg
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.imu import ImuOdometry
 from nap3d_graph.run.pipeline import Pipeline

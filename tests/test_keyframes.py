@@ -9,7 +9,7 @@ import pytest
 
 from nap3d_graph.camera import sharpness
 from nap3d_graph.datasets import SimSequence
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pipeline import Pipeline
 

@@ -194,3 +194,13 @@ def test_no_module_re_exports_another_modules_names():
         if missing := [name for name in exported if name not in defined]:
             offenders[module] = missing
     assert offenders == {}
+
+
+def test_the_library_never_imports_the_command_line(graph):
+    """The CLI sits on top: no library module imports it (the sweep is handed the CLI's entry
+    point; ``__main__`` is the CLI's own entry)."""
+    edges, _ = graph
+    upward = sorted((module, target) for module, targets in edges.items() for target in targets
+                    if target.startswith("nap3d_graph.cli") and not module.startswith("nap3d_graph.cli")
+                    and module != "nap3d_graph.__main__")
+    assert upward == [], upward

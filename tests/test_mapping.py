@@ -253,8 +253,8 @@ def test_a_run_that_loses_track_recovers_by_relocalising_in_the_map(xyz_map):
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.mapping import reframed
     from nap3d_graph.mapping.relocalise import Relocaliser
+    from nap3d_graph.motion.odometry import VisualOdometry
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.odometry import VisualOdometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pipeline import Pipeline
 

@@ -136,7 +136,7 @@ def test_an_images_features_serve_it_masked_and_the_odometry_detects_each_frame_
     every image afresh."""
     import nap3d_graph.nap3d.correct as correct_module
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.odometry import VisualOdometry
+    from nap3d_graph.motion.odometry import VisualOdometry
 
     sequence = open_sequence(tum_path)
     frames = [sequence[i] for i in range(4)]

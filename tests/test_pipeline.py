@@ -11,7 +11,7 @@ import pytest
 
 from nap3d_graph.conventions import compose_covariance, exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence, TumSequence, read_tum_trajectory
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.intrinsics_model import FIXED_ONLY
@@ -482,8 +482,8 @@ def test_the_feature_odometry_at_the_renders_width_hands_its_features_to_the_cor
     instead of detecting them again (inline and overlapped): one detection fewer per keyframe,
     the same trajectory to the bit."""
     import nap3d_graph.nap3d.correct as correct_module
+    from nap3d_graph.motion.odometry import VisualOdometry
     from nap3d_graph.nap3d.matching import detect_features
-    from nap3d_graph.odometry import VisualOdometry
 
     calls = []
 

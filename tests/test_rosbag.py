@@ -113,7 +113,7 @@ def test_opening_a_bag_streams_it(tmp_path, sim_dir):
 
 def test_run_on_the_bag_gives_the_folders_trajectory(bags, sim_dir):
     """The same frames, ground truth and odometry through the oracle field: the same run."""
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pipeline import Pipeline
     from nap3d_graph.sims.scene import OracleField

@@ -86,6 +86,30 @@ def _missing_full_extra(exc: ModuleNotFoundError) -> str | None:
     return name if name in FULL_EXTRA else None
 
 
+def given_options(parser, command: str | None, argv: list[str]) -> set[str]:
+    """The options (argparse dests) that ``argv`` gives to ``command``, abbreviations and
+    ``--opt=value`` included: what a config file must not override, whatever the value."""
+    import argparse
+
+    if command is None:
+        return set()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]  # noqa: SLF001
+    by_flag = {flag: action.dest for action in sub._actions for flag in action.option_strings}  # noqa: SLF001
+    tokens = [str(t) for t in argv]
+    tokens = tokens[tokens.index(command) + 1:] if command in tokens else tokens
+    given = set()
+    for token in tokens:
+        if token == "--":
+            break
+        flag = token.split("=", 1)[0]
+        if flag in by_flag:
+            given.add(by_flag[flag])
+        elif flag.startswith("--"):
+            dests = {d for f, d in by_flag.items() if f.startswith(flag)}
+            given |= dests if len(dests) == 1 else set()
+    return given
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         parser = build_parser()
@@ -101,6 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     except UsageError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    args.given = given_options(parser, args.command, sys.argv[1:] if argv is None else argv)
     level = logging.WARNING - 10 * min(args.verbose + getattr(args, "verbose_after", 0), 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     if args.command is None:

@@ -55,7 +55,7 @@ def add_parser(sub) -> None:
                    "open the viewer now (needs a display)")
     p.add_argument("--config", type=Path, metavar="CONFIG.yaml",
                    help="reproduce a run from the config.yaml it wrote: its options and settings, except the options "
-                   "given here with a value other than their default")
+                   "given here (a flag given wins, whatever its value)")
     p.set_defaults(func=run, parser=p)
 
 

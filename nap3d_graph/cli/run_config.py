@@ -2,9 +2,11 @@
 
 Every run writes ``config.yaml`` (:mod:`nap3d_graph.run.output`): the options it was given,
 the pipeline's and the alignment's settings as they were resolved. Reading it back sets each
-option the file knows, unless the command line gives that option a value other than its
-default (flags override the file); settings with no flag (the depth-scale check's tolerance,
-the alignment's noise model...) are carried into the run's configuration as they were.
+option the file knows, unless the command line gives that option (a flag given wins over the
+file, even when it gives the option's default); settings with no flag (the depth-scale
+check's tolerance, the alignment's noise model...) are carried into the run's configuration
+as they were. ``_TOP`` and ``_PIPELINE`` are the one table between the file's keys and the
+options.
 """
 
 from __future__ import annotations
@@ -21,13 +23,16 @@ __all__ = ["apply_run_config", "load_config_file", "load_run_config", "set_unles
 #: config.yaml key -> run option (argparse dest).
 _TOP = {"traj": "traj", "data": "data", "frames": "frames", "field": "field", "odometry": "odom",
         "odom_rot_sigma_rad": "odom_rot_sigma", "odom_trans_sigma_m": "odom_trans_sigma", "seed": "seed",
-        "pace": "pace", "vo_width": "vo_width"}
+        "pace": "pace", "vo_width": "vo_width", "topics": "topics", "groundtruth": "groundtruth",
+        "imu_noise": "imu_noise", "imu_extrinsics": "imu_extrinsics", "realsense_config": "realsense_config"}
+#: Options whose values are paths.
+_PATHS = {"data", "groundtruth", "realsense_config"}
 _PIPELINE = {"keyframe_every": "keyframe_every", "keyframe_distance_m": "keyframe_distance",
              "keyframe_angle_deg": "keyframe_angle", "keyframe_window": "keyframe_window",
              "keyframe_on_doubt": "keyframe_on_doubt", "keyframe_when_idle": "keyframe_when_idle", "correction_iterations": "iterations", "gate_p": "gate_p",
              "field_sigma_m": "field_sigma", "overlap": "overlap", "render_ahead": "render_ahead",
              "land_within_s": "land_within", "rolling_shutter_s": "rolling_shutter",
-             "max_frames": "max_frames",
+             "max_frames": "max_frames", "graph_window": "graph_window",
              "use_anchor": "anchor"}
 #: Pipeline settings a run resolves for itself each time (not carried over).
 _RESOLVED = {"timing", "progress", "align"}
@@ -54,10 +59,20 @@ def load_run_config(path: Path) -> dict:
     return load_config_file(path, "pipeline", "run")
 
 
+def _given(args, parser) -> set[str]:
+    """The options the command line gave (``args.given``, set by the CLI's ``main``); without
+    it, those whose value differs from the default."""
+    given = getattr(args, "given", None)
+    if given is not None:
+        return set(given)
+    return {dest for dest, value in vars(args).items() if value != parser.get_default(dest)}
+
+
 def set_unless_given(args, parser, values: dict) -> None:
-    """Set each option of ``values`` the command line left at its default (flags win)."""
+    """Set each option of ``values`` the command line did not give (flags win)."""
+    given = _given(args, parser)
     for dest, value in values.items():
-        if hasattr(args, dest) and getattr(args, dest) == parser.get_default(dest):
+        if hasattr(args, dest) and dest not in given:
             setattr(args, dest, value)
 
 
@@ -69,8 +84,9 @@ def apply_run_config(args, parser, path: Path) -> None:
     pipeline = config.get("pipeline") or {}
     values = {dest: config[key] for key, dest in _TOP.items() if key in config}
     values.update({dest: pipeline[key] for key, dest in _PIPELINE.items() if key in pipeline})
-    if "data" in values and values["data"] is not None:
-        values["data"] = Path(values["data"])
+    for dest in _PATHS & set(values):
+        if values[dest] is not None:
+            values[dest] = Path(values[dest])
     if "render_width" in pipeline and pipeline.get("render_width"):
         values["render_size"] = f"{pipeline['render_width']}x{pipeline['render_height']}"
     if "compensate_timing" in pipeline:
@@ -90,7 +106,9 @@ def apply_run_config(args, parser, path: Path) -> None:
         values["fallback_odom"] = imu["fallback_odometry"]
     set_unless_given(args, parser, values)
     mapped = set(_PIPELINE) | {"render_width", "render_height", "compensate_timing"} | _RESOLVED
-    args.pipeline_overrides = {k: v for k, v in pipeline.items() if k not in mapped}
+    # A setting named as an option the command line gave is the flag's, not the file's.
+    given = _given(args, parser)
+    args.pipeline_overrides = {k: v for k, v in pipeline.items() if k not in mapped and k not in given}
     args.align_overrides = {k: v for k, v in (config.get("align") or {}).items() if k != "matcher"}
 
 

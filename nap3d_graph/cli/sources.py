@@ -299,10 +299,10 @@ def _timing(args, field_obj, sequence):
 
 def imu_config(args, base=None):
     """The IMU's noise, gravity and extrinsics from the options, over ``base`` (a recording's
-    own :class:`~nap3d_graph.imu.ImuConfig`; default: the simulator's)."""
+    own :class:`~nap3d_graph.motion.imu.ImuConfig`; default: the simulator's)."""
     import dataclasses
 
-    from nap3d_graph.imu import ImuConfig
+    from nap3d_graph.motion.imu import ImuConfig
 
     magnitude = args.gravity if isinstance(args.gravity, float) else 9.81
     vector = args.gravity if isinstance(args.gravity, tuple) else None
@@ -384,7 +384,7 @@ def _realsense_data(args) -> Path:
 def _odometry(args, sequence, initial_pose):
     """``(kind, odometry)``: the motion source the options and the data call for (the run's
     motion model follows from it: an IMU's preintegration, or a frame odometry's increments)."""
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
 
     if args.odom:
         odom_kind = args.odom
@@ -431,8 +431,8 @@ def chosen_matcher(name: str, sequence) -> str:
 
 def _fallback_odometry(kind: str, matcher: str | None):
     """The frame odometry an IMU run falls back on (None for 'none')."""
+    from nap3d_graph.motion.odometry import DenseVisualOdometry, VisualOdometry
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.odometry import DenseVisualOdometry, VisualOdometry
 
     if kind == "none":
         return None
@@ -449,7 +449,7 @@ def _checked_gravity(args, odometry):
     import dataclasses
     import sys
 
-    from nap3d_graph.imu import estimate_gravity, gravity_angle_deg
+    from nap3d_graph.motion.imu import estimate_gravity, gravity_angle_deg
 
     config = odometry.stream.config
     try:
@@ -631,7 +631,10 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
               "vo_width": getattr(args, "vo_width", None), "rolling_shutter_readout_s": round(readout_s, 6),
               "initial_pose": None if initial_pose is None else initial_pose.tolist(),
               "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
-              "seed": args.seed,
+              "seed": args.seed, "topics": getattr(args, "topics", None),
+              "groundtruth": _text_or_none(getattr(args, "groundtruth", None)),
+              "realsense_config": _text_or_none(getattr(args, "realsense_config", None)),
+              "imu_noise": getattr(args, "imu_noise", None), "imu_extrinsics": getattr(args, "imu_extrinsics", None),
               "pipeline": {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in vars(config).items()
                            if k != "align"},
               "align": vars(config.align)}
@@ -644,3 +647,8 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     if start_record.get("map") and not config.overlap:
         relocaliser = map_relocaliser(start_record["map"], field_obj, sequence, args)
     return Prepared(sequence, field_obj, odometry, config, record, name, relocaliser)
+
+
+def _text_or_none(value) -> str | None:
+    """A path option as config.yaml stores it."""
+    return None if value is None else str(value)

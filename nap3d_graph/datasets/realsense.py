@@ -48,7 +48,7 @@ D435I_T_DEPTH_IMU = np.array([[1.0, 0.0, 0.0, 0.00552], [0.0, 1.0, 0.0, -0.0051]
 @dataclass
 class RealSenseConfig:
     """What a recording does not store. ``T_depth_imu`` (4, 4): the IMU frame in the depth
-    camera's; noise densities as :class:`~nap3d_graph.imu.ImuConfig` (BMI055, as the D435i's
+    camera's; noise densities as :class:`~nap3d_graph.motion.imu.ImuConfig` (BMI055, as the D435i's
     and D455's); ``max_difference``: how far (s) a depth frame may be from its colour frame;
     ``simulated``: the recording was written by the simulator (``simulate --realsense``)."""
 
@@ -97,8 +97,8 @@ class RealSenseConfig:
         return Path(path)
 
     def imu_config(self, T_colour_depth: np.ndarray):
-        """The :class:`~nap3d_graph.imu.ImuConfig` of the colour camera (the frames' camera)."""
-        from nap3d_graph.imu import ImuConfig
+        """The :class:`~nap3d_graph.motion.imu.ImuConfig` of the colour camera (the frames' camera)."""
+        from nap3d_graph.motion.imu import ImuConfig
 
         return ImuConfig(self.accel_noise_density, self.gyro_noise_density, self.accel_bias_rw, self.gyro_bias_rw,
                          self.gravity, T_cam_imu=np.asarray(T_colour_depth) @ self.T_depth_imu)

@@ -26,7 +26,7 @@ def write_realsense_recording(sim_dir, out_path, baseline_m: float = 0.015, dept
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.datasets.realsense import RealSenseConfig
     from nap3d_graph.datasets.realsense_io import RecordingWriter, StreamIntrinsics
-    from nap3d_graph.imu import ImuConfig
+    from nap3d_graph.motion.imu import ImuConfig
     from nap3d_graph.progress import progress_bar
     from nap3d_graph.sims.sensors import DepthNoise, add_depth_noise
 

@@ -431,7 +431,7 @@ class RosbagSequence(GroundTruthLookup):
         return stamps[order], T[order]
 
     def _attach_imu(self) -> None:
-        from nap3d_graph.imu import ImuConfig
+        from nap3d_graph.motion.imu import ImuConfig
 
         self.imu, self.imu_config = None, None
         if not self._imu_rows:

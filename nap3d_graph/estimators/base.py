@@ -35,7 +35,7 @@ class MeasurementStream:
     keyframes: indices; interval_odometry: {keyframe index: (T_prev_kf_kf, cov)} for every
     keyframe but the first; corrections: {keyframe index: (T_world_cam, cov)};
     T_world_cam0 (4, 4), P0 (6, 6): the first pose and its covariance; imu: an
-    :class:`~nap3d_graph.imu.ImuStream` on the IMU path (velocity0 (3,) then); gate_p: the
+    :class:`~nap3d_graph.motion.imu.ImuStream` on the IMU path (velocity0 (3,) then); gate_p: the
     chi-square gate probability every estimator uses; T_world_cam_gt (N, 4, 4) or None.
     """
 

@@ -74,7 +74,7 @@ def synthetic_stream(n_frames: int, fps: float = 15.0, keyframe_every: int = 5, 
 
 
 def _add_imu(stream: MeasurementStream, trajectory, rng) -> None:
-    from nap3d_graph.imu import ImuStream
+    from nap3d_graph.motion.imu import ImuStream
     from nap3d_graph.sims.sensors import ImuNoise, simulate_imu
 
     stamps = stream.timestamps

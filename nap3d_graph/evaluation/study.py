@@ -168,8 +168,8 @@ def _field_summary(report: dict) -> dict:
 
 
 def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) -> dict:
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.output import write_results
     from nap3d_graph.run.pipeline import Pipeline

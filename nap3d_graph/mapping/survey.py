@@ -1,7 +1,7 @@
 """The survey's motion from the camera alone: frame-to-frame odometry from the first frame
 (the map's origin), the longest stretch it tracked, and the keyframes.
 
-The odometry is the run's own (:func:`~nap3d_graph.odometry.make_odometry`, ``vo`` or
+The odometry is the run's own (:func:`~nap3d_graph.motion.odometry.make_odometry`, ``vo`` or
 ``dense``), started at the identity: the map's frame is the first tracked frame's camera.
 A step the odometry guessed (``ok`` False: constant velocity) is kept when it is alone; after
 ``max_guesses`` guesses in a row the odometry has lost the camera, and the stretches either
@@ -57,7 +57,7 @@ def track(sequence, kind: str = "vo", matcher: str | None = None, width: int | N
           progress: bool = True) -> SurveyOdometry:
     """Run the odometry over every frame of ``sequence`` from the identity. An unreadable
     frame is a guessed step (the odometry restarts after it)."""
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.progress import progress_bar
 
     odometry = make_odometry(kind, sequence, initial_pose=np.eye(4), matcher=matcher,

@@ -44,7 +44,7 @@ from gtsam.symbol_shorthand import B, M, V, X
 
 from nap3d_graph.conventions import T_to_pose3, compose_covariance, inv_T, pose3_to_T, pose_error
 from nap3d_graph.factors import imu_factor, noise_model, odometry_factor
-from nap3d_graph.imu import ImuConfig, ImuStream
+from nap3d_graph.motion.imu import ImuConfig, ImuStream
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.history import FrameLog

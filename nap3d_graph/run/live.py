@@ -27,7 +27,7 @@ import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RGBDFrame
 from nap3d_graph.conventions import as_T, rigid_transform_problem
-from nap3d_graph.odometry import Increment
+from nap3d_graph.motion.odometry import Increment
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.keyframe import CorrectionWorker

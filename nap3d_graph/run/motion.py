@@ -31,7 +31,7 @@ __all__ = ["MotionModel", "Odometry", "OdometryMotion"]
 
 
 class Odometry(Protocol):
-    """A frame odometry (:mod:`nap3d_graph.odometry`): where it starts and each frame's step
+    """A frame odometry (:mod:`nap3d_graph.motion.odometry`): where it starts and each frame's step
     ``increment(i, frame) -> Increment`` (``T_prev_cur``, ``covariance``, ``ok``). Optional:
     ``needs_frames`` (it reads the images), ``prime(frame)`` (given frame 0 first)."""
 

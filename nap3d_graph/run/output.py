@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.evaluation.metrics import trajectory_metrics
-from nap3d_graph.imu import gravity_angle_deg
+from nap3d_graph.motion.imu import gravity_angle_deg
 from nap3d_graph.plots import plot_error_over_time, plot_top_view
 
 __all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary", "CORRECTION_COLUMNS",

@@ -20,12 +20,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .camera import Intrinsics, RenderedView, RGBDFrame
-from .conventions import inv_T
-from .nap3d.align import align_views
-from .nap3d.config import AlignConfig
-from .nap3d.correct import real_features, resize_frame
-from .nap3d.matching import Features
+from ..camera import Intrinsics, RenderedView, RGBDFrame
+from ..conventions import inv_T
+from ..nap3d.align import align_views
+from ..nap3d.config import AlignConfig
+from ..nap3d.correct import real_features, resize_frame
+from ..nap3d.matching import Features
 
 __all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
            "bridge_pose_gaps"]
@@ -114,7 +114,7 @@ def bridge_pose_gaps(stamps: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.nd
     """
     from nap3d_graph.datasets.association import interpolate_poses
 
-    from .conventions import exp_se3, log_se3
+    from ..conventions import exp_se3, log_se3
 
     T_world_cam = np.array(T_world_cam, dtype=float)
     missing = ~np.all(np.isfinite(T_world_cam), axis=(1, 2))
@@ -245,7 +245,7 @@ class VisualOdometry:
         return self.reuse_features and (self.config.matcher != "sift" or self.config.max_features == 0)
 
     def _step_covariance(self, alignment, T_prev_cur: np.ndarray) -> np.ndarray:
-        from .conventions import log_se3
+        from ..conventions import log_se3
 
         cov = alignment.covariance * max(1.0, (self.min_good_inliers / max(alignment.num_inliers, 1)) ** 2)
         surprise = log_se3(inv_T(self._last_good) @ T_prev_cur)  # against constant velocity
@@ -310,7 +310,7 @@ class DenseVisualOdometry:
     def _depth_residual(prev, cur, T_cur_prev: np.ndarray, stride: int = 4) -> float:
         """Median |z| difference (m) between the previous depth moved by ``T_cur_prev`` and
         the current depth where it lands (inf when almost nothing lands)."""
-        from .camera import backproject_depth, project
+        from ..camera import backproject_depth, project
 
         (_, depth_prev, K), (_, depth_cur, _) = prev, cur
         points, _ = backproject_depth(depth_prev, K, stride)
@@ -331,7 +331,7 @@ class DenseVisualOdometry:
     def increment(self, i: int, frame: RGBDFrame | None = None) -> Increment:
         import cv2
 
-        from .conventions import log_se3
+        from ..conventions import log_se3
 
         if frame is None or self._previous is None:
             self._previous = None if frame is None else self._frame(frame)
