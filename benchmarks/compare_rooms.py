@@ -51,7 +51,7 @@ def compare_one(folder: Path, field, path: str, out_dir: Path | None) -> dict:
     from nap3d_graph.datasets import SimSequence
     from nap3d_graph.estimators import stream_from_run
     from nap3d_graph.evaluation.compare import compare, comparison_rows, write_comparison
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.imu import ImuOdometry
     from nap3d_graph.run.pipeline import Pipeline

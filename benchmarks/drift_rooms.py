@@ -30,7 +30,7 @@ def run_room(room: int, workdir: Path, steps: int, model: str = "grid") -> dict:
     from nap3d_graph.evaluation.metrics import trajectory_metrics
     from nap3d_graph.fields import load_field
     from nap3d_graph.fields.build import build_field, estimate_timing
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.default import DEFAULT_MAPPING, DEFAULT_TRAVERSE
     from nap3d_graph.run.output import keyframe_timing_summary

@@ -56,7 +56,7 @@ def _run(walk, field) -> dict:
 
     from nap3d_graph.evaluation.compare import correction_nees
     from nap3d_graph.evaluation.metrics import ate
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pipeline import Pipeline
 

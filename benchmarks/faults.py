@@ -23,7 +23,7 @@ from provenance import write_result
 
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.sims.faults import ScaledDepth

@@ -31,8 +31,8 @@ def run_one(data: Path, field, matcher: str, field_sigma, field_sigma_rad=None) 
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.evaluation.compare import correction_nees
     from nap3d_graph.evaluation.metrics import ate
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pipeline import Pipeline
 

@@ -29,7 +29,7 @@ import numpy as np
 from provenance import write_result
 
 from nap3d_graph.conventions import exp_se3, pose_error
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.results import Alignment, Correction
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pipeline import Pipeline

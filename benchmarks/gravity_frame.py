@@ -37,7 +37,7 @@ FRAMES = {"y_down_90deg_about_x": turned([1, 0, 0], 90.0), "30deg_about_xy": tur
 def run_walk(seed: int, T_F_W: np.ndarray, folder: Path) -> dict:
     from nap3d_graph.conventions import pose_error
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.imu import ImuConfig, estimate_gravity, gravity_angle_deg
+    from nap3d_graph.motion.imu import ImuConfig, estimate_gravity, gravity_angle_deg
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.imu import ImuOdometry
     from nap3d_graph.run.pipeline import Pipeline

@@ -29,7 +29,7 @@ EVAL_HZ = 10.0
 
 def _stream(trajectory, samples, config):
     from nap3d_graph.estimators import MeasurementStream
-    from nap3d_graph.imu import ImuStream
+    from nap3d_graph.motion.imu import ImuStream
 
     stamps = np.arange(0.0, DURATION_S + 1e-9, 1.0 / EVAL_HZ)
     T_world_cam_gt = trajectory.poses(stamps)
@@ -43,7 +43,7 @@ def _stream(trajectory, samples, config):
 def dead_reckoning_errors(trajectory, seeds: int) -> np.ndarray:
     """(seeds, T) position error (m) of the IMU alone at the evaluation stamps."""
     from nap3d_graph.estimators import OdometryOnly, run_estimator
-    from nap3d_graph.imu import ImuConfig
+    from nap3d_graph.motion.imu import ImuConfig
     from nap3d_graph.sims.sensors import ImuNoise, simulate_imu
 
     errors = []
@@ -60,7 +60,7 @@ def dead_reckoning_errors(trajectory, seeds: int) -> np.ndarray:
 def predicted_rms(trajectory, which: str) -> np.ndarray:
     """RMS position error (m) the error-state model predicts, from the given sources only."""
     from nap3d_graph.estimators import ImuErrorStateEKF
-    from nap3d_graph.imu import ImuConfig
+    from nap3d_graph.motion.imu import ImuConfig
     from nap3d_graph.sims.sensors import ImuNoise, simulate_imu
 
     noise, tiny = ImuNoise(), 1e-12

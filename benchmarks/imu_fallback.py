@@ -27,7 +27,7 @@ MAPPED_FRAMES = 30
 def run_walk(room: int, folder: Path) -> dict:
     from nap3d_graph.conventions import pose_error
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.odometry import DenseVisualOdometry, VisualOdometry
+    from nap3d_graph.motion.odometry import DenseVisualOdometry, VisualOdometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.imu import ImuOdometry
     from nap3d_graph.run.pipeline import Pipeline

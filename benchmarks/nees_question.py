@@ -25,7 +25,7 @@ from provenance import write_result
 def walk_corrections(sequence, timing) -> dict:
     from nap3d_graph.conventions import inv_T, log_se3
     from nap3d_graph.evaluation.compare import correction_nees
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pipeline import Pipeline
 

@@ -52,8 +52,8 @@ def main() -> None:
     import torch
 
     from nap3d_graph.datasets import TumSequence
+    from nap3d_graph.motion.odometry import DenseVisualOdometry, VisualOdometry
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.odometry import DenseVisualOdometry, VisualOdometry
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", type=Path, default=Path("../shared/data/tum/rgbd_dataset_freiburg1_desk"))

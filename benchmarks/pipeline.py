@@ -24,7 +24,7 @@ from provenance import write_result
 def keyframe_latency(field_arg: str, frames: int, iterations: int) -> dict:
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields import resolve_field
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.output import keyframe_timing_summary
     from nap3d_graph.run.pipeline import Pipeline

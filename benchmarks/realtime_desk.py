@@ -42,7 +42,7 @@ from nap3d_graph.cli.sources import LAND_WITHIN_FRAME_SHARE
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields import load_field
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pacing import CameraPace
 from nap3d_graph.run.pipeline import Pipeline

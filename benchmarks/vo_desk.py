@@ -20,7 +20,7 @@ from provenance import write_result
 
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import open_sequence
-from nap3d_graph.odometry import make_odometry
+from nap3d_graph.motion.odometry import make_odometry
 
 
 def run(sequence, kind: str) -> dict:

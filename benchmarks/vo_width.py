@@ -33,7 +33,7 @@ def ate_m(T: np.ndarray, T_gt: np.ndarray) -> float:
 
 
 def odometry_alone(sequence, matcher: str, width: int | None) -> dict:
-    from nap3d_graph.odometry import make_odometry
+    from nap3d_graph.motion.odometry import make_odometry
 
     odometry = make_odometry("vo", sequence, matcher=matcher, vo_width=width)
     odometry.prime(sequence[0])
@@ -51,8 +51,8 @@ def odometry_alone(sequence, matcher: str, width: int | None) -> dict:
 def paced_run(sequence, field, matcher: str, width: int | None) -> dict:
     """Fed at the camera's rate, overlapped, a correction done within 0.9 of a frame period of a
     frame's arrival landing at that frame (``run --pace --land-within frame``)."""
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pacing import CameraPace
     from nap3d_graph.run.pipeline import Pipeline
@@ -71,8 +71,8 @@ def paced_run(sequence, field, matcher: str, width: int | None) -> dict:
 
 def whole_run(sequence, field, matcher: str, width: int | None, overlap: bool) -> dict:
     import nap3d_graph.nap3d.correct as correct_module
+    from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pipeline import Pipeline
 
