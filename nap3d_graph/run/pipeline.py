@@ -16,7 +16,6 @@ prediction. The motion model chains the frames between keyframes.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 
@@ -39,6 +38,7 @@ from nap3d_graph.run.intrinsics_model import IntrinsicsModelTracker
 from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, capture_timing, measure_keyframe
 from nap3d_graph.run.library_threads import library_threads
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
+from nap3d_graph.run.overlapped import OverlappedSteps
 from nap3d_graph.run.read_ahead import FrameReadAhead, reads_concurrently
 from nap3d_graph.run.records import KeyframeRecord, RunResult
 from nap3d_graph.run.selection import KeyframeSelector
@@ -89,6 +89,7 @@ class Pipeline:
         self._waits_for_worker = False  # the latest keyframe had to wait for the one in flight
         self.on_retire = on_retire
         self.worker: CorrectionWorker | None = None  # an overlapped run's, while it runs
+        self._overlap: OverlappedSteps | None = None  # its steps (nap3d_graph.run.overlapped)
         self.field = field
         self.odometry = odometry
         # The field's own error, as it measured it when it was built, unless told otherwise.
@@ -173,37 +174,55 @@ class Pipeline:
     def step(self, i: int, worker: CorrectionWorker | None = None, on_keyframe=None) -> None:
         """Frame i (after frames 0..i-1; ``_start`` first): its odometry, and when it is a
         keyframe, its node, its correction and the solve. ``run`` is this over the sequence;
-        :class:`nap3d_graph.run.live.DriftCorrector` calls it a frame at a time."""
-        t_arrived = time.perf_counter()
-        frame = self._read_frame(i) if self.motion.needs_frames or self.selector.reads_every_frame else None
+        :class:`nap3d_graph.run.live.DriftCorrector` calls it a frame at a time. With a
+        ``worker`` the keyframe is measured on it while the run goes on
+        (:mod:`nap3d_graph.run.overlapped`)."""
         if worker is not None:
-            frame = self._detect_ahead(i, frame, worker)
+            self._overlapped(worker).step(i, on_keyframe)
+            return
+        frame = self._predict(i, self._frame_for_odometry(i))
+        if self._is_keyframe(i, frame, idle=False):
+            self._add_keyframe(i)  # its node and motion factor: the prediction
+            frame = self._keyframe_frame(i, frame)
+            self._correct_keyframe(i, frame)  # measured, gated, added, solved
+            self._report(self._finish_keyframe(), on_keyframe)
+        self._online.append(self.motion.causal_pose())
+
+    def _overlapped(self, worker: CorrectionWorker) -> OverlappedSteps:
+        """The overlapped steps of this run with ``worker`` (made once per worker)."""
+        if self._overlap is None or self._overlap.worker is not worker:
+            self._overlap = OverlappedSteps(self, worker)
+        return self._overlap
+
+    def _frame_for_odometry(self, i: int):
+        """Frame i when the motion model or the keyframe selection reads every frame, else None
+        (a run on recorded or IMU odometry reads its keyframes alone)."""
+        return self._read_frame(i) if self.motion.needs_frames or self.selector.reads_every_frame else None
+
+    def _predict(self, i: int, frame):
+        """Frame i's odometry step (the motion model's prediction of its pose); returns ``frame``."""
         if i > 0:
             t = float(self.sequence.timestamps[i])
             self.motion.frame(i, frame, t, t - float(self.sequence.timestamps[i - 1]))
+        return frame
+
+    def _is_keyframe(self, i: int, frame, idle: bool) -> bool:
+        """Whether frame i is a keyframe (``idle``: an overlapped run's worker has nothing in flight)."""
         last = self.keyframe_indices[-1] if self.keyframe_indices else None
-        idle = worker is not None and worker.free()
-        keyframe = self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe(), idle)
-        if keyframe and worker is not None:
-            self._waits_for_worker = not idle  # the last correction is still being measured
-        if worker is not None and (worker.ready() or (worker.busy and keyframe)):
-            self._land(worker, on_keyframe)  # a late correction enters the graph now
-        if keyframe:
-            self._add_keyframe(i)
-            if frame is None and self.field is not None:  # without a field a keyframe needs no image
-                frame = self._read_frame(i)
-            if worker is not None:
-                self._launch(worker, i, frame, on_keyframe)
-            else:
-                self._correct_keyframe(i, frame)
-                record = self._finish_keyframe()
-                if on_keyframe is not None and record is not None:
-                    on_keyframe(record)
-        if worker is not None:
-            self._land_within(worker, t_arrived, on_keyframe)
-        self._online.append(self.motion.causal_pose())
-        if worker is not None:
-            self._render_ahead(i, worker)
+        return self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe(), idle)
+
+    def _keyframe_frame(self, i: int, frame):
+        """The keyframe's image: read now if the odometry did not (without a field a keyframe
+        needs none)."""
+        if frame is None and self.field is not None:
+            return self._read_frame(i)
+        return frame
+
+    @staticmethod
+    def _report(record: KeyframeRecord | None, on_keyframe) -> None:
+        """Tell ``on_keyframe`` about a finished keyframe."""
+        if on_keyframe is not None and record is not None:
+            on_keyframe(record)
 
     @property
     def current_estimate(self) -> np.ndarray:
@@ -214,6 +233,7 @@ class Pipeline:
 
     def _start(self) -> None:
         self._frames, self._waits_for_worker = self.sequence, False  # as in __init__, for a new run
+        self._overlap = None
         self.motion = self._motion()
         anchor = self.motion.anchor_prior()
         self.anchored = self.config.use_anchor or anchor is not None
@@ -333,74 +353,6 @@ class Pipeline:
         its odometry; the other reasons a keyframe is taken cannot)."""
         return len(self.keyframe_indices) > 0 and i - self.keyframe_indices[-1] >= self.config.keyframe_every
 
-    def _render_ahead(self, i: int, worker: CorrectionWorker) -> None:
-        """Overlapped run, after frame i: when frame i + 1 is due to be a keyframe and the worker
-        is idle, it renders at i + 1's predicted pose (frame i's, one more step of the same
-        motion) so that keyframe's measurement finds its render made
-        (``PipelineConfig.render_ahead``)."""
-        intrinsics = self._frame_intrinsics
-        if (not self.config.render_ahead or worker.busy or worker.preparing or intrinsics is None
-                or not self._due_by_count(i + 1) or i + 1 >= len(self.sequence)):
-            return
-        T_world_cam_next = self.motion.causal_pose() @ self.motion.increments[i]
-        if self.anchored:
-            T_world_cam_next = inv_T(self.graph.anchor()) @ T_world_cam_next  # the field's frame
-        worker.prepare(T_world_cam_next, self._render_intrinsics(intrinsics))
-
-    def _detect_ahead(self, i: int, frame, worker: CorrectionWorker):
-        """Overlapped run, before frame i's odometry: when frame i is due to be a keyframe (by
-        count, or by ``keyframe_when_idle`` with the worker idle now), the worker detects its
-        features now, on the other core, while the odometry runs (``PipelineConfig.detect_ahead``).
-        Returns the frame (read now if it was not yet)."""
-        last = self.keyframe_indices[-1] if self.keyframe_indices else None
-        idle_due = worker.free() and self.selector.idle_due(i, last)
-        if not self.config.detect_ahead or self.field is None or not (self._due_by_count(i) or idle_due):
-            return frame
-        frame = frame if frame is not None else self._read_frame(i)
-        if frame is not None and not self._odometry_shares_features(frame.intrinsics):  # else its odometry detects them
-            worker.detect_ahead(i, frame, self._render_intrinsics(frame.intrinsics))
-        return frame
-
-    def _launch(self, worker: CorrectionWorker, i: int, frame, on_keyframe) -> None:
-        """Overlapped run: hand keyframe i's measurement to the worker and go on; until it
-        lands, the keyframe is known by its prediction."""
-        record, job = self._pending(), self._job(i, frame)
-        prepared, detected = worker.take_prepared(), worker.take_detected(i)
-        if job is not None:
-            job = dataclasses.replace(job, prepared=prepared, feats_real=job.feats_real if detected is None else detected)
-        self._pending_record = None
-        self.motion.keyframe_estimated(self.graph, len(self.keyframe_indices) - 1, record.timestamp)
-        if job is None:  # nothing to measure: the keyframe is done (its reason recorded)
-            self.records.append(record)
-            if on_keyframe is not None:
-                on_keyframe(record)
-            return
-        worker.submit((record, job.T_field_cam_render), job)
-
-    def _land(self, worker: CorrectionWorker, on_keyframe, waited_s: float = 0.0) -> None:
-        """Overlapped run: the measurement in flight (waited for if need be) enters the graph
-        at its keyframe, and the latest keyframe's estimate is refreshed. ``waited_s``: how long
-        the run already waited for it."""
-        (record, T_field_cam_render), correction, took_s = worker.take()
-        self._apply_correction(record, record.frame_index, correction, T_field_cam_render)
-        record.timings_s["wait"] = round(waited_s + took_s, 5)
-        record.timings_s["landed_frame"] = len(self.motion.T_world_cam_odom) - 1
-        j = len(self.keyframe_indices) - 1
-        self.motion.keyframe_estimated(self.graph, j, float(self.sequence.timestamps[self.keyframe_indices[j]]))
-        self.records.append(record)
-        if on_keyframe is not None:
-            on_keyframe(record)
-
-    def _land_within(self, worker: CorrectionWorker, t_arrived: float, on_keyframe) -> None:
-        """Overlapped run, before frame i's pose is given: a correction in flight that is done
-        within ``land_within_s`` of the frame's arrival (``t_arrived``, perf_counter seconds)
-        lands now, at this frame."""
-        left_s = t_arrived + self.config.land_within_s - time.perf_counter()
-        if worker.busy and self.config.land_within_s > 0 and left_s > 0:
-            t0 = time.perf_counter()
-            if worker.wait(left_s):
-                self._land(worker, on_keyframe, waited_s=time.perf_counter() - t0)
-
     def _apply_correction(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render) -> None:
         """The graph half (:meth:`_gate_and_add`), and a warning while the run goes when
         corrections keep failing for one reason."""
@@ -508,8 +460,7 @@ class Pipeline:
     def land_pending(self, worker: CorrectionWorker, on_keyframe=None) -> None:
         """The measurement still in flight, if any, waited for and put in the graph (the end of
         an overlapped run)."""
-        if worker.busy:
-            self._land(worker, on_keyframe)
+        self._overlapped(worker).land_pending(on_keyframe)
 
     def _timing(self) -> CaptureTiming | None:
         """The capture timing the run compensates: the config's, else the field's (None: off)."""
