@@ -27,9 +27,10 @@ from provenance import write_result
 
 def run_room(room: int, workdir: Path, steps: int, model: str = "grid") -> dict:
     from nap3d_graph.datasets import SimSequence
+    from nap3d_graph.datasets.depth_timing import estimate_timing
     from nap3d_graph.evaluation.metrics import trajectory_metrics
     from nap3d_graph.fields import load_field
-    from nap3d_graph.fields.build import build_field, estimate_timing
+    from nap3d_graph.fields.build import build_field
     from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.default import DEFAULT_MAPPING, DEFAULT_TRAVERSE

@@ -45,7 +45,7 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     from nap3d_graph.cli import main as cli
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.fields.build import estimate_timing
+    from nap3d_graph.datasets.depth_timing import estimate_timing
     from nap3d_graph.sims.sensors import OdometryNoise
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 

@@ -105,7 +105,8 @@ def stats(rows) -> dict:
 
 def main(argv=None) -> None:
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.fields.build import build_field, estimate_timing
+    from nap3d_graph.datasets.depth_timing import estimate_timing
+    from nap3d_graph.fields.build import build_field
     from nap3d_graph.nap3d.config import AlignConfig
     from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 

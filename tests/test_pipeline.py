@@ -81,7 +81,7 @@ def test_capture_timing_is_compensated(kinect_walk, baseline):
     """With the depth taken 30 ms before the colour, the run is centimetres off unless it moves
     each keyframe's depth to the colour's instant; with the timing estimated from the data
     (as train-field does) it is back near the ideal camera's."""
-    from nap3d_graph.fields.build import estimate_timing
+    from nap3d_graph.datasets.depth_timing import estimate_timing
 
     seq = SimSequence(kinect_walk)
     timing = estimate_timing(seq)
@@ -376,7 +376,7 @@ def test_a_capture_timing_the_data_cannot_tell_is_not_applied(tmp_path, caplog):
     """12 frames of a camera that captures at its stamps: the timing search's minimum is noise
     (here +40 ms, the edge of the range, agreeing worse than the stamps): not compensated."""
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.fields.build import estimate_timing
+    from nap3d_graph.datasets.depth_timing import estimate_timing
     from nap3d_graph.sims.sensors import DepthNoise
 
     ideal = SimConfig(frames=12, seed=5, width=160, height=120, timing=None, exposure=None,

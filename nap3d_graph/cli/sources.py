@@ -273,9 +273,11 @@ class Prepared:
 def _say_readout(config, field_obj) -> float:
     """The rolling-shutter readout (s) the run compensates, said in one line when it did not come
     from the command line."""
-    from nap3d_graph.run.keyframe import capture_timing, readout_of
+    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
+    from nap3d_graph.run.keyframe import readout_of
 
-    readout_s = readout_of(config, capture_timing(config, field_obj))
+    readout_s = readout_of(config, resolve_capture_timing(field_obj, given=config.timing,
+                                                          compensate=config.compensate_timing)[0])
     if readout_s > 0 and config.rolling_shutter_s is None:
         print(f"rolling shutter: colour rows read over {readout_s * 1000:.0f} ms (estimated with the capture timing); "
               "each keyframe is aligned as of its middle row (--rolling-shutter 0: a global shutter)")
@@ -283,17 +285,18 @@ def _say_readout(config, field_obj) -> float:
 
 
 def _timing(args, field_obj, sequence):
-    """The capture timing to compensate with: the field's, else estimated from the sequence."""
-    if args.timing == "none" or field_obj is None:
-        return None
-    if (getattr(field_obj, "meta", None) or {}).get("timing"):
-        return None  # the pipeline takes the field's
-    from nap3d_graph.fields.build import estimate_timing
+    """The capture timing a run is given beyond its field's: the one estimated from the
+    sequence's ground truth when the field records none (None: off, no field, nothing known,
+    or the field's own, which the pipeline takes itself)."""
+    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 
-    timing = estimate_timing(sequence)
-    if timing is not None:
-        print(f"capture timing estimated from this sequence's ground truth (the field records none): depth "
-              f"{timing.depth_offset_s * 1000:+.0f} ms from its stamp, colour {timing.colour_offset_s * 1000:+.0f} ms")
+    if field_obj is None:
+        return None
+    timing, source = resolve_capture_timing(field_obj, sequence, compensate=args.timing == "auto")
+    if source != "estimated":
+        return None
+    print(f"capture timing estimated from this sequence's ground truth (the field records none): depth "
+          f"{timing.depth_offset_s * 1000:+.0f} ms from its stamp, colour {timing.colour_offset_s * 1000:+.0f} ms")
     return timing
 
 

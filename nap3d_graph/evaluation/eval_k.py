@@ -104,7 +104,7 @@ class EvalKConfig:
     iterations: int = 3  # for nap3d-iter
     align: AlignConfig = field(default_factory=AlignConfig)
     #: Capture timing ``{"depth_offset_s", "colour_offset_s", "depth_scale"}`` (as
-    #: :func:`~nap3d_graph.fields.build.estimate_timing` gives): each scenario's depth is moved
+    #: :func:`~nap3d_graph.datasets.depth_timing.estimate_timing` gives): each scenario's depth is moved
     #: to its colour's capture instant with the ground-truth motion, so that the scenario
     #: measures the correction and not the sensor's colour/depth asynchrony. None: as stamped.
     timing: CaptureTiming | None = None
@@ -259,15 +259,6 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
     write_table(summary, out / "table.md")
     plot_heatmaps(summary, out, config)
     return summary
-
-
-def capture_timing(field_obj, sequence) -> CaptureTiming | None:
-    """The capture timing the field records, else the one estimated from ``sequence``'s
-    ground truth (None when neither is known)."""
-    from nap3d_graph.fields.build import estimate_timing
-
-    recorded = (getattr(field_obj, "meta", None) or {}).get("timing")
-    return CaptureTiming.of(recorded) or estimate_timing(sequence)
 
 
 def at_colour_instant(sequence, index: int, timing: CaptureTiming | None) -> RGBDFrame:

@@ -23,64 +23,17 @@ import logging
 import time
 
 from nap3d_graph.camera import colour_coverage
-from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.datasets.depth_timing import CaptureTiming, estimate_timing
 
 from .base import FieldError
 from .evaluation import evaluate_field, oracle_for
 
-__all__ = ["MODELS", "DEFAULT_MODEL", "REFINE_METHODS", "build_field", "error_growth_for", "estimate_timing"]
+__all__ = ["MODELS", "DEFAULT_MODEL", "REFINE_METHODS", "build_field", "error_growth_for"]
 
 log = logging.getLogger(__name__)
 
 MODELS = ("splat", "grid", "views")
 DEFAULT_MODEL = "grid"
-
-
-def estimate_timing(sequence) -> CaptureTiming | None:
-    """The capture timing of a sequence with depth stamps and ground truth (see
-    :mod:`nap3d_graph.datasets.depth_timing`), or None when it cannot be estimated (no ground
-    truth, too few frames) or the data cannot tell it."""
-    from nap3d_graph.datasets import DatasetError
-    from nap3d_graph.datasets.depth_timing import estimate_colour_timing, estimate_depth_timing
-
-    if getattr(sequence, "ground_truth_at", None) is None or getattr(sequence, "depth_timestamps", None) is None:
-        return None
-    try:
-        depth = estimate_depth_timing(sequence)
-    except DatasetError as exc:
-        log.warning("depth timing not estimated (%s); using the stamps as they are", exc)
-        return None
-    unclear = _unclear_timing(depth)
-    if unclear:
-        log.warning("capture timing not compensated: %s; using the stamps as they are", unclear)
-        return None
-    try:
-        colour = estimate_colour_timing(sequence, depth)
-    except DatasetError as exc:
-        log.warning("colour timing not estimated (%s); using the stamps as they are", exc)
-        return None
-    return CaptureTiming(depth.offset_s, colour.offset_s, depth.scale, depth.agreement_mm, depth.at_depth_stamps_mm,
-                         depth.at_colour_stamps_mm, depth.pairs, colour.readout_s, colour.error_px,
-                         colour.global_error_px)
-
-
-#: An estimated depth offset is used only when it makes the frames agree better than (by 2%)
-#: the depth stamps as they are, and lies inside the searched range: on a
-#: short recording (12 frames, 9 pairs) the search's minimum is noise, and a wrong offset warps
-#: every keyframe's depth the wrong way (measured: ATE 1.63 instead of 0.60 cm).
-TIMING_MIN_GAIN = 0.02
-TIMING_SEARCH_S = (-0.06, 0.04)
-
-
-def _unclear_timing(depth) -> str:
-    """Why an estimated capture timing is not to be trusted ('' when it is)."""
-    plain = depth.at_depth_stamps_mm  # what a run without the timing uses: depth at its own stamp
-    if not depth.agreement_mm < (1.0 - TIMING_MIN_GAIN) * plain:
-        return (f"the best depth offset ({depth.offset_s * 1000:+.0f} ms) makes the frames agree to "
-                f"{depth.agreement_mm:.1f} mm, no better than the depth stamps as they are ({plain:.1f} mm)")
-    if not TIMING_SEARCH_S[0] + 0.002 < depth.offset_s < TIMING_SEARCH_S[1] - 0.002:
-        return f"the best depth offset ({depth.offset_s * 1000:+.0f} ms) is at the edge of the searched range"
-    return ""
 
 
 def error_growth_for(value: bool | str, sequence) -> tuple[bool, str]:

@@ -59,7 +59,7 @@ class PipelineConfig:
         reads for up to a frame period (fr1/desk's Kinect colour camera: 24 ms estimated).
     timing: the sensor's capture timing (``depth_offset_s``, ``colour_offset_s``,
         ``depth_scale``) when the field does not record it (the oracle of a simulated room,
-        a nerfstudio model): e.g. :func:`nap3d_graph.fields.build.estimate_timing` of any
+        a nerfstudio model): e.g. :func:`nap3d_graph.datasets.depth_timing.estimate_timing` of any
         recording of the same camera with ground truth.
     final_gnc: the written trajectory is solved by GTSAM's graduated non-convexity (TLS) over
         the NAP3D factors, with the odometry and the priors known inliers: a wrong

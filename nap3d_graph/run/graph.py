@@ -19,7 +19,7 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import M, X
 
-from nap3d_graph.conventions import pose3_to_T
+from nap3d_graph.conventions import T_to_pose3, pose3_to_T
 from nap3d_graph.factors import chi2_gate_isam2, nap3d_anchor_factor, nap3d_prior_factor
 from nap3d_graph.factors.gate import GateResult
 from nap3d_graph.results import Correction
@@ -59,6 +59,30 @@ class KeyframeGraph:
 
     def insert(self, key: int, value) -> None:
         self.new_values.insert(key, value)
+
+    def add_anchor(self, factor: gtsam.NonlinearFactor, T_world_field: np.ndarray) -> None:
+        """The map anchor ``M(0)`` (the field's frame in the world) with its prior ``factor``
+        and its first value (4, 4)."""
+        self.add(factor)
+        self.insert(M(0), T_to_pose3(T_world_field))
+
+    def enter(self, entry) -> None:
+        """What a motion model returns for a new keyframe (:class:`~nap3d_graph.run.motion.KeyframeEntry`):
+        its factors and its first values, in at the next update."""
+        for factor in entry.factors:
+            self.add(factor)
+        for key, value in entry.values:
+            self.insert(key, value)
+
+    def add_past_gate(self, key: int, correction: Correction, frame_index: int) -> gtsam.NonlinearFactor:
+        """The NAP3D factor of ``correction`` on ``key``, added without the gate (a pose found
+        afresh, when the prediction it would be gated against is what went wrong) and logged
+        for the final solve as a gated correction is. Raises ValueError when its covariance is
+        not usable (nothing is added then)."""
+        factor = self.nap3d_factor(key, correction, self.config.robust)
+        self.new_factors.add(factor)
+        self.factor_log.append((self.nap3d_factor(key, correction, None), True, frame_index))
+        return factor
 
     def update(self, extra_step: bool = False) -> None:
         """Give iSAM2 what was added since the last update (a second step when a correction can

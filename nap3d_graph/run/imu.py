@@ -48,6 +48,7 @@ from nap3d_graph.motion.imu import ImuConfig, ImuStream
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.history import FrameLog
+from nap3d_graph.run.motion import KeyframeEntry
 from nap3d_graph.run.records import RunResult
 
 __all__ = ["ImuOdometry", "ImuMotion", "gravity_aligned_frame"]
@@ -224,45 +225,44 @@ class ImuMotion:
     def since_keyframe(self) -> np.ndarray:
         return self.T_kf_cam
 
-    def add_keyframe(self, graph: KeyframeGraph, j: int, i: int, t: float):
+    def add_keyframe(self, j: int, i: int, t: float) -> KeyframeEntry:
         """Keyframe ``j`` (frame ``i`` at ``t``): its pose, velocity and bias, tied to the last
         keyframe's by a ``CombinedImuFactor`` (and the fallback's between factor while it runs),
-        or, the first, held by priors. Returns the prediction (navigation frame) and the
-        fallback's interval ``(T_prev_kf_kf, covariance)`` when it ran (else None)."""
+        or, the first, held by priors; the prediction (navigation frame) and the fallback's
+        interval ``(T_prev_kf_kf, covariance)`` when it ran (see :class:`KeyframeEntry`)."""
         cfg = self.imu.config
         interval = None
+        factors: list = []
         self._notes = []
         if j == 0:
             # The starting pose is known in the field's frame: a prior on between(M(0), X(0)).
-            graph.add(gtsam.BetweenFactorPose3(
+            factors.append(gtsam.BetweenFactorPose3(
                 M(0), X(0), T_to_pose3(self.T_world_cam_odom[0]),
                 noise_model(rot_sigma_rad=self.config.prior_rot_sigma_rad, trans_sigma_m=self.config.prior_trans_sigma_m)))
-            graph.add(gtsam.PriorFactorVector(V(0), self.velocity0_nav,
+            factors.append(gtsam.PriorFactorVector(V(0), self.velocity0_nav,
                                               gtsam.noiseModel.Isotropic.Sigma(3, cfg.velocity_prior_sigma)))
             bias_sigmas = np.r_[[cfg.accel_bias_prior_sigma] * 3, [cfg.gyro_bias_prior_sigma] * 3]
-            graph.add(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(),
+            factors.append(gtsam.PriorFactorConstantBias(B(0), gtsam.imuBias.ConstantBias(),
                                                     gtsam.noiseModel.Diagonal.Sigmas(bias_sigmas)))
             pose, velocity = self.nav_kf.pose(), self.velocity0_nav
         else:
             pim = self.imu.preintegrate(self.t_kf, t, self.bias_kf)
             self._notes = self.imu.notes_between(self.t_kf, t)
-            graph.add(imu_factor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim))
+            factors.append(imu_factor(X(j - 1), V(j - 1), X(j), V(j), B(j - 1), B(j), pim))
             predicted = pim.predict(self.nav_kf, self.bias_kf)
             pose, velocity = predicted.pose(), predicted.velocity()
             if self._vo_since is not None:  # the fallback: its chain is the prediction and a factor
                 cov = self.cov_since_kf + self.config.drift_covariance(self.T_kf_cam, self.dt_since_kf)
-                graph.add(odometry_factor(X(j - 1), X(j), self.T_kf_cam, cov))
+                factors.append(odometry_factor(X(j - 1), X(j), self.T_kf_cam, cov))
                 interval = (self.T_kf_cam.copy(), cov.copy())
                 T_nav_kf = pose3_to_T(self.nav_kf.pose())
                 pose = T_to_pose3(T_nav_kf @ self.T_kf_cam)
                 velocity = (pose.translation() - T_nav_kf[:3, 3]) / max(self.dt_since_kf, 1e-6)
-        graph.insert(X(j), pose)
-        graph.insert(V(j), velocity)
-        graph.insert(B(j), self.bias_kf if j else gtsam.imuBias.ConstantBias())
+        values = [(X(j), pose), (V(j), velocity), (B(j), self.bias_kf if j else gtsam.imuBias.ConstantBias())]
         self.dt_since_kf = 0.0
         self.T_kf_cam = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
-        return pose3_to_T(pose), interval
+        return KeyframeEntry(pose3_to_T(pose), factors, values, interval)
 
     def interval_notes(self) -> str:
         """The IMU's skipped samples and bridged gaps in the interval that ended at the keyframe."""

@@ -122,16 +122,6 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     return correction
 
 
-def capture_timing(config, field) -> CaptureTiming | None:
-    """The capture timing a run with ``config`` compensates: the config's, else the one
-    ``field`` records (None: off, or none known)."""
-    if not config.compensate_timing:
-        return None
-    if config.timing is not None:
-        return CaptureTiming.of(config.timing)
-    return CaptureTiming.of((getattr(field, "meta", None) or {}).get("timing"))
-
-
 def readout_of(config, timing: CaptureTiming | None) -> float:
     """The colour camera's rolling-shutter readout (s) a run compensates: the config's, else the
     capture timing's (0: a global shutter)."""

@@ -13,6 +13,7 @@ describe) and :class:`~nap3d_graph.run.imu.ImuMotion` (IMU preintegration). The 
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import gtsam
@@ -40,6 +41,20 @@ class Odometry(Protocol):
     def increment(self, i: int, frame: Any) -> Any: ...
 
 
+@dataclass
+class KeyframeEntry:
+    """What a new keyframe brings to the graph, as its motion model predicts it: ``factors``
+    (its prior or motion factors) and ``values`` (``(key, initial value)`` pairs), which
+    :meth:`KeyframeGraph.enter` puts in (the graph's only writer); the prediction
+    ``T_world_kf_pred`` (4, 4); the interval's odometry ``(T_prev_kf_kf, covariance)`` as its
+    factor has it (None for the first keyframe, or when no odometry factor was made)."""
+
+    T_world_kf_pred: np.ndarray
+    factors: list = field(default_factory=list)
+    values: list = field(default_factory=list)
+    interval: tuple[np.ndarray, np.ndarray] | None = None
+
+
 class MotionModel(Protocol):
     """What the run asks of its motion between keyframes (see the module docstring)."""
 
@@ -65,8 +80,7 @@ class MotionModel(Protocol):
 
     def since_keyframe(self) -> np.ndarray: ...
 
-    def add_keyframe(self, graph: KeyframeGraph, j: int, i: int, t: float
-                     ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray] | None]: ...
+    def add_keyframe(self, j: int, i: int, t: float) -> KeyframeEntry: ...
 
     def after_correction(self, i: int, frame, accepted: bool) -> None: ...
 
@@ -138,26 +152,24 @@ class OdometryMotion:
         """(4, 4) ``T_kf_cam``: the motion since the last keyframe."""
         return self.T_kf_cam
 
-    def add_keyframe(self, graph: KeyframeGraph, j: int, i: int, t: float):
-        """Keyframe ``j`` (frame ``i``) enters with its prior (the first) or its odometry factor;
-        returns its prediction (4, 4) and the interval's ``(T_prev_kf_kf, covariance)`` (None
-        for the first)."""
+    def add_keyframe(self, j: int, i: int, t: float) -> KeyframeEntry:
+        """Keyframe ``j`` (frame ``i``) with its prior (the first) or its odometry factor, its
+        prediction and the interval's odometry (see :class:`KeyframeEntry`)."""
         interval = None
         if j == 0:
             T_world_kf_pred = self.T_world_cam_odom[0]
-            graph.add(pose_prior_factor(X(0), T_world_kf_pred, rot_sigma_rad=self.config.prior_rot_sigma_rad,
-                                        trans_sigma_m=self.config.prior_trans_sigma_m))
+            factor = pose_prior_factor(X(0), T_world_kf_pred, rot_sigma_rad=self.config.prior_rot_sigma_rad,
+                                       trans_sigma_m=self.config.prior_trans_sigma_m)
         else:
             cov = self.cov_since_kf + self.config.drift_covariance(self.T_kf_cam, self.dt_since_kf)
-            graph.add(odometry_factor(X(j - 1), X(j), self.T_kf_cam, cov))
+            factor = odometry_factor(X(j - 1), X(j), self.T_kf_cam, cov)
             interval = (self.T_kf_cam.copy(), cov.copy())
             T_world_kf_pred = self.T_world_kf @ self.T_kf_cam
-        graph.insert(X(j), T_to_pose3(T_world_kf_pred))
         self.T_kf_cam = np.eye(4)
         self.cov_since_kf = np.zeros((6, 6))
         self.dt_since_kf = 0.0
         self._doubted = False
-        return T_world_kf_pred, interval
+        return KeyframeEntry(T_world_kf_pred, [factor], [(X(j), T_to_pose3(T_world_kf_pred))], interval)
 
     def after_correction(self, i: int, frame, accepted: bool) -> None:
         pass

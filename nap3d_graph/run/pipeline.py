@@ -24,8 +24,8 @@ import numpy as np
 from gtsam.symbol_shorthand import M, X
 
 from nap3d_graph.camera import Intrinsics
-from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T, pose_error
-from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.conventions import inv_T, pose3_to_T, pose_error
+from nap3d_graph.datasets.depth_timing import CaptureTiming, resolve_capture_timing
 from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
 from nap3d_graph.results import Correction
@@ -35,7 +35,7 @@ from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
 from nap3d_graph.run.intrinsics_model import IntrinsicsModelTracker
-from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, capture_timing, measure_keyframe
+from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
 from nap3d_graph.run.library_threads import library_threads
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
 from nap3d_graph.run.overlapped import OverlappedSteps
@@ -265,8 +265,7 @@ class Pipeline:
             anchor = (anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
                                           self.config.anchor_trans_sigma_m), np.eye(4))
         if anchor is not None:
-            self.graph.add(anchor[0])
-            self.graph.insert(M(0), T_to_pose3(anchor[1]))
+            self.graph.add_anchor(*anchor)
 
     def _read_frame(self, i: int):
         """Frame i, or None when it cannot be read (the reason is logged and recorded)."""
@@ -294,9 +293,11 @@ class Pipeline:
         """The keyframe's pose enters iSAM2 with its motion factor: that is the prediction."""
         j = len(self.keyframe_indices)
         self.keyframe_indices.append(i)
-        self.T_world_kf_pred, interval = self.motion.add_keyframe(self.graph, j, i, float(self.sequence.timestamps[i]))
-        if interval is not None:
-            self.interval_odometry[i] = interval
+        entry = self.motion.add_keyframe(j, i, float(self.sequence.timestamps[i]))
+        self.graph.enter(entry)
+        self.T_world_kf_pred = entry.T_world_kf_pred
+        if entry.interval is not None:
+            self.interval_odometry[i] = entry.interval
         self._pending_record = self._keyframe_record(i, X(j))
         self._update_isam()
 
@@ -378,12 +379,10 @@ class Pipeline:
             alignment = Alignment(success=True, num_inliers=found.inliers, covariance=found.covariance)
             correction = Correction(T_field_cam_render, found.T_map_cam, found.covariance, alignment, 1, True, "", {})
             try:
-                factor = self.graph.nap3d_factor(record.key, correction, self.config.robust)
+                self.graph.add_past_gate(record.key, correction, i)
             except ValueError as exc:
                 entry["reason"] = f"covariance not usable: {exc}"
             else:
-                self.graph.new_factors.add(factor)  # as gated_correction adds one, without the gate
-                self.graph.factor_log.append((self.graph.nap3d_factor(record.key, correction, None), True, i))
                 jump_m, jump_deg = pose_error(found.T_map_cam, T_field_cam_render)
                 entry.update(jump_m=round(jump_m, 4), jump_deg=round(jump_deg, 3), keyframe=found.keyframe,
                              inliers=found.inliers)
@@ -464,7 +463,7 @@ class Pipeline:
 
     def _timing(self) -> CaptureTiming | None:
         """The capture timing the run compensates: the config's, else the field's (None: off)."""
-        return capture_timing(self.config, self.field)
+        return resolve_capture_timing(self.field, given=self.config.timing, compensate=self.config.compensate_timing)[0]
 
     def _velocity(self, i: int) -> np.ndarray | None:
         """Body twist per second (GTSAM order) of the camera at frame i, by the motion model."""
