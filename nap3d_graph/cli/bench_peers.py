@@ -15,6 +15,7 @@ from .common import (
     positive_int,
     warn_trained_frames,
 )
+from .options import add_output_folder, add_seed
 
 
 def add_parser(sub) -> None:
@@ -34,22 +35,21 @@ def add_parser(sub) -> None:
                    "nerfstudio config.yml")
     add_frames_argument(p, "the trials (the part of a recording the field was not trained on)")
     p.add_argument("--trials", type=positive_int, default=40, help="number of trials (default 40)")
-    p.add_argument("--seed", type=int, default=0)
+    add_seed(p, "the perturbations")
     p.add_argument("--max-trans", type=positive_float, default=0.10, help="perturbation per axis, m (default 0.10)")
     p.add_argument("--max-rot", type=positive_float, default=5.0, help="perturbation angle, deg (default 5)")
     p.add_argument("--methods", default=None, help=f"comma-separated (default: all that apply to the field, of "
                    f"{','.join(PEERS)}; photometric needs a trained grid field)")
     p.add_argument("--render-size", default="320x240", help="WxH of the render and the real frame (default 320x240)")
     add_matcher_argument(p)
-    p.add_argument("--out", type=Path, required=True, help="output folder (empty or new unless --force)")
-    p.add_argument("--force", action="store_true", help="write into a non-empty folder (its files are replaced)")
+    add_output_folder(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from nap3d_graph.baselines import PEERS
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.evaluation.eval_k import capture_timing
+    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
     from nap3d_graph.evaluation.peers import PeersConfig, run_bench_peers
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.fields.grid import GridField
@@ -67,7 +67,7 @@ def run(args) -> int:
         print(f"photometric peer left out: it needs a differentiable grid field, not {args.field!r}")
     warn_trained_frames(field, sequence, "frames the trials are drawn from")
     config = PeersConfig(trials=args.trials, seed=args.seed, max_trans_m=args.max_trans, max_rot_deg=args.max_rot,
-                         render_size=size, methods=methods, timing=capture_timing(field, sequence),
+                         render_size=size, methods=methods, timing=resolve_capture_timing(field, sequence)[0],
                          matcher=args.matcher)
     summary = run_bench_peers(sequence, field, args.out, config, progress=True)
     print(format_summary(summary))

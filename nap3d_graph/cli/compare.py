@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from .common import PartialOutput, UsageError, empty_or_new_dir
+from .options import add_output_folder
 from .sources import add_source_arguments, prepare
 
 __all__ = ["add_parser", "run"]
@@ -26,9 +27,7 @@ def add_parser(sub) -> None:
     p = sub.add_parser("compare", help="EKF vs graph: every estimator on the same odometry and NAP3D corrections",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     add_source_arguments(p)
-    p.add_argument("--out", type=Path, default=Path("results/compare"),
-                   help="output folder, empty or new unless --force (default results/compare)")
-    p.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    add_output_folder(p, default=Path("results/compare"))
     p.set_defaults(func=run)
 
 

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from .common import empty_or_new_dir, positive_int
+from .options import add_output_folder, add_seed
 
 
 def add_parser(sub) -> None:
@@ -22,11 +23,10 @@ def add_parser(sub) -> None:
     p.add_argument("--field", default="oracle", help="'oracle' (default) or a field checkpoint of that room")
     p.add_argument("--trials", type=positive_int, default=6, help="trials per sublocation; the first 3 are the paper's "
                    "offsets (default 6)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the extra offsets and sensor noise")
+    add_seed(p, "the extra offsets and sensor noise")
     p.add_argument("--width", type=positive_int, default=640)
     p.add_argument("--height", type=positive_int, default=480)
-    p.add_argument("--out", type=Path, required=True, help="output folder (empty or new unless --force)")
-    p.add_argument("--force", action="store_true", help="write into a non-empty folder (its files are replaced)")
+    add_output_folder(p)
     p.set_defaults(func=run)
 
 

@@ -12,6 +12,7 @@ from .common import (
     positive_int,
     warn_trained_frames,
 )
+from .options import add_output_folder, add_seed
 
 
 def add_parser(sub) -> None:
@@ -34,7 +35,7 @@ def add_parser(sub) -> None:
                    "nerfstudio config.yml")
     add_frames_argument(p, "the scenarios (e.g. the part of a recording the field was not trained on)")
     p.add_argument("--scenarios", type=positive_int, default=40, help="number of scenarios (default 40)")
-    p.add_argument("--seed", type=int, default=0, help="scenario seed (default 0)")
+    add_seed(p, "the scenarios")
     p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
                    help=f"comma-separated methods (default {','.join(DEFAULT_METHODS)}). {methods_help}")
     p.add_argument("--shift", choices=("real", "both"), default="real",
@@ -49,14 +50,14 @@ def add_parser(sub) -> None:
                    "tens of ms before colour: uncompensated, a 3D-3D method measures that asynchrony); none: the "
                    "frames as stamped")
     add_matcher_argument(p)
-    p.add_argument("--out", type=Path, required=True, help="output folder (empty or new unless --force)")
-    p.add_argument("--force", action="store_true", help="write into a non-empty folder (its files are replaced)")
+    add_output_folder(p)
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.evaluation.eval_k import METHODS, EvalKConfig, capture_timing, run_eval_k
+    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
+    from nap3d_graph.evaluation.eval_k import METHODS, EvalKConfig, run_eval_k
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.nap3d.config import AlignConfig
 
@@ -68,7 +69,7 @@ def run(args) -> int:
     field_obj = resolve_field(args.field, sequence)
     config = EvalKConfig(scenarios=args.scenarios, seed=args.seed, methods=methods, shift=args.shift,
                          align=AlignConfig(matcher=args.matcher),
-                         timing=capture_timing(field_obj, sequence) if args.timing == "auto" else None)
+                         timing=resolve_capture_timing(field_obj, sequence, compensate=args.timing == "auto")[0])
     warn_trained_frames(field_obj, sequence, "frames the scenarios are drawn from")
     summary = run_eval_k(sequence, field_obj, args.out, config, progress=True)
     print(_format_k(summary))

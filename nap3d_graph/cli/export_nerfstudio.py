@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from .common import add_frames_argument, empty_or_new_dir, positive_int
+from .options import add_force
 
 
 def add_parser(sub) -> None:
@@ -23,7 +24,7 @@ def add_parser(sub) -> None:
     p.add_argument("out", type=Path, help="output folder (created; must be empty unless --force)")
     p.add_argument("--every", type=positive_int, default=1, help="keep every K-th frame (the paper kept every 2nd)")
     add_frames_argument(p, "the export")
-    p.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    add_force(p)
     p.set_defaults(func=run)
 
 

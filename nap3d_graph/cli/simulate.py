@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .common import PartialOutput, StopOnSignal, empty_or_new_dir, positive_float, positive_int
+from .options import add_force
 
 
 def add_parser(sub) -> None:
@@ -36,7 +37,7 @@ def add_parser(sub) -> None:
                    help="also write the sequence as a ROS bag in TUM's bag layout (colour rgb8, depth 32FC1, camera "
                    "info, IMU, ground truth on /tf): a .bag is ROS 1, any other name a ROS 2 bag folder. Run it with "
                    "--traj rosbag --data FILE.bag --field OUT")
-    p.add_argument("--force", action="store_true", help="write into a non-empty folder (files are replaced)")
+    add_force(p)
     p.set_defaults(func=run)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .common import RUN_MATCHER, UsageError, add_matcher_argument, add_topics_argument, empty_or_new_dir, positive_int
+from .options import add_force, add_seed
 
 
 def add_parser(sub) -> None:
@@ -35,9 +36,9 @@ def add_parser(sub) -> None:
     p.add_argument("--eval-k-full", action="store_true",
                    help="all 16 cells of Evaluation K (blur x intrinsics), not only CLEAN / no blur")
     p.add_argument("--odom", default="vo,noisy", help="odometries to run, comma-separated (default vo,noisy)")
-    p.add_argument("--seed", type=int, default=0)
+    add_seed(p, "the training, the odometry noise and Evaluation K's scenarios")
     add_matcher_argument(p, RUN_MATCHER)
-    p.add_argument("--force", action="store_true", help="write into a non-empty folder")
+    add_force(p)
     p.add_argument("--config", type=Path, metavar="CONFIG.yaml",
                    help="reproduce a study from the config.yaml it wrote: its recordings, frames and settings, "
                    "except the options given here (--out is always given)")
