@@ -155,6 +155,12 @@ def test_eval_k_pnp_calibrated_is_the_pnp_at_its_best(sim_room, tmp_path):
     assert summary["pairs"]["calibrated"] == {"pnp_side": "pnp-calibrated", "nap3d_side": "nap3d-selfcal"}
     assert (tmp_path / "heatmap_calibrated_pnp-calibrated_vs_nap3d-selfcal.png").stat().st_size > 0
     assert (tmp_path / "table.md").read_text().count("| pnp-calibrated |") == 3
+    # The file says how it was made: the settings it ran with, the command, the commit.
+    import json
+
+    record = json.loads((tmp_path / "summary.json").read_text())["provenance"]
+    assert record["settings"]["scenarios"] == 8 and "pnp-calibrated" in record["settings"]["methods"]
+    assert set(record) == {"commit", "command", "settings", "written"} and record["command"]
 
 
 def test_eval_k_needs_ground_truth(sim_room, tmp_path):

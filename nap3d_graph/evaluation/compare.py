@@ -21,6 +21,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from nap3d_graph.conventions import inv_T, log_se3
+from nap3d_graph.provenance import provenance
 from nap3d_graph.trajectory import Trajectory
 
 from .metrics import ate, rpe
@@ -131,7 +132,7 @@ def write_comparison(out_dir: str | Path, stream, results, rows: list[dict], met
         writer.writerows(rows)
     summary = {"rows": rows, "frames": len(stream), "keyframes": len(stream.keyframes),
                "corrections_measured": len(stream.corrections), "path": "imu" if stream.imu is not None else "odometry",
-               "gate_p": stream.gate_p, **(meta or {})}
+               "gate_p": stream.gate_p, **(meta or {}), "provenance": provenance(meta)}
     (out / "comparison.json").write_text(json.dumps(summary, indent=1, default=_json_default))
     stamps = np.asarray(stream.timestamps)
     trajectories = _trajectories(results)

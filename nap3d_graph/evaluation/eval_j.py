@@ -16,7 +16,7 @@ from __future__ import annotations
 import csv
 import json
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,7 @@ from nap3d_graph.baselines.pnp import pnp_from_correspondences
 from nap3d_graph.conventions import inv_T, make_T
 from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
 from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.provenance import provenance
 from nap3d_graph.sims.sensors import sensor_frame
 from nap3d_graph.sims.trajectories import R_world_cam_from_angles
 
@@ -102,7 +103,7 @@ def run_eval_j(scene, field_obj, intrinsics, out_dir: str | Path, config: EvalJC
                     row.update(est_x=ex, est_z=ez, err_x=ex - x, err_z=ez - z)
                 rows.append(row)
     summary = _summarise(rows)
-    _write(out, rows, summary)
+    _write(out, rows, summary, config)
     return summary
 
 
@@ -126,7 +127,7 @@ def _summarise(rows: list[dict]) -> dict:
     return summary
 
 
-def _write(out: Path, rows: list[dict], summary: dict) -> None:
+def _write(out: Path, rows: list[dict], summary: dict, config) -> None:
     columns = ["sublocation", "trial", "method", "true_x", "true_z", "est_x", "est_z", "err_x", "err_z", "success",
                "reason", "num_matches", "num_inliers"]
     with open(out / "results.csv", "w", newline="") as fh:
@@ -134,7 +135,8 @@ def _write(out: Path, rows: list[dict], summary: dict) -> None:
         writer.writeheader()
         for r in rows:
             writer.writerow({k: r.get(k, "") for k in columns})
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.json").write_text(json.dumps({"provenance": provenance(asdict(config)), **summary},
+                                                 indent=1))
     lines = []
     for method, title in (("nap3d-plain", "NAP3D as in the paper (3D-3D: RANSAC + weighted Procrustes)"),
                           ("pnp", "PnP-RANSAC (2D-3D)"),

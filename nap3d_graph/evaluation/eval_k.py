@@ -43,7 +43,7 @@ import csv
 import json
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +56,7 @@ from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondenc
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correct import correct_pose, render_safely
 from nap3d_graph.nap3d.matching import detect_features
+from nap3d_graph.provenance import provenance
 from nap3d_graph.results import Alignment
 
 from .perturb import random_perturbation
@@ -255,7 +256,8 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
     bar.close()
     _write_csv(out / "results.csv", rows)
     summary = summarise(rows, config)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    record = {"provenance": provenance(asdict(config)), **summary}
+    (out / "summary.json").write_text(json.dumps(record, indent=1))
     write_table(summary, out / "table.md")
     plot_heatmaps(summary, out, config)
     return summary

@@ -18,12 +18,13 @@ from __future__ import annotations
 import csv
 import json
 import logging
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.provenance import provenance
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +97,7 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
                          "rot_err_deg": r_err, "ms": 1000 * a.timings_s.get("total", np.nan),
                          "num_inliers": a.num_inliers, "crb_trans_m": bound_t, "crb_rot_deg": np.degrees(bound_r)})
     summary = summarise(rows, config)
-    _write(out, rows, summary)
+    _write(out, rows, summary, config)
     return summary
 
 
@@ -133,14 +134,15 @@ def _stats(values: np.ndarray) -> dict:
     return {"median": float(np.median(values)), "p90": float(np.percentile(values, 90)), "max": float(values.max())}
 
 
-def _write(out: Path, rows: list[dict], summary: dict) -> None:
+def _write(out: Path, rows: list[dict], summary: dict, config) -> None:
     columns = ["trial", "frame_index", "method", "success", "reason", "trans_err_m", "rot_err_deg", "ms",
                "num_inliers", "crb_trans_m", "crb_rot_deg", "uncorrected_trans_m", "uncorrected_rot_deg"]
     with open(out / "trials.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    (out / "summary.json").write_text(json.dumps({"provenance": provenance(asdict(config)), **summary},
+                                                 indent=1))
     _plot(summary, out / "accuracy_vs_time.png")
 
 

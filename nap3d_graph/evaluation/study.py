@@ -26,6 +26,7 @@ import numpy as np
 __all__ = ["StudyConfig", "run_study", "summary_markdown"]
 
 from nap3d_graph.nap3d.matching import choose_matcher
+from nap3d_graph.provenance import provenance
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +119,8 @@ def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = No
            config.progress)
     summary["eval_k"] = _eval_k(test, field, out / "eval_k", config)
     summary["seconds"] = round(time.perf_counter() - started, 1)
-    (out / "summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    record = {"provenance": provenance(asdict(config)), **summary}
+    (out / "summary.json").write_text(json.dumps(record, indent=1, default=float))
     (out / "summary.md").write_text(summary_markdown(summary))
     return summary
 

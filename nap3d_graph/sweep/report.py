@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.provenance import provenance
+
 from .run import cell_status
 
 __all__ = ["collect_rows", "write_report", "CSV_COLUMNS"]
@@ -105,7 +107,8 @@ def write_report(spec, folder: Path, counts: dict | None = None) -> dict:
     (folder / "summary.md").write_text("\n".join(lines))
     for key in swept:
         _plot(rows, key, folder / f"plot_{key.replace('.', '_')}.png")
-    (folder / "summary.json").write_text(json.dumps({"cells": len(rows), **tally, "swept": swept}, indent=1))
+    record = {"provenance": provenance({"spec": str(spec.path)}), "cells": len(rows), **tally, "swept": swept}
+    (folder / "summary.json").write_text(json.dumps(record, indent=1))
     return {"rows": len(rows), **tally}
 
 
