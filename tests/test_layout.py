@@ -204,3 +204,24 @@ def test_the_library_never_imports_the_command_line(graph):
                     if target.startswith("nap3d_graph.cli") and not module.startswith("nap3d_graph.cli")
                     and module != "nap3d_graph.__main__")
     assert upward == [], upward
+
+
+def test_library_errors_name_settings_not_flags():
+    """A library module's error names the setting (in backticks, as the Python caller passes
+    it); only the command line turns it into its flag (``cli.common.in_flags``). Flags of other
+    tools (nerfstudio's) may be named."""
+    import re
+
+    flag = re.compile(r"(?<![\w-])--[a-z][a-z-]*")
+    others = {"--pipeline"}  # nerfstudio's own command line
+    found = []
+    for module, path in MODULES.items():
+        if module.startswith("nap3d_graph.cli") or module == "nap3d_graph.__main__":
+            continue
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Raise) and node.exc is not None:
+                texts = [n.value for n in ast.walk(node.exc) if isinstance(n, ast.Constant) and isinstance(n.value, str)]
+                flags = {f for t in texts for f in flag.findall(t)} - others
+                if flags:
+                    found.append(f"{module}:{node.lineno} {sorted(flags)}")
+    assert found == [], found

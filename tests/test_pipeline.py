@@ -519,7 +519,7 @@ def test_the_feature_odometry_at_the_renders_width_hands_its_features_to_the_cor
     assert np.array_equal(np.asarray(overlapped.T_world_cam_estimate), np.asarray(shared.T_world_cam_estimate))
     # A width the render does not have: nothing to share, and it is said so.
     assert not VisualOdometry(width=128).shares_features(seq.intrinsics.scaled(160, 120), config.align)
-    with pytest.raises(ValueError, match="--vo-width is for --odom vo"):
+    with pytest.raises(ValueError, match="`vo_width` is for `odometry='vo'`"):
         make_odometry("dense", seq, vo_width=160)
 
 

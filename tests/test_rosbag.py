@@ -244,7 +244,7 @@ def test_topics_option_chooses_and_checks(bags):
         RosbagSequence(bags["ros1.bag"], topics="rgb=/camera/nothing")
     with pytest.raises(DatasetError, match="unknown key 'colour'"):
         BagTopics.parse("colour=/x")
-    with pytest.raises(DatasetError, match="world_frame=nowhere: no such tf frame"):
+    with pytest.raises(DatasetError, match="`topics=world_frame=nowhere`: no such tf frame"):
         RosbagSequence(bags["ros1.bag"], topics="world_frame=nowhere")
     # The optical frame's pose in its body frame ('kinect'), not in the world: the mount, fixed.
     mounted = RosbagSequence(bags["ros1.bag"], topics="world_frame=kinect")

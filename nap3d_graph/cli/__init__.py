@@ -11,7 +11,7 @@ import importlib
 import logging
 import sys
 
-from .common import Parser, UsageError
+from .common import Parser, UsageError, in_flags
 
 __all__ = ["main", "build_parser", "UsageError", "SUBCOMMANDS"]
 
@@ -123,7 +123,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = parser.parse_args(argv)
     except UsageError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {in_flags(str(exc))}", file=sys.stderr)
         return 2
     args.given = given_options(parser, args.command, sys.argv[1:] if argv is None else argv)
     level = logging.WARNING - 10 * min(args.verbose + getattr(args, "verbose_after", 0), 2)
@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except _known_errors() as exc:
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        print(f"nap3d-graph {args.command}: error: {message}", file=sys.stderr)
+        print(f"nap3d-graph {args.command}: error: {in_flags(message)}", file=sys.stderr)
         return 2
     except OSError as exc:
         import errno

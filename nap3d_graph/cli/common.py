@@ -8,8 +8,35 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
+
+
+#: How the library's errors name a setting (in backticks: `name` or `name=value`) -> the
+#: option that sets it here. The library speaks of its settings; the command line of its flags.
+SETTING_FLAGS = {"odometry": "--odom", "vo_width": "--vo-width", "topics": "--topics", "groundtruth": "--groundtruth",
+                 "realsense_config": "--realsense-config", "initial_pose": "--initial-pose",
+                 "initial_pose_file": "--initial-pose-file", "matcher": "--matcher", "every": "--every",
+                 "field": "--field", "no_field": "--no-field", "force": "--force", "write_bag": "--write-bag",
+                 "viz": "--viz", "use_anchor": "--anchor", "ray": "--ray"}
+
+
+def in_flags(message: str) -> str:
+    """``message`` with each setting it names in backticks (``SETTING_FLAGS``) written as the
+    option a user types: `odometry='vo'` -> --odom vo, `force` -> --force; other backticked
+    names lose their backticks."""
+    import re
+
+    def option(match) -> str:
+        name, value = match.group(1), match.group(2)
+        flag = SETTING_FLAGS.get(name)
+        if flag is None:
+            return match.group(0)[1:-1]
+        if value is None or value == "True":
+            return flag
+        return f"{flag} {value.strip(chr(39))}"
+
+    return re.sub(r"`([a-z_]+)(?:=([^`]*))?`", option, message)
 
 
 class UsageError(Exception):

@@ -79,15 +79,15 @@ def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, **
     source = source_of(path)
     if source == "rosbag":
         if groundtruth is not None or realsense_config is not None:
-            raise DatasetError(f"{path}: a ROS bag's ground truth comes from its /tf or a pose topic (--topics gt=...), "
-                               "not --groundtruth / --realsense-config")
+            raise DatasetError(f"{path}: a ROS bag's ground truth comes from its /tf or a pose topic (`topics=gt=...`), "
+                               "not `groundtruth` / `realsense_config`")
         return RosbagSequence(path, topics=topics, frames=kwargs.get("frames"))
     if topics:
-        raise DatasetError(f"{path}: --topics is for ROS bags (a .bag file or a ROS 2 bag folder)")
+        raise DatasetError(f"{path}: `topics` is for ROS bags (a .bag file or a ROS 2 bag folder)")
     if source == "realsense":
         config = None if realsense_config is None else RealSenseConfig.load(realsense_config)
         return RealSenseRecording(path, groundtruth=groundtruth, frames=kwargs.get("frames"), config=config)
     if groundtruth is not None or realsense_config is not None:
-        raise DatasetError(f"{path}: --groundtruth / --realsense-config are for RealSense recordings (.bag, .db3); "
+        raise DatasetError(f"{path}: `groundtruth` / `realsense_config` are for RealSense recordings (.bag, .db3); "
                            "a TUM folder's own groundtruth.txt is read")
     return SOURCES[source](path, **kwargs)

@@ -81,9 +81,9 @@ class BagTopics:
             key, sep, value = item.partition("=")
             key = key.strip().replace("-", "_")
             if not sep or not value.strip():
-                raise DatasetError(f"--topics {text!r}: expected KEY=TOPIC pairs separated by commas, got {item!r}")
+                raise DatasetError(f"`topics={text}`: expected KEY=TOPIC pairs separated by commas, got {item!r}")
             if key not in known:
-                raise DatasetError(f"--topics: unknown key {key!r} (known: {', '.join(known)})")
+                raise DatasetError(f"`topics`: unknown key {key!r} (known: {', '.join(known)})")
             values[key] = value.strip()
         return cls(**values)
 
@@ -162,7 +162,7 @@ def choose_topics(path, topics: dict[str, str], given: BagTopics) -> BagTopics:
     for key in ("rgb", "depth", "camera_info", "depth_info", "imu"):
         topic = getattr(given, key)
         if topic is not None and topic not in topics:
-            raise DatasetError(f"{path}: --topics {key}={topic}: no such topic (the bag has: {_listing(topics)})")
+            raise DatasetError(f"{path}: `topics={key}={topic}`: no such topic (the bag has: {_listing(topics)})")
     images = [t for t, m in topics.items() if m in IMAGE_TYPES]
     if chosen.depth is None:
         chosen.depth = _one(path, [t for t in images if "depth" in t.lower() and t != chosen.rgb], "depth image",
@@ -190,7 +190,7 @@ def choose_topics(path, topics: dict[str, str], given: BagTopics) -> BagTopics:
             poses = [t for t, m in topics.items() if m in POSE_TYPES]
             chosen.gt = poses[0] if len(poses) == 1 else None
     elif chosen.gt not in ("none", "/tf") and chosen.gt not in topics:
-        raise DatasetError(f"{path}: --topics gt={chosen.gt}: no such topic (the bag has: {_listing(topics)})")
+        raise DatasetError(f"{path}: `topics=gt={chosen.gt}`: no such topic (the bag has: {_listing(topics)})")
     return chosen
 
 
@@ -200,7 +200,7 @@ def _one(path, candidates: list[str], what: str, key: str, topics: dict[str, str
     if not candidates:
         raise DatasetError(f"{path}: no {what} topic (the bag has: {_listing(topics)})")
     raise DatasetError(f"{path}: several {what} topics ({', '.join(sorted(candidates))}): choose one with "
-                       f"--topics {key}=TOPIC")
+                       f"`topics={key}=TOPIC`")
 
 
 @dataclass
@@ -410,7 +410,7 @@ class RosbagSequence(GroundTruthLookup):
             return None
         world = (self.topics.world_frame or self._tf.root(camera)).lstrip("/")
         if world not in self._tf.frames:
-            raise DatasetError(f"{self.path}: --topics world_frame={world}: no such tf frame (frames: "
+            raise DatasetError(f"{self.path}: `topics=world_frame={world}`: no such tf frame (frames: "
                                f"{', '.join(sorted(self._tf.frames))})")
         stamps = self._tf.moving_stamps(world, camera)
         if not len(stamps):

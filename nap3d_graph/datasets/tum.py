@@ -261,7 +261,7 @@ class TumSequence(GroundTruthLookup):
 
         if (self.path / "PARTIAL.txt").is_file():
             raise DatasetError(f"{self.path}: the command that wrote this folder did not finish (PARTIAL.txt); "
-                               "redo it with --force, or remove the folder")
+                               "redo it with `force`, or remove the folder")
         rgb_list, depth_list = self.path / "rgb.txt", self.path / "depth.txt"
         for listed in (rgb_list, depth_list):
             if not listed.is_file():

@@ -39,7 +39,7 @@ class NavStateEKF:
 
     def start(self, stream) -> None:
         if stream.imu is None:
-            raise ValueError("NavStateImuEKF needs the IMU path (--odom imu)")
+            raise ValueError("NavStateImuEKF needs the IMU path (`odometry='imu'`)")
         cfg = stream.imu.config
         if not np.allclose(np.asarray(cfg.T_cam_imu, float), np.eye(4)):
             # The filter integrates the IMU at the body origin: no lever arm or rotation.

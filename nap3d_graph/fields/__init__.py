@@ -62,7 +62,7 @@ def resolve_field(field_arg: str, sequence=None):
         oracle = getattr(sequence, "oracle_field", None)
         if oracle is None:
             where = getattr(sequence, "path", "the data")
-            raise FieldError(f"--field oracle needs a simulated sequence (with scene.json); {where} is not one")
+            raise FieldError(f"`field='oracle'` needs a simulated sequence (with scene.json); {where} is not one")
         return oracle()
     from pathlib import Path
 
@@ -71,7 +71,7 @@ def resolve_field(field_arg: str, sequence=None):
         checkpoint = folder / "field.pt"
         if not checkpoint.is_file():
             raise FieldError(f"{folder}: the map has no field (its 'nap3d-graph map' stopped before the field stage, "
-                             "or ran with --no-field); run the same map command again to finish it")
+                             "or ran with `no_field`); run the same map command again to finish it")
         field = load_field(checkpoint)
         field.meta["map"] = str(folder.resolve())
         return field

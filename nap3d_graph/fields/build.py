@@ -139,7 +139,7 @@ class DepthUnitError(FieldError):
     holds the evidence."""
 
     def __init__(self, check):
-        super().__init__(f"{check.message()}; fix the depth files, or build with depth_unit='trust' to use them as read")
+        super().__init__(f"{check.message()}; fix the depth files, or build with `depth_unit='trust'` to use them as read")
         self.check = check
 
 

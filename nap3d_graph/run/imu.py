@@ -79,7 +79,7 @@ class ImuOdometry:
         if initial_pose is not None:
             return cls(stream, np.asarray(initial_pose, float), np.zeros(3))
         if T_world_cam_gt is None or not np.all(np.isfinite(T_world_cam_gt[:2])):
-            raise ValueError(f"{sequence.path}: --odom imu needs the starting pose: give --initial-pose")
+            raise ValueError(f"{sequence.path}: `odometry='imu'` needs the starting pose: give `initial_pose`")
         dt = float(sequence.timestamps[1] - sequence.timestamps[0])
         velocity = (T_world_cam_gt[1][:3, 3] - T_world_cam_gt[0][:3, 3]) / dt
         return cls(stream, T_world_cam_gt[0], velocity)

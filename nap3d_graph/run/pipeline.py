@@ -104,7 +104,7 @@ class Pipeline:
         self._refused_in_a_row = 0
         motion = motion_kind(odometry)
         if self.config.use_anchor and motion.estimates_field_frame:
-            raise ValueError("--anchor does not apply with --odom imu: the IMU path estimates the field's frame's "
+            raise ValueError("`use_anchor` does not apply with `odometry='imu'`: the IMU path estimates the field's frame's "
                              "tilt (its gravity) itself")
         if self.config.graph_window and (self.config.use_anchor or not motion.allows_graph_window):
             raise ValueError("graph_window (a bounded graph) does not apply with the map anchor or the IMU path")

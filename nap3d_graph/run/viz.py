@@ -42,7 +42,7 @@ def import_rerun():
     try:
         import rerun as rr
     except ImportError:
-        raise VizError("--viz needs rerun-sdk: pip install 'nap3d-graph[viz]' (or pip install rerun-sdk)") from None
+        raise VizError("`viz` needs rerun-sdk: pip install 'nap3d-graph[viz]' (or pip install rerun-sdk)") from None
     return rr
 
 
@@ -52,14 +52,14 @@ def check_viz_target(target: str) -> str:
     import_rerun()
     if target == "spawn":
         if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-            raise VizError("--viz spawn: no display here ($DISPLAY unset); write --viz run.rrd and open it where "
+            raise VizError("`viz=spawn`: no display here ($DISPLAY unset); write `viz=run.rrd` and open it where "
                            "there is one with: rerun run.rrd")
         return target
     path = Path(target)
     if path.suffix != ".rrd":
-        raise VizError(f"--viz {target}: a recording file ends in .rrd (or give 'spawn')")
+        raise VizError(f"`viz={target}`: a recording file ends in .rrd (or give 'spawn')")
     if not path.parent.is_dir():
-        raise VizError(f"--viz {target}: its folder {path.parent} does not exist")
+        raise VizError(f"`viz={target}`: its folder {path.parent} does not exist")
     return target
 
 

@@ -183,7 +183,7 @@ class RayPool:
         try:
             import ray
         except ImportError:
-            raise RuntimeError("--ray needs Ray: pip install 'nap3d-graph[ray]'") from None
+            raise RuntimeError("`ray` needs Ray: pip install 'nap3d-graph[ray]'") from None
         self.ray = ray
         self.started = not ray.is_initialized()
         if self.started:
