@@ -10,6 +10,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -62,12 +63,25 @@ def test_bad_output_paths_are_refused_before_any_work(walk, tmp_path, capsys):
     assert rc == 2 and "is a file" in err
 
 
-@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into a read-only folder: this case needs a non-root user")
-def test_a_read_only_output_folder_is_refused_before_any_work(walk, tmp_path, capsys):
+def test_a_read_only_output_folder_is_refused_before_any_work(walk, tmp_path, capsys, monkeypatch):
+    """A folder the run may not write into: a one-line error before any work. As a user the
+    folder is made read-only; root writes anywhere, so there the OS's refusal is simulated
+    where the check writes its probe file (the same code path, the same error)."""
+    import tempfile
+
     read_only = tmp_path / "ro"
     read_only.mkdir(mode=0o555)
+    if os.geteuid() == 0:
+        real_mkstemp = tempfile.mkstemp
+
+        def refuse_here(*args, dir=None, **kwargs):
+            if dir is not None and Path(dir).resolve() == read_only.resolve():
+                raise PermissionError(errno.EACCES, "Permission denied", str(dir))
+            return real_mkstemp(*args, dir=dir, **kwargs)
+
+        monkeypatch.setattr(tempfile, "mkstemp", refuse_here)
     rc, err = _cli(capsys, *RUN, "--data", walk, "--out", read_only)
-    assert rc == 2 and "not writable" in err and len(err.splitlines()) == 1, err
+    assert rc == 2 and "not writable (Permission denied)" in err and len(err.splitlines()) == 1, err
     assert list(read_only.iterdir()) == []
 
 
