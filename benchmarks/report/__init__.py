@@ -40,6 +40,19 @@ def load(name: str):
     return json.loads((RESULTS / name).read_text())
 
 
+def get(data, *keys):
+    """``data[k0][k1]...``, or None where a key, an index or the container itself is missing
+    (a file written before a figure was recorded reads ``n/a``, not a crash)."""
+    for key in keys:
+        if isinstance(data, dict) and key in data:
+            data = data[key]
+        elif isinstance(data, list) and isinstance(key, int) and -len(data) <= key < len(data):
+            data = data[key]
+        else:
+            return None
+    return data
+
+
 def cm(value_m, digits: int = 2) -> str:
     """Metres as centimetres, ``n/a`` for a missing value."""
     return "n/a" if value_m is None else f"{value_m * 100:.{digits}f}"

@@ -10,7 +10,7 @@ import math
 import re
 from pathlib import PurePosixPath
 
-from report import RESULTS, Section, cm, load, mm, num, table
+from report import RESULTS, Section, cm, get, load, mm, num, table
 
 NA = "n/a"
 STUDIES = ("study_fr1_desk", "study_fr1_desk_views", "study_7scenes_redkitchen")
@@ -29,27 +29,15 @@ EVAL_K_ORDER = ("nap3d-refined", "nap3d-selfcal", "nap3d-plain", "pnp", "pnp-sel
 
 # --- reading ---------------------------------------------------------------------------------
 
-def _get(d, *keys):
-    """``d[k1][k2]...``, None where a key, an index or the container itself is missing."""
-    for k in keys:
-        if isinstance(d, dict) and k in d:
-            d = d[k]
-        elif isinstance(d, list) and isinstance(k, int) and -len(d) <= k < len(d):
-            d = d[k]
-        else:
-            return None
-    return d
-
-
 def _dict(d, *keys) -> dict:
     """``_get``, or an empty dict where that is missing or not a dict."""
-    value = _get(d, *keys)
+    value = get(d, *keys)
     return value if isinstance(value, dict) else {}
 
 
 def _list(d, *keys) -> list:
     """``_get``, or an empty list where that is missing or not a list."""
-    value = _get(d, *keys)
+    value = get(d, *keys)
     return value if isinstance(value, list) else []
 
 
@@ -136,10 +124,10 @@ def _cm_of(value_cm, digits: int = 2) -> str:
 
 def _run_cells(r: dict) -> list[str]:
     """ATE columns of one run record (odometry, corrected with median, max, causal, accepted)."""
-    return [cm(_get(r, "ate_odometry_m")),
-            _pair(cm(_get(r, "ate_estimate_m")), cm(_get(r, "ate_estimate_median_m"))),
-            cm(_get(r, "ate_estimate_max_m"), 1), cm(_get(r, "ate_causal_m")),
-            _frac(_get(r, "accepted"), _get(r, "keyframes"))]
+    return [cm(get(r, "ate_odometry_m")),
+            _pair(cm(get(r, "ate_estimate_m")), cm(get(r, "ate_estimate_median_m"))),
+            cm(get(r, "ate_estimate_max_m"), 1), cm(get(r, "ate_causal_m")),
+            _frac(get(r, "accepted"), get(r, "keyframes"))]
 
 
 def _refused(reasons) -> str:
@@ -157,16 +145,16 @@ def matchers_table() -> str:
     rows = []
     m = load("matchers_fr1_desk.json")
     for matcher, r in _dict(m, "matchers").items():
-        rows.append([_code("matchers_fr1_desk.json"), _field_label(_get(m, "field")),
-                     f"{matcher}, {_get(m, 'odometry')}", "as they come (default)"] + _run_cells(r)
-                    + [_refused(_get(r, "refused_reasons")), num(_get(r, "median_inliers"), 1), NA, NA,
-                       num(_get(r, "seconds_per_keyframe_median", "measure"))])
+        rows.append([_code("matchers_fr1_desk.json"), _field_label(get(m, "field")),
+                     f"{matcher}, {get(m, 'odometry')}", "as they come (default)"] + _run_cells(r)
+                    + [_refused(get(r, "refused_reasons")), num(get(r, "median_inliers"), 1), NA, NA,
+                       num(get(r, "seconds_per_keyframe_median", "measure"))])
     k = load("keyframes_fr1_desk.json")
     for setting, r in _dict(k, "settings").items():
-        rows.append([_code("keyframes_fr1_desk.json"), _field_label(_get(k, "field")),
-                     f"{_get(k, 'matcher')}, {_get(k, 'odometry')}", setting] + _run_cells(r)
-                    + [NA, num(_get(r, "median_inliers"), 1), _int(_get(r, "postponed")),
-                       _int(_get(r, "doubt_keyframes")), NA])
+        rows.append([_code("keyframes_fr1_desk.json"), _field_label(get(k, "field")),
+                     f"{get(k, 'matcher')}, {get(k, 'odometry')}", setting] + _run_cells(r)
+                    + [NA, num(get(r, "median_inliers"), 1), _int(get(r, "postponed")),
+                       _int(get(r, "doubt_keyframes")), NA])
     return table(header, rows)
 
 
@@ -181,19 +169,19 @@ def _study_row(folder: str) -> list[str]:
     """A study folder: its field (build, held-out scores, own error) and its runs."""
     s, rep = load(f"{folder}/summary.json"), load(f"{folder}/field_report.json")
     f, runs = _dict(s, "field"), _dict(s, "runs")
-    return [_code(f"{folder}/summary.json"), f"{_get(f, 'model')}, {_get(s, 'config', 'matcher')}",
-            f"{num(_get(rep, 'train_seconds'), 0)} ({_int(_get(rep, 'steps'))})", num(_get(f, "build_seconds"), 0),
-            _pair(num(_get(f, "psnr_db")), num(_get(f, "psnr_affine_db"))),
-            _pair(cm(_get(f, "depth_median_m")), cm(_get(f, "depth_p90_m"))),
-            _pair(mm(_get(rep, "field_error", "sigma_m")), _deg(_get(rep, "field_error", "sigma_rad"))),
-            _ms(_get(f, "timing", "readout_s")),
+    return [_code(f"{folder}/summary.json"), f"{get(f, 'model')}, {get(s, 'config', 'matcher')}",
+            f"{num(get(rep, 'train_seconds'), 0)} ({_int(get(rep, 'steps'))})", num(get(f, "build_seconds"), 0),
+            _pair(num(get(f, "psnr_db")), num(get(f, "psnr_affine_db"))),
+            _pair(cm(get(f, "depth_median_m")), cm(get(f, "depth_p90_m"))),
+            _pair(mm(get(rep, "field_error", "sigma_m")), _deg(get(rep, "field_error", "sigma_rad"))),
+            _ms(get(f, "timing", "readout_s")),
             "; ".join(runs) or NA,
-            _joined(runs, lambda r: cm(_get(r, "ate_odometry_m"))),
-            _joined(runs, lambda r: cm(_get(r, "ate_estimate_m"))),
-            _joined(runs, lambda r: cm(_get(r, "ate_estimate_max_m"), 1)),
-            _joined(runs, lambda r: _frac(_get(r, "accepted"), _get(r, "keyframes"))),
-            _joined(runs, lambda r: num(_get(r, "median_inliers"), 1)),
-            _joined(runs, lambda r: num(_get(r, "seconds_per_keyframe")))]
+            _joined(runs, lambda r: cm(get(r, "ate_odometry_m"))),
+            _joined(runs, lambda r: cm(get(r, "ate_estimate_m"))),
+            _joined(runs, lambda r: cm(get(r, "ate_estimate_max_m"), 1)),
+            _joined(runs, lambda r: _frac(get(r, "accepted"), get(r, "keyframes"))),
+            _joined(runs, lambda r: num(get(r, "median_inliers"), 1)),
+            _joined(runs, lambda r: num(get(r, "seconds_per_keyframe")))]
 
 
 def study_table() -> str:
@@ -214,11 +202,11 @@ def eval_k_table() -> str:
         ek = _dict(s, "eval_k")
         for name in [n for n in EVAL_K_ORDER if n in ek] + [n for n in ek if n not in EVAL_K_ORDER]:
             e = ek[name]
-            rows.append([_code(f"{folder}/summary.json"), _int(_get(s, "config", "eval_k_scenarios")), name,
-                         _pct(_get(e, "success_rate")),
-                         _pair(mm(_get(e, "trans_median_m")), mm(_get(e, "trans_p90_m"))),
-                         _pair(num(_get(e, "rot_median_deg")), num(_get(e, "rot_p90_deg"))),
-                         num(_get(e, "nees_mean"), 1)])
+            rows.append([_code(f"{folder}/summary.json"), _int(get(s, "config", "eval_k_scenarios")), name,
+                         _pct(get(e, "success_rate")),
+                         _pair(mm(get(e, "trans_median_m")), mm(get(e, "trans_p90_m"))),
+                         _pair(num(get(e, "rot_median_deg")), num(get(e, "rot_p90_deg"))),
+                         num(get(e, "nees_mean"), 1)])
     return table(header, rows)
 
 
@@ -226,22 +214,22 @@ def eval_k_table() -> str:
 
 def _farthest(r: dict, run: dict) -> str:
     """The error's growth a run adds: the farthest gap measured and the error there."""
-    if not _get(run, "field_error_by_view"):
+    if not get(run, "field_error_by_view"):
         return "off"
     by_view = _dict(r, "field_error", "by_view")
-    return _pair(num(_get(by_view, "gap_m", -1)), mm(_get(by_view, "sigma_m", -1)))
+    return _pair(num(get(by_view, "gap_m", -1)), mm(get(by_view, "sigma_m", -1)))
 
 
 def _nees_row(name: str, r: dict, setting: str, run: dict) -> list[str]:
     """One file's run with one setting of the field's error."""
     band = _list(run, "nees_band_95") or [None, None]
-    return [_code(name), f"{_field_label(_get(r, 'field'))} ({_int(_get(r, 'field_error', 'frames'))} held out)",
-            f"{_get(r, 'matcher')}, {_get(r, 'odometry')}", setting,
-            _pair(mm(_get(run, "field_sigma_m")), _deg(_get(run, "field_sigma_rad"))), _farthest(r, run),
-            _int(_get(run, "corrections")), num(_get(run, "nees_mean"), 1), _range(band[0], band[-1]),
-            _pair(num(_get(run, "nees_median"), 1), num(_get(run, "nees_p90"), 1)), _pct(_get(run, "within_chi2_997")),
-            _pair(cm(_get(run, "ate_estimate_m")), cm(_get(run, "ate_causal_m"))),
-            _frac(_get(run, "accepted"), _get(run, "keyframes"))]
+    return [_code(name), f"{_field_label(get(r, 'field'))} ({_int(get(r, 'field_error', 'frames'))} held out)",
+            f"{get(r, 'matcher')}, {get(r, 'odometry')}", setting,
+            _pair(mm(get(run, "field_sigma_m")), _deg(get(run, "field_sigma_rad"))), _farthest(r, run),
+            _int(get(run, "corrections")), num(get(run, "nees_mean"), 1), _range(band[0], band[-1]),
+            _pair(num(get(run, "nees_median"), 1), num(get(run, "nees_p90"), 1)), _pct(get(run, "within_chi2_997")),
+            _pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_causal_m"))),
+            _frac(get(run, "accepted"), get(run, "keyframes"))]
 
 
 def nees_table() -> str:
@@ -261,15 +249,15 @@ def nees_table() -> str:
 
 def _refinement_cells(f: dict) -> list[str]:
     """How a field's training poses were refined: method, input sigma, agreement, last correction."""
-    pr = _get(f, "pose_refinement")
+    pr = get(f, "pose_refinement")
     if pr is None:
-        return ["none", NA, NA, num(_get(f, "timing_agreement_mm")), NA]
-    sigma_m = _first(_get(pr, "input_sigma_m"), _get(pr, "config", "input_sigma_m"))
-    sigma_rad = _first(_get(pr, "input_sigma_rad"), _get(pr, "config", "input_sigma_rad"))
+        return ["none", NA, NA, num(get(f, "timing_agreement_mm")), NA]
+    sigma_m = _first(get(pr, "input_sigma_m"), get(pr, "config", "input_sigma_m"))
+    sigma_rad = _first(get(pr, "input_sigma_rad"), get(pr, "config", "input_sigma_rad"))
     last = _dict(pr, "rounds", -1)
-    return [f"{_get(pr, 'method')}, {len(_list(pr, 'rounds'))} rounds", _pair(mm(sigma_m), _deg(sigma_rad)),
-            num(_get(pr, "seconds"), 0), num(_get(pr, "agreement_after_mm")),
-            _pair(num(_get(last, "median_correction_mm"), 1), num(_get(last, "median_correction_deg")))]
+    return [f"{get(pr, 'method')}, {len(_list(pr, 'rounds'))} rounds", _pair(mm(sigma_m), _deg(sigma_rad)),
+            num(get(pr, "seconds"), 0), num(get(pr, "agreement_after_mm")),
+            _pair(num(get(last, "median_correction_mm"), 1), num(get(last, "median_correction_deg")))]
 
 
 def pose_refinement_table() -> str:
@@ -282,10 +270,10 @@ def pose_refinement_table() -> str:
         r = load(name)
         for f in _dict(r, "fields").values():
             for odom, run in _dict(f, "runs").items():
-                rows.append([_code(name), f"{_get(r, 'model')}, {_get(r, 'matcher')}"] + _refinement_cells(f)
-                            + [num(_get(f, "held_out_psnr_db")), odom,
-                               _pair(cm(_get(run, "ate_estimate_m")), cm(_get(run, "ate_estimate_max_m"), 1)),
-                               cm(_get(run, "ate_causal_m")), _frac(_get(run, "accepted"), _get(run, "keyframes"))])
+                rows.append([_code(name), f"{get(r, 'model')}, {get(r, 'matcher')}"] + _refinement_cells(f)
+                            + [num(get(f, "held_out_psnr_db")), odom,
+                               _pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_estimate_max_m"), 1)),
+                               cm(get(run, "ate_causal_m")), _frac(get(run, "accepted"), get(run, "keyframes"))])
     return table(header, rows)
 
 
@@ -294,7 +282,7 @@ def pose_refinement_table() -> str:
 def _median_range(summary: dict, key: str, digits: int = 1) -> list[str]:
     """Median and range (over the held-out frames) of one figure."""
     s = _dict(summary, key)
-    return [num(_get(s, "median"), digits), _range(_get(s, "min"), _get(s, "max"), lambda v: num(v, digits))]
+    return [num(get(s, "median"), digits), _range(get(s, "min"), get(s, "max"), lambda v: num(v, digits))]
 
 
 def registration_table() -> str:
@@ -307,11 +295,11 @@ def registration_table() -> str:
     rows = []
     for field, f in _dict(r, "fields").items():
         s = _dict(f, "summary")
-        label = _field_label(_get(f, "field"))
+        label = _field_label(get(f, "field"))
         label = label if label.startswith(field) else f"{field} ({label})"
         rows.append([_code(name), label, f"{len(_list(f, 'frames'))}, {size}"]
                     + _median_range(s, "psnr_db") + _median_range(s, "psnr_opaque_db")
-                    + _median_range(s, "flow_px_median", 2) + [num(_get(s, "flow_px_p90", "median"), 1)]
+                    + _median_range(s, "flow_px_median", 2) + [num(get(s, "flow_px_p90", "median"), 1)]
                     + _median_range(s, "psnr_flow_warped_db"))
     return table(header, rows)
 
@@ -328,14 +316,14 @@ def field_models_table() -> str:
         r = load(name)
         for f in _dict(r, "fields").values():
             t, rot = _dict(f, "translation_mm"), _dict(f, "rotation_deg")
-            rows.append([_code(name), _field_label(_get(f, "field")), str(_first(_get(r, "perturbation"), NA)),
-                         f"{_int(_get(f, 'frames'))} ({_int(_get(f, 'failed'))})",
-                         _pair(num(_get(t, "median"), 1), num(_get(t, "p90"), 1)), num(_get(t, "max"), 1),
-                         _pair(num(_get(rot, "median")), num(_get(rot, "p90"))), num(_get(f, "inliers_median"), 1),
-                         num(_get(f, "render_ms_median"), 0), num(_get(f, "held_out_psnr_db")),
-                         _pair(mm(_get(f, "field_error", "sigma_m")), _deg(_get(f, "field_error", "sigma_rad"))),
-                         num(_get(f, "lag1_correlation")), num(_get(f, "nearest_view_gap_m_median")),
-                         num(_get(f, "build_seconds"), 0)])
+            rows.append([_code(name), _field_label(get(f, "field")), str(_first(get(r, "perturbation"), NA)),
+                         f"{_int(get(f, 'frames'))} ({_int(get(f, 'failed'))})",
+                         _pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "max"), 1),
+                         _pair(num(get(rot, "median")), num(get(rot, "p90"))), num(get(f, "inliers_median"), 1),
+                         num(get(f, "render_ms_median"), 0), num(get(f, "held_out_psnr_db")),
+                         _pair(mm(get(f, "field_error", "sigma_m")), _deg(get(f, "field_error", "sigma_rad"))),
+                         num(get(f, "lag1_correlation")), num(get(f, "nearest_view_gap_m_median")),
+                         num(get(f, "build_seconds"), 0)])
     return table(header, rows)
 
 
@@ -343,7 +331,7 @@ def field_models_table() -> str:
 
 def _floor_maps(r: dict) -> list[tuple[str, dict]]:
     """(label, record) of each map the test frames were aligned to, the ``--field`` first."""
-    main = _field_label(_get(r, "field"))
+    main = _field_label(get(r, "field"))
     labels = {"composite": f"{main} (--field)", "composite_no_shutter": f"{main}, rolling shutter not undone"}
     for spec in _list(r, "also_fields"):
         key, _, path = str(spec).partition("=")
@@ -356,24 +344,24 @@ def _floor_maps(r: dict) -> list[tuple[str, dict]]:
 def _floor_row(name: str, r: dict, label: str, e: dict) -> list[str]:
     """One map's (or real training frames') translation errors at the true pose."""
     t = _dict(e, "translation_mm")
-    fast, slow = _get(e, "fast_translation_mm", "median"), _get(e, "slow_translation_mm", "median")
-    corr = _get(e, "shared_with_composite", "correlation_xyz")
-    return [_code(name), f"{_int(_get(r, 'step'))}, {_get(r, 'matcher')}",
-            _pair(_ms(_get(r, "readout_s")), num(_get(r, "fast_above_m_per_s"), 1)), label, _int(_get(t, "n")),
-            _pair(num(_get(t, "median"), 1), num(_get(t, "p90"), 1)), num(_get(t, "rms"), 1), num(_get(t, "max"), 1),
-            num(_get(e, "rotation_deg", "median")), NA if fast is None else _pair(num(fast, 1), num(slow, 1)),
+    fast, slow = get(e, "fast_translation_mm", "median"), get(e, "slow_translation_mm", "median")
+    corr = get(e, "shared_with_composite", "correlation_xyz")
+    return [_code(name), f"{_int(get(r, 'step'))}, {get(r, 'matcher')}",
+            _pair(_ms(get(r, "readout_s")), num(get(r, "fast_above_m_per_s"), 1)), label, _int(get(t, "n")),
+            _pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "rms"), 1), num(get(t, "max"), 1),
+            num(get(e, "rotation_deg", "median")), NA if fast is None else _pair(num(fast, 1), num(slow, 1)),
             NA if not corr else _range(min(corr), max(corr)),
-            _pct(_get(e, "shared_with_composite", "share_of_power_in_common")), num(_get(e, "rms_if_independent"), 1)]
+            _pct(get(e, "shared_with_composite", "share_of_power_in_common")), num(get(e, "rms_if_independent"), 1)]
 
 
 def _floor_alone_rows(name: str, r: dict) -> list[list[str]]:
     """Each test frame aligned to its nearest real training frames, one at a time and averaged."""
     alone = _dict(r, "at_true_pose", "views_alone")
-    mean = {"translation_mm": _get(alone, "mean_of_views_translation_mm"),
-            "shared_with_composite": {"share_of_power_in_common": _get(alone, "shared_share_of_error_power")},
-            "rms_if_independent": _get(alone, "mean_of_views_rms_if_independent_mm")}
-    return [_floor_row(name, r, "one training frame alone", {"translation_mm": _get(alone, "single_translation_mm")}),
-            _floor_row(name, r, f"mean of the {num(_get(alone, 'views_per_frame'), 0)} nearest training frames", mean)]
+    mean = {"translation_mm": get(alone, "mean_of_views_translation_mm"),
+            "shared_with_composite": {"share_of_power_in_common": get(alone, "shared_share_of_error_power")},
+            "rms_if_independent": get(alone, "mean_of_views_rms_if_independent_mm")}
+    return [_floor_row(name, r, "one training frame alone", {"translation_mm": get(alone, "single_translation_mm")}),
+            _floor_row(name, r, f"mean of the {num(get(alone, 'views_per_frame'), 0)} nearest training frames", mean)]
 
 
 def floor_table() -> str:
@@ -396,10 +384,10 @@ def floor_runs_table() -> str:
     for name in FLOOR_FILES:
         r = load(name)
         for run in _list(r, "runs"):
-            rows.append([_code(name), _field_label(_get(r, "field")), _int(_get(run, "keyframe_every")),
-                         cm(_get(run, "ate_odometry_m")), _pair(cm(_get(run, "ate_m")), cm(_get(run, "ate_median_m"))),
-                         cm(_get(run, "ate_max_m"), 1), cm(_get(run, "ate_causal_m")),
-                         _frac(_get(run, "accepted"), _get(run, "keyframes")), num(_get(run, "seconds"), 0)])
+            rows.append([_code(name), _field_label(get(r, "field")), _int(get(run, "keyframe_every")),
+                         cm(get(run, "ate_odometry_m")), _pair(cm(get(run, "ate_m")), cm(get(run, "ate_median_m"))),
+                         cm(get(run, "ate_max_m"), 1), cm(get(run, "ate_causal_m")),
+                         _frac(get(run, "accepted"), get(run, "keyframes")), num(get(run, "seconds"), 0)])
     return table(header, rows)
 
 
@@ -408,25 +396,25 @@ def floor_runs_table() -> str:
 def _cosines(r: dict) -> str:
     """Median cosine between these errors and each field's, per field."""
     against = _dict(r, "against_fields")
-    return "; ".join(f"{k} {num(_get(v, 'median_cosine'))}" for k, v in against.items()) or NA
+    return "; ".join(f"{k} {num(get(v, 'median_cosine'))}" for k, v in against.items()) or NA
 
 
 def _gt_rows(name: str, r: dict) -> list[list[str]]:
     """The second half against the first half's nearest real frames, then within one half by gap."""
     t = _dict(r, "translation_mm")
-    label = f"first half's {_int(_get(r, 'nearest'))} nearest frames (one frame in {_int(_get(r, 'step'))})"
+    label = f"first half's {_int(get(r, 'nearest'))} nearest frames (one frame in {_int(get(r, 'step'))})"
     rows = [[_code(name), label,
-             f"{_int(_get(r, 'measured'))} ({_int(_get(r, 'failed'))})", num(_get(r, "gap_m_median")), NA,
-             _pair(num(_get(t, "median"), 1), num(_get(t, "p90"), 1)), num(_get(t, "max"), 1),
-             num(_get(r, "rotation_deg_median")), NA, _cosines(r)]]
+             f"{_int(get(r, 'measured'))} ({_int(get(r, 'failed'))})", num(get(r, "gap_m_median")), NA,
+             _pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "max"), 1),
+             num(get(r, "rotation_deg_median")), NA, _cosines(r)]]
     bb = _dict(r, "by_baseline")
     offsets = ", ".join(str(o) for o in _list(bb, "offsets"))
     for b in _list(bb, "bins"):
         gap = _list(b, "gap_m") or [None, None]
-        rows.append([_code(name), f"second-half frames {offsets} apart", f"{_int(_get(b, 'pairs'))} pairs",
-                     _range(gap[0], gap[-1]), num(_get(b, "baseline_m_median"), 3),
-                     _pair(num(_get(b, "translation_mm_median"), 1), num(_get(b, "translation_mm_p90"), 1)), NA,
-                     num(_get(b, "rotation_deg_median")), num(_get(b, "inliers_median"), 0), NA])
+        rows.append([_code(name), f"second-half frames {offsets} apart", f"{_int(get(b, 'pairs'))} pairs",
+                     _range(gap[0], gap[-1]), num(get(b, "baseline_m_median"), 3),
+                     _pair(num(get(b, "translation_mm_median"), 1), num(get(b, "translation_mm_p90"), 1)), NA,
+                     num(get(b, "rotation_deg_median")), num(get(b, "inliers_median"), 0), NA])
     return rows
 
 
@@ -447,8 +435,8 @@ def _paced_cells(p) -> list[str]:
     """Fed at the camera's rate: how far behind, frames late, causal ATE."""
     if not p:
         return [NA, NA, NA]
-    return [_pair(_ms(_get(p, "behind_camera_s", "p90")), _ms(_get(p, "behind_camera_s", "max"))),
-            _int(_get(p, "frames_over_a_period_late")), cm(_get(p, "ate_causal_m"))]
+    return [_pair(_ms(get(p, "behind_camera_s", "p90")), _ms(get(p, "behind_camera_s", "max"))),
+            _int(get(p, "frames_over_a_period_late")), cm(get(p, "ate_causal_m"))]
 
 
 def vo_width_table() -> str:
@@ -462,15 +450,15 @@ def vo_width_table() -> str:
         r = load(name)
         for run in _list(r, "runs"):
             alone, inline, over = _dict(run, "odometry_alone"), _dict(run, "inline"), _dict(run, "overlapped")
-            rows.append([_code(name), _field_label(_get(r, "field")), str(_get(run, "matcher")),
-                         "as read" if _get(run, "vo_width") is None else str(_get(run, "vo_width")),
-                         _pair(num(_get(alone, "step_ms", "median"), 0), num(_get(alone, "step_ms", "p90"), 0)),
-                         cm(_get(alone, "ate_m")),
-                         _pair(num(_get(inline, "frames_per_s"), 1), num(_get(over, "frames_per_s"), 1)),
-                         num(_get(inline, "frames_per_s_vs_as_read")), cm(_get(inline, "ate_m")),
-                         _pair(cm(_get(inline, "ate_causal_m")), cm(_get(over, "ate_causal_m"))),
-                         _frac(_get(inline, "accepted"), _get(inline, "keyframes"))]
-                        + _paced_cells(_get(run, "paced")))
+            rows.append([_code(name), _field_label(get(r, "field")), str(get(run, "matcher")),
+                         "as read" if get(run, "vo_width") is None else str(get(run, "vo_width")),
+                         _pair(num(get(alone, "step_ms", "median"), 0), num(get(alone, "step_ms", "p90"), 0)),
+                         cm(get(alone, "ate_m")),
+                         _pair(num(get(inline, "frames_per_s"), 1), num(get(over, "frames_per_s"), 1)),
+                         num(get(inline, "frames_per_s_vs_as_read")), cm(get(inline, "ate_m")),
+                         _pair(cm(get(inline, "ate_causal_m")), cm(get(over, "ate_causal_m"))),
+                         _frac(get(inline, "accepted"), get(inline, "keyframes"))]
+                        + _paced_cells(get(run, "paced")))
     return table(header, rows)
 
 
@@ -478,8 +466,8 @@ def vo_width_table() -> str:
 
 def _readout(run: dict) -> str:
     """The readout asked for and the one the run used, ms."""
-    used = _ms(_first(_get(run, "readout_used_s"), _get(run, "readout_s")))
-    return f"auto: {used}" if _get(run, "readout_s") is None else used
+    used = _ms(_first(get(run, "readout_used_s"), get(run, "readout_s")))
+    return f"auto: {used}" if get(run, "readout_s") is None else used
 
 
 def rolling_shutter_table() -> str:
@@ -491,14 +479,14 @@ def rolling_shutter_table() -> str:
     for name in SHUTTER_FILES:
         for run in _dict(load(name), "runs").values():
             ke, band = _dict(run, "keyframe_error_mm"), _list(run, "nees_band_95") or [None, None]
-            rows.append([_code(name), _field_label(_get(run, "field")),
-                         f"{_get(run, 'odometry')}, {_get(run, 'matcher')}", _readout(run),
-                         cm(_get(run, "ate_odometry_m")),
-                         _pair(cm(_get(run, "ate_estimate_m")), cm(_get(run, "ate_causal_m"))),
-                         _frac(_get(run, "accepted"), _get(run, "keyframes")),
-                         _pair(num(_get(ke, "median"), 1), num(_get(ke, "p90"), 1)),
-                         _pair(num(_get(ke, "fast_half_median"), 1), num(_get(ke, "slow_half_median"), 1)),
-                         num(_get(run, "nees_mean"), 1), _range(band[0], band[-1]), num(_get(run, "nees_median"), 1)])
+            rows.append([_code(name), _field_label(get(run, "field")),
+                         f"{get(run, 'odometry')}, {get(run, 'matcher')}", _readout(run),
+                         cm(get(run, "ate_odometry_m")),
+                         _pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_causal_m"))),
+                         _frac(get(run, "accepted"), get(run, "keyframes")),
+                         _pair(num(get(ke, "median"), 1), num(get(ke, "p90"), 1)),
+                         _pair(num(get(ke, "fast_half_median"), 1), num(get(ke, "slow_half_median"), 1)),
+                         num(get(run, "nees_mean"), 1), _range(band[0], band[-1]), num(get(run, "nees_median"), 1)])
     return table(header, rows)
 
 
@@ -506,18 +494,18 @@ def rolling_shutter_table() -> str:
 
 def _tracker_row(s: dict) -> list[str]:
     """One setting, settled on the given intrinsics against fitting both models at every keyframe."""
-    recording, _, rest = str(_first(_get(s, "setting"), "")).partition(":")
+    recording, _, rest = str(_first(get(s, "setting"), "")).partition(":")
     field, odom, matcher = (rest.rsplit(":", 2) + [NA, NA])[:3]
     t, b = _dict(s, "tracked"), _dict(s, "both_always")
     return [_code("intrinsics_tracker.json"), recording, _field_label(field), f"{odom}, {matcher}",
-            _pair(_int(_get(t, "check_every")), _int(_get(b, "check_every"))),
-            "yes" if _get(s, "same_trajectory") else "no",
-            _pair(cm(_get(t, "ate_m")), cm(_get(b, "ate_m"))),
-            _pair(cm(_get(t, "ate_causal_m")), cm(_get(b, "ate_causal_m"))),
-            f"{_pair(_int(_get(t, 'accepted')), _int(_get(b, 'accepted')))} of {_int(_get(t, 'keyframes'))}",
-            _pair(num(_get(t, "measure_ms_median"), 1), num(_get(b, "measure_ms_median"), 1)),
-            _pair(num(_get(t, "measure_ms_p90"), 1), num(_get(b, "measure_ms_p90"), 1)),
-            _int(_get(t, "fixed_only")), _pair(_int(_get(t, "calibrated")), _int(_get(b, "calibrated")))]
+            _pair(_int(get(t, "check_every")), _int(get(b, "check_every"))),
+            "yes" if get(s, "same_trajectory") else "no",
+            _pair(cm(get(t, "ate_m")), cm(get(b, "ate_m"))),
+            _pair(cm(get(t, "ate_causal_m")), cm(get(b, "ate_causal_m"))),
+            f"{_pair(_int(get(t, 'accepted')), _int(get(b, 'accepted')))} of {_int(get(t, 'keyframes'))}",
+            _pair(num(get(t, "measure_ms_median"), 1), num(get(b, "measure_ms_median"), 1)),
+            _pair(num(get(t, "measure_ms_p90"), 1), num(get(b, "measure_ms_p90"), 1)),
+            _int(get(t, "fixed_only")), _pair(_int(get(t, "calibrated")), _int(get(b, "calibrated")))]
 
 
 def intrinsics_table() -> str:
@@ -534,16 +522,16 @@ def intrinsics_table() -> str:
 def _sweep_rows(folder: str) -> list[list[str]]:
     """A sweep's cells as its ``sweep.csv`` lists them, with its summary's cell counts."""
     summary = load(f"{folder}/summary.json")
-    counts = f"{_int(_get(summary, 'ok'))}/{_int(_get(summary, 'cells'))} ({_int(_get(summary, 'failed'))} failed)"
+    counts = f"{_int(get(summary, 'ok'))}/{_int(get(summary, 'cells'))} ({_int(get(summary, 'failed'))} failed)"
     rows = []
     for c in _csv(f"{folder}/sweep.csv"):
-        command = _first(_get(c, "command"), "")
-        rows.append([_code(f"{folder}/sweep.csv"), counts, _get(c, "recording") or NA,
+        command = _first(get(c, "command"), "")
+        rows.append([_code(f"{folder}/sweep.csv"), counts, get(c, "recording") or NA,
                      _field_label(_opt(command, "--field")), f"{_opt(command, '--matcher')}, {_opt(command, '--odom')}",
-                     _get(c, "status") or NA, _cm_of(_float(_get(c, "ate_odometry_cm"))),
-                     _cm_of(_float(_get(c, "ate_estimate_cm"))), _cm_of(_float(_get(c, "ate_causal_cm"))),
-                     _cm_of(_float(_get(c, "ate_estimate_max_cm")), 1),
-                     _frac(_get(c, "accepted"), _get(c, "keyframes")), num(_float(_get(c, "seconds")), 0)])
+                     get(c, "status") or NA, _cm_of(_float(get(c, "ate_odometry_cm"))),
+                     _cm_of(_float(get(c, "ate_estimate_cm"))), _cm_of(_float(get(c, "ate_causal_cm"))),
+                     _cm_of(_float(get(c, "ate_estimate_max_cm")), 1),
+                     _frac(get(c, "accepted"), get(c, "keyframes")), num(_float(get(c, "seconds")), 0)])
     return rows
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 
-from report import Section, cm, load, mm, num, table
+from report import Section, cm, get, load, mm, num, table
 
 # --- reading and formatting ------------------------------------------------------------------
 
@@ -20,21 +20,9 @@ def _read(name: str) -> dict:
         return {}
 
 
-def _get(data, *keys):
-    """``data[k0][k1]...``, or None where a key (or an index) is missing."""
-    for key in keys:
-        if isinstance(data, dict) and key in data:
-            data = data[key]
-        elif isinstance(data, list) and isinstance(key, int) and -len(data) <= key < len(data):
-            data = data[key]
-        else:
-            return None
-    return data
-
-
 def _x(data, *keys) -> float | None:
     """A number at ``keys`` (booleans excepted), or None where it is missing or not finite."""
-    value = _get(data, *keys)
+    value = get(data, *keys)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         return None
     return value
@@ -111,10 +99,10 @@ def _default_run_row() -> list[str]:
 def _drift_room_rows(name: str) -> list[list[str]]:
     """One row per hold-out room: the trained field's run beside the exact field's."""
     d = _read(name)
-    model, steps = _get(d, "model") or "n/a", _int(_x(d, "train_steps"))
+    model, steps = get(d, "model") or "n/a", _int(_x(d, "train_steps"))
     rows = []
-    for room, r in (_get(d, "per_room") or {}).items():
-        t = _get(r, "trained") or {}
+    for room, r in (get(d, "per_room") or {}).items():
+        t = get(r, "trained") or {}
         rows.append([f"room {room} `{name}`", model, steps, num(_x(r, "field_seconds"), 0), "-",
                      num(_x(r, "field_held_out", "psnr_db"), 1), cm(_x(t, "ate_estimate_m")),
                      cm(_x(t, "ate_causal_m")), cm(_x(t, "ate_estimate_max_m")), cm(_x(t, "ate_odometry_m")),
@@ -126,8 +114,8 @@ def _drift_room_rows(name: str) -> list[list[str]]:
 def _drift_pooled_rows(name: str) -> list[list[str]]:
     """The file's pooled figures over its rooms: the mean, then the range."""
     d = _read(name)
-    p, o = _get(d, "pooled", "trained") or {}, _get(d, "pooled", "oracle") or {}
-    model, steps = _get(d, "model") or "n/a", _int(_x(d, "train_steps"))
+    p, o = get(d, "pooled", "trained") or {}, get(d, "pooled", "oracle") or {}
+    model, steps = get(d, "model") or "n/a", _int(_x(d, "train_steps"))
     keys = ("ate_estimate_m", "ate_causal_m", "ate_estimate_max_m", "ate_odometry_m")
     mean = [cm(_x(p, k, "mean")) for k in keys] + [cm(_x(o, "ate_estimate_m", "mean"))]
     spread = [_span(_x(p, k, "min"), _x(p, k, "max"), cm) for k in keys]
@@ -156,7 +144,7 @@ GROWTH_HEADER = ["room (file)", "train steps", "field error mm / deg", "held-out
 
 def _growth_row(name: str, room: str, r: dict, steps: str) -> list[str]:
     """One room: its error near the frames used everywhere ('near') against its growth with the gap."""
-    fe, near, grow, g = (_get(r, k) or {} for k in ("field_error", "near_frames_everywhere", "with_growth", "growth"))
+    fe, near, grow, g = (get(r, k) or {} for k in ("field_error", "near_frames_everywhere", "with_growth", "growth"))
     rad = _x(fe, "sigma_rad")
     deg = num(None if rad is None else math.degrees(rad))
     return [f"room {room} `{name}`", steps, _pair(mm(_x(fe, "sigma_m")), deg),
@@ -175,7 +163,7 @@ def growth_table() -> str:
     name = "error_growth_rooms.json"
     d = _read(name)
     steps = _int(_x(d, "train_steps"))
-    return table(GROWTH_HEADER, [_growth_row(name, room, r, steps) for room, r in (_get(d, "per_room") or {}).items()])
+    return table(GROWTH_HEADER, [_growth_row(name, room, r, steps) for room, r in (get(d, "per_room") or {}).items()])
 
 
 # --- covariance honesty ------------------------------------------------------------------------------
@@ -188,15 +176,15 @@ COVARIANCE_HEADER = ["setting (file)", "matcher", "render px", "perturbation cm 
 
 def _covariance_row(name: str, d: dict, key: str) -> list[str]:
     """One setting/method of a covariance file, pooled over its rooms."""
-    p, rooms = _get(d, "pooled", key) or {}, (_get(d, "per_room", key) or {}).values()
-    s = _get(p, "settings") or {}
-    size = _get(s, "size") or []
+    p, rooms = get(d, "pooled", key) or {}, (get(d, "per_room", key) or {}).values()
+    s = get(p, "settings") or {}
+    size = get(s, "size") or []
     trials = [_x(r, "trials") for r in rooms]
     skipped = [_x(r, "failures_skipped") for r in rooms]
     errors = [_x(r, "trans_err_median_mm") for r in rooms]
     total = None if None in trials or not trials else sum(trials)
     lost = None if None in skipped or not skipped else sum(skipped)
-    return [f"{key} `{name}`", _get(d, "matcher") or "sift (the script's default)",
+    return [f"{key} `{name}`", get(d, "matcher") or "sift (the script's default)",
             "x".join(str(v) for v in size) or "n/a", _pair(cm(_x(s, "max_trans_m"), 0), num(_x(s, "max_rot_deg"), 1)),
             _int(_x(s, "rounds")), _pair(_int(total), _int(lost)), num(_x(p, "mean", "pose")),
             _span(_x(p, "room_min_max", "pose", 0), _x(p, "room_min_max", "pose", 1)),
@@ -210,7 +198,7 @@ def covariance_table() -> str:
     rows = []
     for name in COVARIANCE_FILES:
         d = _read(name)
-        rows += [_covariance_row(name, d, key) for key in (_get(d, "pooled") or {})]
+        rows += [_covariance_row(name, d, key) for key in (get(d, "pooled") or {})]
     return table(COVARIANCE_HEADER, rows)
 
 
@@ -225,15 +213,15 @@ ESTIMATOR_HEADER = ["source (file)", "figure", "reference run", *ESTIMATORS]
 
 def _pooled_rows(name: str, path: str, d: dict) -> list[list[str]]:
     """compare_rooms.json, one path: pooled over its sequences (mean, then range) and the reference runs."""
-    seqs = _get(d, "paths", path, "per_sequence") or {}
-    p = _get(d, "paths", path, "pooled") or {}
+    seqs = get(d, "paths", path, "per_sequence") or {}
+    p = get(d, "paths", path, "pooled") or {}
     label = f"{path} path, {len(seqs)} sequences `{name}`"
     taken = _frac(sum(_x(s, "corrections") or 0 for s in seqs.values()),
                   sum(_x(s, "keyframes") or 0 for s in seqs.values())) if seqs else "n/a"
 
     def row(figure, ref, cell):
         """One figure of every estimator."""
-        return [label, figure, ref, *(cell(_get(p, e)) if _get(p, e) else "-" for e in ESTIMATORS)]
+        return [label, figure, ref, *(cell(get(p, e)) if get(p, e) else "-" for e in ESTIMATORS)]
 
     return [row("ATE cm, mean", taken, lambda e: cm(_x(e, "ate_rmse_m", "mean"))),
             row("ATE cm, min-max", "-", lambda e: _span(_x(e, "ate_rmse_m", "min"), _x(e, "ate_rmse_m", "max"), cm)),
@@ -248,7 +236,7 @@ def _pooled_rows(name: str, path: str, d: dict) -> list[list[str]]:
 
 def _bias_cell(pooled: dict) -> str:
     """IMU path: how many reference runs ended with every bias within 3 sigma of the truth (the largest, sigma)."""
-    b = _get(pooled, "bias_abs_z_final")
+    b = get(pooled, "bias_abs_z_final")
     if b is None:
         return "-"
     return f"bias within 3 sigma {_frac(_x(b, 'within_3_sigma'), _x(b, 'sequences'))} (max {num(_x(b, 'max'), 1)})"
@@ -267,12 +255,12 @@ def _comparison_rows(folder: str) -> list[list[str]]:
     """One ``compare`` folder: ATE (max), NEES and corrections taken per estimator."""
     name = f"{folder}/comparison.json"
     d = _read(name)
-    rows = {r.get("estimator"): r for r in _get(d, "rows") or []}
-    src = _get(d, "source")
-    settings = [f"--odom {_get(src, 'odometry')}"] if isinstance(src, dict) else []
+    rows = {r.get("estimator"): r for r in get(d, "rows") or []}
+    src = get(d, "source")
+    settings = [f"--odom {get(src, 'odometry')}"] if isinstance(src, dict) else []
     if _x(src, "pipeline", "field_sigma_m") is not None:
         settings.append(f"--field-sigma {_x(src, 'pipeline', 'field_sigma_m')}")
-    label = f"{_get(d, 'path') or 'n/a'} path{''.join(', ' + s for s in settings)} `{name}`"
+    label = f"{get(d, 'path') or 'n/a'} path{''.join(', ' + s for s in settings)} `{name}`"
     first = next(iter(rows.values()), {})
     band = _span(_x(first, "nees_band_low"), _x(first, "nees_band_high"))
 
@@ -291,9 +279,9 @@ def _nees_question_rows() -> list[list[str]]:
     name = "nees_question.json"
     d = _read(name)
     rows = []
-    for odometry, o in (_get(d, "odometries") or {}).items():
-        est, c = _get(o, "estimators") or {}, _get(o, "corrections") or {}
-        label = f"{odometry} odometry; {_get(d, 'walk') or 'n/a'} `{name}`"
+    for odometry, o in (get(d, "odometries") or {}).items():
+        est, c = get(o, "estimators") or {}, get(o, "corrections") or {}
+        label = f"{odometry} odometry; {get(d, 'walk') or 'n/a'} `{name}`"
         band = _span(_x(next(iter(est.values()), {}), "band", 0), _x(next(iter(est.values()), {}), "band", 1))
         rows.append([label, "ATE cm", "-", *(cm(_x(est, e, "ate_rmse_m")) if e in est else "-" for e in ESTIMATORS)])
         rows.append([label, f"NEES mean (band {band})", num(_x(c, "nees_mean"), 1),
@@ -308,7 +296,7 @@ def _nees_question_rows() -> list[list[str]]:
 def estimators_table() -> str:
     """compare_rooms' pooled figures, then each ``compare`` folder, then nees_question's walk."""
     d = _read("compare_rooms.json")
-    rows = [r for path in (_get(d, "paths") or {}) for r in _pooled_rows("compare_rooms.json", path, d)]
+    rows = [r for path in (get(d, "paths") or {}) for r in _pooled_rows("compare_rooms.json", path, d)]
     rows += [r for folder in COMPARE_FOLDERS for r in _comparison_rows(folder)]
     return table(ESTIMATOR_HEADER, rows + _nees_question_rows())
 
@@ -319,18 +307,18 @@ def estimators_table() -> str:
 def _eval_k_table(name: str) -> str:
     """One Evaluation K summary: per blur x intrinsics cell, each method's median translation and success."""
     d = _read(name)
-    c = _get(d, "config") or {}
-    methods = _get(c, "methods") or list(_get(d, "methods") or {})
+    c = get(d, "config") or {}
+    methods = get(c, "methods") or list(get(d, "methods") or {})
     setting = (f"{_int(_x(c, 'scenarios'))} scenarios, +-{cm(_x(c, 'max_trans_m'), 0)} cm / "
-               f"{num(_x(c, 'max_rot_deg'), 0)} deg, shift {_get(c, 'shift') or 'n/a'}")
+               f"{num(_x(c, 'max_rot_deg'), 0)} deg, shift {get(c, 'shift') or 'n/a'}")
     header = [f"cell (file; {setting})", "blur sigma", "intrinsics (focal x, centre px)",
               *(f"{m}: median mm (success)" for m in methods),
               *(f"nap3d-selfcal beats {rival}: translation, rotation" for rival in _rivals(methods))]
     rows = []
-    for cell, v in (_get(d, "cells") or {}).items():
-        level = _get(v, "intrinsics") or "n/a"
-        noise = _get(c, "intrinsics_noise", level) or []
-        ms = _get(v, "methods") or {}
+    for cell, v in (get(d, "cells") or {}).items():
+        level = get(v, "intrinsics") or "n/a"
+        noise = get(c, "intrinsics_noise", level) or []
+        ms = get(v, "methods") or {}
         cells = [f"{mm(_x(ms, m, 'trans_err_m', 'median'), 2)} ({_pct(_x(ms, m, 'success_rate'))})" for m in methods]
         rows.append([f"{cell} `{name}`", num(_x(v, "blur_sigma"), 1),
                      f"{level} ({num(_x(noise, 0))}, {num(_x(noise, 1), 0)})", *cells,
@@ -401,14 +389,14 @@ SINGLE_HEADER = ["field (file)", "method", "trials", "perturbation cm / deg", "s
 def _peer_rows(name: str) -> list[list[str]]:
     """One bench-peers summary: each method, then the Cramer-Rao bound of the matches."""
     d = _read(name)
-    c = _get(d, "config") or {}
+    c = get(d, "config") or {}
     label, trials = f"{name.split('/')[0]} `{name}`", _int(_x(c, "trials"))
     pert = _pair(cm(_x(c, "max_trans_m"), 0), num(_x(c, "max_rot_deg"), 0))
     rows = [[label, method, trials, pert, _pct(_x(r, "success_rate")), num(_x(r, "trans_mm", "median"), 1),
              _pair(num(_x(r, "trans_mm", "p90"), 1), num(_x(r, "trans_mm", "max"), 1)),
              _pair(num(_x(r, "rot_deg", "median")), num(_x(r, "rot_deg", "p90"))), num(_x(r, "ms_median"), 0),
-             num(_x(r, "trans_over_crb_median"))] for method, r in (_get(d, "methods") or {}).items()]
-    crb = _get(d, "crb_trans_mm") or {}
+             num(_x(r, "trans_over_crb_median"))] for method, r in (get(d, "methods") or {}).items()]
+    crb = get(d, "crb_trans_mm") or {}
     rows.append([label, "Cramer-Rao bound", trials, pert, "-", num(_x(crb, "median"), 1),
                  _pair(num(_x(crb, "p90"), 1), num(_x(crb, "max"), 1)), "-", "-", "-"])
     return rows
@@ -418,10 +406,10 @@ def _opacity_rows() -> list[list[str]]:
     """opacity_weighting.json: each field kind x variant, pooled over the rooms (success: pooled, rooms' range)."""
     name = "opacity_weighting.json"
     d = _read(name)
-    rooms, per_room = _get(d, "rooms") or [], _get(d, "per_room") or {}
+    rooms, per_room = get(d, "rooms") or [], get(d, "per_room") or {}
     trials = _x(d, "scenarios")
     rows = []
-    for kind, variants in (_get(d, "pooled") or {}).items():
+    for kind, variants in (get(d, "pooled") or {}).items():
         steps = f" ({_int(_x(d, 'train_steps'))} train steps)" if kind == "trained" else ""
         label = f"{kind}{steps} `{name}`"
         for variant, r in variants.items():
@@ -468,20 +456,20 @@ def _realtime_mode(r: dict) -> str:
 def _realtime_row(name: str, d: dict, r: dict) -> list[str]:
     """One run setting (the median run of its repeats; ranges over the repeats beside)."""
     rate, speed = _x(d, "camera_rate_hz"), _x(r, "pace_speed")
-    stages = _get(r, "ms_per_keyframe") or {}
+    stages = get(r, "ms_per_keyframe") or {}
     render = next((v for v in (_x(stages, k, "median") for k in ("render", "render_beside", "render_ahead")) if v),
                   None)
-    ratios = _get(r, "vs_library_threads_1_repeats") or _get(r, "overlapped_vs_inline_repeats")
-    late = _get(r, "frames_late")
-    ate = _list_span(_get(r, "ate_m_repeats"), cm) if _get(r, "ate_m_repeats") else cm(_x(r, "ate_m"))
-    causal = _get(r, "causal_ate_m_repeats")
-    return [f"{_realtime_mode(r)} `{name}`", f"{_get(d, 'matcher') or 'n/a'}, {_get(r, 'field') or 'n/a'}",
+    ratios = get(r, "vs_library_threads_1_repeats") or get(r, "overlapped_vs_inline_repeats")
+    late = get(r, "frames_late")
+    ate = _list_span(get(r, "ate_m_repeats"), cm) if get(r, "ate_m_repeats") else cm(_x(r, "ate_m"))
+    causal = get(r, "causal_ate_m_repeats")
+    return [f"{_realtime_mode(r)} `{name}`", f"{get(d, 'matcher') or 'n/a'}, {get(r, 'field') or 'n/a'}",
             "-" if speed is None or rate is None else num(rate * speed, 1),
             f"{_int(_x(r, 'keyframe_every'))} ({num(_x(r, 'keyframe_interval_mean'), 1)})",
             num(_x(r, "frames_per_s"), 1),
-            _list_span(_get(r, "frames_per_s_repeats"), lambda v: num(v, 1)) if "frames_per_s_repeats" in r else "-",
+            _list_span(get(r, "frames_per_s_repeats"), lambda v: num(v, 1)) if "frames_per_s_repeats" in r else "-",
             _list_span(ratios) if ratios else "-",
-            _ms(_x(r, "behind_camera_s", "max"), 0) if _get(r, "behind_camera_s") else "-",
+            _ms(_x(r, "behind_camera_s", "max"), 0) if get(r, "behind_camera_s") else "-",
             _pair(num(_x(late, "median"), 1), _int(_x(late, "max"))) if late else "-",
             _pair(num(_x(stages, "measure", "median"), 0), num(_x(stages, "measure", "p90"), 0)), num(render, 0), ate,
             _list_span(causal, cm) if causal else cm(_x(r, "causal_ate_m")),
@@ -493,7 +481,7 @@ def realtime_table() -> str:
     rows = []
     for name in REALTIME_FILES:
         d = _read(name)
-        rows += [_realtime_row(name, d, r) for r in _get(d, "runs") or []]
+        rows += [_realtime_row(name, d, r) for r in get(d, "runs") or []]
     return table(REALTIME_HEADER, rows)
 
 
@@ -508,10 +496,10 @@ def _profile_rows() -> list[list[str]]:
     """odometry_profile_fr1_desk.json: one step's stages, one thread."""
     name = "odometry_profile_fr1_desk.json"
     d = _read(name)
-    size = "x".join(str(v) for v in _get(d, "resolution") or []) or "n/a"
+    size = "x".join(str(v) for v in get(d, "resolution") or []) or "n/a"
     rows = []
-    for kind, o in (_get(d, "odometries") or {}).items():
-        s = _get(o, "stages") or {}
+    for kind, o in (get(d, "odometries") or {}).items():
+        s = get(o, "stages") or {}
 
         def p50(stage, s=s):
             """A stage's median, ``-`` where this odometry has no such stage."""
@@ -530,7 +518,7 @@ def _vo_rows() -> list[list[str]]:
     """vo_fr1_desk.json: whole runs of each odometry alone, with its drift."""
     name = "vo_fr1_desk.json"
     rows = []
-    for kind, o in (_get(_read(name), "odometry") or {}).items():
+    for kind, o in (get(_read(name), "odometry") or {}).items():
         rows.append([f"{kind} `{name}`", _pair(_int(_x(o, "frames")), _int(_x(o, "failed_steps"))),
                      _pair(num(_x(o, "step_ms", "median"), 1), num(_x(o, "step_ms", "p90"), 1)),
                      num(_x(o, "read_ms", "median"), 1), "n/a", "n/a", "n/a", "n/a", num(_x(o, "frames_per_s"), 1),
@@ -554,9 +542,9 @@ def _estimator_timing_rows() -> list[list[str]]:
     """estimators_timing.json: each estimator's time per step on synthetic streams (iSAM2: causal / final)."""
     name = "estimators_timing.json"
     rows = []
-    for run, r in (_get(_read(name), "runs") or {}).items():
-        for est, e in (_get(r, "estimators") or {}).items():
-            res = list((_get(e, "rows") or {}).values())
+    for run, r in (get(_read(name), "runs") or {}).items():
+        for est, e in (get(r, "estimators") or {}).items():
+            res = list((get(e, "rows") or {}).values())
             rows.append([f"{run.replace('_', ' frames, ')} path `{name}`", _int(_x(r, "keyframes")), est,
                          num(_x(e, "step_ms_mean"), 3), num(_x(e, "step_ms_p99"), 3), num(_x(e, "final_s"), 3), "-",
                          "-", " / ".join(cm(_x(x, "ate_rmse_m")) for x in res) or "n/a",
@@ -568,11 +556,11 @@ def _graph_window_rows() -> list[list[str]]:
     """graph_window.json: iSAM2 per keyframe (median over the last thousand), memory and the final solve."""
     name = "graph_window.json"
     rows = []
-    for r in _get(_read(name), "runs") or []:
+    for r in get(_read(name), "runs") or []:
         window = _x(r, "graph_window")
         label = (f"window {_int(window)}, {'retiring' if r.get('retire') else 'keeping'} the final frames"
                  if window else "every keyframe kept")
-        per_k, rss = _get(r, "isam_ms_median_per_1000_keyframes") or {}, list((_get(r, "rss_mb_at") or {}).values())
+        per_k, rss = get(r, "isam_ms_median_per_1000_keyframes") or {}, list((get(r, "rss_mb_at") or {}).values())
         rows.append([f"{label} `{name}`", _int(_x(r, "keyframes")), "iSAM2",
                      num(_x(list(per_k.values()), -1), 2), num(_x(r, "isam_ms_p90_last_1000"), 2),
                      num(_x(r, "final_solve_s"), 2), _pair(num(_x(rss, 0), 1), num(_x(rss, -1), 1)),
@@ -594,12 +582,12 @@ def _pipeline_rows() -> list[list[str]]:
     """pipeline.json: one keyframe's stages, and iSAM2's update as the graph grows."""
     name = "pipeline.json"
     d = _read(name)
-    k = _get(d, "per_keyframe_s") or {}
-    setting = f"{_get(d, 'field') or 'n/a'} field, {_int(_x(k, 'correction_iterations'))} correction round"
+    k = get(d, "per_keyframe_s") or {}
+    setting = f"{get(d, 'field') or 'n/a'} field, {_int(_x(k, 'correction_iterations'))} correction round"
     count = f"{_frac(_x(k, 'accepted'), _x(k, 'keyframes'))} accepted"
     rows = [[f"keyframe: {stage.removesuffix('_per_keyframe')} `{name}`", setting, _ms(_x(k, stage)), "n/a", count]
             for stage in k if stage not in ("keyframes", "accepted", "correction_iterations")]
-    for key, value in (_get(d, "isam2") or {}).items():
+    for key, value in (get(d, "isam2") or {}).items():
         if key.endswith("_poses"):
             what, poses = key.split("_ms_at_")
             rows.append([f"iSAM2 {what.replace('_', ' ')} `{name}`", f"{poses.split('_')[0]} poses",
@@ -611,7 +599,7 @@ def _alignment_rows() -> list[list[str]]:
     """alignment.json: RANSAC alone, and one alignment's stages at two sizes."""
     name = "alignment.json"
     d = _read(name)
-    r = _get(d, "ransac_1000x500") or {}
+    r = get(d, "ransac_1000x500") or {}
     rows = [[f"RANSAC `{name}`", f"{_int(_x(r, 'correspondences'))} correspondences, {_int(_x(r, 'hypotheses'))} "
              "hypotheses", num(_x(r, "median_ms"), 2), f"min {num(_x(r, 'min_ms'), 2)}", "-"]]
     for key, s in d.items():
@@ -647,10 +635,10 @@ def _realsense_rows() -> list[list[str]]:
     """realsense_read.json: a simulated recording written by pyrealsense2's recorder, read back."""
     name = "realsense_read.json"
     d = _read(name)
-    size = "x".join(str(v) for v in _get(d, "size") or []) or "n/a"
+    size = "x".join(str(v) for v in get(d, "size") or []) or "n/a"
     rows = []
     for key in ("read_raw", "open", "registered_depth", "end_to_end"):
-        f = _get(d, f"frames_per_s_{key}") or {}
+        f = get(d, f"frames_per_s_{key}") or {}
         rows.append([f"RealSense {size}, {key.replace('_', ' ')} `{name}`", _int(_x(d, "frames")),
                      num(_x(d, "file_mb"), 1), num(_x(f, "median"), 1), f"min {num(_x(f, 'min'), 1)}",
                      "-", "-", "-", "-", "-", "-"])
@@ -662,8 +650,8 @@ def _rosbag_rows() -> list[list[str]]:
     name = "rosbag_fr1_desk.json"
     d = _read(name)
     rows = []
-    for key, s in (_get(d, "sources") or {}).items():
-        r = _get(d, "runs", key) or {}
+    for key, s in (get(d, "sources") or {}).items():
+        r = get(d, "runs", key) or {}
         diff = _x(r, "max_pose_difference_to_folder_m")
         rows.append([f"{key} `{name}`", _int(_x(s, "frames") or _x(d, "frames")), num(_x(s, "bag_mb"), 1),
                      num(_x(s, "read_frames_per_s"), 0), f"with opening {num(_x(s, 'read_frames_per_s_with_open'), 0)}"
@@ -671,13 +659,13 @@ def _rosbag_rows() -> list[list[str]]:
                      num(_x(r, "ate_cm")), num(_x(r, "causal_ate_cm")), num(_x(r, "odometry_ate_cm")),
                      _frac(_x(r, "accepted"), _x(r, "keyframes")), num(_x(s, "depth_max_abs_error_mm"), 2)
                      if "depth_max_abs_error_mm" in s else "-", mm(diff, 3) if diff is not None else "-"])
-    return rows + [_rosbag_written_row(name, _get(d, "runs") or {})]
+    return rows + [_rosbag_written_row(name, get(d, "runs") or {})]
 
 
 def _rosbag_written_row(name: str, runs: dict) -> list[str]:
     """The ROS 1 run's written bag (against the run's estimate) and its rerun recording."""
     r = next((v for v in runs.values() if "rerun_recording" in v), {})
-    rr = _get(r, "rerun_recording") or {}
+    rr = get(r, "rerun_recording") or {}
     return [f"written bag and rerun recording `{name}`", f"{_int(_x(rr, 'status_entries'))} statuses",
             num(_x(rr, "mb"), 1), "-", "-", "-", "-", "-",
             f"{_int(_x(rr, 'accepted_ellipsoids'))} ellipsoids", "-",
@@ -708,11 +696,11 @@ def _sweep_rows() -> list[list[str]]:
     budget = (f"{_int(_x(d, 'cells'))} cells, {_int(_x(d, 'fields'))} fields, {_int(_x(d, 'frames_per_recording'))} "
               "frames")
     rows = []
-    for key, r in (_get(d, "runs") or {}).items():
+    for key, r in (get(d, "runs") or {}).items():
         workers = key.removeprefix("workers_")
-        ratio = (f"{num(_x(d, 'ratio_2_to_1_workers'))} (same table: {_yes(_get(d, 'same_table_up_to_timings'))})"
+        ratio = (f"{num(_x(d, 'ratio_2_to_1_workers'))} (same table: {_yes(get(d, 'same_table_up_to_timings'))})"
                  if workers == "2" else "-")
-        rows.append([f"sweep, {workers} worker(s) `{name}`", _get(d, "pool") or "n/a", budget,
+        rows.append([f"sweep, {workers} worker(s) `{name}`", get(d, "pool") or "n/a", budget,
                      num(_x(r, "seconds"), 1), ratio, "-", "-", "-", "-"])
     return rows
 
@@ -721,12 +709,12 @@ def _cuda_rows() -> list[list[str]]:
     """cuda_check_h200.json: the grid trained on the GPU, rendered there and on the CPU."""
     name = "cuda_check_h200.json"
     d = _read(name)
-    rows = [[f"train `{name}`", f"{_get(d, 'train_device') or 'n/a'} ({_get(d, 'gpu') or 'n/a'}, torch "
-             f"{_get(d, 'torch') or 'n/a'})", f"{_int(_x(d, 'steps'))} steps", num(_x(d, "train_seconds"), 1),
+    rows = [[f"train `{name}`", f"{get(d, 'train_device') or 'n/a'} ({get(d, 'gpu') or 'n/a'}, torch "
+             f"{get(d, 'torch') or 'n/a'})", f"{_int(_x(d, 'steps'))} steps", num(_x(d, "train_seconds"), 1),
              "-", "-", "-", "-", "-"]]
     for key, r in d.items():
         if isinstance(r, dict) and "render_ms_median" in r:
-            rows.append([f"render, {key} `{name}`", _get(r, "backend") or "n/a", "-", "-", "-",
+            rows.append([f"render, {key} `{name}`", get(r, "backend") or "n/a", "-", "-", "-",
                          num(_x(r, "render_ms_median"), 1), num(_x(r, "depth_err_vs_exact_mm_median"), 1),
                          _pair(num(_x(r, "vs_gpu_depth_mm_median"), 4), num(_x(r, "vs_gpu_depth_mm_p99"), 4)),
                          _pair(f"{_x(r, 'vs_gpu_opacity_flips') or 0:.1e}", f"{_x(r, 'vs_gpu_colour_levels') or 0:.1e}")
@@ -749,8 +737,8 @@ def _fault_rows() -> list[list[str]]:
     """faults.json: per room, the clean run and each injected fault."""
     name = "faults.json"
     rows = []
-    for room, r in (_get(_read(name), "rooms") or {}).items():
-        w, s, b = (_get(r, k) or {} for k in ("wrong_corrections", "some_frames_scaled", "wrong_after_blind_stretch"))
+    for room, r in (get(_read(name), "rooms") or {}).items():
+        w, s, b = (get(r, k) or {} for k in ("wrong_corrections", "some_frames_scaled", "wrong_after_blind_stretch"))
         factor, e = next(((k.removeprefix("every_frame_scaled_"), v) for k, v in r.items()
                           if k.startswith("every_frame_scaled_")), ("n/a", {}))
         rows += [
@@ -767,7 +755,7 @@ def _fault_rows() -> list[list[str]]:
              f"found {num(_x(e, 'estimated_scale'), 4)} ({_signed_pct(_x(e, 'scale_error_rel'))})",
              _frac(_x(e, "accepted"), _x(r, "keyframes")), cm(_x(e, "ate_m")), "-", num(_x(e, "ratio_to_clean")), "-"],
             [f"wrong after a blind stretch `{name}`", room, "one wrong correction",
-             f"gate took it: {_yes(_get(b, 'wrong_accepted_by_gate'))}; weighed out: {_yes(_get(b, 'weighed_out'))}",
+             f"gate took it: {_yes(get(b, 'wrong_accepted_by_gate'))}; weighed out: {_yes(get(b, 'weighed_out'))}",
              "-", cm(_x(b, "ate_m")), "-", "-", "-"]]
     return rows
 
@@ -777,10 +765,10 @@ def _fallback_rows() -> list[list[str]]:
     name = "imu_fallback.json"
     d = _read(name)
     rows = []
-    for r in _get(d, "rows") or []:
+    for r in get(d, "rows") or []:
         for case in ("imu_alone", "dense", "vo"):
-            c = _get(r, case) or {}
-            spans = ", ".join(f"{a}-{b}" for a, b in _get(c, "fallback_intervals") or [])
+            c = get(r, case) or {}
+            spans = ", ".join(f"{a}-{b}" for a, b in get(c, "fallback_intervals") or [])
             rows.append([f"field covers the first {_int(_x(d, 'mapped_frames'))} frames `{name}`",
                          f"room {_int(_x(r, 'room'))}", case.replace("_", " ") if case == "imu_alone" else
                          f"{case} fallback", f"fallback frames {spans}" if spans else "-",
@@ -793,7 +781,7 @@ def _gravity_rows() -> list[list[str]]:
     """gravity_frame.json: walks mapped into a turned frame, per start of gravity (ATE median, max)."""
     name = "gravity_frame.json"
     rows = []
-    for frame, f in (_get(_read(name), "frames") or {}).items():
+    for frame, f in (get(_read(name), "frames") or {}).items():
         for case, c in f.items():
             if isinstance(c, dict) and "runs" in c:
                 rows.append([f"gravity frame turned `{name}`", frame.replace("_", " "), case.replace("_", " "),
@@ -815,7 +803,7 @@ def imu_drift_table() -> str:
     rows = [[f"after {_int(_x(r, 't_s'))} s `{name}`", _int(_x(d, "seeds")), num(_x(r, "mc_rms_m"), 3),
              num(_x(r, "predicted_rms_m"), 3), num(_x(r, "ratio"), 3),
              _pair(num(_x(r, "predicted_initial_bias_m"), 3), num(_x(r, "predicted_white_noise_m"), 3)),
-             num(_x(r, "predicted_bias_random_walk_m"), 4)] for r in _get(d, "table") or []]
+             num(_x(r, "predicted_bias_random_walk_m"), 4)] for r in get(d, "table") or []]
     return table(["time (file)", "seeds", "Monte-Carlo RMS m", "predicted m", "ratio",
                   "predicted from the initial bias / white noise m", "from the bias random walk m"], rows)
 
