@@ -30,13 +30,13 @@ EVAL_K_ORDER = ("nap3d-refined", "nap3d-selfcal", "nap3d-plain", "pnp", "pnp-sel
 # --- reading ---------------------------------------------------------------------------------
 
 def _dict(d, *keys) -> dict:
-    """``_get``, or an empty dict where that is missing or not a dict."""
+    """``get``, or an empty dict where that is missing or not a dict."""
     value = get(d, *keys)
     return value if isinstance(value, dict) else {}
 
 
 def _list(d, *keys) -> list:
-    """``_get``, or an empty list where that is missing or not a list."""
+    """``get``, or an empty list where that is missing or not a list."""
     value = get(d, *keys)
     return value if isinstance(value, list) else []
 
