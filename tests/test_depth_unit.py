@@ -4,7 +4,6 @@ warning after a whole field was trained."""
 
 from __future__ import annotations
 
-import dataclasses
 import shutil
 
 import cv2
@@ -13,6 +12,7 @@ import pytest
 
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.datasets.depth_unit import check_depth_unit
+from nap3d_graph.sims.faults import ScaledDepth
 
 
 @pytest.fixture(scope="module")
@@ -29,21 +29,6 @@ def _with_depth_times(src, dst, factor: float):
     return dst
 
 
-class _DepthTimes:
-    """``sequence`` with every frame's depth multiplied by ``factor``."""
-
-    def __init__(self, sequence, factor: float):
-        self.sequence, self.factor = sequence, factor
-        self.T_world_cam_gt, self.intrinsics = sequence.T_world_cam_gt, sequence.intrinsics
-
-    def __len__(self):
-        return len(self.sequence)
-
-    def __getitem__(self, i):
-        frame = self.sequence[i]
-        return dataclasses.replace(frame, depth_m=frame.depth_m * self.factor)
-
-
 def test_the_right_unit_and_the_two_tum_mistakes_are_told_apart(walk, tmp_path):
     right = check_depth_unit(open_sequence(walk))
     assert right is not None and right.scale == 1.0 and right.mistake is None and right.pairs >= 3
@@ -51,7 +36,8 @@ def test_the_right_unit_and_the_two_tum_mistakes_are_told_apart(walk, tmp_path):
     millimetres = check_depth_unit(open_sequence(_with_depth_times(walk, tmp_path / "mm", 0.2)))
     assert millimetres.scale == 5.0 and "x5 = 5000/1000" in millimetres.message()
     # TUM's PNGs read at 1000 per metre: 5x long (scaled on reading: x5 would overflow uint16 PNGs).
-    fifths = check_depth_unit(_DepthTimes(open_sequence(walk), 5.0))
+    sequence = open_sequence(walk)
+    fifths = check_depth_unit(ScaledDepth(sequence, {i: 5.0 for i in range(len(sequence))}))
     assert fifths.scale == 0.2 and "x0.2 = 1000/5000" in fifths.message()
 
 

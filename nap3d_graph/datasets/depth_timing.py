@@ -31,7 +31,8 @@ from ..camera import backproject_depth, project
 from ..conventions import inv_T, transform_points
 
 __all__ = ["CaptureTiming", "ColourTiming", "DepthTiming", "estimate_colour_timing", "depth_agreement_mm", "frame_pairs",
-           "estimate_depth_timing", "estimate_timing", "multiview_agreement_mm", "resolve_capture_timing"]
+           "depth_seen_from", "estimate_depth_timing", "estimate_timing", "multiview_agreement_mm",
+           "resolve_capture_timing"]
 
 log = logging.getLogger(__name__)
 
@@ -100,19 +101,26 @@ class DepthTiming:
         return asdict(self)
 
 
+def depth_seen_from(depth_a: np.ndarray, depth_b: np.ndarray, intrinsics, T_b_a: np.ndarray, stride: int = 4,
+                    scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Frame ``a``'s depth (every ``stride``-th pixel) moved into frame ``b`` by ``T_b_a``:
+    ``(measured, z)`` (N,) each, for the points that land inside ``b``'s image: ``b``'s own depth
+    at the pixel (0 where it has none) and the moved point's depth; both depths x ``scale``."""
+    points_a, _ = backproject_depth(np.asarray(depth_a) * scale, intrinsics, stride)
+    uv, z = project(transform_points(T_b_a, points_a), intrinsics)
+    with np.errstate(invalid="ignore"):
+        u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+        inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
+    return np.asarray(depth_b)[v[inside].astype(int), u[inside].astype(int)] * scale, z[inside]
+
+
 def depth_agreement_mm(depth_a: np.ndarray, depth_b: np.ndarray, intrinsics, T_world_a: np.ndarray,
                        T_world_b: np.ndarray, stride: int = 4, scale: float = 1.0,
                        max_diff_m: float = 0.05) -> tuple[float, int]:
     """Median |z_b - z(a moved into b)| (mm) over pixels valid in both and within
     ``max_diff_m`` (the same surface), and how many; depths multiplied by ``scale``."""
-    points_a, _ = backproject_depth(np.asarray(depth_a) * scale, intrinsics, stride)
-    points_b = transform_points(inv_T(T_world_b) @ T_world_a, points_a)
-    uv, z = project(points_b, intrinsics)
-    with np.errstate(invalid="ignore"):
-        u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
-        inside = (u >= 0) & (u < intrinsics.width) & (v >= 0) & (v < intrinsics.height)
-    measured = np.asarray(depth_b)[v[inside].astype(int), u[inside].astype(int)] * scale
-    diff = measured - z[inside]
+    measured, z = depth_seen_from(depth_a, depth_b, intrinsics, inv_T(T_world_b) @ T_world_a, stride, scale)
+    diff = measured - z
     same = (measured > 0) & (np.abs(diff) < max_diff_m)
     if not same.any():
         return float("nan"), 0

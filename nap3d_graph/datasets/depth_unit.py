@@ -20,9 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import backproject_depth, project
-from ..conventions import inv_T, transform_points
+from ..conventions import inv_T
 from ..errors import DatasetError
+from .depth_timing import depth_seen_from
 
 __all__ = ["DepthUnitCheck", "check_depth_unit", "UNIT_MISTAKES"]
 
@@ -59,16 +59,11 @@ class DepthUnitCheck:
 
 def _relative_disagreement(depth_a, depth_b, K, T_b_a: np.ndarray, scale: float, stride: int) -> float:
     """Median ``|s d_b - z| / (s d_b)`` over pixels of ``a`` that land on valid depth in ``b``."""
-    points_a, _ = backproject_depth(np.asarray(depth_a) * scale, K, stride)
-    uv, z = project(transform_points(T_b_a, points_a), K)
-    with np.errstate(invalid="ignore"):
-        u, v = np.rint(uv[:, 0]), np.rint(uv[:, 1])
-        inside = (u >= 0) & (u < K.width) & (v >= 0) & (v < K.height) & (z > 0)
-    measured = np.asarray(depth_b)[v[inside].astype(int), u[inside].astype(int)] * scale
-    valid = measured > 0
+    measured, z = depth_seen_from(depth_a, depth_b, K, T_b_a, stride, scale)
+    valid = (measured > 0) & (z > 0)
     if valid.sum() < 50:
         return float("nan")
-    return float(np.median(np.abs(measured[valid] - z[inside][valid]) / measured[valid]))
+    return float(np.median(np.abs(measured[valid] - z[valid]) / measured[valid]))
 
 
 def _pairs_with_baseline(T_world_cam: np.ndarray, count: int, baseline_m: tuple[float, float],
