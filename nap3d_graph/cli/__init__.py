@@ -13,7 +13,7 @@ import sys
 
 from .common import Parser, UsageError, in_flags
 
-__all__ = ["main", "build_parser", "UsageError", "SUBCOMMANDS"]
+__all__ = ["main", "build_parser", "command_parsers", "UsageError", "SUBCOMMANDS"]
 
 log = logging.getLogger("nap3d_graph")
 
@@ -86,14 +86,19 @@ def _missing_full_extra(exc: ModuleNotFoundError) -> str | None:
     return name if name in FULL_EXTRA else None
 
 
+def command_parsers(parser) -> dict:
+    """``{command name: its parser}`` of the command line ``build_parser`` made."""
+    import argparse
+
+    return next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices  # noqa: SLF001
+
+
 def given_options(parser, command: str | None, argv: list[str]) -> set[str]:
     """The options (argparse dests) that ``argv`` gives to ``command``, abbreviations and
     ``--opt=value`` included: what a config file must not override, whatever the value."""
-    import argparse
-
     if command is None:
         return set()
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[command]  # noqa: SLF001
+    sub = command_parsers(parser)[command]
     by_flag = {flag: action.dest for action in sub._actions for flag in action.option_strings}  # noqa: SLF001
     tokens = [str(t) for t in argv]
     tokens = tokens[tokens.index(command) + 1:] if command in tokens else tokens
