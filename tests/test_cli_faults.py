@@ -113,7 +113,7 @@ def test_nothing_is_overwritten_without_force(walk, tum_path, tmp_path, capsys):
     real = tmp_path / "real_tum"
     shutil.copytree(tum_path, real)
     before = {p.name: p.stat().st_mtime_ns for p in real.iterdir()}
-    rc, err = _cli(capsys, "simulate", real, "--frames", "4", "--width", "64", "--height", "48")
+    rc, err = _cli(capsys, "simulate", real, "--count", "4", "--width", "64", "--height", "48")
     assert rc == 2 and "not empty" in err and "--force" in err
     assert {p.name: p.stat().st_mtime_ns for p in real.iterdir()} == before
     ns = tmp_path / "ns"
@@ -217,7 +217,7 @@ def test_simulate_stops_at_once_on_sigint(tmp_path):
     env = dict(os.environ, MPLBACKEND="Agg")
     for trial in range(3):
         out = tmp_path / f"sim{trial}"
-        proc = subprocess.Popen([sys.executable, "-m", "nap3d_graph.cli", "simulate", str(out), "--frames", "400",
+        proc = subprocess.Popen([sys.executable, "-m", "nap3d_graph.cli", "simulate", str(out), "--count", "400",
                                  "--width", "320", "--height", "240"], stdout=subprocess.PIPE,
                                 stderr=subprocess.PIPE, env=env)
         deadline = time.monotonic() + 120
@@ -235,6 +235,6 @@ def test_simulate_stops_at_once_on_sigint(tmp_path):
         assert (out / "PARTIAL.txt").is_file() and not (out / "rgb.txt").exists()
         with pytest.raises(DatasetError, match="did not finish"):
             TumSequence(out)
-        assert main(["simulate", str(out), "--frames", "3", "--width", "64", "--height", "48"]) == 2
-        assert main(["simulate", str(out), "--frames", "3", "--width", "64", "--height", "48", "--force"]) == 0
+        assert main(["simulate", str(out), "--count", "3", "--width", "64", "--height", "48"]) == 2
+        assert main(["simulate", str(out), "--count", "3", "--width", "64", "--height", "48", "--force"]) == 0
         assert not (out / "PARTIAL.txt").exists() and len(TumSequence(out)) == 3

@@ -234,7 +234,7 @@ def test_compare_command_writes_what_evo_loads_and_prints_the_same_numbers(walk,
     printed = capsys.readouterr().out
     # Its configuration is written first (an interrupted comparison still says what it was);
     # a finished one carries no PARTIAL marker.
-    assert json.loads((out / "config.json").read_text())["odometry"] == "imu"
+    assert json.loads((out / "config.json").read_text())["settings"]["odometry"]["kind"] == "imu"
     assert not (out / "PARTIAL.txt").exists()
     with open(out / "comparison.csv") as f:
         rows = list(csv.DictReader(f))
@@ -307,12 +307,12 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
                  "--pace", "4", "--out", str(tmp_path)]) == 0  # paced and overlapped: --land-within frame
     run = tmp_path / "latest"
     config = yaml.safe_load((run / "config.yaml").read_text())
-    pipeline = config["pipeline"]
+    pipeline = config["resolved"]["pipeline"]
     assert pipeline["overlap"] is True and pipeline["render_ahead"] is True and pipeline["detect_ahead"] is True
     # 'frame': 0.9 of the walk's frame period, recorded in seconds; fed at 4x the camera's rate.
     period_s = float(np.median(np.diff(SimSequence(walk).timestamps)))
     assert pipeline["land_within_s"] == pytest.approx(0.9 * period_s)
-    assert config["pace"] == 4.0
+    assert config["settings"]["source"]["pace"] == 4.0
     paced = json.loads((run / "metrics.json").read_text())["paced"]
     assert paced["speed"] == 4.0 and paced["frames"] == 60 and paced["behind_camera_s"]["max"] >= 0
     assert "paced at 4x the camera's rate" in capsys.readouterr().out
@@ -340,7 +340,7 @@ def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path, capsys):
         out = tmp_path / name
         assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--max-frames", "30",
                      "--out", str(out), *extra]) == 0
-        settings[name] = yaml.safe_load((out / "latest" / "config.yaml").read_text())["pipeline"]
+        settings[name] = yaml.safe_load((out / "latest" / "config.yaml").read_text())["resolved"]["pipeline"]
         said = capsys.readouterr().out
         if name == "live":
             assert "paced at 8x the camera's rate (overlapped, waiting up to" in said and "whenever" in said
@@ -369,7 +369,7 @@ def test_a_paced_feature_odometry_works_at_the_renders_width(walk, tmp_path, cap
         out = tmp_path / name
         assert main(["run", "--traj", "sim", "--data", str(walk), "--field", "oracle", "--odom", "vo",
                      "--render-size", "128x96", "--max-frames", "12", "--out", str(out), *extra]) == 0
-        widths[name] = yaml.safe_load((out / "latest" / "config.yaml").read_text())["vo_width"]
+        widths[name] = yaml.safe_load((out / "latest" / "config.yaml").read_text())["settings"]["odometry"]["vo_width"]
         said = capsys.readouterr().out
         assert ("frames resized to 128 px wide" in said) == (name == "paced"), (name, said)
     assert widths == {"paced": 128, "replay": None, "given": 96}

@@ -254,7 +254,7 @@ def test_a_run_is_reproduced_from_its_config(walk, tmp_path, capsys):
     config = first / "latest" / "config.yaml"
     # A setting with no flag survives too.
     edited = yaml.safe_load(config.read_text())
-    edited["pipeline"]["depth_scale_tolerance"] = 0.05
+    edited["settings"]["alignment"]["depth_scale_tolerance"] = 0.05
     config.write_text(yaml.safe_dump(edited, sort_keys=False))
     again = tmp_path / "again"
     assert main(["run", "--config", str(config), "--out", str(again)]) == 0
@@ -263,14 +263,16 @@ def test_a_run_is_reproduced_from_its_config(walk, tmp_path, capsys):
     np.testing.assert_array_equal(stamps_a, stamps_b)
     np.testing.assert_allclose(T_a, T_b, atol=1e-9)
     reproduced = yaml.safe_load((again / "latest" / "config.yaml").read_text())
-    assert reproduced["pipeline"]["keyframe_every"] == 3 and reproduced["pipeline"]["gate_p"] == 0.99
-    assert reproduced["pipeline"]["depth_scale_tolerance"] == 0.05
-    assert reproduced["odometry"] == "vo" and reproduced["vo_width"] == 160
-    assert reproduced["pipeline"]["rolling_shutter_s"] == 0.02 and reproduced["rolling_shutter_readout_s"] == 0.02
+    settings, pipeline = reproduced["settings"], reproduced["resolved"]["pipeline"]
+    assert settings["keyframes"]["every"] == 3 and settings["graph"]["gate_p"] == 0.99
+    assert pipeline["keyframe_every"] == 3 and pipeline["gate_p"] == 0.99
+    assert settings["alignment"]["depth_scale_tolerance"] == pipeline["depth_scale_tolerance"] == 0.05
+    assert settings["odometry"]["kind"] == "vo" and settings["odometry"]["vo_width"] == 160
+    assert pipeline["rolling_shutter_s"] == 0.02 and reproduced["resolved"]["rolling_shutter_readout_s"] == 0.02
     # A flag given on the command line wins over the file.
     assert main(["run", "--config", str(config), "--keyframe-every", "4", "--rolling-shutter", "0.01",
                  "--out", str(tmp_path / "third")]) == 0
-    third = yaml.safe_load((tmp_path / "third" / "latest" / "config.yaml").read_text())["pipeline"]
+    third = yaml.safe_load((tmp_path / "third" / "latest" / "config.yaml").read_text())["resolved"]["pipeline"]
     assert third["keyframe_every"] == 4 and third["rolling_shutter_s"] == 0.01
     capsys.readouterr()
     assert main(["run", "--config", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "x")]) == 2

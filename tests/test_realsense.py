@@ -155,7 +155,7 @@ def test_run_on_a_recording_removes_drift_as_on_the_sequence_folder(walk, tmp_pa
     rs = json.loads((tmp_path / "rs" / "latest" / "metrics.json").read_text())
     folder = json.loads((tmp_path / "sim" / "latest" / "metrics.json").read_text())
     config = (tmp_path / "rs" / "latest" / "config.yaml").read_text()
-    assert "odometry: imu" in config  # a recording with an IMU drives the run with it by default
+    assert "kind: imu" in config  # a recording with an IMU drives the run with it by default
     odometry, corrected = rs["odometry"]["ate_m"]["rmse"], rs["estimate"]["ate_m"]["rmse"]
     assert odometry > 0.1 and corrected < 0.006 and corrected < odometry / 20
     assert rs["corrections_accepted"] >= 11
@@ -190,7 +190,7 @@ def test_run_without_ground_truth_reports_correction_statistics(walk, tmp_path, 
     assert "no ATE" in metrics["ground_truth"] and "estimate" not in metrics
     assert metrics["corrections_accepted"] >= 5 and metrics["median_inliers"] > 30
     config = yaml.safe_load((tmp_path / "latest" / "config.yaml").read_text())
-    assert config["imu"]["fallback_odometry"] == "dense" and "vo_fallback" not in metrics  # never needed here
+    assert config["resolved"]["imu"]["fallback_odometry"] == "dense" and "vo_fallback" not in metrics  # never needed here
     # Gravity as the graph refined it, in the simulated z-up world: within a degree of -z.
     gravity = metrics["gravity_world_m_s2"]
     assert gravity["given"] == [0.0, 0.0, -9.81] and gravity["turned_deg"] < 1.0

@@ -304,13 +304,13 @@ def test_simulate_writes_a_bag_that_runs_with_its_folder_as_field(tmp_path):
     from nap3d_graph.cli import main
 
     out, bag = tmp_path / "walk", tmp_path / "walk_ros2"
-    assert main(["simulate", str(out), "--frames", "12", "--width", "160", "--height", "120", "--rosbag", str(bag)]) == 0
+    assert main(["simulate", str(out), "--count", "12", "--width", "160", "--height", "120", "--rosbag", str(bag)]) == 0
     assert (bag / "metadata.yaml").is_file()  # not a .bag: a ROS 2 folder
     assert main(["run", "--traj", "rosbag", "--data", str(bag), "--field", str(out), "--render-size", "160x120",
                  "--out", str(tmp_path / "r")]) == 0
     metrics = json.loads((tmp_path / "r" / "latest" / "metrics.json").read_text())
     assert metrics["frames"] == 12 and metrics["corrections_accepted"] >= 1
-    assert main(["simulate", str(tmp_path / "again"), "--frames", "3", "--rosbag", str(bag)]) == 2  # never overwritten
+    assert main(["simulate", str(tmp_path / "again"), "--count", "3", "--rosbag", str(bag)]) == 2  # never overwritten
 
 
 def test_depth_from_a_separate_depth_camera_is_warped_into_colour(sim_dir, tmp_path):

@@ -40,28 +40,31 @@ def test_a_run_is_reproduced_bit_for_bit_from_its_config(case, walk, tmp_path):
     if case == "bag":
         bag = write_sequence_bag(SimSequence(walk), tmp_path / "walk.bag", ros=1)
         argv = ["--traj", "rosbag", "--data", bag, "--topics", "gt=/tf", "--field", "none", "--odom", "noisy"]
-        option, value = "topics", "gt=/tf"
+        option, value = "source.topics", "gt=/tf"
     elif case == "imu":
         argv = ["--traj", "sim", "--data", walk, "--field", "oracle", "--odom", "imu", "--render-size", "160x120",
                 "--imu-noise", "2e-3 2.4e-4 1e-4 2e-6"]
-        option, value = "imu_noise", "2e-3 2.4e-4 1e-4 2e-6"
+        option, value = "odometry.imu_noise", "2e-3 2.4e-4 1e-4 2e-6"
     else:
         argv = ["--traj", "sim", "--data", walk, "--field", "oracle", "--odom", "noisy", "--render-size", "160x120",
                 "--keyframe-every", "2", "--graph-window", "4"]
-        option, value = "graph_window", 4
+        option, value = "graph.window", 4
     first, again = tmp_path / "first", tmp_path / "again"
     _run(*argv, "--out", first)
     written = _config(first)
 
     def recorded(config):
-        return config["pipeline"][option] if option == "graph_window" else config[option]
+        section, name = option.split(".")
+        return config["settings"][section][name]
 
     assert recorded(written) == value
     _run("--config", first / "latest" / "config.yaml", "--out", again)
     _same_run(first, again)
     reproduced = _config(again)
-    assert recorded(reproduced) == value and reproduced["pipeline"] == written["pipeline"]
-    assert reproduced["align"] == written["align"]
+    assert recorded(reproduced) == value
+    assert reproduced["settings"]["output"]["out"] == str(again)  # given: the flag wins
+    assert {**reproduced["settings"], "output": None} == {**written["settings"], "output": None}
+    assert reproduced["resolved"] == written["resolved"]
 
 
 def test_flags_beside_config_win_even_at_their_default(walk, tmp_path):
@@ -69,10 +72,9 @@ def test_flags_beside_config_win_even_at_their_default(walk, tmp_path):
     _run("--traj", "sim", "--data", walk, "--field", "oracle", "--odom", "noisy", "--render-size", "160x120",
          "--keyframe-every", "2", "--graph-window", "4", "--out", first)
     config = first / "latest" / "config.yaml"
-    # --graph-window has no entry of its own in the file's options: the file's pipeline held it.
     _run("--config", config, "--graph-window", "6", "--out", tmp_path / "b")
-    assert _config(tmp_path / "b")["pipeline"]["graph_window"] == 6
+    assert _config(tmp_path / "b")["settings"]["graph"]["window"] == 6
     # --keyframe-every 5 is the default: given, it still wins over the file's 2.
     _run("--config", config, "--keyframe-every", "5", "--graph-window", "0", "--out", tmp_path / "c")
-    pipeline = _config(tmp_path / "c")["pipeline"]
-    assert pipeline["keyframe_every"] == 5 and pipeline["graph_window"] == 0
+    settings = _config(tmp_path / "c")["settings"]
+    assert settings["keyframes"]["every"] == 5 and settings["graph"]["window"] == 0

@@ -197,9 +197,23 @@ def test_cli_simulate_writes_a_loadable_folder(tmp_path):
     from nap3d_graph.cli import main
 
     out = tmp_path / "cli_room"
-    assert main(["simulate", str(out), "--frames", "3", "--width", "64", "--height", "48", "--seed", "4"]) == 0
+    assert main(["simulate", str(out), "--count", "3", "--width", "64", "--height", "48", "--seed", "4"]) == 0
     seq = SimSequence(out)
     assert len(seq) == 3 and seq[2].rgb.shape == (48, 64, 3)
     assert seq.intrinsics == Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480).scaled(64, 48)
     assert seq.config["seed"] == 4 and seq.T_world_cam_odom.shape == (3, 4, 4)
     assert len(TumSequence(out)) == 3
+
+
+def test_cli_simulate_takes_the_deprecated_frames_count_with_a_warning(tmp_path, capsys):
+    """``simulate --frames N`` (a count, while --frames is a range everywhere else) still writes
+    N frames and says to use --count; a range is refused in one line."""
+    from nap3d_graph.cli import main
+
+    out = tmp_path / "old"
+    assert main(["simulate", str(out), "--frames", "2", "--width", "64", "--height", "48"]) == 0
+    assert len(SimSequence(out)) == 2
+    assert "taken as --count 2" in capsys.readouterr().err
+    assert main(["simulate", str(tmp_path / "range"), "--frames", "0:10"]) == 2
+    err = capsys.readouterr().err
+    assert "give --count N" in err and len(err.strip().splitlines()) == 1

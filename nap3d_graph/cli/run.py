@@ -17,7 +17,8 @@ from pathlib import Path
 from nap3d_graph.run.output import refusal_hint_for
 from nap3d_graph.run.pacing import CameraPace
 
-from .common import StopOnSignal, UsageError, positive_float, writable_dir
+from .common import StopOnSignal, UsageError, writable_dir
+from .run_options import RUN_OPTIONS, add_options
 from .sources import add_source_arguments, prepare
 
 __all__ = ["add_parser", "run"]
@@ -33,26 +34,7 @@ def add_parser(sub) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_source_arguments(p)
-    p.add_argument("--anchor", action="store_true",
-                   help="estimate the field's frame in the world (map anchor M(0)) instead of assuming it is the "
-                   "odometry's world frame")
-    p.add_argument("--pace", type=positive_float, nargs="?", const=1.0, default=None, metavar="SPEED",
-                   help="feed the frames as the camera delivered them (SPEED times its rate; default 1): the causal "
-                   "trajectory is then the one a robot riding along would have had, which for --overlap depends on "
-                   "the camera's rate, not on how fast a replay goes. Takes the live settings unless told otherwise "
-                   "(--overlap --land-within frame --keyframe-when-idle 1; --no-overlap runs inline). metrics.json "
-                   "records how late the run took the frames")
-    p.add_argument("--out", type=Path, default=Path("results"), help="results root (default ./results)")
-    p.add_argument("--write-bag", type=Path, metavar="OUT.bag|OUT_DIR",
-                   help="also write the trajectories as a ROS bag in the input's time, to play next to the input in "
-                   "RViz: causal, smoothed and odometry poses (PoseStamped), paths (nav_msgs/Path) and /tf from the "
-                   "world to the corrected camera. A .bag path is a ROS 1 bag, any other a ROS 2 bag folder (MCAP when "
-                   "it ends in .mcap)")
-    p.add_argument("--viz", metavar="RUN.rrd|spawn",
-                   help="also record the run for the rerun viewer (extra 'viz': rerun-sdk): trajectories, each "
-                   "keyframe's image, render and inlier matches, the corrections' covariance ellipsoids, accepted or "
-                   "refused with the reason, on one timeline. RUN.rrd: a file to open with 'rerun RUN.rrd'; spawn: "
-                   "open the viewer now (needs a display)")
+    add_options(p, RUN_OPTIONS)
     p.add_argument("--config", type=Path, metavar="CONFIG.yaml",
                    help="reproduce a run from the config.yaml it wrote: its options and settings, except the options "
                    "given here (a flag given wins, whatever its value)")
@@ -66,7 +48,7 @@ def run(args) -> int:
     if args.config is not None:
         from .run_config import apply_run_config
 
-        apply_run_config(args, args.parser, args.config)
+        apply_run_config(args, args.config)
     if getattr(args, "vo_width", None) is not None and args.odom not in (None, "vo"):
         raise UsageError(f"--vo-width is for --odom vo, not --odom {args.odom}")
     writable_dir(args.out)  # before the run, not after it
@@ -74,8 +56,7 @@ def run(args) -> int:
         _check_bag_path(args.write_bag)
     if args.viz is not None:
         _check_viz(args.viz)
-    prepared = prepare(args, use_anchor=args.anchor)
-    prepared.record["pace"] = args.pace
+    prepared = prepare(args)
     writer = RunWriter(args.out, prepared.name, prepared.record, getattr(prepared.sequence, "rgb_line_index", None))
     pipeline = prepared.pipeline()
     recorder, on_keyframe, pace = None, writer.add_keyframe, None
@@ -97,8 +78,9 @@ def run(args) -> int:
         if recorder is not None and sys.exc_info()[0] is not None:
             recorder.close()  # what was recorded stays readable
     extra = {} if pace is None else {"paced": pace.summary()}
-    if prepared.record.get("start"):  # a run in a self-made map: where it started, how it was scored
-        extra["map"] = {**prepared.record["start"], "recoveries": pipeline.recoveries}
+    start = prepared.record["resolved"].get("start")
+    if start:  # a run in a self-made map: where it started, how it was scored
+        extra["map"] = {**start, "recoveries": pipeline.recoveries}
     metrics = writer.finish(result, partial=result.partial, extra=extra or None)
     if pace is not None:
         late = metrics["paced"].get("behind_camera_s") or {}

@@ -18,7 +18,9 @@ def add_parser(sub) -> None:
         "Refuses a non-empty folder unless --force.",
     )
     p.add_argument("out", type=Path, help="output folder (created; must be empty unless --force)")
-    p.add_argument("--frames", type=positive_int, default=150, help="number of RGB-D frames, >= 2 (default 150)")
+    p.add_argument("--count", type=positive_int, default=150, help="number of RGB-D frames, >= 2 (default %(default)s)")
+    p.add_argument("--frames", metavar="N", default=None,
+                   help="deprecated: --count N (--frames is a range of frames to read everywhere else)")
     p.add_argument("--scene-seed", type=int, default=0, help="picks the room (default 0)")
     p.add_argument("--seed", type=int, default=0, help="picks the path and all sensor noise (default 0)")
     p.add_argument("--path", choices=("traverse", "mapping"), default="traverse",
@@ -46,8 +48,10 @@ def run(args) -> int:
 
     from .common import UsageError
 
-    if args.frames < 2:
-        raise UsageError(f"--frames must be at least 2, got {args.frames}")
+    if args.frames is not None:
+        args.count = _deprecated_frames(args.frames)
+    if args.count < 2:
+        raise UsageError(f"--count must be at least 2, got {args.count}")
     if args.realsense is not None:
         if args.realsense.suffix.lower() != ".db3":
             raise UsageError(f"--realsense must name a .db3 file (what pyrealsense2 writes), got {args.realsense}")
@@ -59,14 +63,14 @@ def run(args) -> int:
     if args.rosbag is not None and args.rosbag.exists():
         raise UsageError(f"--rosbag {args.rosbag} exists; a bag is never overwritten: choose another name")
     empty_or_new_dir(args.out, args.force)
-    config = SimConfig(frames=args.frames, scene_seed=args.scene_seed, seed=args.seed, path=args.path,
+    config = SimConfig(frames=args.count, scene_seed=args.scene_seed, seed=args.seed, path=args.path,
                        fps=args.fps, width=args.width, height=args.height)
     # SIGINT / SIGTERM set a flag the rendering loop reads after each frame (a second one stops
     # at once): raised wherever the main thread is, an interruption can land in the process
     # pool's finalizers, where Python prints and drops it, and the simulation went on to the end.
     with PartialOutput(args.out, f"nap3d-graph simulate {args.out}"), StopOnSignal() as stop:
         out = simulate_sequence(args.out, config, progress=True, stop=stop)
-    print(f"wrote {args.frames} frames ({args.path}, room {args.scene_seed}, seed {args.seed}) to {out}")
+    print(f"wrote {args.count} frames ({args.path}, room {args.scene_seed}, seed {args.seed}) to {out}")
     if args.realsense is not None:
         from nap3d_graph.datasets.realsense_sim import write_realsense_recording
 
@@ -80,3 +84,19 @@ def run(args) -> int:
         bag = write_sequence_bag(SimSequence(out), args.rosbag, ros=1 if args.rosbag.suffix == ".bag" else 2)
         print(f"wrote the ROS bag {bag}; run it with: nap3d-graph run --traj rosbag --data {bag} --field {out}")
     return 0
+
+
+def _deprecated_frames(text: str) -> int:
+    """``simulate --frames N``, the count it was before ``--count``: taken as ``--count N``
+    with a warning; a range (what ``--frames`` is everywhere else) is an error."""
+    import sys
+
+    from .common import UsageError
+
+    try:
+        count = int(text)
+    except ValueError:
+        raise UsageError(f"simulate writes frames, it reads none: --frames {text} is not a count; give --count N") from None
+    print(f"warning: simulate --frames N is deprecated (everywhere else --frames is a range to read): taken as "
+          f"--count {count}", file=sys.stderr)
+    return count

@@ -8,22 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (
-    RUN_MATCHER,
-    UsageError,
-    add_frames_argument,
-    add_matcher_argument,
-    add_topics_argument,
-    non_negative_float,
-    non_negative_int,
-    parse_pose,
-    parse_size,
-    positive_float,
-    positive_int,
-    probability,
-    warn_depth_units,
-    warn_trained_frames,
-)
+from .common import UsageError, parse_pose, parse_size, warn_depth_units, warn_trained_frames
+from .run_options import LAND_WITHIN_FRAME_SHARE, SOURCE_OPTIONS, add_options, settings_from_args
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 
@@ -37,41 +23,6 @@ def warn_guessed_camera(sequence) -> None:
         print(f"warning: {sequence.path} has no intrinsics.json and no freiburg1/2/3 in its name: using TUM's "
               f"default camera (fx={K.fx:g}, fy={K.fy:g}, cx={K.cx:g}, cy={K.cy:g}), a guess; write your camera to "
               "intrinsics.json in the folder (fx, fy, cx, cy, width, height)", file=sys.stderr)
-
-
-def _gravity(text: str):
-    """'check', 'auto', a magnitude (m/s^2) or a vector 'gx gy gz' (m/s^2, the field's frame)."""
-    import argparse
-
-    if text.strip() in ("auto", "check"):
-        return text.strip()
-    parts = text.replace(",", " ").split()
-    try:
-        values = [float(v) for v in parts]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be 'check', 'auto', a magnitude or 'gx gy gz', got {text!r}") from None
-    if len(values) == 1 and values[0] > 0:
-        return values[0]
-    if len(values) == 3 and 1.0 < float(np.linalg.norm(values)) < 100.0:
-        return tuple(values)
-    raise argparse.ArgumentTypeError(f"must be a positive magnitude, 'auto' or a vector 'gx gy gz' (m/s^2), got {text!r}")
-
-
-def _field_sigma(text: str) -> float | None:
-    return None if text == "auto" else non_negative_float(text)
-
-
-def _rolling_shutter(text: str) -> float | None:
-    return None if text == "auto" else non_negative_float(text)
-
-
-def _land_within(text: str) -> float | str:
-    return "frame" if text == "frame" else non_negative_float(text)
-
-
-#: ``--land-within frame``: this share of the camera's frame period (the rest of the step:
-#: the graph update and handing the pose over).
-LAND_WITHIN_FRAME_SHARE = 0.9
 
 
 def land_within_s(value: float | str, sequence) -> float:
@@ -106,153 +57,15 @@ def _land_within_default(args) -> float | str:
 
 
 def add_source_arguments(p) -> None:
-    """The source, field, odometry and keyframe options of a drift-correction run."""
-    import argparse
-
-    from nap3d_graph.datasets import SOURCES
-    from nap3d_graph.run.config import PipelineConfig
-    from nap3d_graph.run.default import DEFAULT_TRAIN_STEPS
-
-    p.add_argument("--traj", choices=tuple(SOURCES), default="sim",
-                   help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder), "
-                   "realsense (a .bag/.db3 recording, or 'live': a connected camera) or 7scenes (a 7-Scenes sequence "
-                   "folder: depth is warped into its colour camera, whose focal length and centre are estimated from the "
-                   "data), "
-                   "or rosbag (a ROS 1 .bag or a ROS 2 bag folder: colour, depth, camera info, IMU and ground truth "
-                   "from /tf or a pose topic; see --topics); default sim")
-    p.add_argument("--data", type=Path, help="the sequence folder, or for realsense a recording or 'live', or for "
-                   "rosbag the .bag file or ROS 2 bag folder; omit (with --traj sim) for the embedded default")
-    add_topics_argument(p)
-    p.add_argument("--groundtruth", type=Path, metavar="TUM_FILE",
-                   help="realsense: camera poses of the recording's frames, for ATE/RPE (without it the results "
-                   "report correction statistics)")
-    p.add_argument("--realsense-config", type=Path, metavar="YAML",
-                   help="realsense: IMU extrinsics (T_depth_imu) and noise, which recordings do not store (default: "
-                   "RECORDING.yaml beside the file if there is one, else D435i values)")
-    p.add_argument("--record", type=Path, metavar="FILE.bag",
-                   help="realsense live: keep what the camera streamed in this file (default: a temporary file)")
-    p.add_argument("--seconds", type=positive_float, default=30.0,
-                   help="realsense live: how long to capture before correcting (default 30)")
-    add_frames_argument(p, "the run (a field should not have been trained on them)")
-    p.add_argument("--field", help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from "
-                   "'nap3d-graph train-field'), a nerfstudio config.yml, or 'none' (odometry only)")
-    p.add_argument("--odom", choices=("recorded", "noisy", "vo", "dense", "imu"),
-                   help="motion between keyframes: recorded (the sequence's odometry.txt; default for sim), noisy "
-                   "(noise injected on ground-truth increments; default for tum), vo (frame-to-frame RGB-D odometry with "
-                   "NAP3D's matcher), dense (OpenCV's dense RGB-D odometry at 320 px wide: the camera's rate, about "
-                   "the same drift on fr1/desk) or imu (the sequence's IMU preintegrated into CombinedImuFactors; biases estimated; default for "
-                   "a realsense recording with an IMU)")
-    p.add_argument("--vo-width", type=positive_int, default=None, metavar="PX",
-                   help="--odom vo: detect and align each frame resized to PX pixels wide (default: as read). At the "
-                   "render's width (320 by default) each keyframe's correction reuses the features the odometry "
-                   "detected: on fr1/desk 2.3-2.5x the frame rate, the odometry alone drifting more, the corrected "
-                   "trajectory within 4%% (its causal one up to 14%% worse), on redkitchen 1.4-1.6x, within 9%%; "
-                   "see the README. --pace with --odom vo "
-                   "takes the render's width unless told")
-    p.add_argument("--imu-noise", metavar="'AN GN AW GW'", default=None,
-                   help="IMU noise densities: accel m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), accel bias walk m/s^3/sqrt(Hz), "
-                   "gyro bias walk rad/s^2/sqrt(Hz) (default: the simulator's, 2e-3 2.4e-4 1e-4 2e-6)")
-    p.add_argument("--imu-extrinsics", metavar="'tx ty tz qx qy qz qw'", default=None,
-                   help="T_cam_imu: the IMU frame in the camera frame (default identity, as simulated)")
-    p.add_argument("--gravity", type=_gravity, default="check", metavar="check|auto|G|'gx gy gz'",
-                   help="--odom imu: gravity in the field's frame as the run's graph starts it; the graph then refines "
-                   "its tilt (a few degrees; the EKFs of compare keep it as given). 'check' (default): z-up (-9.81 "
-                   "m/s^2 along z), unless the accelerometer over the first 0.5 s, with the starting pose, puts it more "
-                   "than 10 deg away (a field's frame from COLMAP or nerfstudio, a y-down room): then the "
-                   "accelerometer's direction, said on the terminal. 'auto': always the accelerometer's direction. A "
-                   "magnitude (m/s^2): z-up, only warned about. Or the vector in m/s^2")
-    p.add_argument("--fallback-odom", choices=("dense", "vo", "none"), default="dense",
-                   help="--odom imu: the frame odometry the run falls back on between keyframes after 3 keyframes "
-                   "refused in a row (the views left the field, say: the IMU alone then drifts by metres within "
-                   "seconds), until a correction lands again (default dense; none: the IMU alone)")
-    p.add_argument("--timing", choices=("auto", "none"), default="auto",
-                   help="auto: move each keyframe's depth to its colour's capture instant with the capture timing the "
-                   "field records, or, for a field that records none (the oracle, nerfstudio), the timing estimated "
-                   "from this sequence's ground truth; none: take the stamps as they are")
-    p.add_argument("--initial-pose", metavar="auto|'tx ty tz qx qy qz qw'",
-                   help="where the camera starts in the field's frame, for --odom vo / dense. auto: found in the map "
-                   "(the map's keyframes most like the first frame, the field rendered there, NAP3D aligned and "
-                   "verified; a clear error when none verifies); the default with a map from 'nap3d-graph map' "
-                   "(its frame is not the ground truth's). Otherwise the default is the ground truth's first pose, "
-                   "and with --field none and no ground truth the identity")
-    p.add_argument("--initial-pose-file", type=Path, metavar="TUM_FILE",
-                   help="the same from the first line of a TUM trajectory file")
-    p.add_argument("--odom-rot-sigma", type=positive_float, default=2e-3,
-                   help="per-frame rotation noise of the odometry, rad (injected with --odom noisy, and the "
-                   "odometry factors' sigma); default 0.002")
-    p.add_argument("--odom-trans-sigma", type=positive_float, default=2e-3,
-                   help="per-frame translation noise of the odometry, m; default 0.002")
-    p.add_argument("--keyframe-every", type=positive_int, default=5,
-                   help="a keyframe (and a correction) every N frames (default 5)")
-    p.add_argument("--keyframe-distance", type=non_negative_float, default=0.0,
-                   help="also a keyframe after this many metres of odometry (0: off)")
-    p.add_argument("--keyframe-angle", type=non_negative_float, default=0.0,
-                   help="also a keyframe after this many degrees of rotation (0: off)")
-    p.add_argument("--keyframe-window", type=non_negative_int, default=PipelineConfig.keyframe_window, metavar="N",
-                   help="a due keyframe is taken at the first sharp frame (variance of the Laplacian at least 0.8 of "
-                   "the median since the last keyframe) among the next N, the last of them if none is: motion blur "
-                   f"starves the matcher (0 or 1: the due frame; default {PipelineConfig.keyframe_window})")
-    p.add_argument("--keyframe-on-doubt", action=argparse.BooleanOptionalAction,
-                   default=PipelineConfig.keyframe_on_doubt,
-                   help="also a keyframe right after the odometry guessed a step (visual odometry lost track), so "
-                   f"the jump is corrected at once (default {'on' if PipelineConfig.keyframe_on_doubt else 'off'})")
-    p.add_argument("--keyframe-when-idle", type=non_negative_int, default=None, metavar="N",
-                   help="with --overlap: also a keyframe at any frame N or more after the last while the second thread "
-                   "is idle, so corrections come as often as it can measure them (--keyframe-every is then the "
-                   "longest interval; which frames are keyframes depends on the machine's speed, or with run --pace "
-                   "on the camera's rate). Default: 1 for an overlapped run --pace (the live settings), else 0: off")
-    p.add_argument("--rolling-shutter", type=_rolling_shutter, default=PipelineConfig.rolling_shutter_s,
-                   metavar="S|auto", help="the colour camera's rolling-shutter readout, first row to last, in seconds: "
-                   "each keyframe's matched points are moved along the odometry's velocity to the middle row's "
-                   "instant before the alignment. Default auto: the readout train-field estimated from the "
-                   "recording's ground truth with its capture timing (fr1/desk's Kinect: 24 ms; 0, a global shutter, "
-                   "where the data showed none or the field records no timing); 0: a global shutter")
-    p.add_argument("--iterations", type=positive_int, default=1,
-                   help="render-align rounds per correction (default 1; 2 re-renders at the corrected pose: "
-                   "a little more accurate, twice the time)")
-    p.add_argument("--render-size", default="320x240", help="WxH the field renders at (default 320x240)")
-    add_matcher_argument(p, RUN_MATCHER)
-    p.add_argument("--gate-p", type=probability, default=0.997,
-                   help="chi-square gate probability, in (0, 1) (default 0.997)")
-    p.add_argument("--field-sigma", type=_field_sigma, default=None, metavar="M|auto",
-                   help="the field's own geometric error in metres, added to every correction's covariance "
-                   "(rotation: M / 2 m per radian). Default auto: what the field measured of itself when "
-                   "train-field built it (0 for the exact oracle and fields that record none); 0: take the field "
-                   "as exact")
-    p.add_argument("--overlap", action=argparse.BooleanOptionalAction, default=None,
-                   help="measure each keyframe's correction on a second thread while the odometry goes on; it "
-                   "enters the graph when ready (faster on two cores; not bit-for-bit repeatable; not with --odom imu). "
-                   "Default: on for run --pace (frames fed as the camera delivers them: with the live settings, "
-                   "--land-within frame and --keyframe-when-idle 1, as accurate as inline and more often corrected), "
-                   "off for a replay that goes as fast as it can (inline is repeatable there, and an overlapped "
-                   "run's causal trajectory would depend on the machine's speed)")
-    p.add_argument("--render-ahead", action="store_true",
-                   help="with --overlap: render the next keyframe at its one-step guessed pose while the second "
-                   "thread is idle, so its correction lands sooner (for slow fields or fast cameras; its "
-                   "corrections can be slightly worse where the motion turns fast)")
-    p.add_argument("--land-within", type=_land_within, default=None, metavar="S|frame",
-                   help="with --overlap: wait up to S seconds after a frame arrives for the correction in flight, "
-                   "so one that is done by then lands at that frame and not a later one; 'frame' waits "
-                   f"{LAND_WITHIN_FRAME_SHARE:g} of the camera's frame period (only while a live run would idle "
-                   "for the next frame; with run --pace, as a live camera feeds it). Default: 'frame' for run "
-                   "--overlap --pace (the run would idle then anyway), else 0: never wait")
-    p.add_argument("--graph-window", type=non_negative_int, default=0, metavar="N",
-                   help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their "
-                   "poses, so a long run's graph and its updates stay bounded (default 0: every keyframe, the whole "
-                   "trajectory smoothed at the end; not with --odom imu or --anchor)")
-    p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
-    p.add_argument("--seed", type=int, default=0, help="seed of injected odometry noise (default 0)")
-    p.add_argument("--cache", type=Path, default=None,
-                   help="cache of the embedded default's data and field (default $NAP3D_GRAPH_CACHE or "
-                   "~/.cache/nap3d-graph)")
-    p.add_argument("--train-steps", type=positive_int, default=DEFAULT_TRAIN_STEPS,
-                   help=f"field training budget of the embedded default, in steps (default {DEFAULT_TRAIN_STEPS}, "
-                   "about two minutes on two cores)")
+    """The source, field, odometry and keyframe options of a drift-correction run (bound to
+    the run's settings tree: :data:`~nap3d_graph.cli.run_options.SOURCE_OPTIONS`)."""
+    add_options(p, SOURCE_OPTIONS)
 
 
 @dataclass
 class Prepared:
-    """A run ready to go: ``pipeline()`` builds it; ``record`` is its config.yaml."""
+    """A run ready to go: ``pipeline()`` is it; ``config`` its configuration as the pipeline
+    resolved it (the field's error included); ``record`` is its config.yaml."""
 
     sequence: object
     field: object
@@ -260,14 +73,10 @@ class Prepared:
     config: object
     record: dict
     name: str
-    relocaliser: object = None
+    runner: object
 
     def pipeline(self):
-        from nap3d_graph.run.pipeline import Pipeline
-
-        pipeline = Pipeline(self.sequence, self.field, self.odometry, self.config)
-        pipeline.relocaliser = self.relocaliser  # a map's: recovers a run lost K keyframes in a row
-        return pipeline
+        return self.runner
 
 
 def _say_readout(config, field_obj) -> float:
@@ -308,7 +117,7 @@ def imu_config(args, base=None):
     from nap3d_graph.motion.imu import ImuConfig
 
     magnitude = args.gravity if isinstance(args.gravity, float) else 9.81
-    vector = args.gravity if isinstance(args.gravity, tuple) else None
+    vector = tuple(float(v) for v in args.gravity) if isinstance(args.gravity, (list, tuple)) else None
     if vector is not None:
         magnitude = float(np.linalg.norm(vector))
     config = (dataclasses.replace(base, gravity=magnitude, gravity_world=vector) if base is not None
@@ -558,18 +367,18 @@ def relocalise_first(map_dir, field_obj, sequence, args):
     return map_relocaliser(map_dir, field_obj, sequence, args).locate(sequence[0])
 
 
-def prepare(args, use_anchor: bool = False) -> Prepared:
-    """Open the sequence and the field, make the odometry and the pipeline's config."""
+def prepare(args) -> Prepared:
+    """Open the sequence and the field, make the odometry and the pipeline's config; the
+    settings tree as the run resolved them (its odometry, matcher, overlap...) is
+    ``record["settings"]``, what it found beside them ``record["resolved"]``."""
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields import resolve_field
-    from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.run.config import PipelineConfig, with_field_error
-
-    from .run_config import with_overrides
+    from nap3d_graph.run.pipeline import Pipeline
 
     if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
         raise UsageError("--groundtruth, --realsense-config and --record are for --traj realsense")
-    width, height = parse_size(args.render_size)
+    parse_size(args.render_size)  # a one-line error now, not after the data is read
+    use_anchor = bool(getattr(args, "anchor", False))
     auto_start = args.initial_pose == "auto"
     initial_pose = None if auto_start else parse_pose(args.initial_pose, args.initial_pose_file)
     if auto_start and args.initial_pose_file is not None:
@@ -588,6 +397,7 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
     args.matcher = chosen_matcher(args.matcher, sequence)
     sequence, initial_pose, start_record = _start_in_map(args, sequence, field_obj, initial_pose, auto_start)
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
+    args.odom = odom_kind
     live_defaults(args, odom_kind)
     if args.render_ahead and not args.overlap:
         raise UsageError("--render-ahead works ahead on the second thread: it needs --overlap")
@@ -601,27 +411,18 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
         raise UsageError("--graph-window does not apply to --odom imu or --anchor")
     if args.graph_window and args.graph_window < 3:
         raise UsageError(f"--graph-window must be 0 (every keyframe) or at least 3, got {args.graph_window}")
-    config = PipelineConfig(keyframe_every=args.keyframe_every, keyframe_distance_m=args.keyframe_distance,
-                            keyframe_window=args.keyframe_window, keyframe_on_doubt=args.keyframe_on_doubt,
-                            keyframe_when_idle=args.keyframe_when_idle,
-                            keyframe_angle_deg=args.keyframe_angle, correction_iterations=args.iterations,
-                            render_width=width, render_height=height, use_anchor=use_anchor, gate_p=args.gate_p,
-                            field_sigma_m=args.field_sigma, overlap=args.overlap, render_ahead=args.render_ahead,
-                            land_within_s=land_within_s(_land_within_default(args), sequence),
-                            max_frames=args.max_frames,
-                            graph_window=args.graph_window,
-                            progress=True, compensate_timing=args.timing == "auto",
-                            rolling_shutter_s=args.rolling_shutter,
-                            timing=_timing(args, field_obj, sequence),
-                            align=with_overrides(AlignConfig(matcher=args.matcher), getattr(args, "align_overrides", None)))
-    config = with_overrides(config, getattr(args, "pipeline_overrides", None))  # run --config: unflagged settings
+    settings = _settings(args)
+    config = settings.pipeline_config(land_within_s=land_within_s(_land_within_default(args), sequence),
+                                      overlap=args.overlap, keyframe_when_idle=args.keyframe_when_idle,
+                                      timing=_timing(args, field_obj, sequence))
     found = start_record.get("initial_pose")
     if found:  # a start found in the map is as sure as its alignment, not pinned to a millimetre
         import dataclasses
 
         config = dataclasses.replace(config, prior_trans_sigma_m=float(max(config.prior_trans_sigma_m, found["sigma_m"])),
                                      prior_rot_sigma_rad=float(max(config.prior_rot_sigma_rad, np.radians(found["sigma_deg"]))))
-    config = with_field_error(config, field_obj)
+    runner = Pipeline(sequence, field_obj, odometry, config)  # resolves the field's error, once
+    config = runner.config
     readout_s = _say_readout(config, field_obj)
     if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
         growth = (", growing with each correction's distance from the field's views" if config.field_error_by_view
@@ -629,29 +430,30 @@ def prepare(args, use_anchor: bool = False) -> Prepared:
         print(f"field error: {config.field_sigma_m * 1000:.1f} mm, {np.degrees(config.field_sigma_rad or 0):.2f} deg "
               f"(measured by train-field on held-out frames{growth}) added to every correction's covariance; "
               "--field-sigma 0 takes the field as exact")
-    record = {"traj": args.traj, "data": str(data), "frames": args.frames, "frame_range": list(sequence.frame_range),
-              "field": field_desc, "frames_the_field_was_trained_on": trained_on, "odometry": odom_kind,
-              "vo_width": getattr(args, "vo_width", None), "rolling_shutter_readout_s": round(readout_s, 6),
-              "initial_pose": None if initial_pose is None else initial_pose.tolist(),
-              "odom_rot_sigma_rad": args.odom_rot_sigma, "odom_trans_sigma_m": args.odom_trans_sigma,
-              "seed": args.seed, "topics": getattr(args, "topics", None),
-              "groundtruth": _text_or_none(getattr(args, "groundtruth", None)),
-              "realsense_config": _text_or_none(getattr(args, "realsense_config", None)),
-              "imu_noise": getattr(args, "imu_noise", None), "imu_extrinsics": getattr(args, "imu_extrinsics", None),
-              "pipeline": {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in vars(config).items()
-                           if k != "align"},
-              "align": vars(config.align)}
+    resolved = {"data": str(data), "frame_range": list(sequence.frame_range), "field": field_desc,
+                "frames_the_field_was_trained_on": trained_on, "rolling_shutter_readout_s": round(readout_s, 6),
+                "initial_pose": None if initial_pose is None else initial_pose.tolist(),
+                "pipeline": {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in vars(config).items()
+                             if k != "align"},
+                "align": vars(config.align)}
     if start_record:
-        record["start"] = start_record
+        resolved["start"] = start_record
     if odom_kind == "imu":
-        record["imu"] = {**odometry.stream.config.to_dict(),
-                         "fallback_odometry": getattr(odometry.fallback, "name", "none")}
-    relocaliser = None
+        resolved["imu"] = {**odometry.stream.config.to_dict(),
+                           "fallback_odometry": getattr(odometry.fallback, "name", "none")}
+    record = {"settings": settings.to_dict(), "resolved": resolved}
     if start_record.get("map") and not config.overlap:
-        relocaliser = map_relocaliser(start_record["map"], field_obj, sequence, args)
-    return Prepared(sequence, field_obj, odometry, config, record, name, relocaliser)
+        # A map's relocaliser: recovers a run lost ``relocalise_after`` keyframes in a row.
+        runner.relocaliser = map_relocaliser(start_record["map"], field_obj, sequence, args)
+    return Prepared(sequence, field_obj, odometry, config, record, name, runner)
 
 
-def _text_or_none(value) -> str | None:
-    """A path option as config.yaml stores it."""
-    return None if value is None else str(value)
+def _settings(args):
+    """The run's settings tree from its options (as resolved), or a one-line error for a
+    value the tree refuses."""
+    from nap3d_graph.run.settings import SettingsError
+
+    try:
+        return settings_from_args(args)
+    except SettingsError as exc:
+        raise UsageError(str(exc)) from None
