@@ -249,8 +249,13 @@ class RunSettings:
         ``overlap``, ``keyframe_when_idle``, ``timing``: a capture timing beyond the field's)."""
         from nap3d_graph.nap3d.config import AlignConfig
 
-        values = {pipeline_name(f): getattr(getattr(self, name), f.name)
-                  for name in SECTIONS for f in dataclasses.fields(getattr(self, name)) if pipeline_name(f)}
+        values: dict[str, Any] = {}
+        for name in SECTIONS:
+            section = getattr(self, name)
+            for f in dataclasses.fields(section):
+                target = pipeline_name(f)
+                if target is not None:
+                    values[target] = getattr(section, f.name)
         width, height = render_size(self.alignment.render_size)
         align = AlignConfig(**{**self.alignment.nap3d, "matcher": self.alignment.matcher})
         return PipelineConfig(**values, render_width=width, render_height=height,
