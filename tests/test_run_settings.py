@@ -1,6 +1,6 @@
 """The run's settings tree: it round-trips through YAML exactly, its defaults are
 PipelineConfig's, every run and compare flag is bound to one of its fields with the field's
-default, and a config file's tree comes back through the options unchanged."""
+default, and a config file's tree comes back through the options unchanged; the same for the study."""
 
 from __future__ import annotations
 
@@ -12,7 +12,10 @@ import pytest
 import yaml
 
 from nap3d_graph.cli import build_parser, command_parsers, main
-from nap3d_graph.cli.run_options import RUN_OPTIONS, SOURCE_OPTIONS, apply_settings, settings_from_args
+from nap3d_graph.cli.binding import apply_settings, settings_from_args
+from nap3d_graph.cli.run_options import RUN_OPTIONS, SOURCE_OPTIONS
+from nap3d_graph.cli.study import STUDY_OPTIONS
+from nap3d_graph.evaluation.study import StudySettings
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.settings import SECTIONS, RunSettings, SettingsError, pipeline_name
 
@@ -151,3 +154,26 @@ def test_a_bad_settings_tree_is_one_line_naming_the_setting(tmp_path, capsys):
     old.write_text(yaml.safe_dump({"traj": "sim", "pipeline": {"keyframe_every": 3}}))
     assert main(["run", "--config", str(old), "--out", str(tmp_path / "x")]) == 2
     assert "written by an older nap3d-graph" in capsys.readouterr().err
+
+
+def test_every_study_option_is_bound_and_its_config_round_trips():
+    parser = command_parsers(build_parser())["study"]
+    defaults = StudySettings()
+    for option in STUDY_OPTIONS:
+        assert parser.get_default(option.dest) == option.default_in(defaults), option.flag
+    flags = {f for action in parser._actions for f in action.option_strings}  # noqa: SLF001
+    assert flags - {o.flag for o in STUDY_OPTIONS} == {"-h", "--help", "-v", "--verbose", "--out", "--force", "--config"}
+    argv = ["study", "rec", "--split", "0.3", "--model", "splat", "--train-steps", "40", "--keyframe-every", "4",
+            "--scenarios", "3", "--eval-k-full", "--odom", "vo,dense", "--seed", "2", "--matcher", "sift",
+            "--topics", "gt=/tf", "--out", "o"]
+    args = build_parser().parse_args(argv)
+    tree = settings_from_args(args, StudySettings())
+    assert tree.study.odometries == ("vo", "dense") and tree.study.split == 0.3 and tree.recordings.data == "rec"
+    assert all(tree.get(o.path) != defaults.get(o.path) for o in STUDY_OPTIONS if o.flag not in ("--map", "--query",
+                                                                                               "--map-frames",
+                                                                                               "--query-frames"))
+    loaded = StudySettings.from_dict(yaml.safe_load(yaml.safe_dump(tree.to_dict())))
+    assert loaded == tree
+    fresh = build_parser().parse_args(["study", "--out", "o"])
+    apply_settings(fresh, loaded, given={"out"})
+    assert settings_from_args(fresh, StudySettings()) == tree

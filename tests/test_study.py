@@ -100,7 +100,9 @@ def test_a_study_is_reproduced_from_its_config(recording, tmp_path, capsys):
     assert main(["study", str(recording), "--out", str(first), "--model", "splat", "--scenarios", "2",
                  "--odom", "noisy", "--keyframe-every", "4", "--split", "0.4", "--seed", "3"]) == 0
     config = yaml.safe_load((first / "config.yaml").read_text())
-    assert config["study"]["split"] == 0.4 and config["study"]["odometries"] == ["noisy"]
+    study = config["settings"]["study"]
+    assert study["split"] == 0.4 and study["odometries"] == ["noisy"] and study["keyframe_every"] == 4
+    assert config["settings"]["recordings"]["data"] == str(recording.resolve())
     assert main(["study", "--config", str(first / "config.yaml"), "--out", str(again)]) == 0
     a, b = (json.loads((folder / "summary.json").read_text()) for folder in (first, again))
     assert a["runs"]["noisy"]["ate_estimate_m"] == b["runs"]["noisy"]["ate_estimate_m"]

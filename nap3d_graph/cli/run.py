@@ -17,8 +17,9 @@ from pathlib import Path
 from nap3d_graph.run.output import refusal_hint_for
 from nap3d_graph.run.pacing import CameraPace
 
+from .binding import add_options
 from .common import StopOnSignal, UsageError, writable_dir
-from .run_options import RUN_OPTIONS, add_options
+from .run_options import RUN_OPTIONS
 from .sources import add_source_arguments, prepare
 
 __all__ = ["add_parser", "run"]

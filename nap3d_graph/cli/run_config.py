@@ -57,7 +57,7 @@ def apply_run_config(args, path: Path) -> None:
     flag come from it)."""
     from nap3d_graph.run.settings import RunSettings, SettingsError
 
-    from .run_options import apply_settings
+    from .binding import apply_settings
 
     try:
         config = load_config_file(path, "settings", "run")

@@ -1,24 +1,20 @@
 """The run's options, bound to its settings tree (:class:`~nap3d_graph.run.settings.RunSettings`)
-by one table: each :class:`Option` names its flag, the ``section.setting`` it sets and how
-argparse reads it; its default is the setting's default, taken from the tree. ``run`` and
+by one table of :class:`~nap3d_graph.cli.binding.Option` (its flag, the ``section.setting``
+it sets, how argparse reads it; its default is the setting's, taken from the tree). ``run`` and
 ``compare`` add :data:`SOURCE_OPTIONS` (``compare`` writes its own ``--out``), ``run`` also
-:data:`RUN_OPTIONS`. :func:`settings_from_args` reads the tree back from the parsed options
-over a base tree (a ``--config`` file's, for the settings with no flag), and
-:func:`apply_settings` sets the options a config file gives where the command line gave none.
+:data:`RUN_OPTIONS`.
 """
 
 from __future__ import annotations
 
 import argparse
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from nap3d_graph.datasets import SOURCES
-from nap3d_graph.run.settings import RunSettings
 
+from .binding import Option
 from .common import (
     RUN_MATCHER,
     TOPICS_OPTION,
@@ -31,8 +27,7 @@ from .common import (
     probability,
 )
 
-__all__ = ["Option", "SOURCE_OPTIONS", "RUN_OPTIONS", "LAND_WITHIN_FRAME_SHARE", "add_options", "apply_settings",
-           "settings_from_args"]
+__all__ = ["SOURCE_OPTIONS", "RUN_OPTIONS", "LAND_WITHIN_FRAME_SHARE"]
 
 #: ``--land-within frame``: this share of the camera's frame period (the rest of the step:
 #: the graph update and handing the pose over).
@@ -62,35 +57,6 @@ def _auto_or_non_negative(text: str) -> float | None:
 
 def _land_within(text: str) -> float | str:
     return "frame" if text == "frame" else non_negative_float(text)
-
-
-@dataclass(frozen=True)
-class Option:
-    """One flag bound to the setting at ``path`` (``'section.setting'``); ``kwargs`` are
-    argparse's (type, choices, action, help...), never its default: that is the setting's."""
-
-    flag: str
-    path: str
-    kwargs: dict[str, Any] = field(default_factory=dict)
-
-    def __init__(self, flag: str, path: str, **kwargs) -> None:
-        object.__setattr__(self, "flag", flag)
-        object.__setattr__(self, "path", path)
-        object.__setattr__(self, "kwargs", kwargs)
-
-    @property
-    def dest(self) -> str:
-        return self.flag[2:].replace("-", "_")
-
-    def to_setting(self, value):
-        """The option's value as the tree holds it (paths as text, vectors as lists)."""
-        if isinstance(value, Path):
-            return str(value)
-        return list(value) if isinstance(value, tuple) else value
-
-    def to_option(self, value):
-        """The setting's value as the parsed option holds it."""
-        return Path(value) if self.kwargs.get("type") is Path and value is not None else value
 
 
 SOURCE_OPTIONS: tuple[Option, ...] = (
@@ -217,28 +183,3 @@ RUN_OPTIONS: tuple[Option, ...] = (
                    "refused with the reason, on one timeline. RUN.rrd: a file to open with 'rerun RUN.rrd'; spawn: "
                    "open the viewer now (needs a display)"),
 )
-
-
-def add_options(parser, options: tuple[Option, ...]) -> None:
-    """Add ``options`` to ``parser``, each with its setting's default; the parser remembers
-    them (``args.bound_options``) for :func:`settings_from_args`."""
-    defaults = RunSettings()
-    for option in options:
-        parser.add_argument(option.flag, default=defaults.get(option.path), **option.kwargs)
-    parser.set_defaults(bound_options=(parser.get_default("bound_options") or ()) + tuple(options))
-
-
-def settings_from_args(args, base: RunSettings | None = None) -> RunSettings:
-    """The settings tree of the parsed options: ``base`` (default: the defaults; a
-    ``--config`` file's tree: ``args.config_settings``) with every bound option's value."""
-    base = base or getattr(args, "config_settings", None) or RunSettings()
-    return base.replace({o.path: o.to_setting(getattr(args, o.dest)) for o in args.bound_options})
-
-
-def apply_settings(args, settings: RunSettings, given: set[str]) -> None:
-    """Set each bound option the command line did not give (``given``: argparse dests) from
-    ``settings``, and keep the tree for the settings with no flag (``args.config_settings``)."""
-    for option in args.bound_options:
-        if option.dest not in given:
-            setattr(args, option.dest, option.to_option(settings.get(option.path)))
-    args.config_settings = settings

@@ -8,8 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from .binding import add_options, settings_from_args
 from .common import UsageError, parse_pose, parse_size, warn_depth_units, warn_trained_frames
-from .run_options import LAND_WITHIN_FRAME_SHARE, SOURCE_OPTIONS, add_options, settings_from_args
+from .run_options import LAND_WITHIN_FRAME_SHARE, SOURCE_OPTIONS
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 

@@ -4,8 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import RUN_MATCHER, UsageError, add_matcher_argument, add_topics_argument, empty_or_new_dir, positive_int
-from .options import add_force, add_seed
+from nap3d_graph.evaluation.study import StudySettings
+
+from .binding import Option, add_options, apply_settings, settings_from_args
+from .common import RUN_MATCHER, TOPICS_OPTION, UsageError, empty_or_new_dir, matcher_option, positive_int
+from .options import add_force
 
 
 def add_parser(sub) -> None:
@@ -18,58 +21,66 @@ def add_parser(sub) -> None:
         "one recording and correct another of the same place (checked to share its world frame). Writes one "
         "folder: field.pt, field_report.json, runs/vo, runs/noisy, eval_k/, summary.md and summary.json.",
     )
-    p.add_argument("data", type=Path, nargs="?", help="a recording with ground truth (TUM layout, simulated, "
-                   "7-Scenes), split in time; or use --map and --query")
-    p.add_argument("--map", type=Path, dest="map_data", metavar="REC_A",
-                   help="the recording the field is built from (with --query)")
-    p.add_argument("--map-frames", metavar="START:STOP", default=None, help="--map: its frames to use (default all)")
-    p.add_argument("--query", type=Path, metavar="REC_B", help="the recording corrected with --map's field")
-    p.add_argument("--query-frames", metavar="START:STOP", default=None,
-                   help="--query: its frames to correct (default all)")
+    add_options(p, STUDY_OPTIONS, StudySettings())
     p.add_argument("--out", type=Path, required=True, help="output folder (must be empty unless --force)")
-    p.add_argument("--split", type=float, default=0.5, help="fraction of the frames the field is built on (default 0.5)")
-    p.add_argument("--model", choices=("grid", "splat", "views"), default="grid",
-                   help="field model (default grid; see train-field --help)")
-    p.add_argument("--train-steps", type=positive_int, default=None, help="grid: training steps (default: 5 minutes)")
-    p.add_argument("--keyframe-every", type=positive_int, default=5, help="a correction every N frames (default 5)")
-    p.add_argument("--scenarios", type=positive_int, default=40, help="Evaluation K scenarios (default 40)")
-    p.add_argument("--eval-k-full", action="store_true",
-                   help="all 16 cells of Evaluation K (blur x intrinsics), not only CLEAN / no blur")
-    p.add_argument("--odom", default="vo,noisy", help="odometries to run, comma-separated (default vo,noisy)")
-    add_seed(p, "the training, the odometry noise and Evaluation K's scenarios")
-    add_matcher_argument(p, RUN_MATCHER)
     add_force(p)
     p.add_argument("--config", type=Path, metavar="CONFIG.yaml",
                    help="reproduce a study from the config.yaml it wrote: its recordings, frames and settings, "
                    "except the options given here (--out is always given)")
-    add_topics_argument(p)
     p.set_defaults(parser=p)
     p.set_defaults(func=run)
 
 
-#: config.yaml key -> study option (argparse dest); the settings are under "study".
-_RECORDINGS = {"data": "data", "map": "map_data", "map_frames": "map_frames", "query": "query",
-               "query_frames": "query_frames"}
-_SETTINGS = {"split": "split", "model": "model", "train_steps": "train_steps", "keyframe_every": "keyframe_every",
-             "eval_k_scenarios": "scenarios", "eval_k_full": "eval_k_full", "seed": "seed", "matcher": "matcher",
-             "topics": "topics"}
+def _odometries(text: str) -> tuple[str, ...]:
+    return tuple(o.strip() for o in text.split(",") if o.strip())
+
+
+#: The study's options, bound to its settings tree (StudySettings) by one table.
+STUDY_OPTIONS: tuple[Option, ...] = (
+    Option("data", "recordings.data", type=Path, nargs="?", help="a recording with ground truth (TUM layout, "
+           "simulated, 7-Scenes), split in time; or use --map and --query"),
+    Option("--map", "recordings.map", dest="map_data", type=Path, metavar="REC_A",
+           help="the recording the field is built from (with --query)"),
+    Option("--map-frames", "recordings.map_frames", metavar="START:STOP", help="--map: its frames to use (default all)"),
+    Option("--query", "recordings.query", type=Path, metavar="REC_B", help="the recording corrected with --map's field"),
+    Option("--query-frames", "recordings.query_frames", metavar="START:STOP",
+           help="--query: its frames to correct (default all)"),
+    Option("--split", "study.split", type=float,
+           help="fraction of the frames the field is built on (default %(default)s)"),
+    Option("--model", "study.model", choices=("grid", "splat", "views"),
+           help="field model (default %(default)s; see train-field --help)"),
+    Option("--train-steps", "study.train_steps", type=positive_int, help="grid: training steps (default: 5 minutes)"),
+    Option("--keyframe-every", "study.keyframe_every", type=positive_int,
+           help="a correction every N frames (default %(default)s)"),
+    Option("--scenarios", "study.eval_k_scenarios", type=positive_int,
+           help="Evaluation K scenarios (default %(default)s)"),
+    Option("--eval-k-full", "study.eval_k_full", action="store_true",
+           help="all 16 cells of Evaluation K (blur x intrinsics), not only CLEAN / no blur"),
+    Option("--odom", "study.odometries", setting=_odometries, option=",".join,
+           help="odometries to run, comma-separated (default %(default)s)"),
+    Option("--seed", "study.seed", type=int,
+           help="seed of the training, the odometry noise and Evaluation K's scenarios (default %(default)s)"),
+    Option("--matcher", "study.matcher", **matcher_option(RUN_MATCHER)),
+    Option("--topics", "study.topics", **TOPICS_OPTION),
+)
 
 
 def _apply_config(args, path: Path) -> None:
-    """Set every option the command line left at its default from a study's config.yaml."""
-    from .run_config import load_config_file, set_unless_given
+    """Set every option the command line did not give from a study's config.yaml."""
+    from nap3d_graph.run.settings import SettingsError
 
-    config = load_config_file(path, "study", "study")
-    values = {dest: config.get(key) for key, dest in _RECORDINGS.items()}
-    values = {k: (Path(v) if k in ("data", "map_data", "query") and v is not None else v) for k, v in values.items()}
-    values.update({dest: config["study"][key] for key, dest in _SETTINGS.items() if key in config["study"]})
-    if "odometries" in config["study"]:
-        values["odom"] = ",".join(config["study"]["odometries"])
-    set_unless_given(args, args.parser, values)
+    from .run_config import load_config_file
+
+    config = load_config_file(path, "settings", "study")
+    try:
+        settings = StudySettings.from_dict(config["settings"])
+    except (SettingsError, ValueError) as exc:
+        raise UsageError(f"--config {path}: {exc}") from None
+    apply_settings(args, settings, set(getattr(args, "given", None) or ()))
 
 
 def run(args) -> int:
-    from nap3d_graph.evaluation.study import StudyConfig, run_study
+    from nap3d_graph.evaluation.study import run_study
 
     if args.config is not None:
         _apply_config(args, args.config)
@@ -84,10 +95,7 @@ def run(args) -> int:
     if (args.data is None) == (args.map_data is None):
         raise UsageError("give one recording (split in time) or --map REC_A --query REC_B, not both")
     empty_or_new_dir(args.out, args.force)
-    config = StudyConfig(split=args.split, model=args.model, train_steps=args.train_steps,
-                         keyframe_every=args.keyframe_every, odometries=odometries, eval_k_scenarios=args.scenarios,
-                         eval_k_full=args.eval_k_full, seed=args.seed, matcher=args.matcher,
-                         topics=args.topics)
+    config = settings_from_args(args, getattr(args, "config_settings", None) or StudySettings()).study
     if args.map_data is not None:
         run_study(args.map_data, args.out, config, query=args.query, map_frames=args.map_frames,
                   query_frames=args.query_frames)

@@ -18,15 +18,16 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["StudyConfig", "run_study", "summary_markdown"]
+__all__ = ["StudyConfig", "StudyRecordings", "StudySettings", "run_study", "summary_markdown"]
 
 from nap3d_graph.nap3d.matching import choose_matcher
 from nap3d_graph.provenance import provenance
+from nap3d_graph.run.settings import SettingsTree
 
 log = logging.getLogger(__name__)
 
@@ -50,16 +51,39 @@ class StudyConfig:
             raise ValueError(f"split must be in [0.05, 0.95], got {self.split}")
 
 
+@dataclass
+class StudyRecordings:
+    """What a study reads: one recording split in time (``data``), or a map recording (its
+    ``map_frames``) and a query recording (its ``query_frames``) of the same place."""
+
+    data: str | None = None
+    map: str | None = None
+    map_frames: str | None = None
+    query: str | None = None
+    query_frames: str | None = None
+
+
+@dataclass
+class StudySettings(SettingsTree):
+    """A study's settings tree: its recordings and its :class:`StudyConfig` (``config.yaml``'s
+    ``settings``, read back by ``study --config``)."""
+
+    SECTIONS = {"recordings": StudyRecordings, "study": StudyConfig}
+
+    recordings: StudyRecordings = field(default_factory=StudyRecordings)
+    study: StudyConfig = field(default_factory=StudyConfig)
+
+
 def _write_config(path: Path, data, query, map_frames, query_frames, config: StudyConfig) -> None:
-    """What the study was given, as ``study --config`` reads it back."""
+    """What the study was given, as ``study --config`` reads it back (the recordings as
+    absolute paths)."""
     import yaml
 
-    settings = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(config).items() if k != "progress"}
-    record = {"data": None if query is not None else str(Path(data).resolve()),
-              "map": str(Path(data).resolve()) if query is not None else None, "map_frames": map_frames,
-              "query": None if query is None else str(Path(query).resolve()), "query_frames": query_frames,
-              "study": settings}
-    path.write_text(yaml.safe_dump(record, sort_keys=False))
+    recordings = StudyRecordings(data=None if query is not None else str(Path(data).resolve()),
+                                 map=str(Path(data).resolve()) if query is not None else None, map_frames=map_frames,
+                                 query=None if query is None else str(Path(query).resolve()), query_frames=query_frames)
+    tree = StudySettings(recordings, config).to_dict()
+    path.write_text(yaml.safe_dump({"settings": tree}, sort_keys=False))
 
 
 def _stage(name: str, progress: bool) -> None:

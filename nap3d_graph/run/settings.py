@@ -26,7 +26,7 @@ from typing import Any
 from .config import PipelineConfig
 from .default import DEFAULT_TRAIN_STEPS
 
-__all__ = ["RunSettings", "SettingsError", "SECTIONS", "pipeline_name"]
+__all__ = ["RunSettings", "SettingsTree", "SettingsError", "SECTIONS", "pipeline_name"]
 
 _PIPELINE_DEFAULTS = {f.name: f.default for f in dataclasses.fields(PipelineConfig)
                       if f.default is not dataclasses.MISSING}
@@ -194,34 +194,29 @@ SECTIONS: dict[str, type] = {"source": SourceSettings, "odometry": OdometrySetti
                              "output": OutputSettings}
 
 
-@dataclass
-class RunSettings:
-    """Everything a run is told, by section (each a dataclass of plain values)."""
+class SettingsTree:
+    """A tree of dataclass sections (``SECTIONS``: name -> class) of plain values: its dump
+    (:meth:`to_dict`) and load (:meth:`from_dict`) round-trip exactly."""
 
-    source: SourceSettings = dataclasses.field(default_factory=SourceSettings)
-    odometry: OdometrySettings = dataclasses.field(default_factory=OdometrySettings)
-    keyframes: KeyframeSettings = dataclasses.field(default_factory=KeyframeSettings)
-    alignment: AlignmentSettings = dataclasses.field(default_factory=AlignmentSettings)
-    graph: GraphSettings = dataclasses.field(default_factory=GraphSettings)
-    threads: ThreadSettings = dataclasses.field(default_factory=ThreadSettings)
-    output: OutputSettings = dataclasses.field(default_factory=OutputSettings)
+    SECTIONS: typing.ClassVar[dict[str, type]] = {}
 
     def to_dict(self) -> dict:
-        """``{section: {setting: value}}``, plain YAML data."""
-        return {name: dataclasses.asdict(getattr(self, name)) for name in SECTIONS}
+        """``{section: {setting: value}}``, plain YAML data (tuples as lists)."""
+        return {name: {k: _plain(v) for k, v in dataclasses.asdict(getattr(self, name)).items()}
+                for name in self.SECTIONS}
 
     @classmethod
-    def from_dict(cls, data: dict) -> RunSettings:
+    def from_dict(cls, data: dict):
         """The tree ``to_dict`` wrote (sections or settings left out keep their defaults);
         :class:`SettingsError` names an unknown section or setting, or a value of the wrong
         kind."""
         if not isinstance(data, dict):
             raise SettingsError(f"settings must be a mapping of sections, got {type(data).__name__}")
-        unknown = sorted(set(data) - set(SECTIONS))
+        unknown = sorted(set(data) - set(cls.SECTIONS))
         if unknown:
-            raise SettingsError(f"unknown settings section {unknown[0]!r} (sections: {', '.join(SECTIONS)})")
+            raise SettingsError(f"unknown settings section {unknown[0]!r} (sections: {', '.join(cls.SECTIONS)})")
         sections = {}
-        for name, kind in SECTIONS.items():
+        for name, kind in cls.SECTIONS.items():
             values = data.get(name) or {}
             if not isinstance(values, dict):
                 raise SettingsError(f"settings section {name!r} must be a mapping, got {type(values).__name__}")
@@ -233,13 +228,33 @@ class RunSettings:
         section, name = path.split(".")
         return getattr(getattr(self, section), name)
 
-    def replace(self, values: dict[str, Any]) -> RunSettings:
+    def replace(self, values: dict[str, Any]):
         """A copy with ``{'section.setting': value}`` set (each checked as ``from_dict`` checks)."""
         tree = self.to_dict()
         for path, value in values.items():
             section, name = path.split(".")
-            tree[section][name] = value
-        return RunSettings.from_dict(tree)
+            tree[section][name] = _plain(value)
+        return type(self).from_dict(tree)
+
+
+def _plain(value):
+    """``value`` as YAML data: tuples as lists."""
+    return [_plain(v) for v in value] if isinstance(value, (tuple, list)) else value
+
+
+@dataclass
+class RunSettings(SettingsTree):
+    """Everything a run is told, by section (each a dataclass of plain values)."""
+
+    SECTIONS = SECTIONS
+
+    source: SourceSettings = dataclasses.field(default_factory=SourceSettings)
+    odometry: OdometrySettings = dataclasses.field(default_factory=OdometrySettings)
+    keyframes: KeyframeSettings = dataclasses.field(default_factory=KeyframeSettings)
+    alignment: AlignmentSettings = dataclasses.field(default_factory=AlignmentSettings)
+    graph: GraphSettings = dataclasses.field(default_factory=GraphSettings)
+    threads: ThreadSettings = dataclasses.field(default_factory=ThreadSettings)
+    output: OutputSettings = dataclasses.field(default_factory=OutputSettings)
 
     def pipeline_config(self, *, land_within_s: float, overlap: bool, keyframe_when_idle: int, timing=None,
                         progress: bool = True) -> PipelineConfig:
@@ -305,6 +320,8 @@ def _checked(path: str, hint, value):
         if origin is list and isinstance(value, (list, tuple)) and all(
                 isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
             return [float(v) for v in value]
+        if origin is tuple and isinstance(value, (list, tuple)) and all(isinstance(v, str) for v in value):
+            return tuple(value)
         if origin is dict and isinstance(value, dict):
             return dict(value)
     wanted = " or ".join("None" if o is type(None) else getattr(typing.get_origin(o) or o, "__name__", str(o))

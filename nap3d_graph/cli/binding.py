@@ -1,0 +1,91 @@
+"""Command-line options bound to a settings tree (:class:`~nap3d_graph.run.settings.SettingsTree`)
+by one table of :class:`Option`: each names its flag, the ``section.setting`` it sets and how
+argparse reads it, never its default (that is the setting's, taken from the tree).
+:func:`add_options` adds a table to a parser, :func:`settings_from_args` reads the tree back from
+the parsed options over a base tree (a ``--config`` file's, for the settings with no flag), and
+:func:`apply_settings` sets the options a config file gives where the command line gave none.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+__all__ = ["Option", "add_options", "apply_settings", "settings_from_args"]
+
+
+@dataclass(frozen=True)
+class Option:
+    """One flag (or positional argument) bound to the setting at ``path``
+    (``'section.setting'``); ``kwargs`` are argparse's (type, choices, action, help...).
+    ``dest``: the parsed option's name when it is not the flag's; ``setting`` / ``option``:
+    how a value goes from the parsed option to the tree and back when it is more than a path
+    (text) or a vector (a list)."""
+
+    flag: str
+    path: str
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    dest_name: str | None = None
+    setting: Callable | None = None
+    option: Callable | None = None
+
+    def __init__(self, flag: str, path: str, *, dest: str | None = None, setting: Callable | None = None,
+                 option: Callable | None = None, **kwargs) -> None:
+        for name, value in (("flag", flag), ("path", path), ("kwargs", kwargs), ("dest_name", dest),
+                            ("setting", setting), ("option", option)):
+            object.__setattr__(self, name, value)
+
+    @property
+    def dest(self) -> str:
+        return self.dest_name or self.flag.lstrip("-").replace("-", "_")
+
+    def to_setting(self, value):
+        """The option's value as the tree holds it (paths as text, vectors as lists)."""
+        if self.setting is not None:
+            return self.setting(value)
+        if isinstance(value, Path):
+            return str(value)
+        return list(value) if isinstance(value, tuple) else value
+
+    def to_option(self, value):
+        """The setting's value as the parsed option holds it."""
+        if self.option is not None:
+            return self.option(value)
+        return Path(value) if self.kwargs.get("type") is Path and value is not None else value
+
+    def default_in(self, tree):
+        """The option's default: the setting's in ``tree`` (the defaults' tree)."""
+        return self.to_option(tree.get(self.path))
+
+
+def add_options(parser, options: tuple[Option, ...], defaults=None) -> None:
+    """Add ``options`` to ``parser``, each with its setting's default in ``defaults`` (a
+    settings tree; default: the run's); the parser remembers them (``args.bound_options``)
+    for :func:`settings_from_args`."""
+    from nap3d_graph.run.settings import RunSettings
+
+    defaults = defaults if defaults is not None else RunSettings()
+    for option in options:
+        named = {"dest": option.dest_name} if option.dest_name and option.flag.startswith("-") else {}
+        parser.add_argument(option.flag, default=option.default_in(defaults), **named, **option.kwargs)
+    parser.set_defaults(bound_options=(parser.get_default("bound_options") or ()) + tuple(options))
+
+
+def settings_from_args(args, base=None):
+    """The settings tree of the parsed options: ``base`` (default: a ``--config`` file's tree,
+    ``args.config_settings``, else the run's defaults) with every bound option's value."""
+    from nap3d_graph.run.settings import RunSettings
+
+    base = base or getattr(args, "config_settings", None) or RunSettings()
+    return base.replace({o.path: o.to_setting(getattr(args, o.dest)) for o in args.bound_options})
+
+
+def apply_settings(args, settings, given: set[str]) -> None:
+    """Set each bound option the command line did not give (``given``: argparse dests) from
+    ``settings``, and keep the tree for the settings with no flag (``args.config_settings``)."""
+    for option in args.bound_options:
+        if option.dest not in given:
+            setattr(args, option.dest, option.to_option(settings.get(option.path)))
+    args.config_settings = settings
