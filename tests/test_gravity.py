@@ -78,7 +78,8 @@ def test_the_graph_refines_the_accelerometers_gravity(walk):
 def test_the_run_warns_when_the_accelerometer_disagrees_with_z_up(walk, capsys):
     from argparse import Namespace
 
-    from nap3d_graph.cli.sources import _checked_gravity, _gravity
+    from nap3d_graph.cli.run_options import _gravity
+    from nap3d_graph.cli.sources import _checked_gravity
 
     turned = ImuOdometry.from_sequence(SequenceInFrame(walk, T_F_W))
     config = _checked_gravity(Namespace(gravity=9.81), turned)
@@ -92,5 +93,5 @@ def test_the_run_warns_when_the_accelerometer_disagrees_with_z_up(walk, capsys):
     _checked_gravity(Namespace(gravity=9.81), upright)
     assert "warning" not in capsys.readouterr().err
     assert _checked_gravity(Namespace(gravity="check"), upright).gravity_world is None
-    assert _gravity("0 9.81 0") == (0.0, 9.81, 0.0) and _gravity("auto") == "auto" and _gravity("9.8") == 9.8
+    assert _gravity("0 9.81 0") == [0.0, 9.81, 0.0] and _gravity("auto") == "auto" and _gravity("9.8") == 9.8
     assert _gravity("check") == "check"
