@@ -102,9 +102,7 @@ def test_every_option_is_bound_to_a_setting_with_its_default(command):
     assert len(paths) == len(set(paths)), "two options set one setting"
     defaults = RunSettings()
     for option in options:
-        assert parser.get_default(option.dest) == option.to_option(defaults.get(option.path)) or (
-            option.to_option(defaults.get(option.path)) is not None
-            and str(parser.get_default(option.dest)) == str(defaults.get(option.path))), option.flag
+        assert parser.get_default(option.dest) == option.default_in(defaults), option.flag
     flags = {f for action in parser._actions for f in action.option_strings}  # noqa: SLF001
     unbound = {f for f in flags if f.startswith("--")} - {o.flag for o in options}
     unbound -= {f"--no-{o.flag[2:]}" for o in options}  # --no-overlap is --overlap's

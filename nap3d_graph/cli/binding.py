@@ -9,14 +9,12 @@ the parsed options over a base tree (a ``--config`` file's, for the settings wit
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 __all__ = ["Option", "add_options", "apply_settings", "settings_from_args"]
 
 
-@dataclass(frozen=True)
 class Option:
     """One flag (or positional argument) bound to the setting at ``path``
     (``'section.setting'``); ``kwargs`` are argparse's (type, choices, action, help...).
@@ -24,18 +22,13 @@ class Option:
     how a value goes from the parsed option to the tree and back when it is more than a path
     (text) or a vector (a list)."""
 
-    flag: str
-    path: str
-    kwargs: dict[str, Any] = field(default_factory=dict)
-    dest_name: str | None = None
-    setting: Callable | None = None
-    option: Callable | None = None
-
     def __init__(self, flag: str, path: str, *, dest: str | None = None, setting: Callable | None = None,
-                 option: Callable | None = None, **kwargs) -> None:
-        for name, value in (("flag", flag), ("path", path), ("kwargs", kwargs), ("dest_name", dest),
-                            ("setting", setting), ("option", option)):
-            object.__setattr__(self, name, value)
+                 option: Callable | None = None, **kwargs: Any) -> None:
+        self.flag, self.path, self.kwargs = flag, path, kwargs
+        self.dest_name, self.setting, self.option = dest, setting, option
+
+    def __repr__(self) -> str:
+        return f"Option({self.flag!r}, {self.path!r})"
 
     @property
     def dest(self) -> str:

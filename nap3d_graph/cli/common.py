@@ -326,14 +326,14 @@ def parse_pose(text: str | None, file: Path | None):
 
 
 def parse_size(text: str, option: str = "--render-size") -> tuple[int, int]:
-    """``WxH`` (e.g. ``320x240``) as ``(width, height)``, or a one-line :class:`UsageError`."""
+    """``WxH`` (e.g. ``320x240``) as ``(width, height)`` (the settings tree's
+    :func:`~nap3d_graph.run.settings.render_size`), or a one-line :class:`UsageError`."""
+    from nap3d_graph.run.settings import SettingsError, render_size
+
     try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"{option} must look like 320x240, got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise UsageError(f"{option} must be positive, got {text!r}")
-    return w, h
+        return render_size(text)
+    except SettingsError as exc:
+        raise UsageError(f"{option}: {exc}") from None
 
 
 def parse_methods(text: str, known) -> tuple[str, ...]:

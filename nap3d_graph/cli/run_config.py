@@ -15,12 +15,13 @@ from pathlib import Path
 
 from .common import UsageError
 
-__all__ = ["apply_run_config", "load_config_file", "set_unless_given"]
+__all__ = ["apply_config", "apply_run_config", "load_config_file"]
 
 
-def load_config_file(path: Path, section: str, command: str) -> dict:
+def load_config_file(path: Path, section: str, command: str, older_section: str | None = None) -> dict:
     """The mapping a ``command``'s ``config.yaml`` holds, which must have a ``section``
-    mapping (one-line errors for a bad file)."""
+    mapping (one-line errors for a bad file; ``older_section``: the section a config.yaml of
+    an older version held instead, said as such)."""
     import yaml
 
     try:
@@ -29,9 +30,13 @@ def load_config_file(path: Path, section: str, command: str) -> dict:
         raise UsageError(f"--config {path}: file not found") from None
     except (OSError, yaml.YAMLError) as exc:
         raise UsageError(f"--config {path}: not a readable YAML file ({str(exc).splitlines()[0]})") from None
-    if not isinstance(config, dict) or not isinstance(config.get(section), dict):
-        raise UsageError(f"--config {path}: not a {command}'s config.yaml (no '{section}' section)")
-    return config
+    if isinstance(config, dict) and isinstance(config.get(section), dict):
+        return config
+    if older_section is not None and isinstance(config, dict) and isinstance(config.get(older_section), dict):
+        raise UsageError(f"--config {path}: written by an older nap3d-graph (a '{older_section}' section, no "
+                         f"{section} tree); run it again with the flags it lists, once, to write a config.yaml "
+                         "this version reads")
+    raise UsageError(f"--config {path}: not a {command}'s config.yaml (no '{section}' section)")
 
 
 def _given(args, parser) -> set[str]:
@@ -43,40 +48,25 @@ def _given(args, parser) -> set[str]:
     return {dest for dest, value in vars(args).items() if value != parser.get_default(dest)}
 
 
-def set_unless_given(args, parser, values: dict) -> None:
-    """Set each option of ``values`` the command line did not give (flags win)."""
-    given = _given(args, parser)
-    for dest, value in values.items():
-        if hasattr(args, dest) and dest not in given:
-            setattr(args, dest, value)
-
-
-def apply_run_config(args, path: Path) -> None:
-    """Set ``args`` from the run configuration at ``path`` where the command line did not give
-    an option; the file's whole tree goes to ``args.config_settings`` (the settings with no
-    flag come from it)."""
-    from nap3d_graph.run.settings import RunSettings, SettingsError
+def apply_config(args, path: Path, tree: type, command: str, older_section: str | None = None) -> None:
+    """Set ``args`` from the settings tree (of class ``tree``) in ``command``'s config.yaml at
+    ``path`` where the command line did not give an option; the whole tree goes to
+    ``args.config_settings`` (the settings with no flag come from it)."""
+    from nap3d_graph.run.settings import SettingsError
 
     from .binding import apply_settings
 
+    config = load_config_file(path, "settings", command, older_section)
     try:
-        config = load_config_file(path, "settings", "run")
-    except UsageError as exc:
-        if "'settings'" in str(exc) and _has_old_layout(path):
-            raise UsageError(f"--config {path}: written by an older nap3d-graph (a 'pipeline' section, no settings "
-                             "tree); run it again with the flags it lists, once, to write a config.yaml this "
-                             "version reads") from None
-        raise
-    try:
-        settings = RunSettings.from_dict(config["settings"])
-    except SettingsError as exc:
+        settings = tree.from_dict(config["settings"])  # type: ignore[attr-defined]
+    except (SettingsError, ValueError) as exc:  # ValueError: a section's own check (StudyConfig's split)
         raise UsageError(f"--config {path}: {exc}") from None
     apply_settings(args, settings, _given(args, args.parser))
 
 
-def _has_old_layout(path: Path) -> bool:
-    """Whether ``path`` is a run's config.yaml from before the settings tree."""
-    import yaml
+def apply_run_config(args, path: Path) -> None:
+    """``run --config``: the run's settings tree from ``path`` (a config.yaml from before the
+    tree held a 'pipeline' section)."""
+    from nap3d_graph.run.settings import RunSettings
 
-    config = yaml.safe_load(Path(path).read_text())
-    return isinstance(config, dict) and isinstance(config.get("pipeline"), dict)
+    apply_config(args, path, RunSettings, "run", older_section="pipeline")

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from nap3d_graph.evaluation.study import StudySettings
 
-from .binding import Option, add_options, apply_settings, settings_from_args
+from .binding import Option, add_options, settings_from_args
 from .common import RUN_MATCHER, TOPICS_OPTION, UsageError, empty_or_new_dir, matcher_option, positive_int
 from .options import add_force
 
@@ -65,28 +65,16 @@ STUDY_OPTIONS: tuple[Option, ...] = (
 )
 
 
-def _apply_config(args, path: Path) -> None:
-    """Set every option the command line did not give from a study's config.yaml."""
-    from nap3d_graph.run.settings import SettingsError
-
-    from .run_config import load_config_file
-
-    config = load_config_file(path, "settings", "study")
-    try:
-        settings = StudySettings.from_dict(config["settings"])
-    except (SettingsError, ValueError) as exc:
-        raise UsageError(f"--config {path}: {exc}") from None
-    apply_settings(args, settings, set(getattr(args, "given", None) or ()))
-
-
 def run(args) -> int:
     from nap3d_graph.evaluation.study import run_study
 
     if args.config is not None:
-        _apply_config(args, args.config)
+        from .run_config import apply_config
+
+        apply_config(args, args.config, StudySettings, "study", older_section="study")
     if not 0.05 <= args.split <= 0.95:
         raise UsageError(f"--split must be in [0.05, 0.95], got {args.split}")
-    odometries = tuple(o.strip() for o in args.odom.split(",") if o.strip())
+    odometries = _odometries(args.odom)
     unknown = [o for o in odometries if o not in ("vo", "dense", "noisy", "recorded")]
     if unknown or not odometries:
         raise UsageError(f"--odom: unknown {unknown or 'empty list'}; choose from vo, dense, noisy, recorded")
