@@ -211,7 +211,7 @@ def test_a_camera_without_ground_truth_maps_then_runs_in_its_map(tum_path, tmp_p
     assert main(["run", "--traj", "tum", "--data", str(survey), "--frames", "6:12", "--field", str(tmp_path / "map"),
                  "--matcher", "sift", "--out", str(tmp_path / "runs")]) == 0
     printed = capsys.readouterr().out
-    assert "start: found in the map" in printed
+    assert "start: anywhere in the map" in printed and "map: placed in the map at frame 5" in printed  # found at 0, confirmed by the next keyframe
     from evo.tools import file_interface
 
     from nap3d_graph.trajectory import read_tum_trajectory
@@ -275,9 +275,110 @@ def test_a_run_that_loses_track_recovers_by_relocalising_in_the_map(xyz_map):
         # a robot needs its pose back while it moves.
         errors[recover] = np.linalg.norm(run.T_world_cam_online[-1][:3, 3] - in_map.T_world_cam_gt[-1][:3, 3])
         if recover:
-            assert any(r["success"] for r in pipeline.recoveries)
-            assert all(r["jump_m"] > 0.1 for r in pipeline.recoveries if r["success"])
+            recovered = [r for r in pipeline.recoveries if r["step"] == "recovered"]
+            assert recovered and all(r["jump_m"] > 0.1 and r["frame"] > r["recovered_from_frame"] for r in recovered)
         else:
             assert pipeline.recoveries == []
     assert errors[False] > 0.1  # lost: the corrections alone could not bring it back
     assert errors[True] < 0.03
+
+
+class _BlindUntil:
+    """The map's relocaliser, blind to the frames before ``frame`` (as a first view the survey
+    never saw), and, when ``wrong`` is given, answering the first attempt it does make with
+    that pose offset (a similar view elsewhere, verified by its own inliers)."""
+
+    def __init__(self, inner, sequence, frame: int, wrong: np.ndarray | None = None):
+        self.inner, self.stamps, self.frame, self.wrong = inner, list(sequence.timestamps), frame, wrong
+
+    def locate(self, query):
+        from nap3d_graph.mapping.relocalise import Relocalisation
+
+        if self.stamps.index(query.timestamp) < self.frame:
+            return Relocalisation(False, tried=6, reason="none of the 6 most similar keyframes verified (blind)")
+        found = self.inner.locate(query)
+        if self.wrong is not None and found.success:
+            found.T_map_cam, self.wrong = found.T_map_cam @ self.wrong, None
+        return found
+
+
+def _in_map(sequence, result):
+    from nap3d_graph.mapping import reframed
+
+    T_gt_map = np.asarray(json.loads((result.folder / "survey_ate.json").read_text())["T_gt_map"])
+    return reframed(sequence._base, inv_T(T_gt_map), "ground truth in the map's frame")
+
+
+def _start_anywhere(xyz_map, blind_until: int, wrong=None):
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping.start import map_relocaliser
+    from nap3d_graph.motion.odometry import VisualOdometry
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.pipeline import Pipeline
+
+    sequence, result = xyz_map
+    field = resolve_field(str(result.folder))
+    in_map = _in_map(sequence, result)
+    odometry = VisualOdometry(np.eye(4), AlignConfig(matcher="sift", min_opacity=0.5))  # no start known
+    pipeline = Pipeline(in_map, field, odometry, PipelineConfig(keyframe_every=1, align=AlignConfig(matcher="sift")))
+    pipeline.start_in_map(_BlindUntil(map_relocaliser(result.folder, field, "sift"), in_map, blind_until, wrong))
+    return pipeline, pipeline.run(), in_map
+
+
+def test_a_run_starts_anywhere_and_moves_into_the_map_once_found(xyz_map):
+    """The first frames are not recognised: the run goes on its odometry in its own frame,
+    is found at frame 4, confirmed at frame 5, and every pose, those before it too, ends in
+    the map's frame, near the ground truth moved there by the survey's alignment."""
+    pipeline, run, in_map = _start_anywhere(xyz_map, blind_until=4)
+    placement = run.placement
+    assert placement["placed"] and placement["placed_at_frame"] == 5
+    assert [e["step"] for e in placement["events"]][-3:] == ["relocalise", "confirm", "placed"]
+    assert placement["relocalisations_tried"] == 5  # frames 0-3 refused, frame 4 found
+    records = {r.frame_index: r for r in run.keyframes}
+    assert all(not records[i].accepted and "not yet placed" in records[i].reason for i in range(5))
+    assert records[5].accepted and all(records[i].accepted for i in range(6, 12))
+    errors = np.linalg.norm(run.T_world_cam_estimate[:, :3, 3] - in_map.T_world_cam_gt[:, :3, 3], axis=1)
+    assert errors[:4].max() < 0.03  # the frames before the map found the run are in its frame too
+    assert errors.max() < 0.03
+    online = np.linalg.norm(run.T_world_cam_online[5:, :3, 3] - in_map.T_world_cam_gt[5:, :3, 3], axis=1)
+    assert online.max() < 0.03  # from the placement on, the robot has its pose in the map
+
+
+def test_a_wrong_relocalisation_is_refuted_by_the_next_keyframe(xyz_map):
+    """The first answer is 30 cm off (a similar place elsewhere, with enough inliers of its
+    own): the next keyframe, rendered where that answer puts it, lands far from it, so it is
+    dropped; the run is placed by the next relocalisation, which agrees with its successor."""
+    wrong = exp_se3(np.array([0.0, 0.05, 0.0, 0.30, 0.0, 0.0]))
+    pipeline, run, in_map = _start_anywhere(xyz_map, blind_until=2, wrong=wrong)
+    events = run.placement["events"]
+    refuted = [e for e in events if e.get("verdict") == "refuted"]
+    assert refuted and refuted[0]["frame"] == 3 and refuted[0].get("moved_m", 1.0) > 0.05
+    assert run.placement["placed"] and run.placement["placed_at_frame"] > 3
+    errors = np.linalg.norm(run.T_world_cam_estimate[:, :3, 3] - in_map.T_world_cam_gt[:, :3, 3], axis=1)
+    assert errors.max() < 0.03
+
+
+def test_a_run_never_found_in_the_map_says_so(xyz_map, sim_walk):
+    """Frames of a simulated room in the real fr1/xyz map: never placed, every pose in the
+    run's own frame (its first camera), and the placement record says so."""
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping.start import map_relocaliser
+    from nap3d_graph.motion.odometry import RecordedOdometry
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.pipeline import Pipeline
+
+    _, result = xyz_map
+    elsewhere = open_sequence(sim_walk(8))
+    field = resolve_field(str(result.folder))
+    T_gt = np.asarray(elsewhere.T_world_cam_gt)
+    odometry = RecordedOdometry(inv_T(T_gt[0]) @ T_gt)  # from its own first camera: no start known
+    pipeline = Pipeline(elsewhere, field, odometry, PipelineConfig(keyframe_every=2))
+    pipeline.start_in_map(map_relocaliser(result.folder, field, "sift"))
+    run = pipeline.run()
+    assert not run.placement["placed"] and run.placement["placed_at_frame"] is None
+    assert run.placement["relocalisations_tried"] == len(run.keyframes)
+    assert run.num_accepted == 0
+    np.testing.assert_allclose(run.T_world_cam_estimate[0], np.eye(4), atol=1e-6)
+    assert "never placed" in pipeline.placement.describe()

@@ -82,6 +82,12 @@ def run(args) -> int:
     start = prepared.record["resolved"].get("start")
     if start:  # a run in a self-made map: where it started, how it was scored
         extra["map"] = {**start, "recoveries": pipeline.recoveries}
+        if result.placement is not None:
+            extra["map"]["placement"] = result.placement
+            print(f"map: {pipeline.placement.describe()}")
+        untied = _untied_frames(start, result.placement)
+        if untied:
+            extra["scored"] = f"SE(3)-aligned only: {untied}; ate_m compares frames that are not tied, do not read it"
     metrics = writer.finish(result, partial=result.partial, extra=extra or None)
     if pace is not None:
         late = metrics["paced"].get("behind_camera_s") or {}
@@ -169,8 +175,20 @@ def pace_hint(metrics: dict) -> str:
             "often (--keyframe-every)")
 
 
+def _untied_frames(start: dict, placement: dict | None) -> str:
+    """Why the run's poses and its ground truth are in frames no survey alignment ties
+    (empty when they are tied): then only an SE(3)-aligned ATE means anything."""
+    if placement is not None and not placement.get("placed"):
+        return "the run was never placed in the map (its poses are in its own frame)"
+    if str(start.get("ground_truth_frame", "")).startswith("unknown"):
+        return "the map's survey had no ground truth to tie its frame to this run's"
+    return ""
+
+
 def summary_table(metrics: dict, seconds: float, with_field: bool = True) -> str:
     lines = [""]
+    if "scored" in metrics and "estimate" in metrics:
+        return _aligned_summary(metrics, seconds, with_field)
     if "estimate" in metrics:
         lines.append(f"{'':<22}{'ATE rmse':>12}{'ATE 1st half':>14}{'ATE 2nd half':>14}{'RPE rmse':>12}")
     label, causal = ("with NAP3D", "with NAP3D, causal") if with_field else ("graph (no field)", "graph, causal")
@@ -195,5 +213,20 @@ def summary_table(metrics: dict, seconds: float, with_field: bool = True) -> str
     if "total_per_keyframe" in timing:
         stages = ", ".join(f"{k} {v * 1000:.0f}" for k, v in timing.items() if k != "total_per_keyframe")
         lines.append(f"time per keyframe: {timing['total_per_keyframe']:.2f} s median ({stages} ms)")
+    lines.append(f"total time: {seconds:.0f} s")
+    return "\n".join(lines)
+
+
+def _aligned_summary(metrics: dict, seconds: float, with_field: bool) -> str:
+    """The summary when the run's frame and the ground truth's are not tied: each
+    trajectory's ATE after its own SE(3) alignment, and why."""
+    lines = ["", f"scored {metrics['scored']}", f"{'':<22}{'ATE (SE(3)-aligned)':>22}"]
+    label, causal = ("with NAP3D", "with NAP3D, causal") if with_field else ("graph (no field)", "graph, causal")
+    for name, label in (("odometry", "odometry only"), ("estimate", label), ("estimate_online", causal)):
+        m = metrics.get(name)
+        if m is not None and m.get("ate_se3_aligned_m") is not None:
+            lines.append(f"{label:<22}{m['ate_se3_aligned_m'] * 100:20.2f}cm")
+    lines.append(f"corrections: {metrics['corrections_accepted']} accepted, "
+                 f"{metrics['corrections_rejected_or_skipped']} rejected or skipped, of {metrics['keyframes']} keyframes")
     lines.append(f"total time: {seconds:.0f} s")
     return "\n".join(lines)

@@ -329,13 +329,11 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
             raise UsageError(f"--initial-pose auto is for --odom vo / dense (--odom {args.odom} starts where its poses do)")
         if args.odom is None:
             args.odom = "vo"
-        located = relocalise_first(map_dir, field_obj, sequence, args)
-        print(f"start: {located.describe()}")
-        if not located.success:
-            raise UsageError(f"could not find the first frame in the map {map_dir}: {located.reason}; give "
-                             "--initial-pose, or start where the survey went")
-        record["initial_pose"] = located.to_dict()
-        return sequence, located.T_map_cam, record
+        print("start: anywhere in the map: the odometry runs in its own frame (its first camera) until the map "
+              "recognises a keyframe and the next keyframe confirms it; then the whole run moves into the map's frame")
+        record["initial_pose"] = "found in the map (see placement)"
+        record["start_anywhere"] = True
+        return sequence, np.eye(4), record
     if (field_obj is None and initial_pose is None and args.initial_pose_file is None
             and args.odom in ("vo", "dense") and _no_start(sequence)):
         print("start: the identity (odometry only, no field and no ground truth to place it in)")
@@ -353,19 +351,12 @@ def _no_start(sequence) -> bool:
 def map_relocaliser(map_dir, field_obj, sequence, args):
     """A :class:`~nap3d_graph.mapping.relocalise.Relocaliser` of the map, rendering at the
     run's size with the run's matcher."""
-    from nap3d_graph.mapping.relocalise import Relocaliser
-    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.mapping.start import map_relocaliser as relocaliser_of
 
     width, height = parse_size(args.render_size)
     K = sequence.intrinsics
     render = K.scaled(width, height) if (K.width, K.height) != (width, height) else K
-    return Relocaliser(map_dir, field_obj, AlignConfig(matcher=args.matcher), render)
-
-
-def relocalise_first(map_dir, field_obj, sequence, args):
-    """The first readable frame of ``sequence`` found in the map (a
-    :class:`~nap3d_graph.mapping.relocalise.Relocalisation`)."""
-    return map_relocaliser(map_dir, field_obj, sequence, args).locate(sequence[0])
+    return relocaliser_of(map_dir, field_obj, args.matcher, render)
 
 
 def prepare(args) -> Prepared:
@@ -416,12 +407,6 @@ def prepare(args) -> Prepared:
     config = settings.pipeline_config(land_within_s=land_within_s(_land_within_default(args), sequence),
                                       overlap=args.overlap, keyframe_when_idle=args.keyframe_when_idle,
                                       timing=_timing(args, field_obj, sequence))
-    found = start_record.get("initial_pose")
-    if found:  # a start found in the map is as sure as its alignment, not pinned to a millimetre
-        import dataclasses
-
-        config = dataclasses.replace(config, prior_trans_sigma_m=float(max(config.prior_trans_sigma_m, found["sigma_m"])),
-                                     prior_rot_sigma_rad=float(max(config.prior_rot_sigma_rad, np.radians(found["sigma_deg"]))))
     runner = Pipeline(sequence, field_obj, odometry, config)  # resolves the field's error, once
     config = runner.config
     readout_s = _say_readout(config, field_obj)
@@ -443,7 +428,9 @@ def prepare(args) -> Prepared:
         resolved["imu"] = {**odometry.stream.config.to_dict(),
                            "fallback_odometry": getattr(odometry.fallback, "name", "none")}
     record = {"settings": settings.to_dict(), "resolved": resolved}
-    if start_record.get("map") and not config.overlap:
+    if start_record.get("start_anywhere"):  # placed by the map, and recovered by it when lost
+        runner.start_in_map(map_relocaliser(start_record["map"], field_obj, sequence, args))
+    elif start_record.get("map"):
         # A map's relocaliser: recovers a run lost ``relocalise_after`` keyframes in a row.
         runner.relocaliser = map_relocaliser(start_record["map"], field_obj, sequence, args)
     return Prepared(sequence, field_obj, odometry, config, record, name, runner)

@@ -84,6 +84,27 @@ class KeyframeGraph:
         self.factor_log.append((self.nap3d_factor(key, correction, None), True, frame_index))
         return factor
 
+    def reframed(self, T_new_old: np.ndarray) -> "KeyframeGraph":
+        """A fresh graph holding this one's factors with every pose moved into another frame
+        (``T_new_cam = T_new_old @ T_old_cam``), less the first keyframe's prior, which held
+        the old frame's gauge: whoever calls this adds what holds the new one (a prior) before
+        the next :meth:`update`. Only for a graph that kept every keyframe (no window has moved)
+        and holds poses alone (no anchor, no IMU state)."""
+        if self.frozen or self.anchored or self.new_factors.size():
+            raise ValueError("only a whole graph of poses, updated, moves into another frame")
+        moved = KeyframeGraph(self.config, self.anchored)
+        estimate = self.isam.calculateEstimate()
+        for key in estimate.keys():
+            if gtsam.Symbol(key).chr() != ord("x"):
+                raise ValueError(f"{gtsam.DefaultKeyFormatter(key)} is not a pose: it cannot move into another frame")
+            moved.insert(key, T_to_pose3(T_new_old @ pose3_to_T(estimate.atPose3(key))))
+        for factor, is_nap3d, frame_index in self.factor_log:
+            if isinstance(factor, gtsam.PriorFactorPose3) and list(factor.keys()) == [X(0)] and not is_nap3d:
+                continue  # the provisional frame's gauge
+            moved.new_factors.add(factor)
+            moved.factor_log.append((factor, is_nap3d, frame_index))
+        return moved
+
     def update(self, extra_step: bool = False) -> None:
         """Give iSAM2 what was added since the last update (a second step when a correction can
         have moved a pose far from its linearisation); rebuild it when the update fails."""

@@ -39,6 +39,12 @@ class FrameLog(Generic[T]):
     def append(self, item: T) -> None:
         self._items.append(item)
 
+    def mapped(self, fn) -> "FrameLog":
+        """A FrameLog of ``fn(item)`` for each kept item, numbered as this one."""
+        out: FrameLog = FrameLog(fn(item) for item in self._items)
+        out.start = self.start
+        return out
+
     def __len__(self) -> int:
         return self.start + len(self._items)
 

@@ -225,6 +225,10 @@ class ImuMotion:
     def since_keyframe(self) -> np.ndarray:
         return self.T_kf_cam
 
+    def reframe(self, T_new_old: np.ndarray) -> None:
+        raise ValueError("the IMU path cannot move into another frame mid-run (its gravity and velocities are "
+                         "in its own): give it its start in the map")
+
     def add_keyframe(self, j: int, i: int, t: float) -> KeyframeEntry:
         """Keyframe ``j`` (frame ``i`` at ``t``): its pose, velocity and bias, tied to the last
         keyframe's by a ``CombinedImuFactor`` (and the fallback's between factor while it runs),

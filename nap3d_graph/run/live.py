@@ -46,10 +46,12 @@ class LiveUpdate:
     GTSAM factor that entered the graph, or None when the correction failed or was gated out;
     ``record.reason`` says why). Measured inline that is this keyframe's own; with
     ``PipelineConfig.overlap`` it is the one that landed now, of an earlier keyframe
-    (``record.frame_index``)."""
+    (``record.frame_index``). ``placed``: False while a run that starts from anywhere in a
+    map has not been found in it (``T_world_cam`` is then in the run's own frame)."""
 
     T_world_cam: np.ndarray
     keyframe: bool = False
+    placed: bool = True
     record: KeyframeRecord | None = None
     correction: object | None = None
     factor: object | None = None
@@ -121,7 +123,8 @@ class DriftCorrector:
     """Odometry and NAP3D corrections in an iSAM2 graph, a frame at a time.
 
     field: anything with ``render(T_world_cam, intrinsics)`` (:func:`nap3d_graph.load_field`).
-    T_world_cam_start (4, 4) or ``gtsam.Pose3``: the first frame's pose in the field's frame.
+    T_world_cam_start (4, 4) or ``gtsam.Pose3``: the first frame's pose in the field's frame;
+        None with ``relocaliser``: the start is found in the map (below).
     config: a :class:`PipelineConfig`. With ``overlap`` each keyframe is measured on a worker
         thread and ``add_frame`` returns at once; its correction enters the graph at a later
         frame (that frame's :class:`LiveUpdate` carries it), and :meth:`finish` waits for the
@@ -134,11 +137,18 @@ class DriftCorrector:
         (``config.graph_window``) the frames whose poses are final are handed to it (write
         them out) and forgotten, so memory stays flat; :meth:`finish` then gives the frames
         after them (see :class:`~nap3d_graph.run.pipeline.Pipeline`).
+    relocaliser: a map's :class:`~nap3d_graph.mapping.relocalise.Relocaliser`
+        (:func:`nap3d_graph.mapping.start.map_relocaliser`). Without a start pose the run starts
+        from anywhere in the map: until a keyframe is found in it and the next confirms it
+        (``LiveUpdate.placed``), the poses are in the run's own frame (its first camera), then
+        the run moves into the map's. With a start pose it recovers a run lost in the map.
     """
 
-    def __init__(self, field, T_world_cam_start, config: PipelineConfig | None = None,
-                 odometry_sigmas: tuple[float, float] = (2e-3, 2e-3), on_retire=None):
-        T_start = _rigid(T_world_cam_start, "T_world_cam_start")
+    def __init__(self, field, T_world_cam_start=None, config: PipelineConfig | None = None,
+                 odometry_sigmas: tuple[float, float] = (2e-3, 2e-3), on_retire=None, relocaliser=None):
+        if T_world_cam_start is None and relocaliser is None:
+            raise ValueError("give T_world_cam_start, or a map's relocaliser to find the start in the map")
+        T_start = np.eye(4) if T_world_cam_start is None else _rigid(T_world_cam_start, "T_world_cam_start")
         config = dataclasses.replace(config or PipelineConfig(), progress=False)
         self._frames = _LiveFrames()
         self._odometry = _GivenOdometry(T_start)
@@ -149,6 +159,10 @@ class DriftCorrector:
                 self._frames.forget_before(segment.first_frame + len(segment.timestamps))
                 on_retire(segment)
         self.pipeline = Pipeline(self._frames, field, self._odometry, config, on_retire=retire)
+        if relocaliser is not None and T_world_cam_start is None:
+            self.pipeline.start_in_map(relocaliser)
+        else:
+            self.pipeline.relocaliser = relocaliser
         self.pipeline.start()
         self._worker = CorrectionWorker(field, self.pipeline.config) if self.pipeline.overlaps() else None
 
@@ -176,7 +190,8 @@ class DriftCorrector:
         records, keyframes = len(pipeline.records), len(pipeline.keyframe_indices)
         pipeline.last_correction = pipeline.last_factor = None
         pipeline.step(i, self._worker)
-        update = LiveUpdate(pipeline.current_estimate, keyframe=len(pipeline.keyframe_indices) > keyframes)
+        update = LiveUpdate(pipeline.current_estimate, keyframe=len(pipeline.keyframe_indices) > keyframes,
+                            placed=pipeline.placed)
         if len(pipeline.records) > records:
             update.record = pipeline.records[-1]
             update.correction, update.factor = pipeline.last_correction, pipeline.last_factor

@@ -80,6 +80,8 @@ class MotionModel(Protocol):
 
     def since_keyframe(self) -> np.ndarray: ...
 
+    def reframe(self, T_new_old: np.ndarray) -> None: ...
+
     def add_keyframe(self, j: int, i: int, t: float) -> KeyframeEntry: ...
 
     def after_correction(self, i: int, frame, accepted: bool) -> None: ...
@@ -151,6 +153,12 @@ class OdometryMotion:
     def since_keyframe(self) -> np.ndarray:
         """(4, 4) ``T_kf_cam``: the motion since the last keyframe."""
         return self.T_kf_cam
+
+    def reframe(self, T_new_old: np.ndarray) -> None:
+        """Every world pose kept moved into another frame: ``T_new_cam = T_new_old @ T_old_cam``
+        (a run placed in a map after it started; the increments are relative and stay)."""
+        self.T_world_cam_odom = self.T_world_cam_odom.mapped(lambda T_old_cam: T_new_old @ T_old_cam)
+        self.T_world_kf = T_new_old @ self.T_world_kf
 
     def add_keyframe(self, j: int, i: int, t: float) -> KeyframeEntry:
         """Keyframe ``j`` (frame ``i``) with its prior (the first) or its odometry factor, its

@@ -70,6 +70,10 @@ class OverlappedSteps:
         """Hand keyframe i's measurement to the worker and go on; until it lands, the keyframe
         is known by its prediction."""
         p, worker = self.pipeline, self.worker
+        if p._placing():  # finding the run in the map: inline (nothing is in flight then)
+            p._place_keyframe(p._pending(), i, frame)
+            p._report(p._finish_keyframe(), on_keyframe)
+            return
         record, job = p._pending(), p._job(i, frame)
         prepared, detected = worker.take_prepared(), worker.take_detected(i)
         if job is not None:
@@ -80,15 +84,17 @@ class OverlappedSteps:
             p.records.append(record)
             p._report(record, on_keyframe)
             return
-        worker.submit((record, job.T_field_cam_render), job)
+        worker.submit((record, job.T_field_cam_render, job.frame), job)
 
     def _land(self, on_keyframe, waited_s: float = 0.0) -> None:
         """The measurement in flight (waited for if need be) enters the graph at its keyframe,
         and the latest keyframe's estimate is refreshed. ``waited_s``: how long the run already
         waited for it."""
         p = self.pipeline
-        (record, T_field_cam_render), correction, took_s = self.worker.take()
+        (record, T_field_cam_render, frame), correction, took_s = self.worker.take()
         p._apply_correction(record, record.frame_index, correction, T_field_cam_render)
+        if record.key == p._latest_key():  # a recovery places the latest keyframe (an older one has moved on)
+            p._recover_if_lost(record, record.frame_index, frame)
         record.timings_s["wait"] = round(waited_s + took_s, 5)
         record.timings_s["landed_frame"] = len(p.motion.T_world_cam_odom) - 1
         j = len(p.keyframe_indices) - 1

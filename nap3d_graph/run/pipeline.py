@@ -28,6 +28,7 @@ from nap3d_graph.conventions import inv_T, pose3_to_T, pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming, resolve_capture_timing
 from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
+from nap3d_graph.mapping.start import MapPlacement, PlacementSettings
 from nap3d_graph.results import Correction
 from nap3d_graph.run.chain import chain_from_nearest_keyframe
 from nap3d_graph.run.config import PipelineConfig, with_field_error
@@ -102,12 +103,39 @@ class Pipeline:
         self.relocaliser = None
         self.recoveries: list[dict] = []
         self._refused_in_a_row = 0
+        # Placing the run in the map (nap3d_graph.mapping.start): None when the start is given;
+        # set by start_in_map for a run that starts from anywhere in a map.
+        self._placement_settings: PlacementSettings | None = None
+        self._starts_unplaced = False
+        self.placement: MapPlacement | None = None
         motion = motion_kind(odometry)
         if self.config.use_anchor and motion.estimates_field_frame:
             raise ValueError("`use_anchor` does not apply with `odometry='imu'`: the IMU path estimates the field's frame's "
                              "tilt (its gravity) itself")
         if self.config.graph_window and (self.config.use_anchor or not motion.allows_graph_window):
             raise ValueError("graph_window (a bounded graph) does not apply with the map anchor or the IMU path")
+
+    def start_in_map(self, relocaliser, settings: PlacementSettings | None = None) -> None:
+        """Start from anywhere in a map (before :meth:`run` or :meth:`start`): the odometry
+        runs from its own first camera (a provisional frame) until ``relocaliser`` (the map's
+        :class:`~nap3d_graph.mapping.relocalise.Relocaliser`) finds a keyframe and the next
+        keyframes confirm it (:class:`~nap3d_graph.mapping.start.MapPlacement`); then every pose
+        so far moves into the map's frame and corrections begin. The same relocaliser then
+        recovers a run lost later. ``placement.summary()`` says when and how it was placed."""
+        if not motion_kind(self.odometry).allows_graph_window:
+            raise ValueError("starting from anywhere in a map needs a frame odometry ('vo', 'dense', 'recorded'), "
+                             "not odometry='imu' (its gravity and velocities are in a frame of their own)")
+        if self.config.use_anchor:
+            raise ValueError("`use_anchor` does not apply when the start is found in the map (the map is the world)")
+        self.relocaliser = relocaliser
+        self._placement_settings = settings
+        self._starts_unplaced = True
+
+    @property
+    def placed(self) -> bool:
+        """Whether the run's poses are in the field's (map's) frame: always, unless it started
+        from anywhere in a map and has not been placed yet."""
+        return self.placement is None or self.placement.placed
 
     def _motion(self) -> MotionModel:
         stamps = self.sequence.timestamps
@@ -252,6 +280,9 @@ class Pipeline:
         self._streak: tuple[str | None, int] = (None, 0)  # the current run of refusals for one reason
         self.last_correction_frame = -1
         self._trained = self._trained_timestamps()
+        self.placement = None if self.relocaliser is None else MapPlacement(
+            self.relocaliser, self._placement_settings, placed=not self._starts_unplaced)
+        self.recoveries, self._refused_in_a_row = [], 0
         self.selector = KeyframeSelector(self.config)
         timing = self._timing()
         self.depth_scale = DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, self.config)
@@ -305,10 +336,11 @@ class Pipeline:
         """Measure the pending keyframe's correction and give it to the graph, now; then the
         motion model hears whether it landed, and adds its own notes of the interval."""
         record = self._pending()
-        job = self._job(i, frame)
-        if job is not None:
+        if self._placing():
+            self._place_keyframe(record, i, frame)
+        elif (job := self._job(i, frame)) is not None:
             self._apply_correction(record, i, measure_keyframe(job, self.field, self.config), job.T_field_cam_render)
-            self._recover_if_lost(record, i, frame, job.T_field_cam_render)
+            self._recover_if_lost(record, i, frame)
         if notes := self.motion.interval_notes():
             record.reason = f"{record.reason}; {notes}" if record.reason else notes
         self.motion.after_correction(i, frame, record.accepted)
@@ -320,8 +352,9 @@ class Pipeline:
             raise RuntimeError("no keyframe is pending: _add_keyframe comes first")
         return self._pending_record
 
-    def _job(self, i: int, frame) -> KeyframeJob | None:
-        """What measuring keyframe i needs, or None (the reason recorded) when it cannot be."""
+    def _job(self, i: int, frame, T_field_cam_render: np.ndarray | None = None) -> KeyframeJob | None:
+        """What measuring keyframe i needs, or None (the reason recorded) when it cannot be;
+        rendered at its prediction, or at ``T_field_cam_render`` (4, 4) when given."""
         record = self._pending()
         if self.field is None:
             record.reason = "no field"
@@ -329,9 +362,12 @@ class Pipeline:
         if frame is None:
             record.reason = f"frame unreadable: {getattr(self, '_frame_error', 'unknown error')}"
             return None
-        T_field_cam_render = self.T_world_kf_pred
-        if self.anchored:
+        if T_field_cam_render is not None:
+            pass
+        elif self.anchored:
             T_field_cam_render = inv_T(self.graph.anchor()) @ self.T_world_kf_pred  # the field's frame
+        else:
+            T_field_cam_render = self.T_world_kf_pred
         render_intrinsics = self._render_intrinsics(frame.intrinsics)
         return KeyframeJob(i, frame, T_field_cam_render, self._velocity(i), self._timing(), self.depth_scale.scale,
                            render_intrinsics, feats_real=self._odometry_features(i, render_intrinsics),
@@ -360,40 +396,124 @@ class Pipeline:
         self._gate_and_add(record, i, correction, T_field_cam_render)
         self._watch_refusals(record)
 
-    def _recover_if_lost(self, record: KeyframeRecord, i: int, frame, T_field_cam_render) -> None:
+    def _latest_key(self) -> int:
+        """The graph key of the latest keyframe."""
+        return X(len(self.keyframe_indices) - 1)
+
+    def _placing(self) -> bool:
+        """Whether this keyframe goes to the map placement (:mod:`nap3d_graph.mapping.start`)
+        rather than to a correction: the run is not placed yet, or a recovery waits for its
+        confirmation."""
+        return self.placement is not None and (not self.placement.placed or self.placement.candidate is not None)
+
+    def _recover_if_lost(self, record: KeyframeRecord, i: int, frame) -> None:
         """After ``relocalise_after`` keyframes refused in a row (the estimate drifted off the
-        map, or the odometry lost track), find this frame in the map with the relocaliser and
-        put it in the graph without the gate: the gate would compare it with the prediction
-        that is lost. Only a relocalisation that verifies (inliers, covariance, agreeing
-        candidates) enters."""
+        map, or the odometry lost track), relocalise this frame in the map: a verified
+        relocalisation becomes a candidate that the next keyframes confirm
+        (:meth:`_place_keyframe`), then enters without the gate, which would compare it with
+        the prediction that is lost."""
         self._refused_in_a_row = 0 if record.accepted else self._refused_in_a_row + 1
         after = self.config.relocalise_after
-        if self.relocaliser is None or not after or self._refused_in_a_row < after or self.anchored:
+        if (self.placement is None or frame is None or not after or self._refused_in_a_row < after
+                or self.anchored):
             return
+        found = self.placement.propose(i, record.key, frame, self.T_world_kf_pred)
+        entry = {"frame": int(i), "step": "relocalise", "refused_in_a_row": self._refused_in_a_row,
+                 "found": found is not None,
+                 "seconds": self.placement.events[-1]["seconds"]}
+        if found is None:  # tried again at the next keyframe
+            entry["reason"] = self.placement.events[-1].get("reason", "")
+        else:
+            self._refused_in_a_row = 0
+            if self.placement.settings.confirmations == 0:
+                self._place(record, i)
+        self.recoveries.append(entry)
+
+    def _place_keyframe(self, record: KeyframeRecord, i: int, frame) -> None:
+        """Keyframe i while the run is not placed in the map (or a recovery waits): it confirms
+        the pending candidate (rendered where the candidate puts it), or relocalises afresh.
+        Nothing enters the graph until a candidate is confirmed; then :meth:`_place`."""
+        placement = self.placement
+        assert placement is not None
+        lost = placement.placed  # a recovery, not the start
+        if frame is None or self.field is None:
+            record.reason = "no frame to relocalise" if frame is None else "no field"
+            return
+        if placement.candidate is not None:
+            T_map_cam_pred = placement.predicted(self.T_world_kf_pred)
+            job = self._job(i, frame, T_field_cam_render=T_map_cam_pred)
+            if job is None:
+                return
+            correction = measure_keyframe(job, self.field, self.config)
+            record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
+                                                                 correction.iterations)
+            verdict = placement.confirm(i, record.key, correction, T_map_cam_pred)
+            if verdict == "confirmed":
+                self._place(record, i)
+                return
+            if verdict == "agrees":
+                record.reason = "relocalised in the map: confirming (agrees so far)"
+                return
+            if lost:  # refuted while recovering: back to counting refusals
+                record.reason = f"recovery refuted: {placement.events[-1].get('reason', '')}"
+                return
+        found = placement.propose(i, record.key, frame, self.T_world_kf_pred)
+        if found is not None and placement.settings.confirmations == 0:
+            self._place(record, i)
+            return
+        record.reason = ("not yet placed in the map: relocalised, to be confirmed by the next keyframe" if found
+                         else f"not yet placed in the map: {placement.events[-1].get('reason', 'not found')}")
+
+    def _place(self, record: KeyframeRecord, i: int) -> None:
+        """The pending candidate is confirmed at keyframe i: at the start, everything so far
+        moves into the map's frame (:meth:`_reframe`); then the relocalisation and each
+        confirming correction enter the graph past the gate."""
         from nap3d_graph.results import Alignment
 
-        found = self.relocaliser.locate(frame)
-        entry = {"frame": int(i), "refused_in_a_row": self._refused_in_a_row, "success": bool(found.success),
-                 "seconds": round(found.seconds, 3)}
-        if found.success:
-            alignment = Alignment(success=True, num_inliers=found.inliers, covariance=found.covariance)
-            correction = Correction(T_field_cam_render, found.T_map_cam, found.covariance, alignment, 1, True, "", {})
+        placement = self.placement
+        assert placement is not None
+        first = not placement.placed
+        cand = placement.accept(i)
+        if first:
+            self._reframe(cand.T_map_run)
+        found = cand.found
+        alignment = Alignment(success=True, num_inliers=int(found.inliers), covariance=cand.covariance)
+        relocalised = Correction(cand.T_map_cam, cand.T_map_cam, cand.covariance, alignment, 1, True, "", {})
+        T_pred = self.T_world_kf_pred
+        for frame_index, key, correction in [(cand.frame, cand.key, relocalised), *cand.confirmed]:
+            if not self.graph.has(key) and key != record.key:
+                continue  # left a bounded graph meanwhile
             try:
-                self.graph.add_past_gate(record.key, correction, i)
-            except ValueError as exc:
-                entry["reason"] = f"covariance not usable: {exc}"
-            else:
-                jump_m, jump_deg = pose_error(found.T_map_cam, T_field_cam_render)
-                entry.update(jump_m=round(jump_m, 4), jump_deg=round(jump_deg, 3), keyframe=found.keyframe,
-                             inliers=found.inliers)
-                record.accepted = True
-                record.reason = f"relocalised in the map after {self._refused_in_a_row} refused keyframes"
-                self._refused_in_a_row = 0
-                self._update_isam(extra_step=True, record=record)
-                log.warning("frame %d: %s; the estimate jumped %.2f m / %.1f deg", i, found.describe(), jump_m, jump_deg)
+                self.graph.add_past_gate(key, correction, frame_index)
+            except ValueError as exc:  # a covariance GTSAM cannot use: that one stays out
+                log.warning("frame %d: relocalisation not usable (%s)", frame_index, exc)
+        self._update_isam(extra_step=True, record=record)
+        last = cand.confirmed[-1][2] if cand.confirmed else relocalised
+        record.correction_m, record.correction_deg = pose_error(last.T_world_cam_corrected, T_pred)
+        record.accepted = True
+        record.reason = ""
+        self.last_correction, self.last_correction_frame = last, i
+        jump_m, jump_deg = pose_error(self.graph.pose(record.key), T_pred)
+        if first:
+            log.warning("frame %d: %s", i, placement.describe())
         else:
-            entry["reason"] = found.reason
-        self.recoveries.append(entry)
+            entry = {"frame": int(i), "step": "recovered", "recovered_from_frame": cand.frame, "jump_m": round(jump_m, 4),
+                     "jump_deg": round(jump_deg, 3), "keyframe": int(found.keyframe), "inliers": int(found.inliers),
+                     "success": True}
+            self.recoveries.append(entry)
+            log.warning("frame %d: recovered in the map (relocalised at frame %d, confirmed); the estimate jumped "
+                        "%.2f m / %.1f deg", i, cand.frame, jump_m, jump_deg)
+        self._refused_in_a_row = 0
+
+    def _reframe(self, T_map_run: np.ndarray) -> None:
+        """Move the run so far from its provisional frame into the map's by ``T_map_run``
+        (4, 4): the odometry, the causal poses, the prediction and the graph (which drops its
+        provisional first-pose prior: the relocalisation now holds the gauge)."""
+        T = np.asarray(T_map_run, dtype=float)
+        self.motion.reframe(T)
+        self._online = self._online.mapped(lambda T_run_cam: T @ T_run_cam)
+        self.T_world_kf_pred = T @ self.T_world_kf_pred
+        self.graph = self.graph.reframed(T)
 
     #: Consecutive keyframes refused for one reason before the run says so.
     REFUSAL_STREAK = 5
@@ -474,7 +594,8 @@ class Pipeline:
     def _update_isam(self, extra_step: bool = False, record: KeyframeRecord | None = None) -> None:
         t0 = time.perf_counter()
         self.graph.update(extra_step)
-        cut = self.graph.bound(len(self.keyframe_indices))
+        # Until the run is placed in the map its graph holds every keyframe (it will be moved whole).
+        cut = self.graph.bound(len(self.keyframe_indices)) if self.placed else None
         if cut is not None:  # the window moved: the stream forgets what left it
             oldest_frame = self.keyframe_indices[cut]
             for kept in (self.interval_odometry, self.measured_corrections):
@@ -545,6 +666,8 @@ class Pipeline:
                            corrections=dict(self.measured_corrections), increments=list(self.motion.increments[:n]),
                            first_frame=first)
         self.motion.finish(estimate, self.graph, accepted, self.keyframe_indices, result)
+        if self.placement is not None:
+            result.placement = self.placement.summary()
         return result
 
     # --- helpers -----------------------------------------------------------------------------

@@ -48,7 +48,10 @@ class RunResult:
     with the odometry. ``partial``: the run was stopped before its last frame. ``first_frame``:
     the frame the arrays start at (0 but for a run that handed its older frames to
     ``on_retire``, :mod:`nap3d_graph.run.history`); ``keyframe_indices`` and the records'
-    ``frame_index`` count from the run's first frame all the same.
+    ``frame_index`` count from the run's first frame all the same. ``placement``: for a run
+    that started from anywhere in a map, whether and when it was placed in it
+    (:meth:`~nap3d_graph.mapping.start.MapPlacement.summary`); never placed, its poses are in
+    its own provisional frame (its first camera), not the map's.
     """
 
     timestamps: np.ndarray
@@ -74,6 +77,7 @@ class RunResult:
     gravity_world_prior: np.ndarray | None = None
     fallback_intervals: list = field(default_factory=list)
     first_frame: int = 0
+    placement: dict | None = None
 
     def trajectories(self) -> dict[str, Trajectory]:
         """The run's trajectories as :class:`~nap3d_graph.trajectory.Trajectory`:

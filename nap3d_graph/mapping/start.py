@@ -1,0 +1,196 @@
+"""Placing a run in a map from anywhere: relocalise at keyframes, confirm by the next ones.
+
+A run in a map need not start where the survey went. It runs its odometry from an unknown
+start, in a provisional frame (its first camera), and at each keyframe asks the map's
+:class:`~nap3d_graph.mapping.relocalise.Relocaliser` where the frame is. A relocalisation
+found at keyframe ``k`` proposes a *candidate*: the rigid map that takes the run's frame
+into the map's, ``T_map_run = T_map_cam(k) @ inv(T_run_cam(k))``. One frame's inliers can
+be fooled by a similar view elsewhere; the run's own odometry cannot be fooled the same way
+twice. So the candidate is accepted only when the next ``confirmations`` keyframes, placed
+by it (``T_map_run @ T_run_cam(k + n)``, carried there by the odometry) and aligned with the
+field rendered at that pose, land within ``agree_m`` / ``agree_deg`` of where it put them.
+A candidate that disagrees is dropped and the keyframe that refuted it relocalises afresh.
+
+The same steps recover a run that is placed but lost (keyframes refused in a row): the
+candidate then maps the lost estimate onto the map again.
+
+:class:`MapPlacement` holds that state and decides; it touches no graph. The run
+(:class:`~nap3d_graph.run.pipeline.Pipeline`) measures, and once placed moves what it has
+into the map's frame (:meth:`~nap3d_graph.run.pipeline.Pipeline.start_in_map`).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from nap3d_graph.conventions import inv_T, pose_error
+
+from .relocalise import Relocalisation
+
+__all__ = ["PlacementSettings", "Candidate", "MapPlacement", "map_relocaliser"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PlacementSettings:
+    """confirmations: keyframes after the relocalised one whose correction, rendered where
+    the candidate places them, must agree with it (0: a verified relocalisation is taken at
+    once); agree_m / agree_deg: how far such a correction may move the keyframe and still
+    agree (the relocalisation's own agreement radius, :class:`~.relocalise.RelocaliseSettings`).
+    Chosen on the simulator and fr1/xyz (tests), not on the recordings the results report."""
+
+    confirmations: int = 1
+    agree_m: float = 0.05
+    agree_deg: float = 3.0
+
+    def __post_init__(self):
+        if self.confirmations < 0:
+            raise ValueError(f"confirmations must be 0 or more, got {self.confirmations}")
+
+
+@dataclass
+class Candidate:
+    """A relocalisation waiting for confirmation. ``T_map_run`` (4, 4): the run's frame in the
+    map's as this relocalisation puts it; ``frame``/``key``: the keyframe it was found at
+    (frame index, graph key); ``T_map_cam``/``covariance``: its pose and (6, 6) covariance;
+    ``found``: the :class:`~.relocalise.Relocalisation`; ``confirmed``: (frame, key,
+    correction) of each keyframe that agreed so far."""
+
+    frame: int
+    key: int
+    T_map_run: np.ndarray
+    T_map_cam: np.ndarray
+    covariance: np.ndarray
+    found: Relocalisation
+    confirmed: list = field(default_factory=list)
+
+
+class MapPlacement:
+    """Where a run stands in a map: ``placed`` once a candidate was confirmed (``T_map_run``
+    then says how its provisional frame moved into the map's), the pending ``candidate``,
+    and ``events``: every attempt and its outcome (metrics.json's record)."""
+
+    def __init__(self, relocaliser, settings: PlacementSettings | None = None, placed: bool = False):
+        self.relocaliser = relocaliser
+        self.settings = settings or PlacementSettings()
+        self.placed = placed
+        self.T_map_run: np.ndarray | None = np.eye(4) if placed else None
+        self.placed_at: int | None = None
+        self.candidate: Candidate | None = None
+        self.events: list[dict] = []
+
+    # --- the steps -------------------------------------------------------------------------
+
+    def propose(self, i: int, key: int, frame, T_run_cam: np.ndarray) -> Candidate | None:
+        """Relocalise keyframe ``i`` (graph key ``key``, ``frame`` an RGBDFrame, at
+        ``T_run_cam`` (4, 4) in the run's frame); a verified one becomes the candidate."""
+        found = self.relocaliser.locate(frame)
+        event = {"frame": int(i), "step": "relocalise", "success": bool(found.success),
+                 "seconds": round(float(found.seconds), 3)}
+        self.candidate = None
+        if not found.success:
+            event["reason"] = found.reason
+            self.events.append(event)
+            return None
+        cov = np.asarray(found.covariance, dtype=float)
+        if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+            event.update(success=False, reason="relocalisation without a usable covariance")
+            self.events.append(event)
+            return None
+        T_map_run = found.T_map_cam @ inv_T(T_run_cam)
+        self.candidate = Candidate(int(i), int(key), T_map_run, np.array(found.T_map_cam), cov, found)
+        event.update(keyframe=int(found.keyframe), inliers=int(found.inliers), agreeing=int(found.agreeing),
+                     sigma_m=round(float(found.sigma_m), 4), sigma_deg=round(float(found.sigma_deg), 3))
+        self.events.append(event)
+        return self.candidate
+
+    def predicted(self, T_run_cam: np.ndarray) -> np.ndarray:
+        """(4, 4) where the pending candidate places a camera at ``T_run_cam`` in the map."""
+        if self.candidate is None:
+            raise RuntimeError("no candidate to place by: propose one first")
+        return self.candidate.T_map_run @ T_run_cam
+
+    def confirm(self, i: int, key: int, correction, T_map_cam_pred: np.ndarray) -> str:
+        """Keyframe ``i``'s correction (a :class:`~nap3d_graph.results.Correction` rendered at
+        ``T_map_cam_pred``, the candidate's placement of it) against the candidate: returns
+        "confirmed" (enough keyframes agreed), "agrees" (one more needed) or "refuted" (the
+        candidate is dropped)."""
+        s, cand = self.settings, self.candidate
+        if cand is None:
+            raise RuntimeError("no candidate to confirm: propose one first")
+        event: dict = {"frame": int(i), "step": "confirm", "candidate_frame": cand.frame}
+        if not correction.success:
+            verdict, event["reason"] = "refuted", f"the next keyframe's correction failed: {correction.reason}"
+        else:
+            moved_m, moved_deg = pose_error(correction.T_world_cam_corrected, T_map_cam_pred)
+            event.update(moved_m=round(float(moved_m), 4), moved_deg=round(float(moved_deg), 3),
+                         inliers=int(correction.num_inliers))
+            if moved_m <= s.agree_m and moved_deg <= s.agree_deg:
+                cand.confirmed.append((int(i), int(key), correction))
+                verdict = "confirmed" if len(cand.confirmed) >= s.confirmations else "agrees"
+            else:
+                verdict = "refuted"
+                event["reason"] = (f"the next keyframe lands {moved_m * 100:.1f} cm / {moved_deg:.1f} deg from where "
+                                   f"the candidate put it (> {s.agree_m * 100:.0f} cm / {s.agree_deg:.0f} deg)")
+        event["verdict"] = verdict
+        self.events.append(event)
+        if verdict == "refuted":
+            self.candidate = None
+        return verdict
+
+    def accept(self, i: int) -> Candidate:
+        """The pending candidate, confirmed at keyframe ``i``: the run is placed by it."""
+        cand = self.candidate
+        if cand is None:
+            raise RuntimeError("no candidate to accept")
+        if not self.placed:
+            self.T_map_run, self.placed_at = cand.T_map_run, int(i)
+        self.placed = True
+        self.candidate = None
+        self.events.append({"frame": int(i), "step": "placed", "candidate_frame": cand.frame,
+                            "confirmed_by": [c[0] for c in cand.confirmed]})
+        return cand
+
+    # --- what it says ----------------------------------------------------------------------
+
+    def attempts(self) -> int:
+        return sum(e["step"] == "relocalise" for e in self.events)
+
+    def summary(self) -> dict:
+        """metrics.json's record: whether and when the run was placed, every attempt."""
+        out: dict = {"placed": bool(self.placed), "placed_at_frame": self.placed_at,
+                     "relocalisations_tried": self.attempts(), "events": self.events}
+        if self.placed_at is not None and self.T_map_run is not None:
+            out["T_map_run"] = np.asarray(self.T_map_run).tolist()
+        return out
+
+    def describe(self) -> str:
+        """One line for the user."""
+        if self.placed_at is not None:
+            return (f"placed in the map at frame {self.placed_at} after {self.attempts()} relocalisation attempt(s); "
+                    "every pose before it moved into the map's frame with it")
+        if self.placed:
+            return "started at a given pose in the map"
+        return (f"never placed in the map ({self.attempts()} relocalisation attempt(s), none confirmed): the run's "
+                "poses are in its own frame (its first camera), not the map's")
+
+
+def map_relocaliser(map_dir, field_obj=None, matcher: str | None = None, render_intrinsics=None):
+    """The :class:`~nap3d_graph.mapping.relocalise.Relocaliser` of a map folder (``nap3d-graph
+    map``), with its own field unless ``field_obj`` is given, its keyframes' matcher unless
+    ``matcher`` is, rendering at ``render_intrinsics`` (None: each frame's own camera). What
+    ``Pipeline.start_in_map`` and ``DriftCorrector(relocaliser=...)`` take."""
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    from .relocalise import Relocaliser
+
+    if field_obj is None:
+        from nap3d_graph.fields import resolve_field
+
+        field_obj = resolve_field(str(map_dir))
+    config = AlignConfig(matcher=matcher) if matcher is not None else None
+    return Relocaliser(map_dir, field_obj, config, render_intrinsics)
