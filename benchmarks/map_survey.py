@@ -95,6 +95,8 @@ def _start_of(config_text: str) -> dict | str:
     found = start.get("initial_pose")
     if not found:
         return "ground truth"
+    if isinstance(found, str):  # found by the run itself (start anywhere): metrics.json's map.placement
+        return found
     return {k: found[k] for k in ("keyframe", "inliers", "sigma_m", "sigma_deg", "agreeing", "seconds")}
 
 

@@ -36,6 +36,7 @@ from nap3d_graph.textfiles import write_json_atomic
 from .bundle import BundleSettings, PairMatches, bundle_adjust
 from .loops import Keyframe, Loop, LoopSettings, candidates, verify, verify_pair
 from .pose_graph import Edge, floor_covariance, mahalanobis_sq, solve
+from .relocalise import KEYFRAME_FRAMES, save_keyframe_frames
 from .retrieval import Vocabulary, vlad
 from .survey import SurveyOdometry, keyframe_indices, track, tracked_segment
 
@@ -168,6 +169,8 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
                             centres=vocabulary.centres, matcher=settings.matcher,
                             width=-1 if settings.width is None else settings.width)
         done("keyframes", time.perf_counter() - t0, keyframes=len(keys))
+    if not (out / KEYFRAME_FRAMES).is_file():  # a map made before the relocaliser read them gets them now
+        save_keyframe_frames(out / KEYFRAME_FRAMES, keyframes or _keyframes(sequence, keys, settings, progress))
     with np.load(retrieval_path) as data:
         descriptors = data["descriptors"]
 

@@ -1,10 +1,15 @@
 """Finding a frame in a map: retrieval, alignment to the field, verification.
 
 The map's keyframes carry a global descriptor (:mod:`.retrieval`) and their pose. For a
-query frame: its descriptor against theirs gives the ``top_k`` most similar keyframes; at
-each, the field renders and NAP3D aligns the frame to it, re-rendering at the corrected pose
-(:func:`~nap3d_graph.nap3d.correct.correct_pose`); a candidate is verified when its alignment
-succeeded with enough inliers and a tight covariance. Among the verified ones the tightest
+query frame: its descriptor against theirs gives the ``top_k`` most similar keyframes. At
+each, the frame is first aligned real-vs-real with the keyframe's own colour and depth
+(``keyframe_frames.npz``, kept by ``map`` at a small width): real images match across wider
+baselines than a render does, so this puts the frame near where it is even when it stands
+far from the keyframe. The field then renders there and NAP3D aligns the frame to it,
+re-rendering at the corrected pose (:func:`~nap3d_graph.nap3d.correct.correct_pose`); where
+the real-vs-real step fails (or the map has no keyframe images), the render starts at the
+keyframe's pose. A candidate is verified when its alignment to the field succeeded with
+enough inliers and a tight covariance. Among the verified ones the tightest
 wins, and how many others land within ``agree_m`` of it says how sure the answer is. No
 verified candidate: a clear refusal, never a guess.
 """
@@ -24,9 +29,48 @@ from nap3d_graph.nap3d.config import AlignConfig
 
 from .retrieval import Vocabulary, similarities, vlad
 
-__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings"]
+__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "KEYFRAME_FRAMES", "save_keyframe_frames"]
 
 log = logging.getLogger(__name__)
+
+#: The map's keyframe images (colour and depth at ``KEYFRAME_WIDTH``), for real-vs-real relocalisation.
+KEYFRAME_FRAMES = "keyframe_frames.npz"
+#: Width in pixels of the kept keyframe images (a correction's render size; ~0.3 MB a keyframe compressed).
+KEYFRAME_WIDTH = 320
+
+
+def _at_width(frame: RGBDFrame, width: int) -> RGBDFrame:
+    from nap3d_graph.nap3d.correct import resize_frame
+
+    K = frame.intrinsics
+    return frame if K.width <= width else resize_frame(frame, width, int(round(K.height * width / K.width)))
+
+
+def save_keyframe_frames(path: Path, keyframes) -> None:
+    """The survey keyframes' colour (K, H, W, 3) uint8 and depth (K, H, W) uint16 millimetres
+    (0: none) at ``KEYFRAME_WIDTH``, with their camera, in one compressed file."""
+    frames = [_at_width(k.frame, KEYFRAME_WIDTH) for k in keyframes]
+    K = frames[0].intrinsics
+    depth_mm = [np.rint(np.clip(np.nan_to_num(f.depth_m), 0, 65.535) * 1000).astype(np.uint16) for f in frames]
+    tmp = path.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, rgb=np.stack([f.rgb for f in frames]), depth_mm=np.stack(depth_mm),
+                        camera=np.array([K.fx, K.fy, K.cx, K.cy, K.width, K.height], dtype=float))
+    tmp.replace(path)
+
+
+def _load_keyframe_frames(path: Path) -> list[RGBDFrame] | None:
+    """The frames :func:`save_keyframe_frames` kept, or None when the map has none or the
+    file cannot be read (relocalisation then renders at the keyframes' poses alone)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as data:
+            fx, fy, cx, cy, w, h = data["camera"]
+            K = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
+            return [RGBDFrame(rgb, (d.astype(np.float32) / 1000.0), K) for rgb, d in zip(data["rgb"], data["depth_mm"])]
+    except (OSError, ValueError, KeyError) as exc:
+        log.warning("%s unreadable (%s): relocalising from renders at the keyframes' poses alone", path, exc)
+        return None
 
 
 @dataclass(frozen=True)
@@ -67,6 +111,7 @@ class Relocalisation:
     tried: int = 0
     seconds: float = 0.0
     reason: str = ""
+    wide_baseline: int = 0
 
     def describe(self) -> str:
         """One line: where it started and how sure it is (or why it could not)."""
@@ -81,7 +126,7 @@ class Relocalisation:
         return {"success": self.success, "T_map_cam": self.T_map_cam.tolist(), "keyframe": self.keyframe,
                 "inliers": self.inliers, "sigma_m": self.sigma_m, "sigma_deg": self.sigma_deg,
                 "agreeing": self.agreeing, "tried": self.tried, "seconds": round(self.seconds, 3),
-                "reason": self.reason}
+                "reason": self.reason, "wide_baseline": self.wide_baseline}
 
 
 class Relocaliser:
@@ -102,6 +147,8 @@ class Relocaliser:
         self.config = config or AlignConfig(matcher=self.matcher)
         self.render_intrinsics = render_intrinsics
         self.settings = settings or RelocaliseSettings()
+        self.keyframe_frames = _load_keyframe_frames(folder / KEYFRAME_FRAMES)
+        self._keyframe_features: dict[int, object] = {}  # detected once, when first a candidate
 
     def descriptor(self, frame: RGBDFrame) -> np.ndarray:
         """The frame's global descriptor, its features detected as the map's keyframes' were."""
@@ -113,6 +160,38 @@ class Relocaliser:
             frame = resize_frame(frame, self.width, int(round(K.height * self.width / K.width)))
         features = detect_features(frame.rgb, 0, matcher=self.matcher)
         return vlad(features.descriptors, self.vocabulary)
+
+    def _start_pose(self, query, k: int) -> tuple[np.ndarray, bool]:
+        """``(T_map_cam, wide)``: where to render for candidate keyframe ``k``: the query
+        aligned real-vs-real with the keyframe's own image (``wide`` True), else the keyframe's
+        pose. ``query``: the query frame at the kept images' width with its features."""
+        from nap3d_graph.nap3d.matching import detect_features
+
+        from .loops import Keyframe, verify_pair
+
+        if self.keyframe_frames is None or query is None:
+            return self.T_map_key[k], False
+        frame = self.keyframe_frames[k]
+        if k not in self._keyframe_features:
+            self._keyframe_features[k] = detect_features(frame.rgb, self.config.max_features, matcher=self.config.matcher)
+        survey = Keyframe(int(self.indices[k]), frame, self._keyframe_features[k])  # type: ignore[arg-type]
+        T_query_key, _, alignment = verify_pair(query, survey, self.config)
+        if not alignment.success or alignment.num_inliers < self.settings.min_inliers:
+            return self.T_map_key[k], False
+        return self.T_map_key[k] @ inv_T(T_query_key), True
+
+    def _query(self, frame: RGBDFrame):
+        """The query at the kept images' width with its features (None without kept images)."""
+        from nap3d_graph.nap3d.matching import detect_features
+
+        from .loops import Keyframe
+
+        if self.keyframe_frames is None:
+            return None
+        small = _at_width(frame, self.keyframe_frames[0].intrinsics.width)
+        if small.intrinsics.width != self.keyframe_frames[0].intrinsics.width:
+            return None  # a query narrower than the map's images: render from the keyframes' poses
+        return Keyframe(-1, small, detect_features(small.rgb, self.config.max_features, matcher=self.config.matcher))
 
     def _agreeing(self, found: list) -> list:
         """The largest group of verified candidates that agree with one of them (that one
@@ -132,9 +211,12 @@ class Relocaliser:
         started = time.perf_counter()
         s = self.settings
         order = np.argsort(-similarities(self.descriptor(frame), self.descriptors))[: s.top_k]
-        found, reasons = [], []
+        found, reasons, wide = [], [], 0
+        query = self._query(frame)
         for k in order:
-            correction = correct_pose(frame, self.field, self.T_map_key[k], iterations=s.iterations,
+            T_start, started_wide = self._start_pose(query, int(k))
+            wide += started_wide
+            correction = correct_pose(frame, self.field, T_start, iterations=s.iterations,
                                       config=self.config, render_intrinsics=self.render_intrinsics)
             a = correction.alignment
             if not correction.success:
@@ -171,11 +253,12 @@ class Relocaliser:
         seconds = time.perf_counter() - started
         if not found:
             why = "; ".join(sorted(set(reasons))[:3]) or "no candidate"
-            return Relocalisation(False, tried=tried, seconds=seconds,
+            return Relocalisation(False, tried=tried, seconds=seconds, wide_baseline=wide,
                                   reason=f"none of the {tried} most similar keyframes verified ({why})")
         sigma_m, k, T, cov, inliers, sigma_deg = found[0]
         agreeing = len(found) - 1
-        return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, agreeing, tried, seconds)
+        return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, agreeing, tried, seconds,
+                              wide_baseline=wide)
 
 
 def _close(T_a: np.ndarray, T_b: np.ndarray, metres: float, degrees: float) -> bool:

@@ -1,0 +1,148 @@
+"""Starting anywhere in a map made by the camera alone, both directions of a split recording.
+
+Protocol (issue 48): a recording split in two halves; each half in turn is the survey
+(``nap3d-graph map``, its ground truth never read to build it) and the other the query.
+
+1. Relocalisation: every ``--every``-th query frame located in the map (one thread). A frame
+   counts as covered when a survey keyframe lies within 40 cm / 30 deg of its ground truth
+   moved into the map by the survey's alignment; figures: the share of covered frames found
+   within 5 cm / 3 deg, answers accepted farther than 10 cm (covered or not), seconds per
+   attempt. ``--extra-query`` adds another recording of the same place (its ground truth
+   taken to share the survey's frame, as TUM's fr1 recordings do).
+2. The query run in the map from its own first frame (``run --odom vo``, the start found in
+   the map and confirmed by the next keyframe): whether and when it was placed, its ATE in
+   the ground truth's frame through the survey's alignment, beside the same run on a field of
+   the same model trained on the survey at its ground-truth poses (started at the ground
+   truth), unless ``--no-gt-map``.
+
+    python benchmarks/map_start_anywhere.py --data ../shared/data/tum/rgbd_dataset_freiburg1_desk \\
+        --extra-query ../shared/data/tum/rgbd_dataset_freiburg1_xyz --work /tmp/anywhere \\
+        --out benchmarks/results/map_start_anywhere_fr1_desk.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from map_survey import cli, run_query
+from provenance import write_result
+
+from nap3d_graph.conventions import inv_T, log_se3
+
+HALVES = {"first": "0:0.5", "second": "0.5:1"}
+
+
+def _pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    e = log_se3(inv_T(T_a) @ T_b)
+    return float(np.linalg.norm(e[3:])), float(np.degrees(np.linalg.norm(e[:3])))
+
+
+def covered(T_map_cam: np.ndarray, T_map_key: np.ndarray, metres: float = 0.40, degrees: float = 30.0) -> bool:
+    """Whether a survey keyframe lies within ``metres`` and ``degrees`` of the camera."""
+    return any(d <= metres and a <= degrees for d, a in (_pose_gap(T_map_cam, T) for T in T_map_key))
+
+
+def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.ndarray) -> dict:
+    import torch
+
+    torch.set_num_threads(1)
+    from nap3d_graph.mapping.start import map_relocaliser
+
+    relocaliser = map_relocaliser(map_dir, None, matcher, query.intrinsics.scaled(320, 240))
+    T_map_key = relocaliser.T_map_key
+    rows = []
+    for i in range(0, len(query), every):
+        T_gt = np.asarray(query.T_world_cam_gt[i])
+        if not np.all(np.isfinite(T_gt)):
+            continue
+        T_true = T_map_gt @ T_gt
+        found = relocaliser.locate(query[i])
+        row = {"frame": i, "covered": covered(T_true, T_map_key), "success": found.success,
+               "seconds": round(found.seconds, 3), "wide_baseline": found.wide_baseline}
+        if found.success:
+            row["error_m"], row["error_deg"] = _pose_gap(T_true, found.T_map_cam)
+        else:
+            row["reason"] = found.reason
+        rows.append(row)
+    cov = [r for r in rows if r["covered"]]
+    good = [r for r in cov if r["success"] and r["error_m"] <= 0.05 and r["error_deg"] <= 3.0]
+    seconds = np.array([r["seconds"] for r in rows])
+    return {"attempts": len(rows), "covered": len(cov), "covered_found_within_5cm_3deg": len(good),
+            "share_of_covered": len(good) / max(len(cov), 1),
+            "accepted_farther_than_10cm": sum(r["success"] and r["error_m"] > 0.10 for r in rows),
+            "accepted_uncovered": sum(r["success"] and not r["covered"] for r in rows),
+            "seconds_median": float(np.median(seconds)), "seconds_p90": float(np.percentile(seconds, 90)),
+            "seconds_max": float(seconds.max()), "threads": 1, "per_attempt": rows}
+
+
+def direction(args, survey_half: str) -> dict:
+    from nap3d_graph.datasets import open_sequence
+
+    query_half = "second" if survey_half == "first" else "first"
+    work = args.work / f"survey_{survey_half}"
+    map_dir = work / "map"
+    t0 = time.perf_counter()
+    cli("map", str(args.data), "--frames", HALVES[survey_half], "--out", str(map_dir), "--model", args.model,
+        "--matcher", args.matcher, "--quiet")
+    info = json.loads((map_dir / "map.json").read_text())
+    out: dict = {"survey": survey_half, "query": query_half, "map_seconds_this_call": round(time.perf_counter() - t0, 1),
+                 "survey_ate_m": info["survey_ate"]["map"]["rmse_m"], "keyframes": info["keyframes"],
+                 "loops": info["loops"]}
+    T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
+    query = open_sequence(args.data, frames=HALVES[query_half])
+    out["relocalisation"] = relocalisation(map_dir, query, args.every, args.matcher, T_map_gt)
+    for extra in args.extra_query:
+        out[f"relocalisation_{Path(extra).name}"] = relocalisation(map_dir, open_sequence(extra), args.every,
+                                                                   args.matcher, T_map_gt)
+    runs = {"self_posed": run_query(args.data, "tum", HALVES[query_half], map_dir, work / "run_self",
+                                    ("--matcher", args.matcher))}
+    metrics = json.loads((work / "run_self" / "latest" / "metrics.json").read_text())
+    placement = metrics["map"].get("placement") or {}
+    runs["self_posed"]["placed"] = placement.get("placed")
+    runs["self_posed"]["placed_at_frame"] = placement.get("placed_at_frame")
+    runs["self_posed"]["relocalisations_tried"] = placement.get("relocalisations_tried")
+    runs["self_posed"]["recoveries"] = sum(r.get("step") == "recovered" for r in metrics["map"].get("recoveries", []))
+    if not args.no_gt_map:
+        gt_field = work / "gt_field.pt"
+        if not gt_field.is_file():
+            cli("train-field", str(args.data), "--frames", HALVES[survey_half], "--out", str(gt_field), "--model",
+                args.model, "--matcher", args.matcher, "--quiet")
+        runs["gt_posed"] = run_query(args.data, "tum", HALVES[query_half], gt_field, work / "run_gt",
+                                     ("--matcher", args.matcher))
+        out["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
+    for r in runs.values():
+        for k in ("_stamps", "_T", "_T_online"):
+            r.pop(k, None)
+    out["runs"] = runs
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--extra-query", type=Path, action="append", default=[])
+    parser.add_argument("--model", default="splat")
+    parser.add_argument("--matcher", default="xfeat")
+    parser.add_argument("--every", type=int, default=5)
+    parser.add_argument("--work", type=Path, required=True, help="folder for the maps and runs (reused when there)")
+    parser.add_argument("--no-gt-map", action="store_true", help="skip the ground-truth-posed comparison map")
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    result = {"command": " ".join(sys.argv), "data": str(args.data), "model": args.model, "matcher": args.matcher,
+              "every": args.every, "tuning": "placement rule (confirm by the next keyframe, 5 cm / 3 deg) chosen on "
+              "fr1/xyz and the simulator (tests); relocaliser rules as before this benchmark",
+              "directions": [direction(args, half) for half in ("first", "second")]}
+    write_result(args.out, result, args)
+    for d in result["directions"]:
+        brief = {k: v for k, v in d["relocalisation"].items() if k != "per_attempt"}
+        print(d["survey"], "->", d["query"], brief, {k: {kk: vv for kk, vv in v.items() if kk != "start"}
+                                                     for k, v in d["runs"].items()})
+
+
+if __name__ == "__main__":
+    main()
