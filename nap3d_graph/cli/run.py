@@ -79,36 +79,17 @@ def run(args) -> int:
         if recorder is not None and sys.exc_info()[0] is not None:
             recorder.close()  # what was recorded stays readable
     extra = {} if pace is None else {"paced": pace.summary()}
-    start = prepared.record["resolved"].get("start")
-    if start:  # a run in a self-made map: where it started, how it was scored
-        extra["map"] = {**start, "recoveries": pipeline.recoveries}
-        if result.placement is not None:
-            extra["map"]["placement"] = result.placement
-            print(f"map: {pipeline.placement.describe()}")
-        untied = _untied_frames(start, result.placement)
-        if untied:
-            extra["scored"] = f"SE(3)-aligned only: {untied}; ate_m compares frames that are not tied, do not read it"
+    extra.update(_map_metrics(prepared.record["resolved"].get("start"), pipeline, result))
     metrics = writer.finish(result, partial=result.partial, extra=extra or None)
     if pace is not None:
-        late = metrics["paced"].get("behind_camera_s") or {}
-        config = pipeline.config
-        mode = (f"overlapped, waiting up to {config.land_within_s * 1000:.0f} ms for a correction"
-                + (f", a keyframe whenever the second thread is idle ({config.keyframe_when_idle} or more frames apart)"
-                   if config.keyframe_when_idle else "") if config.overlap else "inline")
-        print(f"paced at {args.pace:g}x the camera's rate ({mode}): the run took the frames up to "
-              f"{late.get('max', 0) * 1000:.0f} ms late ({metrics['paced'].get('frames_over_a_period_late', 0)} over "
-              "a frame period)")
+        _say_pace(args.pace, metrics, pipeline.config)
     if recorder is not None:
         recorder.finish(result)
         recorder.close()
         print(f"rerun recording: {args.viz}" + (" (open it with: rerun " + str(args.viz) + ")"
                                                  if args.viz != "spawn" else ""))
     if args.write_bag is not None:
-        from nap3d_graph.run.bag import write_run_bag
-
-        world = getattr(prepared.sequence, "world_frame", None) or "world"
-        write_run_bag(args.write_bag, result, world_frame=world)
-        print(f"bag: {args.write_bag} (/nap3d/causal/pose, /nap3d/smoothed/pose, paths and /tf in frame {world!r})")
+        _write_bag(args.write_bag, prepared.sequence, result)
     print(summary_table(metrics, time.perf_counter() - t0, with_field=prepared.field is not None))
     for hint in (refusal_hint(metrics), pace_hint(metrics)):
         if hint:
@@ -119,6 +100,26 @@ def run(args) -> int:
               "(metrics.json says so)", file=sys.stderr)
         return 130
     return 0
+
+
+def _say_pace(pace: float, metrics: dict, config) -> None:
+    """One line on how late a paced run took the frames, and how it ran."""
+    late = metrics["paced"].get("behind_camera_s") or {}
+    mode = (f"overlapped, waiting up to {config.land_within_s * 1000:.0f} ms for a correction"
+            + (f", a keyframe whenever the second thread is idle ({config.keyframe_when_idle} or more frames apart)"
+               if config.keyframe_when_idle else "") if config.overlap else "inline")
+    print(f"paced at {pace:g}x the camera's rate ({mode}): the run took the frames up to "
+          f"{late.get('max', 0) * 1000:.0f} ms late ({metrics['paced'].get('frames_over_a_period_late', 0)} over "
+          "a frame period)")
+
+
+def _write_bag(path: Path, sequence, result) -> None:
+    """The run's poses, paths and /tf into a ROS bag at ``path``."""
+    from nap3d_graph.run.bag import write_run_bag
+
+    world = getattr(sequence, "world_frame", None) or "world"
+    write_run_bag(path, result, world_frame=world)
+    print(f"bag: {path} (/nap3d/causal/pose, /nap3d/smoothed/pose, paths and /tf in frame {world!r})")
 
 
 def _check_bag_path(path: Path) -> None:
@@ -175,6 +176,21 @@ def pace_hint(metrics: dict) -> str:
             "often (--keyframe-every)")
 
 
+def _map_metrics(start: dict | None, pipeline, result) -> dict:
+    """metrics.json's entries of a run in a self-made map: where it started, whether and when
+    it was placed, its recoveries, and how it is scored (said in one line too)."""
+    if not start:
+        return {}
+    extra: dict = {"map": {**start, "recoveries": pipeline.recoveries}}
+    if result.placement is not None:
+        extra["map"]["placement"] = result.placement
+        print(f"map: {pipeline.placement.describe()}")
+    untied = _untied_frames(start, result.placement)
+    if untied:
+        extra["scored"] = f"SE(3)-aligned only: {untied}; ate_m compares frames that are not tied, do not read it"
+    return extra
+
+
 def _untied_frames(start: dict, placement: dict | None) -> str:
     """Why the run's poses and its ground truth are in frames no survey alignment ties
     (empty when they are tied): then only an SE(3)-aligned ATE means anything."""
@@ -191,8 +207,7 @@ def summary_table(metrics: dict, seconds: float, with_field: bool = True) -> str
         return _aligned_summary(metrics, seconds, with_field)
     if "estimate" in metrics:
         lines.append(f"{'':<22}{'ATE rmse':>12}{'ATE 1st half':>14}{'ATE 2nd half':>14}{'RPE rmse':>12}")
-    label, causal = ("with NAP3D", "with NAP3D, causal") if with_field else ("graph (no field)", "graph, causal")
-    for name, label in (("odometry", "odometry only"), ("estimate", label), ("estimate_online", causal)):
+    for name, label in _trajectory_labels(with_field):
         m = metrics.get(name)
         if m is None:
             continue
@@ -217,12 +232,17 @@ def summary_table(metrics: dict, seconds: float, with_field: bool = True) -> str
     return "\n".join(lines)
 
 
+def _trajectory_labels(with_field: bool) -> tuple[tuple[str, str], ...]:
+    """(metrics.json key, the summary's label) of each trajectory."""
+    label, causal = ("with NAP3D", "with NAP3D, causal") if with_field else ("graph (no field)", "graph, causal")
+    return ("odometry", "odometry only"), ("estimate", label), ("estimate_online", causal)
+
+
 def _aligned_summary(metrics: dict, seconds: float, with_field: bool) -> str:
     """The summary when the run's frame and the ground truth's are not tied: each
     trajectory's ATE after its own SE(3) alignment, and why."""
     lines = ["", f"scored {metrics['scored']}", f"{'':<22}{'ATE (SE(3)-aligned)':>22}"]
-    label, causal = ("with NAP3D", "with NAP3D, causal") if with_field else ("graph (no field)", "graph, causal")
-    for name, label in (("odometry", "odometry only"), ("estimate", label), ("estimate_online", causal)):
+    for name, label in _trajectory_labels(with_field):
         m = metrics.get(name)
         if m is not None and m.get("ate_se3_aligned_m") is not None:
             lines.append(f"{label:<22}{m['ate_se3_aligned_m'] * 100:20.2f}cm")

@@ -391,18 +391,7 @@ def prepare(args) -> Prepared:
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
     args.odom = odom_kind
     live_defaults(args, odom_kind)
-    if args.render_ahead and not args.overlap:
-        raise UsageError("--render-ahead works ahead on the second thread: it needs --overlap")
-    if args.keyframe_when_idle and not args.overlap:
-        raise UsageError("--keyframe-when-idle takes keyframes while the second thread is idle: it needs --overlap")
-    if args.land_within and not args.overlap:
-        raise UsageError("--land-within waits for the second thread's correction: it needs --overlap")
-    if args.overlap and odom_kind == "imu":
-        raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
-    if args.graph_window and (odom_kind == "imu" or use_anchor):
-        raise UsageError("--graph-window does not apply to --odom imu or --anchor")
-    if args.graph_window and args.graph_window < 3:
-        raise UsageError(f"--graph-window must be 0 (every keyframe) or at least 3, got {args.graph_window}")
+    _check_thread_and_window_flags(args, odom_kind, use_anchor)
     settings = _settings(args)
     config = settings.pipeline_config(land_within_s=land_within_s(_land_within_default(args), sequence),
                                       overlap=args.overlap, keyframe_when_idle=args.keyframe_when_idle,
@@ -410,12 +399,7 @@ def prepare(args) -> Prepared:
     runner = Pipeline(sequence, field_obj, odometry, config)  # resolves the field's error, once
     config = runner.config
     readout_s = _say_readout(config, field_obj)
-    if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
-        growth = (", growing with each correction's distance from the field's views" if config.field_error_by_view
-                  else "")
-        print(f"field error: {config.field_sigma_m * 1000:.1f} mm, {np.degrees(config.field_sigma_rad or 0):.2f} deg "
-              f"(measured by train-field on held-out frames{growth}) added to every correction's covariance; "
-              "--field-sigma 0 takes the field as exact")
+    _say_field_error(args, config)
     resolved = {"data": str(data), "frame_range": list(sequence.frame_range), "field": field_desc,
                 "frames_the_field_was_trained_on": trained_on, "rolling_shutter_readout_s": round(readout_s, 6),
                 "initial_pose": None if initial_pose is None else initial_pose.tolist(),
@@ -428,12 +412,46 @@ def prepare(args) -> Prepared:
         resolved["imu"] = {**odometry.stream.config.to_dict(),
                            "fallback_odometry": getattr(odometry.fallback, "name", "none")}
     record = {"settings": settings.to_dict(), "resolved": resolved}
-    if start_record.get("start_anywhere"):  # placed by the map, and recovered by it when lost
+    _give_map(runner, start_record, field_obj, sequence, args)
+    return Prepared(sequence, field_obj, odometry, config, record, name, runner)
+
+
+def _check_thread_and_window_flags(args, odom_kind: str, use_anchor: bool) -> None:
+    """One-line errors for overlap-only flags without --overlap, and for the flag combinations
+    the overlap and the bounded graph do not allow."""
+    if args.render_ahead and not args.overlap:
+        raise UsageError("--render-ahead works ahead on the second thread: it needs --overlap")
+    if args.keyframe_when_idle and not args.overlap:
+        raise UsageError("--keyframe-when-idle takes keyframes while the second thread is idle: it needs --overlap")
+    if args.land_within and not args.overlap:
+        raise UsageError("--land-within waits for the second thread's correction: it needs --overlap")
+    if args.overlap and odom_kind == "imu":
+        raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
+    if args.graph_window and (odom_kind == "imu" or use_anchor):
+        raise UsageError("--graph-window does not apply to --odom imu or --anchor")
+    if args.graph_window and args.graph_window < 3:
+        raise UsageError(f"--graph-window must be 0 (every keyframe) or at least 3, got {args.graph_window}")
+
+
+def _say_field_error(args, config) -> None:
+    """One line on the field's own error added to every correction, unless --field-sigma set it."""
+    import numpy as np
+
+    if args.field_sigma is None and (config.field_sigma_m or config.field_sigma_rad):
+        growth = (", growing with each correction's distance from the field's views" if config.field_error_by_view
+                  else "")
+        print(f"field error: {config.field_sigma_m * 1000:.1f} mm, {np.degrees(config.field_sigma_rad or 0):.2f} deg "
+              f"(measured by train-field on held-out frames{growth}) added to every correction's covariance; "
+              "--field-sigma 0 takes the field as exact")
+
+
+def _give_map(runner, start_record: dict, field_obj, sequence, args) -> None:
+    """A run on a map: the map's relocaliser places it (started anywhere) and recovers it."""
+    if start_record.get("start_anywhere"):
         runner.start_in_map(map_relocaliser(start_record["map"], field_obj, sequence, args))
     elif start_record.get("map"):
         # A map's relocaliser: recovers a run lost ``relocalise_after`` keyframes in a row.
         runner.relocaliser = map_relocaliser(start_record["map"], field_obj, sequence, args)
-    return Prepared(sequence, field_obj, odometry, config, record, name, runner)
 
 
 def _settings(args):

@@ -157,18 +157,9 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     # 2. keyframes and descriptors
     keys = keyframe_indices(survey.T_odom_cam, start, stop, settings.keyframe_every, settings.keyframe_distance_m,
                             settings.keyframe_angle_deg)
-    keyframes = None
     retrieval_path = out / "keyframes.npz"
-    if not ("keyframes" in info["stages"] and retrieval_path.is_file()):
-        t0 = time.perf_counter()
-        keyframes = _keyframes(sequence, keys, settings, progress)
-        vocabulary = Vocabulary.fit([k.features.descriptors for k in keyframes], settings.vocabulary_k, settings.seed)
-        for k in keyframes:
-            k.descriptor = vlad(k.features.descriptors, vocabulary)
-        np.savez_compressed(retrieval_path, indices=keys, descriptors=np.stack([k.descriptor for k in keyframes]),
-                            centres=vocabulary.centres, matcher=settings.matcher,
-                            width=-1 if settings.width is None else settings.width)
-        done("keyframes", time.perf_counter() - t0, keyframes=len(keys))
+    keyframes = None if "keyframes" in info["stages"] and retrieval_path.is_file() else \
+        _keyframe_stage(sequence, keys, settings, retrieval_path, done, progress)
     if not (out / KEYFRAME_FRAMES).is_file():  # a map made before the relocaliser read them gets them now
         save_keyframe_frames(out / KEYFRAME_FRAMES, keyframes or _keyframes(sequence, keys, settings, progress))
     with np.load(retrieval_path) as data:
@@ -182,18 +173,8 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
         chain, loops, chain_matches = _load_edges(edges_path)
         _say(say, "loops: finished before, reused")
     else:
-        t0 = time.perf_counter()
-        if keyframes is None:
-            keyframes = _keyframes(sequence, keys, settings, progress)
-            for k, d in zip(keyframes, descriptors):
-                k.descriptor = d
-        chain, chain_kinds, chain_matches = _chain(keyframes, survey, settings)
-        pairs = candidates(T_init, descriptors, settings.loops)
-        loops = verify(keyframes, pairs, _align_config(settings), settings.loops, progress)
-        _save_edges(edges_path, chain, loops, chain_matches)
-        done("loops", time.perf_counter() - t0, candidates=len(pairs),
-             verified=sum(lp.status == "verified" for lp in loops),
-             consecutive_aligned=chain_kinds.count("alignment"), consecutive_odometry=chain_kinds.count("odometry"))
+        chain, loops, chain_matches = _loop_stage(sequence, keys, keyframes, descriptors, survey, settings, edges_path,
+                                                  done, progress)
     keyframes = None  # the frames are not needed any more
 
     # 4. the robust pose graph
@@ -286,19 +267,52 @@ def _working_intrinsics(sequence, settings: MapSettings):
     return K
 
 
+def _keyframe_stage(sequence, keys: np.ndarray, settings: MapSettings, retrieval_path: Path, done,
+                    progress: bool) -> list[Keyframe]:
+    """Stage 2: the keyframes read with their features, the vocabulary clustered from them and
+    each one's descriptor, saved to ``retrieval_path``; the stage marked ``done``."""
+    t0 = time.perf_counter()
+    keyframes = _keyframes(sequence, keys, settings, progress)
+    vocabulary = Vocabulary.fit([k.features.descriptors for k in keyframes], settings.vocabulary_k, settings.seed)
+    for k in keyframes:
+        k.descriptor = vlad(k.features.descriptors, vocabulary)
+    np.savez_compressed(retrieval_path, indices=keys, descriptors=np.stack([k.descriptor for k in keyframes]),
+                        centres=vocabulary.centres, matcher=settings.matcher,
+                        width=-1 if settings.width is None else settings.width)
+    done("keyframes", time.perf_counter() - t0, keyframes=len(keys))
+    return keyframes
+
+
+def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, descriptors: np.ndarray,
+                survey: SurveyOdometry, settings: MapSettings, edges_path: Path, done, progress: bool
+                ) -> tuple[list[Edge], list[Loop], list[PairMatches]]:
+    """Stage 3: consecutive keyframes aligned, loop candidates proposed and verified (the
+    keyframes read again when stage 2 ran before), saved to ``edges_path``; the stage marked
+    ``done``. Returns the chain's edges, the loops and the chain's matches."""
+    t0 = time.perf_counter()
+    if keyframes is None:
+        keyframes = _keyframes(sequence, keys, settings, progress)
+        for k, d in zip(keyframes, descriptors):
+            k.descriptor = d
+    chain, chain_kinds, chain_matches = _chain(keyframes, survey, settings)
+    pairs = candidates(survey.T_odom_cam[keys], descriptors, settings.loops)
+    loops = verify(keyframes, pairs, _align_config(settings), settings.loops, progress)
+    _save_edges(edges_path, chain, loops, chain_matches)
+    done("loops", time.perf_counter() - t0, candidates=len(pairs), verified=sum(lp.status == "verified" for lp in loops),
+         consecutive_aligned=chain_kinds.count("alignment"), consecutive_odometry=chain_kinds.count("odometry"))
+    return chain, loops, chain_matches
+
+
 def _keyframes(sequence, keys: np.ndarray, settings: MapSettings, progress: bool) -> list[Keyframe]:
     """The keyframes read, at the working width, with their local features."""
-    from nap3d_graph.nap3d.correct import resize_frame
+    from nap3d_graph.nap3d.correct import at_width
     from nap3d_graph.nap3d.matching import detect_features
     from nap3d_graph.progress import progress_bar
 
     config = _align_config(settings)
     out = []
     for i in progress_bar(keys, desc="keyframes", unit="frame", disable=not progress, mininterval=2.0):
-        frame = sequence[int(i)]
-        K = frame.intrinsics
-        if settings.width is not None and K.width > settings.width:
-            frame = resize_frame(frame, settings.width, int(round(K.height * settings.width / K.width)))
+        frame = at_width(sequence[int(i)], settings.width)
         features = detect_features(frame.rgb, config.max_features, matcher=config.matcher)
         out.append(Keyframe(int(i), frame, features))
     return out

@@ -39,17 +39,12 @@ KEYFRAME_FRAMES = "keyframe_frames.npz"
 KEYFRAME_WIDTH = 320
 
 
-def _at_width(frame: RGBDFrame, width: int) -> RGBDFrame:
-    from nap3d_graph.nap3d.correct import resize_frame
-
-    K = frame.intrinsics
-    return frame if K.width <= width else resize_frame(frame, width, int(round(K.height * width / K.width)))
-
-
 def save_keyframe_frames(path: Path, keyframes) -> None:
     """The survey keyframes' colour (K, H, W, 3) uint8 and depth (K, H, W) uint16 millimetres
     (0: none) at ``KEYFRAME_WIDTH``, with their camera, in one compressed file."""
-    frames = [_at_width(k.frame, KEYFRAME_WIDTH) for k in keyframes]
+    from nap3d_graph.nap3d.correct import at_width
+
+    frames = [at_width(k.frame, KEYFRAME_WIDTH) for k in keyframes]
     K = frames[0].intrinsics
     depth_mm = [np.rint(np.clip(np.nan_to_num(f.depth_m), 0, 65.535) * 1000).astype(np.uint16) for f in frames]
     tmp = path.with_suffix(".tmp.npz")
@@ -152,13 +147,10 @@ class Relocaliser:
 
     def descriptor(self, frame: RGBDFrame) -> np.ndarray:
         """The frame's global descriptor, its features detected as the map's keyframes' were."""
-        from nap3d_graph.nap3d.correct import resize_frame
+        from nap3d_graph.nap3d.correct import at_width
         from nap3d_graph.nap3d.matching import detect_features
 
-        K = frame.intrinsics
-        if self.width is not None and K.width > self.width:
-            frame = resize_frame(frame, self.width, int(round(K.height * self.width / K.width)))
-        features = detect_features(frame.rgb, 0, matcher=self.matcher)
+        features = detect_features(at_width(frame, self.width).rgb, 0, matcher=self.matcher)
         return vlad(features.descriptors, self.vocabulary)
 
     def _start_pose(self, query, k: int) -> tuple[np.ndarray, bool]:
@@ -182,13 +174,14 @@ class Relocaliser:
 
     def _query(self, frame: RGBDFrame):
         """The query at the kept images' width with its features (None without kept images)."""
+        from nap3d_graph.nap3d.correct import at_width
         from nap3d_graph.nap3d.matching import detect_features
 
         from .loops import Keyframe
 
         if self.keyframe_frames is None:
             return None
-        small = _at_width(frame, self.keyframe_frames[0].intrinsics.width)
+        small = at_width(frame, self.keyframe_frames[0].intrinsics.width)
         if small.intrinsics.width != self.keyframe_frames[0].intrinsics.width:
             return None  # a query narrower than the map's images: render from the keyframes' poses
         return Keyframe(-1, small, detect_features(small.rgb, self.config.max_features, matcher=self.config.matcher))

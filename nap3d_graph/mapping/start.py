@@ -21,7 +21,6 @@ into the map's frame (:meth:`~nap3d_graph.run.pipeline.Pipeline.start_in_map`).
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,8 +30,6 @@ from nap3d_graph.conventions import inv_T, pose_error
 from .relocalise import Relocalisation
 
 __all__ = ["PlacementSettings", "Candidate", "MapPlacement", "map_relocaliser"]
-
-log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -56,15 +53,13 @@ class PlacementSettings:
 class Candidate:
     """A relocalisation waiting for confirmation. ``T_map_run`` (4, 4): the run's frame in the
     map's as this relocalisation puts it; ``frame``/``key``: the keyframe it was found at
-    (frame index, graph key); ``T_map_cam``/``covariance``: its pose and (6, 6) covariance;
-    ``found``: the :class:`~.relocalise.Relocalisation`; ``confirmed``: (frame, key,
-    correction) of each keyframe that agreed so far."""
+    (frame index, graph key); ``found``: the :class:`~.relocalise.Relocalisation` (its pose
+    ``T_map_cam``, a usable (6, 6) ``covariance``); ``confirmed``: (frame, key, correction) of
+    each keyframe that agreed so far."""
 
     frame: int
     key: int
     T_map_run: np.ndarray
-    T_map_cam: np.ndarray
-    covariance: np.ndarray
     found: Relocalisation
     confirmed: list = field(default_factory=list)
 
@@ -96,13 +91,12 @@ class MapPlacement:
             event["reason"] = found.reason
             self.events.append(event)
             return None
-        cov = np.asarray(found.covariance, dtype=float)
-        if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+        if np.shape(found.covariance) != (6, 6) or not np.all(np.isfinite(found.covariance)):
             event.update(success=False, reason="relocalisation without a usable covariance")
             self.events.append(event)
             return None
         T_map_run = found.T_map_cam @ inv_T(T_run_cam)
-        self.candidate = Candidate(int(i), int(key), T_map_run, np.array(found.T_map_cam), cov, found)
+        self.candidate = Candidate(int(i), int(key), T_map_run, found)
         event.update(keyframe=int(found.keyframe), inliers=int(found.inliers), agreeing=int(found.agreeing),
                      sigma_m=round(float(found.sigma_m), 4), sigma_deg=round(float(found.sigma_deg), 3))
         self.events.append(event)

@@ -24,7 +24,7 @@ from ..camera import Intrinsics, RenderedView, RGBDFrame
 from ..conventions import inv_T
 from ..nap3d.align import align_views
 from ..nap3d.config import AlignConfig
-from ..nap3d.correct import real_features, resize_frame
+from ..nap3d.correct import at_width, real_features
 from ..nap3d.matching import Features
 
 __all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
@@ -189,10 +189,7 @@ class VisualOdometry:
 
     def _sized(self, frame: RGBDFrame | None) -> RGBDFrame | None:
         """The frame at the odometry's width (as it is without one, or when it is narrower)."""
-        if frame is None or self.width is None or frame.intrinsics.width <= self.width:
-            return frame
-        K = frame.intrinsics
-        return resize_frame(frame, self.width, int(round(K.height * self.width / K.width)))
+        return None if frame is None else at_width(frame, self.width)
 
     def shares_features(self, intrinsics: Intrinsics, config: AlignConfig) -> bool:
         """Whether the features this odometry detects on a frame are those a correction rendered

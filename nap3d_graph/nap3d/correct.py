@@ -23,7 +23,7 @@ from .config import AlignConfig
 from .matching import Features, detect_features
 from .rolling_shutter import RowMotion
 
-__all__ = ["correct_pose", "render_safely", "resize_frame", "at_render_size", "real_features", "PreparedView",
+__all__ = ["correct_pose", "render_safely", "resize_frame", "at_width", "at_render_size", "real_features", "PreparedView",
            "prepare_view", "prepare_view_beside"]
 
 log = logging.getLogger(__name__)
@@ -189,6 +189,15 @@ def _detector() -> ThreadPoolExecutor:
     if _DETECTOR is None or _DETECTOR[0] != os.getpid():
         _DETECTOR = (os.getpid(), ThreadPoolExecutor(max_workers=1, thread_name_prefix="nap3d-detect"))
     return _DETECTOR[1]
+
+
+def at_width(frame: RGBDFrame, width: int | None) -> RGBDFrame:
+    """The frame scaled down to ``width`` pixels, its aspect kept (as it is when it is no wider,
+    or when ``width`` is None)."""
+    K = frame.intrinsics
+    if width is None or K.width <= width:
+        return frame
+    return resize_frame(frame, width, int(round(K.height * width / K.width)))
 
 
 def resize_frame(frame: RGBDFrame, width: int, height: int) -> RGBDFrame:

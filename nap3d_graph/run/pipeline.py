@@ -29,7 +29,7 @@ from nap3d_graph.datasets.depth_timing import CaptureTiming, resolve_capture_tim
 from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
 from nap3d_graph.mapping.start import MapPlacement, PlacementSettings
-from nap3d_graph.results import Correction
+from nap3d_graph.results import Alignment, Correction
 from nap3d_graph.run.chain import chain_from_nearest_keyframe
 from nap3d_graph.run.config import PipelineConfig, with_field_error
 from nap3d_graph.run.graph import KeyframeGraph
@@ -468,8 +468,6 @@ class Pipeline:
         """The pending candidate is confirmed at keyframe i: at the start, everything so far
         moves into the map's frame (:meth:`_reframe`); then the relocalisation and each
         confirming correction enter the graph past the gate."""
-        from nap3d_graph.results import Alignment
-
         placement = self.placement
         assert placement is not None
         first = not placement.placed
@@ -477,8 +475,8 @@ class Pipeline:
         if first:
             self._reframe(cand.T_map_run)
         found = cand.found
-        alignment = Alignment(success=True, num_inliers=int(found.inliers), covariance=cand.covariance)
-        relocalised = Correction(cand.T_map_cam, cand.T_map_cam, cand.covariance, alignment, 1, True, "", {})
+        alignment = Alignment(success=True, num_inliers=int(found.inliers), covariance=found.covariance)
+        relocalised = Correction(found.T_map_cam, found.T_map_cam, found.covariance, alignment, 1, True, "", {})
         T_pred = self.T_world_kf_pred
         for frame_index, key, correction in [(cand.frame, cand.key, relocalised), *cand.confirmed]:
             if not self.graph.has(key) and key != record.key:
@@ -493,10 +491,10 @@ class Pipeline:
         record.accepted = True
         record.reason = ""
         self.last_correction, self.last_correction_frame = last, i
-        jump_m, jump_deg = pose_error(self.graph.pose(record.key), T_pred)
         if first:
             log.warning("frame %d: %s", i, placement.describe())
         else:
+            jump_m, jump_deg = pose_error(self.graph.pose(record.key), T_pred)
             entry = {"frame": int(i), "step": "recovered", "recovered_from_frame": cand.frame, "jump_m": round(jump_m, 4),
                      "jump_deg": round(jump_deg, 3), "keyframe": int(found.keyframe), "inliers": int(found.inliers),
                      "success": True}
