@@ -261,3 +261,32 @@ def test_trajectory_writer_refuses_stamps_out_of_order(tmp_path):
         Trajectory(np.array([1.0, 0.5, 2.0]), poses).append_tum(handle)
     write_tum_trajectory(path, [0.0, 1.0, 2.0], poses)
     assert read_tum_trajectory(path)[0].tolist() == [0.0, 1.0, 2.0]
+
+
+def test_the_command_line_names_stamps_file_order_and_reads_the_folder_with_it(tmp_path, capsys):
+    """A recording script's per-frame intervals (stamps that restart) on real frames: the run
+    refuses in one line naming ``--stamps file-order`` and runs with it; the source is found
+    from the path (no ``--traj``)."""
+    import yaml
+
+    from nap3d_graph.cli import main
+
+    folder = small_copy(tmp_path, frames=6)
+    for list_name in ("rgb.txt", "depth.txt"):
+        lines = (folder / list_name).read_text().splitlines()
+        data = [line.split() for line in lines if line and not line.startswith("#")]
+        # Each stamp is the time since the previous frame, as the script writes it.
+        (folder / list_name).write_text("".join(f"{0.033 + 0.001 * (k % 2):.6f} {name}\n"
+                                                for k, (_, name) in enumerate(data)))
+    (folder / "groundtruth.txt").unlink()
+    out = tmp_path / "runs"
+    assert main(["run", "--data", str(folder), "--field", "none", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "stamps go backwards" in err and "pass --stamps file-order to keep" in err and "\n" not in err, err
+    assert main(["run", "--data", str(folder), "--field", "none", "--out", str(out), "--stamps", "file-order"]) == 0
+    run = next(p for p in out.iterdir() if p.is_dir() and not p.is_symlink())
+    settings = yaml.safe_load((run / "config.yaml").read_text())["settings"]["source"]
+    assert settings["traj"] == "tum" and settings["stamps"] == "file-order"
+    stamps, _ = read_tum_trajectory(run / "estimate.txt")
+    # The intervals' running sum: 33-34 ms apart, as the camera took them.
+    assert len(stamps) == 6 and np.all((np.diff(stamps) > 0.0325) & (np.diff(stamps) < 0.0345)), stamps

@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "frames_option", "matcher_option", "TOPICS_OPTION", "warn_trained_frames", "warn_depth_units", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "frames_option", "matcher_option", "TOPICS_OPTION", "warn_trained_frames", "warn_depth_units", "add_unit_arguments", "DEPTH_SCALE_OPTION", "STAMPS_OPTION", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
@@ -18,7 +18,8 @@ SETTING_FLAGS = {"odometry": "--odom", "vo_width": "--vo-width", "topics": "--to
                  "realsense_config": "--realsense-config", "initial_pose": "--initial-pose",
                  "initial_pose_file": "--initial-pose-file", "matcher": "--matcher", "every": "--every",
                  "field": "--field", "no_field": "--no-field", "force": "--force", "write_bag": "--write-bag",
-                 "viz": "--viz", "use_anchor": "--anchor", "ray": "--ray"}
+                 "viz": "--viz", "use_anchor": "--anchor", "ray": "--ray", "stamps": "--stamps",
+                 "depth_scale": "--depth-scale"}
 
 
 def in_flags(message: str) -> str:
@@ -207,6 +208,25 @@ def frames_option(what: str) -> dict:
             "sequence (0:0.5 the first half, 0.5:1 the second); default all"}
 
 
+#: ``--depth-scale``: a folder's depth unit (argparse settings).
+DEPTH_SCALE_OPTION = {"type": positive_float, "metavar": "UNITS_PER_M",
+                      "help": "folders of depth PNGs (TUM layout, 7-Scenes): depth units per metre, e.g. 1000 for "
+                      "millimetres (a RealSense script's PNGs), 5000 for TUM's; default intrinsics.json's depth_scale, "
+                      "else TUM's 5000 (7-Scenes: 1000). A .bag carries its own"}
+
+#: ``--stamps``: how a TUM-layout folder's stamps are read (argparse settings).
+STAMPS_OPTION = {"choices": ("as-written", "file-order"),
+                 "help": "TUM-layout folders: as-written (default) refuses lists whose stamps go backwards; file-order "
+                 "keeps the frames in file order with stamps at the median forward step (for scripts that write "
+                 "per-frame intervals)"}
+
+
+def add_unit_arguments(parser) -> None:
+    """``--depth-scale`` and ``--stamps``: what a folder does not say about its depth and stamps."""
+    parser.add_argument("--depth-scale", default=None, **DEPTH_SCALE_OPTION)
+    parser.add_argument("--stamps", default=None, **STAMPS_OPTION)
+
+
 def add_frames_argument(parser, what: str) -> None:
     parser.add_argument("--frames", default=None, **frames_option(what))
 
@@ -227,32 +247,24 @@ def warn_trained_frames(field, sequence, what: str) -> int:
     return count
 
 
-def warn_depth_units(sequence, frames: int = 3) -> float | None:
-    """Print a warning when the frames' depth does not look like metres (median of a few
-    frames' valid depth outside 0.1-20 m: a hand-held or robot RGB-D camera sees 0.3-10 m);
-    returns that median (None when no frame could be read)."""
+def warn_depth_units(sequence, frames: int = 5) -> float | None:
+    """Before any work: print a warning for each way a few frames' depth does not look like
+    metres (:func:`~nap3d_graph.datasets.depth_unit.inspect_depth_unit`: nearer or further than
+    RGB-D cameras see, a Kinect's depth steps at another unit than the one read), and refuse
+    (:class:`UsageError`) frames in different units; returns their median depth (None when
+    no frame could be read)."""
     import sys
 
-    import numpy as np
+    from nap3d_graph.datasets.depth_unit import inspect_depth_unit
 
-    from nap3d_graph.datasets import DatasetError
-
-    values = []
-    for i in np.linspace(0, len(sequence) - 1, min(frames, len(sequence))).round().astype(int):
-        try:
-            depth = np.asarray(sequence[int(i)].depth_m, dtype=float)
-        except (DatasetError, OSError):
-            continue
-        valid = depth[np.isfinite(depth) & (depth > 0)]
-        if valid.size:
-            values.append(float(np.median(valid)))
-    if not values:
+    look = inspect_depth_unit(sequence, frames)
+    if look is None:
         return None
-    median = float(np.median(values))
-    if not 0.1 <= median <= 20.0:
-        print(f"warning: the frames' median depth is {median:.4g} m: is the depth in metres (TUM PNGs: 5000 per "
-              "metre, 7-Scenes: 1000)? Fields and corrections assume it", file=sys.stderr)
-    return median
+    if look.mixed:
+        raise UsageError(look.mixed)
+    for line in look.warnings:
+        print(f"warning: {line}", file=sys.stderr)
+    return look.median_m
 
 
 class StopOnSignal:

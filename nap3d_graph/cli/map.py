@@ -17,6 +17,7 @@ from .common import (
     add_frames_argument,
     add_matcher_argument,
     add_topics_argument,
+    add_unit_arguments,
     non_negative_int,
     positive_float,
     positive_int,
@@ -36,6 +37,7 @@ def add_parser(sub) -> None:
                    "recording (.bag/.db3); its ground truth, if any, is ignored until the map is made")
     p.add_argument("--out", type=Path, required=True, help="the map folder (created; an unfinished one resumes)")
     add_topics_argument(p)
+    add_unit_arguments(p)
     add_frames_argument(p, "the survey")
     p.add_argument("--odom", choices=("vo", "dense"), default="vo",
                    help="frame-to-frame odometry of the survey: vo (features, the matcher's; default) or dense "
@@ -67,7 +69,8 @@ def run(args) -> int:
 
     if args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file, not a folder")
-    sequence = open_sequence(args.data, frames=args.frames, topics=args.topics)
+    sequence = open_sequence(args.data, frames=args.frames, topics=args.topics, depth_scale=args.depth_scale,
+                             stamps=args.stamps)
     if len(sequence) < 3:
         raise UsageError(f"{args.data}: a survey needs at least 3 frames, got {len(sequence)}")
     warn_depth_units(sequence)

@@ -16,7 +16,9 @@ from nap3d_graph.datasets import SOURCES
 
 from .binding import Option
 from .common import (
+    DEPTH_SCALE_OPTION,
     RUN_MATCHER,
+    STAMPS_OPTION,
     TOPICS_OPTION,
     frames_option,
     matcher_option,
@@ -60,12 +62,12 @@ def _land_within(text: str) -> float | str:
 
 
 SOURCE_OPTIONS: tuple[Option, ...] = (
-    Option("--traj", "source.traj", choices=tuple(SOURCES), help="the data source: sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder), "
+    Option("--traj", "source.traj", choices=("auto", *SOURCES), help="the data source (default auto: the one --data's path says, a simulator's folder, a TUM-layout or 7-Scenes folder, a RealSense or ROS bag; sim without --data): sim (a folder from 'nap3d-graph simulate'), tum (a TUM RGB-D folder), "
                    "realsense (a .bag/.db3 recording, or 'live': a connected camera) or 7scenes (a 7-Scenes sequence "
                    "folder: depth is warped into its colour camera, whose focal length and centre are estimated from the "
                    "data), "
                    "or rosbag (a ROS 1 .bag or a ROS 2 bag folder: colour, depth, camera info, IMU and ground truth "
-                   "from /tf or a pose topic; see --topics); default %(default)s"),
+                   "from /tf or a pose topic; see --topics)"),
     Option("--data", "source.data", type=Path, help="the sequence folder, or for realsense a recording or 'live', or for "
                    "rosbag the .bag file or ROS 2 bag folder; omit (with --traj sim) for the embedded default"),
     Option("--topics", "source.topics", **TOPICS_OPTION),
@@ -75,6 +77,8 @@ SOURCE_OPTIONS: tuple[Option, ...] = (
                    "RECORDING.yaml beside the file if there is one, else D435i values)"),
     Option("--record", "source.record", type=Path, metavar="FILE.bag", help="realsense live: keep what the camera streamed in this file (default: a temporary file)"),
     Option("--seconds", "source.seconds", type=positive_float, help="realsense live: how long to capture before correcting (default %(default)g)"),
+    Option("--depth-scale", "source.depth_scale", **DEPTH_SCALE_OPTION),
+    Option("--stamps", "source.stamps", **STAMPS_OPTION),
     Option("--frames", "source.frames", **frames_option("the run (a field should not have been trained on them)")),
     Option("--field", "alignment.field", help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from "
                    "'nap3d-graph train-field'), a nerfstudio config.yml, or 'none' (odometry only)"),

@@ -179,6 +179,22 @@ def _inputs(args):
     return args.data, None, args.field, args.traj
 
 
+def detected_source(args) -> str:
+    """``--traj`` as given, or for ``auto`` the source ``--data``'s path says (a RealSense
+    recording for 'live', sim without data)."""
+    from nap3d_graph.datasets import source_of
+
+    if args.traj != "auto":
+        return args.traj
+    if args.data is None:
+        return "sim"
+    if str(args.data) == "live":
+        return "realsense"
+    if not args.data.exists():
+        raise UsageError(f"--data {args.data}: no such file or folder")
+    return source_of(args.data)
+
+
 def _realsense_data(args) -> Path:
     """The recording to read: the file given, or a capture of the connected camera."""
     if str(args.data) != "live":
@@ -201,7 +217,8 @@ def _odometry(args, sequence, initial_pose):
 
     if args.odom:
         odom_kind = args.odom
-    elif args.traj == "realsense" or (args.traj == "rosbag" and sequence.T_world_cam_gt is None):
+    elif args.traj == "realsense" or (getattr(sequence, "T_world_cam_odom", None) is None
+                                      and sequence.T_world_cam_gt is None):
         # A recording without ground truth to draw noise on: its own motion source, its IMU or its frames.
         odom_kind = "imu" if getattr(sequence, "imu", None) is not None else "vo"
     else:
@@ -335,7 +352,7 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
         record["start_anywhere"] = True
         return sequence, np.eye(4), record
     if (field_obj is None and initial_pose is None and args.initial_pose_file is None
-            and args.odom in ("vo", "dense") and _no_start(sequence)):
+            and args.odom in (None, "vo", "dense") and _no_start(sequence)):
         print("start: the identity (odometry only, no field and no ground truth to place it in)")
         return sequence, np.eye(4), record
     return sequence, initial_pose, record
@@ -367,6 +384,7 @@ def prepare(args) -> Prepared:
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.run.pipeline import Pipeline
 
+    args.traj = detected_source(args)
     if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
         raise UsageError("--groundtruth, --realsense-config and --record are for --traj realsense")
     parse_size(args.render_size)  # a one-line error now, not after the data is read
@@ -380,7 +398,7 @@ def prepare(args) -> Prepared:
         raise UsageError("--topics is for --traj rosbag")
     extra = {"groundtruth": args.groundtruth, "realsense_config": args.realsense_config} if args.traj == "realsense" \
         else {"topics": args.topics} if args.traj == "rosbag" else {}
-    sequence = open_sequence(data, frames=args.frames, **extra)
+    sequence = open_sequence(data, frames=args.frames, depth_scale=args.depth_scale, stamps=args.stamps, **extra)
     if args.data is not None:
         field_obj = resolve_field(args.field, sequence)
     trained_on = warn_trained_frames(field_obj, sequence, "frames of this run")

@@ -12,6 +12,7 @@ from .common import (
     add_frames_argument,
     add_matcher_argument,
     add_topics_argument,
+    add_unit_arguments,
     non_negative_int,
     positive_float,
     positive_int,
@@ -51,6 +52,7 @@ def add_parser(sub) -> None:
     p.add_argument("--steps", type=positive_int, default=None,
                    help="optimisation budget in steps instead of minutes: the same field on any machine "
                    "(--minutes is ignored when given)")
+    add_unit_arguments(p)
     add_frames_argument(p, "training and evaluation (the checkpoint records which were trained on)")
     p.add_argument("--every", type=positive_int, default=1,
                    help="train on every K-th frame, hold out the rest for evaluation (default 1: every "
@@ -104,7 +106,8 @@ def run(args) -> int:
         raise UsageError(f"{args.out} exists (a trained field); choose another name, or add --force to replace it")
     if args.threads is not None:
         torch.set_num_threads(args.threads)
-    sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses, topics=args.topics)
+    sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses, topics=args.topics,
+                             depth_scale=args.depth_scale, stamps=args.stamps)
     warn_depth_units(sequence)
     from .sources import chosen_matcher, warn_guessed_camera
 

@@ -64,7 +64,8 @@ def source_of(path) -> str:
     return "tum"
 
 
-def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, **kwargs):
+def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, depth_scale=None, stamps=None,
+                  **kwargs):
     """A sequence as the right class: :class:`RosbagSequence` for a ROS bag (a ROS 2 bag
     folder, or a ``.bag`` whose topics are not a RealSense recording's; ``topics``: its
     :class:`BagTopics` or their ``key=value`` text), :class:`RealSenseRecording` for a RealSense
@@ -72,11 +73,23 @@ def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, **
     YAML of what the file does not store), :class:`SimSequence` for a folder with a
     simulator's ``scene.json``, :class:`SevenScenesSequence` for a 7-Scenes folder
     (``frame-*.pose.txt`` or sequence folders ``seq-01/``...), :class:`TumSequence` for any
-    other folder (its own groundtruth.txt)."""
+    other folder (its own groundtruth.txt). ``depth_scale`` (depth units per metre) is for
+    folders of depth PNGs (TUM layout, 7-Scenes); ``stamps`` (``"as-written"`` or
+    ``"file-order"``) for TUM-layout folders: a recording carries its own units and clock."""
     from pathlib import Path
 
     path = Path(path)
     source = source_of(path)
+    if depth_scale is not None:
+        if source not in ("tum", "sim", "7scenes"):
+            raise DatasetError(f"{path}: `depth_scale` is for folders of depth PNGs (TUM layout, 7-Scenes); a "
+                               f"{source} recording carries its own depth units")
+        kwargs["depth_scale"] = depth_scale
+    if stamps is not None:
+        if source not in ("tum", "sim"):
+            raise DatasetError(f"{path}: `stamps` is for TUM-layout folders (rgb.txt, depth.txt); a {source} "
+                               "source's frames carry their own stamps")
+        kwargs["stamps"] = stamps
     if source == "rosbag":
         if groundtruth is not None or realsense_config is not None:
             raise DatasetError(f"{path}: a ROS bag's ground truth comes from its /tf or a pose topic (`topics=gt=...`), "

@@ -24,7 +24,8 @@ from ..conventions import inv_T
 from ..errors import DatasetError
 from .depth_timing import depth_seen_from
 
-__all__ = ["DepthUnitCheck", "check_depth_unit", "UNIT_MISTAKES"]
+__all__ = ["DepthUnitCheck", "check_depth_unit", "UNIT_MISTAKES", "checked_depth_scale", "DepthUnitLook",
+           "inspect_depth_unit", "KINECT_STEP_PER_M", "NEAREST_SEEN_M", "FURTHEST_MEDIAN_M"]
 
 log = logging.getLogger(__name__)
 
@@ -120,3 +121,146 @@ def check_depth_unit(sequence, pairs: int = 12, baseline_m: tuple[float, float] 
     result = DepthUnitCheck(best if mistaken else 1.0, scores, len(chosen), UNIT_MISTAKES[best] if mistaken else None)
     log.info("depth unit: %s", {f"x{s:g}": round(v, 4) for s, v in scores.items()})
     return result
+
+
+# --- without poses: the depth's own range and steps -----------------------------------------
+
+#: Kinect v1's depth step: depth comes from disparity in 1/8 px at a ~580 px focal length over a
+#: 7.5 cm baseline, so representable depths ``z`` lie ``z**2 / (8 * 580 * 0.075)`` apart
+#: (per metre of z**2). TUM RGB-D, 7-Scenes, NYU and most public RGB-D recordings are Kinect
+#: v1's; their stored values keep these steps whatever unit they are written in.
+KINECT_STEP_PER_M = 1.0 / (8 * 580.0 * 0.075)
+
+#: Nearer than an RGB-D camera measures: a D435 sees from about 0.2 m (0.28 m at 1280x720), a
+#: Kinect v1 from 0.5 m. A survey with a tenth of its depth nearer is read in the wrong unit.
+NEAREST_SEEN_M = 0.2
+
+#: The units recordings are written in (units per metre): millimetres, TUM's 1/5000 m.
+COMMON_UNITS = (1000.0, 5000.0)
+
+#: A median depth beyond this is further than RGB-D cameras measure a room (a Kinect to ~4.5 m,
+#: a D435 to ~6-10 m, noisily).
+FURTHEST_MEDIAN_M = 10.0
+
+#: Steps resolved: only where the stored unit is finer than the sensor's step (3 units or more
+#: between neighbouring values) do the values show the sensor's steps.
+_RESOLVED_STEP_UNITS = 3
+
+
+def checked_depth_scale(value, where: str) -> float:
+    """A depth scale (stored units per metre) as a float, or a one-line :class:`DatasetError`:
+    finite and at least 1 (a value below 1 is metres per unit, a RealSense's way of saying it:
+    its 0.001 is 1000 here)."""
+    try:
+        scale = float(value)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{where}: `depth_scale` must be a number (depth units per metre), got {value!r}") from None
+    if not np.isfinite(scale) or scale <= 0:
+        raise DatasetError(f"{where}: `depth_scale` must be a finite number > 0 (depth units per metre), got {value!r}")
+    if scale < 1:
+        raise DatasetError(f"{where}: `depth_scale` is depth units per metre (TUM 5000, millimetres 1000); {scale:g} "
+                           f"looks like metres per unit (a RealSense's depth scale): write {1 / scale:g}")
+    return scale
+
+
+def kinect_units_per_m(raw: np.ndarray) -> float | None:
+    """The units per metre at which ``raw`` (stored depth values, 0 and 65535 = missing)
+    shows Kinect v1's depth steps (:data:`KINECT_STEP_PER_M`): with ``r`` a stored value and
+    ``g`` the gap to the next smaller one present, ``units = KINECT_STEP_PER_M * r**2 / g``
+    (median). None when the steps are not resolved (a unit coarser than the sensor's steps,
+    or depth that was filtered or resampled)."""
+    values = np.unique(raw[(raw > 0) & (raw < 65535)])
+    if values.size < 50:
+        return None
+    gaps, upper = np.diff(values.astype(float)), values[1:].astype(float)
+    if np.median(gaps) < _RESOLVED_STEP_UNITS:
+        return None
+    return float(KINECT_STEP_PER_M * np.median(upper ** 2 / gaps))
+
+
+@dataclass(frozen=True)
+class DepthUnitLook:
+    """What a few frames' depth looks like, without poses: ``median_m`` and ``near_m`` the
+    median and 10th percentile of their valid depth as read (metres); ``units_per_m`` the unit the source reads (None when it does not say);
+    ``kinect_units_per_m`` the unit at which the stored values show Kinect v1's steps, per
+    frame inspected (None where they do not); ``warnings`` what looks wrong, one line each;
+    ``mixed`` a one-line refusal when the frames are in different units (else None)."""
+
+    median_m: float
+    near_m: float
+    units_per_m: float | None
+    kinect_units_per_m: tuple
+    warnings: tuple
+    mixed: str | None
+
+
+def _near(a: float, b: float, tolerance: float = 0.15) -> bool:
+    return abs(a / b - 1.0) <= tolerance
+
+
+def _kinect_warning(implied: float, used: float, source: str) -> str | None:
+    """The line for stored values whose Kinect steps say ``implied`` units per metre when
+    ``used`` is read (None when they agree)."""
+    if _near(implied, used):
+        return None
+    implied = next((u for u in COMMON_UNITS if _near(implied, u)), implied)
+    factor = used / implied
+    return (f"the depth's steps are a Kinect v1's at {implied:.0f} units per metre, but it is read at {used:g} "
+            f"({source}): every depth would be x{1 / factor:.3g} ({'too near' if factor > 1 else 'too far'}); "
+            f"declare depth_scale {implied:.0f} (intrinsics.json or --depth-scale) if the data is a Kinect's")
+
+
+def _range_warning(median_m: float, near_m: float, units_per_m: float | None) -> str | None:
+    """The line for depth no RGB-D camera's survey has (None when plausible): ``near_m`` is the
+    frames' 10th percentile of valid depth, ``median_m`` their median."""
+    read = "" if units_per_m is None else f" (read at {units_per_m:g} units per metre)"
+    if near_m < NEAREST_SEEN_M:
+        hint = ("; millimetres read at TUM's 5000 per metre are 5x too near: declare depth_scale 1000 (intrinsics.json "
+                "or --depth-scale)" if units_per_m == 5000 else "")
+        return (f"a tenth of the frames' depth is nearer than {NEAREST_SEEN_M} m (10th percentile {near_m:.3g} m, median "
+                f"{median_m:.3g} m{read}): nearer than an RGB-D camera sees (a D435 from ~{NEAREST_SEEN_M} m, a Kinect "
+                f"from 0.5 m){hint}")
+    if median_m > FURTHEST_MEDIAN_M:
+        hint = ("; TUM's 1/5000 m read as millimetres is 5x too far: declare depth_scale 5000" if units_per_m == 1000
+                else "")
+        return (f"the frames' median depth is {median_m:.3g} m{read}: further than an RGB-D camera measures a room"
+                f"{hint}")
+    return None
+
+
+def inspect_depth_unit(sequence, frames: int = 5) -> DepthUnitLook | None:
+    """Look at ``frames`` frames spread over ``sequence`` (no poses needed): their median depth
+    against what RGB-D cameras see, and, where the source keeps its stored values
+    (``raw_depth(i)`` and ``depth_units_per_m``), whether those show Kinect v1's depth steps at
+    another unit than the one read. None when no frame could be read."""
+    used = getattr(sequence, "depth_units_per_m", None)
+    raw_of = getattr(sequence, "raw_depth", None) if used is not None else None
+    source = getattr(sequence, "depth_scale_source", "the source's")
+    medians, nears, implied = [], [], []
+    for i in np.linspace(0, len(sequence) - 1, min(frames, len(sequence))).round().astype(int):
+        try:
+            if raw_of is not None:
+                raw = np.asarray(raw_of(int(i)))
+                valid = raw[(raw > 0) & (raw < 65535)].astype(float) / used
+                implied.append(kinect_units_per_m(raw))
+            else:
+                depth = np.asarray(sequence[int(i)].depth_m, dtype=float)
+                valid = depth[np.isfinite(depth) & (depth > 0)]
+        except (DatasetError, OSError):
+            continue
+        if valid.size:
+            medians.append(float(np.median(valid)))
+            nears.append(float(np.percentile(valid, 10)))
+    if not medians:
+        return None
+    median_m, near_m = float(np.median(medians)), float(np.median(nears))
+    seen = [u for u in implied if u is not None]
+    mixed = None
+    if len(seen) >= 2 and not _near(max(seen), min(seen), 0.3):
+        mixed = (f"{getattr(sequence, 'path', 'the sequence')}: the depth images are in different units (their Kinect "
+                 f"steps say {min(seen):.0f} to {max(seen):.0f} units per metre over {len(seen)} frames): convert them "
+                 "to one unit")
+    lines = [_range_warning(median_m, near_m, used)]
+    if seen and mixed is None:
+        lines.append(_kinect_warning(float(np.median(seen)), float(used), str(source)))
+    return DepthUnitLook(median_m, near_m, used, tuple(implied), tuple(line for line in lines if line), mixed)

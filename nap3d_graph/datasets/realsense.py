@@ -135,6 +135,9 @@ class RealSenseRecording(GroundTruthLookup):
             log.warning("%s: no depth-to-colour extrinsics in the file; taking the cameras as co-located", self.path)
         self.intrinsics = self._intrinsics(raw.colour_intrinsics)
         self.depth_intrinsics = self._intrinsics(raw.depth_intrinsics)
+        # The device's depth unit, as the file stores it (a D435: 0.001 m).
+        self.depth_units_per_m = 1.0 / float(raw.depth_units)
+        self.depth_scale_source = "the recording's depth units"
         self._pair(raw)
         self.imu = self._imu(raw)
         self.imu_config = self.config.imu_config(self.T_colour_depth)
@@ -262,6 +265,11 @@ class RealSenseRecording(GroundTruthLookup):
 
     def __len__(self) -> int:
         return len(self.timestamps)
+
+    def raw_depth(self, i: int) -> np.ndarray:
+        """Frame i's depth as the device stored it: (H, W) uint16 in the depth camera,
+        ``depth_units_per_m`` per metre, 0 = missing."""
+        return np.asarray(self.raw.depth[2][self._depth_index[i]])
 
     def registered_depth(self, i: int) -> np.ndarray:
         """Frame i's depth (H, W) float32 metres in the colour camera (0 where none)."""

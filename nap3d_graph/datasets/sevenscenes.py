@@ -35,6 +35,7 @@ from nap3d_graph.errors import DatasetError
 
 from ..camera import Intrinsics, RGBDFrame
 from .association import GroundTruthLookup
+from .depth_unit import checked_depth_scale
 from .frames import frame_index, parse_frame_range
 from .registration import DepthColourRegistration, estimate_registration, register_depth_to_colour
 
@@ -128,11 +129,16 @@ class SevenScenesSequence(GroundTruthLookup):
     reads_concurrently = True
 
     def __init__(self, path, sequence: str | None = None, depth_intrinsics: Intrinsics | None = None,
-                 registration="auto", frames: str | None = None, cache_dir=None, intrinsics=None):
+                 registration="auto", frames: str | None = None, cache_dir=None, intrinsics=None,
+                 depth_scale: float | None = None):
         if intrinsics is not None:
             raise DatasetError(f"{path}: a 7-Scenes sequence takes depth_intrinsics (the colour camera is "
                                "estimated or given through registration)")
         self.path = self._sequence_folder(Path(path), sequence)
+        # 7-Scenes stores millimetres; another unit only when declared (a converted copy).
+        self.depth_units_per_m = DEPTH_PER_METRE if depth_scale is None else checked_depth_scale(depth_scale,
+                                                                                                   str(self.path))
+        self.depth_scale_source = "7-Scenes default" if depth_scale is None else "argument"
         in_scene = self.path.name.startswith("seq-")
         self.name = f"{self.path.parent.name}_{self.path.name}" if in_scene else self.path.name
         numbers = sorted(int(m.group(1)) for p in self.path.iterdir() if (m := _FRAME.match(p.name)))
@@ -291,12 +297,13 @@ class SevenScenesSequence(GroundTruthLookup):
                 self.path / f"frame-{first:06d}.pose.txt", self.path / f"frame-{last:06d}.pose.txt"])
         return self._recording_id
 
-    def _read_raw(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Frame number k as stored: RGB (H, W, 3) uint8 and the depth camera's depth, metres."""
-        colour_path, depth_path = self._colour_paths[k], self.path / f"frame-{k:06d}.depth.png"
-        bgr = cv2.imread(str(colour_path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise DatasetError(f"{colour_path}: cannot read colour image (missing or corrupt)")
+    def raw_depth(self, index) -> np.ndarray:
+        """Frame ``index``'s depth PNG as stored, in the depth camera: (H, W) uint16,
+        ``depth_units_per_m`` per metre, 0 or 65535 = missing."""
+        return self._read_raw_depth(int(self.frame_numbers[frame_index(index, len(self), self.name)]))
+
+    def _read_raw_depth(self, k: int) -> np.ndarray:
+        depth_path = self.path / f"frame-{k:06d}.depth.png"
         raw = cv2.imread(str(depth_path), cv2.IMREAD_UNCHANGED)
         if raw is None:
             raise DatasetError(f"{depth_path}: cannot read depth image (missing or corrupt)")
@@ -306,7 +313,16 @@ class SevenScenesSequence(GroundTruthLookup):
         if raw.shape != (self.depth_intrinsics.height, self.depth_intrinsics.width):
             raise DatasetError(f"{depth_path}: depth is {raw.shape[1]}x{raw.shape[0]}, the depth camera "
                                f"{self.depth_intrinsics.width}x{self.depth_intrinsics.height}")
-        depth_m = np.where(raw == DEPTH_MISSING, 0, raw).astype(np.float32) / np.float32(DEPTH_PER_METRE)
+        return raw
+
+    def _read_raw(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Frame number k as stored: RGB (H, W, 3) uint8 and the depth camera's depth, metres."""
+        colour_path = self._colour_paths[k]
+        bgr = cv2.imread(str(colour_path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise DatasetError(f"{colour_path}: cannot read colour image (missing or corrupt)")
+        raw = self._read_raw_depth(k)
+        depth_m = np.where(raw == DEPTH_MISSING, 0, raw).astype(np.float32) / np.float32(self.depth_units_per_m)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), depth_m
 
     def __len__(self) -> int:

@@ -36,6 +36,7 @@ from .association import (
     interpolate_poses,
     pair_streams,
 )
+from .depth_unit import checked_depth_scale
 from .frames import frame_index, parse_frame_range
 
 __all__ = [
@@ -44,6 +45,7 @@ __all__ = [
     "file_order_stamps",
     "tum_intrinsics_for",
     "TUM_DEPTH_SCALE",
+    "depth_scale_of",
 ]
 
 logger = logging.getLogger(__name__)
@@ -87,7 +89,7 @@ def read_file_list(path) -> tuple[np.ndarray, list[str]]:
 STAMPS_OPTIONS = ("as-written", "file-order")
 
 
-_FILE_ORDER_HINT = "pass stamps='file-order' to keep the frames in file order with stamps derived from it"
+_FILE_ORDER_HINT = "pass `stamps='file-order'` to keep the frames in file order with stamps derived from it"
 
 
 def _backwards_problem(path: Path, stamps: np.ndarray) -> str | None:
@@ -100,14 +102,27 @@ def _backwards_problem(path: Path, stamps: np.ndarray) -> str | None:
             f"{stamps[first - 1]:.6f} then {stamps[first]:.6f})")
 
 
+def _per_frame_intervals(stamps: np.ndarray) -> bool:
+    """Stamps that are each frame's interval since the last (a script restarting its clock
+    every frame): all positive, below a second, and they do not grow over the list (their
+    spread is under their median)."""
+    return bool(len(stamps) >= 3 and np.all(stamps > 0) and stamps.max() < 1.0
+                and np.ptp(stamps) < np.median(stamps))
+
+
 def file_order_stamps(path, stamps: np.ndarray) -> np.ndarray:
-    """Strictly increasing stamps for a list's lines in file order: its first stamp, then one
-    median positive step (of the stamps as written) per line. Stamps that never go backwards
-    are returned as they are; otherwise a warning says how many went backwards."""
+    """Strictly increasing stamps for a list's lines in file order. Stamps that never go
+    backwards are returned as they are; per-frame intervals (:func:`_per_frame_intervals`)
+    become their running sum; otherwise the first stamp, then one median positive step (of
+    the stamps as written) per line. A warning says how many went backwards."""
     stamps = np.asarray(stamps, dtype=float)
     problem = _backwards_problem(Path(path), stamps)
     if problem is None:
         return stamps
+    if _per_frame_intervals(stamps):
+        logger.warning("%s; they look like per-frame intervals (they never grow: %.6f to %.6f s): keeping the frames in "
+                       "file order with stamps from their running sum", problem, stamps.min(), stamps.max())
+        return np.cumsum(stamps)
     steps = np.diff(stamps)
     positive = steps[steps > 0]
     if not positive.size:
@@ -171,6 +186,23 @@ def _resolve_intrinsics(folder: Path, intrinsics) -> Intrinsics:
     return _TUM_DEFAULT_CAMERA
 
 
+def depth_scale_of(folder: Path, depth_scale=None) -> tuple[float, str]:
+    """``(units per metre, where it came from)`` of a TUM-layout folder's depth PNGs: the
+    argument ("argument"), else ``intrinsics.json``'s ``depth_scale`` ("intrinsics.json"), else
+    TUM's 5000 ("TUM default")."""
+    if depth_scale is not None:
+        return checked_depth_scale(depth_scale, str(folder)), "argument"
+    json_path = folder / "intrinsics.json"
+    if json_path.is_file():
+        try:
+            declared = json.loads(json_path.read_text())
+        except (ValueError, OSError):
+            declared = None  # _resolve_intrinsics says what is wrong with the file
+        if isinstance(declared, dict) and declared.get("depth_scale") is not None:
+            return checked_depth_scale(declared["depth_scale"], str(json_path)), "intrinsics.json"
+    return TUM_DEPTH_SCALE, "TUM default"
+
+
 # --- sequence -------------------------------------------------------------------------------
 
 
@@ -212,6 +244,11 @@ class TumSequence(GroundTruthLookup):
     backwards; a list whose stamps never go backwards is kept as written). Attribute
     ``stamps_mode``.
 
+    ``depth_scale``: the depth PNGs' units per metre (TUM 5000, a RealSense or 7-Scenes' millimetres
+    1000); default ``intrinsics.json``'s ``depth_scale``, else TUM's 5000. Attributes
+    ``depth_units_per_m`` and ``depth_scale_source``; :meth:`raw_depth` gives a frame's depth
+    as stored.
+
     On the Kinect, depth is stamped 12-20 ms before colour; for geometric checks with depth,
     interpolate the ground truth at ``depth_timestamps`` (:func:`interpolate_poses`): on
     fr1/xyz that takes neighbouring frames' depth agreement from 3.2 to 2.4 mm.
@@ -231,6 +268,7 @@ class TumSequence(GroundTruthLookup):
         offset: float | str = "auto",
         frames: str | None = None,
         stamps: str = "as-written",
+        depth_scale: float | None = None,
     ):
         self.path = Path(path)
         if not self.path.is_dir():
@@ -246,6 +284,7 @@ class TumSequence(GroundTruthLookup):
         self.offset = offset
         self.raw_intrinsics = _resolve_intrinsics(self.path, intrinsics)
         self.intrinsics_source = _intrinsics_source(self.path, intrinsics)
+        self.depth_units_per_m, self.depth_scale_source = depth_scale_of(self.path, depth_scale)
         has_distortion = any(d != 0.0 for d in self.raw_intrinsics.distortion)
         self.undistort = bool(undistort) and has_distortion
         # Depth PNGs are registered to colour by the Kinect driver (OpenNI, factory pinhole
@@ -409,7 +448,12 @@ class TumSequence(GroundTruthLookup):
             bgr = cv2.remap(bgr, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
-    def _read_depth(self, path: Path) -> np.ndarray:
+    def raw_depth(self, index) -> np.ndarray:
+        """Frame ``index``'s depth PNG as stored: (H, W) uint16, ``depth_units_per_m`` per metre,
+        0 = missing (not undistorted)."""
+        return self._read_raw_depth(self.depth_paths[frame_index(index, len(self), self.name)])
+
+    def _read_raw_depth(self, path: Path) -> np.ndarray:
         if not path.is_file():
             raise DatasetError(f"{path}: listed image file not found")
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -420,10 +464,14 @@ class TumSequence(GroundTruthLookup):
                 f"{path}: depth must be a single-channel uint16 PNG, got {raw.dtype} with shape {raw.shape}"
             )
         self._check_size(path, raw)
+        return raw
+
+    def _read_depth(self, path: Path) -> np.ndarray:
+        raw = self._read_raw_depth(path)
         if self.undistort_depth:
             map_x, map_y = self._undistort_maps()
             # Nearest neighbour: interpolating across a depth edge would invent surfaces.
             raw = cv2.remap(
                 raw, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0
             )
-        return raw.astype(np.float32) / np.float32(TUM_DEPTH_SCALE)
+        return raw.astype(np.float32) / np.float32(self.depth_units_per_m)

@@ -124,8 +124,11 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     field_settings = {k: getattr(settings, k) for k in FIELD_SETTINGS}
     wanted = {"data": str(getattr(sequence, "path", "")), "frame_range": list(getattr(sequence, "frame_range", ())),
               "recording_id": getattr(sequence, "recording_id", None), "settings": pose_settings}
+    if getattr(sequence, "depth_scale_source", "") in ("argument", "intrinsics.json"):
+        wanted["depth_units_per_m"] = float(sequence.depth_units_per_m)  # a declared unit: another survey
     info = json.loads(info_path.read_text()) if info_path.is_file() else {}
-    if info and {k: info.get(k) for k in wanted} != json.loads(json.dumps(wanted, default=float)):
+    expected = json.loads(json.dumps(wanted, default=float))
+    if info and any(info.get(k) != expected.get(k) for k in {*wanted, "depth_units_per_m"}):
         raise FileExistsError(f"{out} holds a map of other data or settings; choose another folder or remove it")
     info = {**wanted, "stages": info.get("stages", {}), **{k: v for k, v in info.items() if k not in wanted
                                                             and k != "stages"}}

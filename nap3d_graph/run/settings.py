@@ -49,9 +49,11 @@ def pipeline_name(f: dataclasses.Field) -> str | None:
 
 @dataclass
 class SourceSettings:
-    """What is read. ``traj``: sim, tum, realsense, 7scenes or rosbag; ``data``: the folder,
-    recording or bag (None with sim: the embedded default); ``frames``: START:STOP (indices
-    or fractions); ``topics``: a ROS bag's KEY=TOPIC pairs; ``groundtruth`` /
+    """What is read. ``traj``: sim, tum, realsense, 7scenes, rosbag or auto (the source the
+    data's path says; sim without data); ``data``: the folder, recording or bag (None with
+    sim: the embedded default); ``frames``: START:STOP (indices or fractions);
+    ``depth_scale``: a folder's depth units per metre (None: intrinsics.json's, else the
+    format's); ``stamps``: a TUM-layout folder's stamps as-written or file-order; ``topics``: a ROS bag's KEY=TOPIC pairs; ``groundtruth`` /
     ``realsense_config`` / ``record`` / ``seconds``: a RealSense recording's ground truth,
     IMU settings, live capture file and length; ``initial_pose``: 'auto' (found in a map) or
     'tx ty tz qx qy qz qw' in the field's frame, ``initial_pose_file`` its TUM file;
@@ -59,9 +61,11 @@ class SourceSettings:
     camera's rate (None: as fast as they come); ``cache`` / ``train_steps``: the embedded
     default's cache folder and field budget."""
 
-    traj: str = "sim"
+    traj: str = "auto"
     data: str | None = None
     frames: str | None = None
+    depth_scale: float | None = None
+    stamps: str | None = None
     topics: str | None = None
     groundtruth: str | None = None
     realsense_config: str | None = None
