@@ -17,16 +17,24 @@ from nap3d_graph.mapping.survey import tracked_segment
 
 
 class _GroundTruthWatch:
-    """A sequence whose ground truth says when it was first read."""
+    """A sequence that records every touch of any of its ground-truth accessors
+    (``GROUND_TRUTH_ACCESSORS``): which one, and whether ``written`` (a glob under ``out``,
+    what the command writes before it may read ground truth) existed then."""
 
-    def __init__(self, base, out):
-        self._base, self._out, self.read_with_poses_written = base, out, None
+    def __init__(self, base, out, written: str = "poses.txt"):
+        self._base, self._out, self._written = base, out, written
+        self.touches: list[tuple[str, bool]] = []
+
+    @property
+    def read_with_poses_written(self):
+        """Whether the ground truth was first read after the map's poses were written (None: never read)."""
+        return self.touches[0][1] if self.touches else None
 
     def __getattr__(self, name):
-        if name == "T_world_cam_gt":
-            if self.read_with_poses_written is None:
-                self.read_with_poses_written = (self._out / "poses.txt").is_file()
-            return self._base.T_world_cam_gt
+        from nap3d_graph.datasets.protocol import GROUND_TRUTH_ACCESSORS
+
+        if name in GROUND_TRUTH_ACCESSORS:
+            self.touches.append((name, next(self._out.glob(self._written), None) is not None))
         return getattr(self._base, name)
 
     def __len__(self):
@@ -70,6 +78,49 @@ def test_map_poses_come_from_the_camera_and_match_the_ground_truth(xyz_map):
     assert sum(r["status"] == "accepted" for r in rows) >= 3
     assert all(r["status"] in ("accepted", "rejected", "refused") for r in rows)
     assert all(r["reason"] for r in rows if r["status"] != "accepted")
+
+
+def test_every_ground_truth_accessor_of_every_reader_is_watched():
+    """The watch above flags every attribute a reader gives ground truth through: each
+    reader's ``self.<name>`` with gt / ground_truth / T_world_depth in it is in the list."""
+    import re
+    from pathlib import Path
+
+    import nap3d_graph.datasets as datasets
+    from nap3d_graph.datasets.protocol import GROUND_TRUTH_ACCESSORS
+
+    found = set()
+    for module in Path(datasets.__file__).parent.glob("*.py"):
+        found |= set(re.findall(r"(?:self\.|def )(_?[A-Za-z_]*(?:gt|ground_truth|T_world_depth)[A-Za-z_]*)",
+                                module.read_text()))
+    assert found, "no reader names a ground truth: the pattern is wrong"
+    assert found <= set(GROUND_TRUTH_ACCESSORS), sorted(found - set(GROUND_TRUTH_ACCESSORS))
+
+
+def test_a_run_on_a_map_reads_no_ground_truth_before_its_trajectories_are_written(xyz_map, tum_path, tmp_path,
+                                                                                  monkeypatch, capsys):
+    """Through the command line, every ground-truth accessor of the run's sequence watched: the
+    first touch comes after estimate.txt is written (the ATE is computed then, in the map's
+    frame through the survey's alignment)."""
+    import nap3d_graph.datasets as datasets
+    from nap3d_graph.cli import main
+
+    _, result = xyz_map
+    opened, out = [], tmp_path / "runs"
+    real_open = datasets.open_sequence
+
+    def watched_open(*args, **kwargs):
+        opened.append(_GroundTruthWatch(real_open(*args, **kwargs), out, "*/estimate.txt"))
+        return opened[-1]
+
+    monkeypatch.setattr(datasets, "open_sequence", watched_open)
+    assert main(["run", "--data", str(tum_path), "--frames", "6:12", "--field", str(result.folder),
+                 "--matcher", "sift", "--out", str(out)]) == 0
+    assert "placed in the map" in capsys.readouterr().out
+    (sequence,) = opened
+    assert sequence.touches and all(written for _, written in sequence.touches), sequence.touches
+    metrics = json.loads((out / "latest" / "metrics.json").read_text())
+    assert metrics["estimate"]["ate_m"]["rmse"] < 0.03  # scored against the ground truth, read at the end
 
 
 def test_map_resumes_and_refuses_other_settings(xyz_map, tum_path):

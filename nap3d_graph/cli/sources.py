@@ -97,11 +97,14 @@ def _say_readout(config, field_obj) -> float:
 def _timing(args, field_obj, sequence):
     """The capture timing a run is given beyond its field's: the one estimated from the
     sequence's ground truth when the field records none (None: off, no field, nothing known,
-    or the field's own, which the pipeline takes itself)."""
+    the field's own, which the pipeline takes itself, or a map's field: a run on a map reads
+    no ground truth)."""
     from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 
     if field_obj is None:
         return None
+    if (getattr(field_obj, "meta", None) or {}).get("map") is not None:
+        return None  # a run on a map reads no ground truth: the map's field has the survey's timing, or none is known
     timing, source = resolve_capture_timing(field_obj, sequence, compensate=args.timing == "auto")
     if source != "estimated":
         return None
@@ -306,7 +309,6 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
     alignment (survey_ate.json; none where the survey had no ground truth) and the start is
     found in the map (``--initial-pose auto``, the default there). With ``--field none`` and
     nothing to start from, the odometry starts at the identity."""
-    import sys
 
     import numpy as np
 
@@ -323,17 +325,16 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
         record["map"] = str(map_dir)
         if args.odom is None:  # the map's world is the camera's own: so is the run's motion, by default
             args.odom = "vo"
-        if sequence.T_world_cam_gt is not None:
-            if T_gt_map is None:
-                print("ground truth: the map's survey had none, so this run's ground truth is not in the map's frame; "
-                      "metrics.json scores the run SE(3)-aligned only", file=sys.stderr)
-                record["ground_truth_frame"] = "unknown (per-run alignment only)"
-            else:
-                sequence = reframed(sequence, inv_T(np.asarray(T_gt_map)), "ground truth in the map's frame")
-                record["ground_truth_frame"] = "moved into the map's frame by the survey's own alignment"
-                if info.get("recording_id") not in (None, getattr(sequence, "recording_id", None)):
-                    print("note: this recording is not the map's survey; its ground truth is taken to share the "
-                          "survey's frame (as a dataset's recordings of one place do)")
+        # The run's ground truth, if it has one, is read only once its results are written: here
+        # it is only told which frame it will be scored in.
+        if T_gt_map is None:
+            record["ground_truth_frame"] = "unknown (per-run alignment only)"
+        else:
+            sequence = reframed(sequence, inv_T(np.asarray(T_gt_map)), "ground truth in the map's frame")
+            record["ground_truth_frame"] = "moved into the map's frame by the survey's own alignment"
+            if info.get("recording_id") not in (None, getattr(sequence, "recording_id", None)):
+                print("note: this recording is not the map's survey; its ground truth, if any, is taken to share "
+                      "the survey's frame (as a dataset's recordings of one place do)")
         if initial_pose is None and args.initial_pose_file is None and args.odom in (None, "vo", "dense"):
             auto_start = True
     if auto_start:

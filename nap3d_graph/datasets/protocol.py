@@ -12,7 +12,7 @@ import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RGBDFrame
 
-__all__ = ["FrameSource", "Sequence", "SEQUENCE_ATTRIBUTES"]
+__all__ = ["FrameSource", "Sequence", "SEQUENCE_ATTRIBUTES", "GROUND_TRUTH_ACCESSORS"]
 
 #: The attributes every reader sets (a test checks each reader has them).
 SEQUENCE_ATTRIBUTES = ("path", "timestamps", "depth_timestamps", "intrinsics", "T_world_cam_gt", "frame_range",
@@ -36,7 +36,16 @@ class FrameSource(Protocol):
     def __getitem__(self, i: int) -> RGBDFrame: ...
 
 
+#: Every attribute through which a reader gives its recording's ground truth (poses, their
+#: samples, which frames have one). ``map`` and a run on a map touch none of them before the
+#: map's poses and the run's trajectories are written (tests/test_mapping.py watches them all).
+GROUND_TRUTH_ACCESSORS = ("T_world_cam_gt", "ground_truth_at", "has_gt", "_gt_raw", "T_world_depth",
+                          "_T_world_depth_all", "_gt_from_poses", "_gt_from_tf", "_attach_ground_truth",
+                          "ground_truth_samples")
+
+
 @runtime_checkable
+
 class Sequence(Protocol):
     """An RGB-D recording, frame by frame. ``timestamps`` (N,) colour stamps (s);
     ``depth_timestamps`` (N,) depth stamps (the colour's when the source has none);

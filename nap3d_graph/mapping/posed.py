@@ -12,7 +12,7 @@ import numpy as np
 
 from nap3d_graph.datasets.association import interpolate_poses
 
-__all__ = ["PosedSequence", "reframed"]
+__all__ = ["PosedSequence", "ReframedSequence", "reframed"]
 
 
 class PosedSequence:
@@ -64,11 +64,22 @@ class PosedSequence:
         return f"PosedSequence({self._base!r}, poses from {self.pose_source})"
 
 
+class ReframedSequence(PosedSequence):
+    """``base`` with its ground truth moved by ``T_new_old`` (4, 4), read from the base only
+    when asked for (a run on a map reads no ground truth before its results are written)."""
+
+    def __init__(self, base, T_new_old: np.ndarray, pose_source: str):
+        self._base = base
+        self.pose_source = pose_source
+        self._T_new_old = np.asarray(T_new_old, dtype=float)
+
+    @property
+    def T_world_cam_gt(self):
+        T_old = self._base.T_world_cam_gt
+        return None if T_old is None else self._T_new_old @ np.asarray(T_old, dtype=float)
+
+
 def reframed(sequence, T_new_old: np.ndarray, pose_source: str):
     """``sequence`` with its ground truth moved by ``T_new_old`` (4, 4): ``T_new_cam =
-    T_new_old @ T_old_cam`` (None stays None)."""
-    if sequence.T_world_cam_gt is None:
-        return sequence
-    T_new_old = np.asarray(T_new_old, dtype=float)
-    return PosedSequence(sequence, T_new_old @ np.asarray(sequence.T_world_cam_gt, dtype=float), pose_source,
-                         T_new_old=T_new_old)
+    T_new_old @ T_old_cam`` (None stays None), read from ``sequence`` only when used."""
+    return ReframedSequence(sequence, T_new_old, pose_source)

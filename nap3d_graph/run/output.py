@@ -167,10 +167,9 @@ class RunWriter:
         entries in metrics.json; returns the metrics and moves ``latest`` here."""
         self.close()
         run = self.dir
-        written = result.trajectories()
-        for name in ("estimate", "odometry", "estimate_online"):
-            if name in written:
-                written[name].write_tum(run / f"{name}.txt")
+        # The run's own trajectories are written before its ground truth is first read.
+        for name, trajectory in result.trajectories(with_ground_truth=False).items():
+            trajectory.write_tum(run / f"{name}.txt")
         online = result.T_world_cam_online
         metrics: dict = {
             "partial": bool(partial),
@@ -189,7 +188,7 @@ class RunWriter:
         if result.T_world_cam_gt is not None:
             posed = np.all(np.isfinite(result.T_world_cam_gt), axis=(1, 2))
             if posed.any():
-                written["groundtruth"].write_tum(run / "groundtruth.txt", skip_unknown=True)
+                result.trajectories()["groundtruth"].write_tum(run / "groundtruth.txt", skip_unknown=True)
             if posed.sum() >= 2:
                 metrics.update(trajectory_metrics(result.timestamps, result.T_world_cam_gt, trajectories))
             metrics["frames_without_ground_truth"] = int((~posed).sum())

@@ -616,13 +616,12 @@ class Pipeline:
         fixed = {idx: self.graph.frozen[j] for j, idx in self.keyframe_indices.items() if j < cut}
         T_world_cam_est = chain_from_nearest_keyframe(fixed, self.motion.increments, last_fixed, start=first)
         stamps = np.asarray(self.sequence.timestamps[first:last_fixed], dtype=float)
-        gt = self.sequence.T_world_cam_gt
         keyframes_gone = self.keyframe_indices.drop_before(self.keyframe_indices.first(lambda idx: idx >= last_fixed))
         records_gone = self.records.drop_before(self.records.first(lambda r: r.frame_index >= last_fixed))
         for j in [j for j in self.graph.frozen if j < self.keyframe_indices.start]:
             del self.graph.frozen[j]
         segment = RunResult(stamps, T_world_cam_est, np.stack(self.motion.T_world_cam_odom.drop_before(last_fixed)),
-                            None if gt is None else np.asarray(gt[first:last_fixed]), records_gone, keyframes_gone,
+                            self._ground_truth(first, last_fixed), records_gone, keyframes_gone,
                             T_world_cam_online=np.stack(self._online.drop_before(last_fixed)),
                             increments=self.motion.increments.drop_before(last_fixed), first_frame=first)
         self.on_retire(segment)
@@ -641,10 +640,20 @@ class Pipeline:
         return frames_seen_in_training(self.field, self.sequence) if self.field is not None else \
             np.zeros(len(self.sequence), dtype=bool)
 
+    def _ground_truth(self, start: int, stop: int):
+        """A function reading the sequence's ground truth of frames ``start:stop`` (None when
+        it has none) when a result is asked for it, not before: the run never sees it."""
+        sequence = self.sequence
+
+        def read():
+            T = sequence.T_world_cam_gt
+            return None if T is None else np.asarray(T[start:stop])
+
+        return read
+
     def _finish(self, n: int) -> RunResult:
         first = self._online.start  # frames before it were retired (on_retire)
-        T_world_cam_gt = None if self.sequence.T_world_cam_gt is None else \
-            np.asarray(self.sequence.T_world_cam_gt[first:n])
+        T_world_cam_gt = self._ground_truth(first, n)
         stamps = np.asarray(self.sequence.timestamps[first:n], dtype=float)
         if not len(self.keyframe_indices):  # stopped before the first keyframe: odometry is all there is
             T_world_cam_odom = np.stack(self.motion.T_world_cam_odom[:n])

@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -57,7 +57,9 @@ class RunResult:
     timestamps: np.ndarray
     T_world_cam_estimate: np.ndarray
     T_world_cam_odometry: np.ndarray
-    T_world_cam_gt: np.ndarray | None
+    #: The ground truth (``T_world_cam_gt``), or a function that reads it: a run reads its
+    #: sequence's ground truth only when asked, once its trajectories are final.
+    ground_truth: np.ndarray | None | Callable[[], np.ndarray | None]
     keyframes: list[KeyframeRecord]
     keyframe_indices: list[int]
     T_world_map: np.ndarray | None = None
@@ -79,17 +81,25 @@ class RunResult:
     first_frame: int = 0
     placement: dict | None = None
 
-    def trajectories(self) -> dict[str, Trajectory]:
+    @property
+    def T_world_cam_gt(self) -> np.ndarray | None:
+        """(N, 4, 4) the ground truth at the run's frames (NaN where none), or None; read from
+        the sequence on first use."""
+        if callable(self.ground_truth):
+            self.ground_truth = self.ground_truth()
+        return self.ground_truth
+
+    def trajectories(self, with_ground_truth: bool = True) -> dict[str, Trajectory]:
         """The run's trajectories as :class:`~nap3d_graph.trajectory.Trajectory`:
         ``estimate`` (smoothed), ``estimate_online`` (causal), ``odometry`` and, when there is
-        one, ``groundtruth`` (NaN where the frames have none)."""
+        one and ``with_ground_truth``, ``groundtruth`` (NaN where the frames have none)."""
         from nap3d_graph.trajectory import Trajectory
 
         out = {"estimate": Trajectory(self.timestamps, self.T_world_cam_estimate),
                "odometry": Trajectory(self.timestamps, self.T_world_cam_odometry)}
         if self.T_world_cam_online is not None:
             out["estimate_online"] = Trajectory(self.timestamps, self.T_world_cam_online)
-        if self.T_world_cam_gt is not None:
+        if with_ground_truth and self.T_world_cam_gt is not None:
             out["groundtruth"] = Trajectory(self.timestamps, self.T_world_cam_gt)
         return out
 
