@@ -128,9 +128,11 @@ def unregistered(tmp_path_factory):
     return _simulated_kinect(tmp_path_factory.mktemp("sevenscenes") / "seq-01", 0.0)
 
 
+@pytest.mark.slow
 def test_colour_camera_is_recovered_from_the_data(unregistered, tmp_path):
+    """The fit, with each pair's motion from the (exact, simulated) pose files."""
     folder, colour, _ = unregistered
-    seq = open_sequence(folder, cache_dir=tmp_path)
+    seq = open_sequence(folder, cache_dir=tmp_path, registration="poses")
     assert isinstance(seq, SevenScenesSequence)
     reg = seq.registration
     # The focal length and centre: what moves every pixel (the nominal 525-px start is 5 px
@@ -143,8 +145,24 @@ def test_colour_camera_is_recovered_from_the_data(unregistered, tmp_path):
     np.testing.assert_allclose(seq.T_world_cam_gt[0], np.loadtxt(folder / "frame-000000.pose.txt"))
     # Cached per recording: the second open reads it back.
     assert list((tmp_path / "registration").glob("7scenes_*.json"))
-    again = open_sequence(folder, cache_dir=tmp_path)
+    again = open_sequence(folder, cache_dir=tmp_path, registration="poses")
     assert again.registration.colour == reg.colour
+
+
+def test_colour_camera_is_recovered_from_the_images_alone(unregistered, tmp_path, monkeypatch):
+    """The default: each pair's motion by depth-only ICP; no pose file is read. The simulated
+    traversal is fast (metres in 2.6 s), so ICP poses only the slowest pairs; the fit still
+    finds the focal length and the centre to a pixel."""
+    from nap3d_graph.datasets import sevenscenes
+
+    folder, colour, _ = unregistered
+    monkeypatch.setattr(sevenscenes.SevenScenesSequence, "_read_pose", lambda self, k: np.full((4, 4), np.nan))
+    seq = open_sequence(folder, cache_dir=tmp_path)  # no pose: a pose file read would show as no ground truth
+    reg = seq.registration
+    assert not seq.has_gt.any()
+    assert abs(reg.colour.fx / colour.fx - 1) < 0.003
+    assert abs(reg.colour.cx - colour.cx) < 1.0 and abs(reg.colour.cy - colour.cy) < 1.0
+    assert reg.residual_px < 0.8 * reg.start_residual_px
 
 
 def test_registered_depth_meets_the_colour_surfaces(unregistered, tmp_path):
@@ -152,7 +170,7 @@ def test_registered_depth_meets_the_colour_surfaces(unregistered, tmp_path):
     from nap3d_graph.sims.scene import make_scene
 
     folder, colour, _ = unregistered
-    seq = open_sequence(folder, cache_dir=tmp_path)
+    seq = open_sequence(folder, cache_dir=tmp_path, registration="poses")
     truth = make_scene(11).render_depth(np.loadtxt(folder / "frame-000020.pose.txt"), colour)
     frame = seq[10]
     both = (frame.depth_m > 0) & (truth > 0)
@@ -164,11 +182,12 @@ def test_registered_depth_meets_the_colour_surfaces(unregistered, tmp_path):
     assert np.median(np.abs(stored - truth)[both_stored]) * 1000 > 5 * np.median(error_mm)
 
 
+@pytest.mark.slow
 def test_an_offset_between_the_cameras_is_left_to_the_principal_point(tmp_path):
     """The documented limit: a 25 mm offset is not estimated; the fit still improves on the
     nominal camera and finds the focal length."""
     folder, colour, _ = _simulated_kinect(tmp_path / "seq-01", 0.025)
-    reg = SevenScenesSequence(folder, cache_dir=False).registration
+    reg = SevenScenesSequence(folder, cache_dir=False, registration="poses").registration
     assert np.allclose(reg.T_colour_depth, np.eye(4))
     assert abs(reg.colour.fx / colour.fx - 1) < 0.003 and abs(reg.colour.cx - colour.cx) < 3.0
     assert reg.residual_px < 0.8 * reg.start_residual_px

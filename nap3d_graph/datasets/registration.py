@@ -227,3 +227,57 @@ def _fit_inliers(p: np.ndarray, pairs: list[_Pair], K_depth: Intrinsics, templat
 def _median_error(residuals: np.ndarray) -> float:
     errors = np.linalg.norm(residuals.reshape(-1, 2), axis=1)
     return float(np.median(errors[np.isfinite(errors)])) if np.any(np.isfinite(errors)) else float("nan")
+
+
+# --- the depth camera's motion from the depth images alone -------------------------------
+
+
+def depth_icp_step(depth_a_m: np.ndarray, depth_b_m: np.ndarray, K_depth: Intrinsics, width: int = 320,
+                   T_b_a_start: np.ndarray | None = None) -> np.ndarray | None:
+    """``T_b_a`` (4, 4): the depth camera's motion from frame a to frame b by OpenCV's depth-only
+    ICP odometry (``cv2.Odometry``, ``OdometryType_DEPTH``) at ``width`` px; None when it fails.
+    Needs no colour camera: what poses a registration estimate when the recording's own
+    poses are not to be read."""
+    import cv2
+
+    scale = min(1.0, width / depth_a_m.shape[1])
+    K = K_depth.scaled(int(round(depth_a_m.shape[1] * scale)), int(round(depth_a_m.shape[0] * scale)))
+
+    def small(depth):
+        depth = np.nan_to_num(np.asarray(depth, dtype=np.float32), nan=0.0)
+        return cv2.resize(depth, (K.width, K.height), interpolation=cv2.INTER_NEAREST) if scale < 1 else depth
+
+    settings = cv2.OdometrySettings()
+    settings.setCameraMatrix(K.K.astype(np.float32))
+    odometry = cv2.Odometry(cv2.OdometryType_DEPTH, settings, cv2.OdometryAlgoType_COMMON)
+    src, dst = cv2.OdometryFrame(small(depth_a_m)), cv2.OdometryFrame(small(depth_b_m))
+    odometry.prepareFrames(src, dst)
+    try:
+        # A copy: compute() writes its answer into the start it is given.
+        ok, T = odometry.compute(src, dst, np.eye(4) if T_b_a_start is None else np.array(T_b_a_start, dtype=float))
+    except cv2.error:
+        return None
+    T = np.asarray(T, dtype=float)
+    # compute() gives the source's pose in the destination's frame: a's points into b.
+    return T if ok and np.all(np.isfinite(T)) else None
+
+
+def depth_chain(depths: list[np.ndarray], K_depth: Intrinsics, width: int = 320,
+                agree: tuple[float, float] = (0.02, 2.0)) -> np.ndarray | None:
+    """``T_last_first`` (4, 4): the depth camera's motion over consecutive depth images
+    ``depths`` (metres), by depth-only ICP step by step, then refined directly between the
+    first and the last from that start; None when a step fails or the refinement moves
+    further than ``agree`` (metres, degrees) from the chain (ICP slid along a surface)."""
+    from ..conventions import pose_error
+
+    chained = np.eye(4)
+    for a, b in zip(depths[:-1], depths[1:]):
+        step = depth_icp_step(a, b, K_depth, width)
+        if step is None:
+            return None
+        chained = step @ chained
+    refined = depth_icp_step(depths[0], depths[-1], K_depth, width, T_b_a_start=chained)
+    if refined is None:
+        return None
+    moved_m, turned_deg = pose_error(refined, chained)
+    return refined if moved_m <= agree[0] and turned_deg <= agree[1] else None

@@ -53,7 +53,7 @@ DEPTH_PER_METRE = 1000.0
 DEPTH_MISSING = 65535
 
 _FRAME = re.compile(r"^frame-(\d+)\.pose\.txt$")
-_REGISTRATION_VERSION = 2  # 2: poses projected onto rigid transforms before the estimate
+_REGISTRATION_VERSION = 3  # 2: poses projected onto rigid transforms; 3: posed by the depth images
 
 
 def is_sevenscenes_folder(path) -> bool:
@@ -112,8 +112,10 @@ class SevenScenesSequence(GroundTruthLookup):
 
     path: a sequence folder, or a scene folder with one sequence folder ``seq-01/`` (or name it with
     ``sequence``). depth_intrinsics: the depth camera (default: ``camera-intrinsics.txt``,
-    else nominal). registration: ``"auto"`` (estimate the colour camera from the data,
-    cached in ``cache_dir``), ``"none"`` (treat the depth camera as the colour camera: the
+    else nominal). registration: ``"auto"`` (estimate the colour camera from the images
+    alone, each frame pair's motion by depth-only ICP: no pose file is read, so a map of the
+    recording reads no ground truth; cached in ``cache_dir``), ``"poses"`` (the same with each
+    pair's motion from the recording's pose files), ``"none"`` (treat the depth camera as the colour camera: the
     images as stored), a :class:`DepthColourRegistration` or its dict. frames:
     ``START:STOP`` (see :func:`parse_frame_range`); the registration is always estimated
     on the whole recording, so every part of it is read the same way.
@@ -221,16 +223,17 @@ class SevenScenesSequence(GroundTruthLookup):
                 raise DatasetError(f"{self.path}: invalid registration ({exc})") from None
         if registration == "none":
             return DepthColourRegistration(self.depth_intrinsics)
-        if registration != "auto":
-            raise DatasetError(f"{self.path}: registration must be 'auto', 'none', a DepthColourRegistration or "
-                               f"its dict, got {registration!r}")
-        cache = self._registration_cache()
+        if registration not in ("auto", "poses"):
+            raise DatasetError(f"{self.path}: registration must be 'auto', 'poses', 'none', a DepthColourRegistration "
+                               f"or its dict, got {registration!r}")
+        poses = "images" if registration == "auto" else "recording"
+        cache = self._registration_cache(poses)
         if cache is not None and cache.is_file():
             try:
                 return DepthColourRegistration.from_dict(json.loads(cache.read_text()))
             except (OSError, KeyError, TypeError, ValueError):
                 log.warning("%s: unreadable cached registration; estimating it again", cache)
-        result = self.estimate_registration()
+        result = self.estimate_registration(poses=poses)
         if cache is not None:
             try:
                 cache.parent.mkdir(parents=True, exist_ok=True)
@@ -239,31 +242,55 @@ class SevenScenesSequence(GroundTruthLookup):
                 log.warning("cannot cache the registration in %s (%s)", cache, exc)
         return result
 
-    def _registration_cache(self) -> Path | None:
+    def _registration_cache(self, poses: str) -> Path | None:
         if self.cache_dir is False:
             return None
         from nap3d_graph.cache import default_cache_dir
 
         base = Path(self.cache_dir) if self.cache_dir else default_cache_dir()
-        return base / "registration" / f"7scenes_{self.recording_id}_v{_REGISTRATION_VERSION}.json"
+        return base / "registration" / f"7scenes_{self.recording_id}_{poses}_v{_REGISTRATION_VERSION}.json"
 
-    def estimate_registration(self, pairs: int = 24) -> DepthColourRegistration:
+    def estimate_registration(self, pairs: int = 24, poses: str = "images") -> DepthColourRegistration:
         """The colour camera estimated from ``pairs`` frame pairs 0.3-0.8 s apart spread over
-        the whole recording (see :func:`estimate_registration`); logs what it found."""
+        the whole recording (see :func:`estimate_registration`); logs what it found. ``poses``:
+        how each pair's relative motion is known: ``"images"`` (default) from the depth images
+        alone (:func:`~nap3d_graph.datasets.registration.depth_chain`: no pose file is read, so
+        a map of the recording reads no ground truth), ``"recording"`` from its pose files."""
         from .depth_timing import frame_pairs
 
+        if poses not in ("images", "recording"):
+            raise DatasetError(f"{self.path}: registration poses must be 'images' or 'recording', got {poses!r}")
         stamps = self._all_numbers / SEVENSCENES_FPS
         chosen = frame_pairs(stamps, pairs, (0.3, 0.8))
+        T_a, T_b = self._pair_poses(chosen) if poses == "images" else (
+            self._T_world_depth_all[[i for i, _ in chosen]], self._T_world_depth_all[[j for _, j in chosen]])
         needed = sorted({i for pair in chosen for i in pair})
         raw = {i: self._read_raw(int(self._all_numbers[i])) for i in needed}
         nominal = DepthColourRegistration(NOMINAL_COLOUR_CAMERA.scaled(self.depth_intrinsics.width,
                                                                        self.depth_intrinsics.height))
-        result = estimate_registration([raw[i] for i, _ in chosen], [raw[j] for _, j in chosen],
-                                       self._T_world_depth_all[[i for i, _ in chosen]],
-                                       self._T_world_depth_all[[j for _, j in chosen]], self.depth_intrinsics, nominal)
-        log.warning("%s: depth is not registered to colour; estimated from %d matched keypoints: %s",
-                    self.name, result.matches, result.describe())
+        result = estimate_registration([raw[i] for i, _ in chosen], [raw[j] for _, j in chosen], T_a, T_b,
+                                       self.depth_intrinsics, nominal)
+        log.warning("%s: depth is not registered to colour; estimated from %d matched keypoints (poses: %s): %s",
+                    self.name, result.matches, poses, result.describe())
         return result
+
+    def _pair_poses(self, chosen: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+        """(P, 4, 4) twice: each pair's first depth camera at the identity and its second where
+        depth-only ICP over the frames between puts it (NaN where ICP failed: the pair is
+        skipped)."""
+        from .registration import depth_chain
+
+        T_a = np.repeat(np.eye(4)[None], len(chosen), axis=0)
+        T_b = np.full((len(chosen), 4, 4), np.nan)
+        for p, (i, j) in enumerate(chosen):
+            depths = [self._read_raw_depth(int(k)).astype(np.float32) for k in self._all_numbers[i:j + 1]]
+            depths = [np.where(d == DEPTH_MISSING, 0, d) / np.float32(self.depth_units_per_m) for d in depths]
+            T_b_a = depth_chain(depths, self.depth_intrinsics)
+            if T_b_a is not None:
+                T_b[p] = np.linalg.inv(T_b_a)
+        log.info("%s: %d of %d registration pairs posed by depth-only ICP", self.name,
+                 int(np.isfinite(T_b[:, 0, 0]).sum()), len(chosen))
+        return T_a, T_b
 
     # --- frames ---
 
