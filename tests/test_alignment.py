@@ -213,6 +213,7 @@ NEES_CASES = {
 
 
 @pytest.mark.parametrize("case", list(NEES_CASES))
+@pytest.mark.slow
 def test_covariance_is_honest_nees(room, case):
     """NEES of the corrected pose over 100 trials in the hold-out room (never used to
     calibrate the covariance), for the 6-dof pose and each 3-dof block (rotation,

@@ -183,6 +183,7 @@ def test_a_full_disk_mid_run_is_one_line_and_keeps_what_was_written(walk, tmp_pa
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.slow
 def test_an_interrupted_run_leaves_its_config_corrections_and_partial_trajectories(walk, tmp_path, sig):
     out = tmp_path / "out"
     env = dict(os.environ, MPLBACKEND="Agg", PYTHONUNBUFFERED="1")
@@ -212,6 +213,7 @@ def test_an_interrupted_run_leaves_its_config_corrections_and_partial_trajectori
     assert len(corrections.read_text().splitlines()) - 1 >= 3
 
 
+@pytest.mark.slow
 def test_simulate_stops_at_once_on_sigint(tmp_path):
     """Its worker pool shuts down with it: no hang after 'interrupted'."""
     env = dict(os.environ, MPLBACKEND="Agg")

@@ -41,6 +41,7 @@ def test_the_right_unit_and_the_two_tum_mistakes_are_told_apart(walk, tmp_path):
     assert fifths.scale == 0.2 and "x0.2 = 1000/5000" in fifths.message()
 
 
+@pytest.mark.slow
 def test_train_field_stops_before_training_and_trains_when_told(walk, tmp_path, capsys):
     from nap3d_graph.cli import main
 

@@ -219,6 +219,7 @@ def test_navstate_ekf_refuses_the_odometry_path_and_a_lever_arm():
 
 # --- the command ----------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_compare_command_writes_what_evo_loads_and_prints_the_same_numbers(walk, tmp_path, capsys):
     import csv
     import json
@@ -262,6 +263,7 @@ def test_batch_lm_takes_every_correction_and_odometry_none():
     assert run_estimator(OdometryOnly(), stream).accepted == []
 
 
+@pytest.mark.slow
 def test_run_command_with_the_imu_writes_the_biases(walk, tmp_path, capsys):
     import json
 
@@ -285,6 +287,7 @@ def test_run_command_with_the_imu_writes_the_biases(walk, tmp_path, capsys):
     assert "--overlap does not apply to --odom imu" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     """``run --overlap --render-ahead``: the keyframes are measured on the second thread, each
     due keyframe's features detected beside its odometry, the next one rendered ahead; the
@@ -326,6 +329,7 @@ def test_an_overlapped_run_from_the_command_line(walk, tmp_path, capsys):
     assert all(float(r["t_detect_ahead_s"]) > 0 for r in rows[1:]), [r["t_detect_ahead_s"] for r in rows]
 
 
+@pytest.mark.slow
 def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path, capsys):
     """``run --pace`` without ``--overlap``: fed as a camera delivers the frames, the run
     overlaps, waits up to 0.9 of a frame period for a correction and takes a keyframe whenever
@@ -356,6 +360,7 @@ def test_a_paced_run_takes_the_live_settings_by_default(walk, tmp_path, capsys):
         assert settings[name]["land_within_s"] == 0.0
 
 
+@pytest.mark.slow
 def test_a_paced_feature_odometry_works_at_the_renders_width(walk, tmp_path, capsys):
     """``run --pace --odom vo``: fed as a live camera, the feature odometry works at the
     render's width and hands its features to the corrections, said on the terminal and kept in
@@ -375,6 +380,7 @@ def test_a_paced_feature_odometry_works_at_the_renders_width(walk, tmp_path, cap
     assert widths == {"paced": 128, "replay": None, "given": 96}
 
 
+@pytest.mark.slow
 def test_a_paced_run_that_falls_behind_its_camera_says_what_keeps_up(walk, tmp_path, capsys):
     """Fed far faster than it measures (500x the walk's camera), an inline run falls behind:
     the run warns, with a keyframe's measurement time, and names what keeps up."""

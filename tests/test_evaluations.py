@@ -39,6 +39,7 @@ def test_rmse_3d_is_zero_for_the_true_pose_and_grows_with_error():
     assert rmse_3d(depth * 2, K, rot, T) > rmse_3d(depth, K, rot, T)
 
 
+@pytest.mark.slow
 def test_eval_k_writes_files_and_reproduces(sim_room, tmp_path):
     seq, field = sim_room
     config = EvalKConfig(scenarios=2, seed=4)

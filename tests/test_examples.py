@@ -3,6 +3,8 @@
 import runpy
 from pathlib import Path
 
+import pytest
+
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
@@ -24,6 +26,7 @@ def test_own_estimator_runs_next_to_the_library_ones(capsys):
     assert "complementary" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_your_frames_in_your_isam2(capsys):
     """Real fr1/xyz frames read with OpenCV, a splat map of the even frames, the odd ones in a
     plain iSAM2 loop with gated NAP3D priors: the drifting odometry is pulled back."""

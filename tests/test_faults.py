@@ -38,6 +38,7 @@ def clean(walk):
     return Pipeline(walk, walk.oracle_field(), make_odometry("recorded", walk), CONFIG).run()
 
 
+@pytest.mark.slow
 def test_wrong_corrections_do_not_move_the_trajectory(walk, clean):
     rng = np.random.default_rng(21)
     keyframes = clean.keyframe_indices[1:]

@@ -42,6 +42,7 @@ def room(tmp_path_factory):
     return field, report, SimSequence(walk), base
 
 
+@pytest.mark.slow
 def test_measured_field_error_brings_an_unseen_walks_nees_to_about_twice_the_chi_square(room):
     field, report, walk, base = room
     error = report["field_error"]

@@ -97,6 +97,7 @@ def test_every_ground_truth_accessor_of_every_reader_is_watched():
     assert found <= set(GROUND_TRUTH_ACCESSORS), sorted(found - set(GROUND_TRUTH_ACCESSORS))
 
 
+@pytest.mark.slow
 def test_a_run_on_a_map_reads_no_ground_truth_before_its_trajectories_are_written(xyz_map, tum_path, tmp_path,
                                                                                   monkeypatch, capsys):
     """Through the command line, every ground-truth accessor of the run's sequence watched: the
@@ -136,6 +137,7 @@ def test_map_resumes_and_refuses_other_settings(xyz_map, tum_path):
         build_map(open_sequence(tum_path), result.folder, MapSettings(matcher="sift", keyframe_every=3), progress=False)
 
 
+@pytest.mark.slow
 def test_relocalisation_finds_frames_in_the_map(xyz_map):
     from nap3d_graph.mapping.relocalise import Relocaliser
     from nap3d_graph.nap3d.config import AlignConfig
@@ -242,6 +244,7 @@ def test_tracked_segment_keeps_the_longest_stretch():
     assert tracked_segment(ok, max_guesses=3) == (4, 20)
 
 
+@pytest.mark.slow
 def test_a_camera_without_ground_truth_maps_then_runs_in_its_map(tum_path, tmp_path, capsys):
     """A user's own camera: no groundtruth.txt anywhere. The odometry-only run needs no start
     pose; ``map`` builds the map; ``run --field MAP`` finds its start in it by itself."""
@@ -300,6 +303,7 @@ class _JumpingOdometry:
         return step
 
 
+@pytest.mark.slow
 def test_a_run_that_loses_track_recovers_by_relocalising_in_the_map(xyz_map):
     from nap3d_graph.fields import resolve_field
     from nap3d_graph.mapping import reframed
@@ -396,6 +400,7 @@ def test_a_run_starts_anywhere_and_moves_into_the_map_once_found(xyz_map):
     assert online.max() < 0.03  # from the placement on, the robot has its pose in the map
 
 
+@pytest.mark.slow
 def test_a_wrong_relocalisation_is_refuted_by_the_next_keyframe(xyz_map):
     """The first answer is 30 cm off (a similar place elsewhere, with enough inliers of its
     own): the next keyframe, rendered where that answer puts it, lands far from it, so it is

@@ -40,6 +40,7 @@ BOUNDS = {"sift": (0.003, 0.1, 100), "xfeat": (0.004, 0.1, 300), "xfeat-lighterg
 
 
 @pytest.mark.parametrize("matcher", MATCHERS)
+@pytest.mark.slow
 def test_each_matcher_recovers_a_perturbed_pose_deterministically(pairs, matcher):
     config = AlignConfig(matcher=matcher)
     errors, inliers = [], []
@@ -129,6 +130,7 @@ def test_auto_chooses_xfeat_on_a_cameras_recording_and_sift_on_the_simulators(tu
 
 
 @pytest.mark.parametrize("matcher", ["sift", "xfeat"])
+@pytest.mark.slow
 def test_an_images_features_serve_it_masked_and_the_odometry_detects_each_frame_once(tum_path, matcher, monkeypatch):
     """Masking after detection gives exactly what detecting with the mask gives (real TUM
     frames, the mask their valid depth), so the feature odometry detects each frame once and

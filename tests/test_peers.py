@@ -88,6 +88,7 @@ def grid_room(tmp_path_factory):
     return field, frames
 
 
+@pytest.mark.slow
 def test_photometric_peer_recovers_the_rotation_but_not_the_translation_through_the_grid_field(grid_room):
     field, frames = grid_room
     errors = []

@@ -77,6 +77,7 @@ def test_run_removes_drift(baseline):
     assert late < 0.015
 
 
+@pytest.mark.slow
 def test_capture_timing_is_compensated(kinect_walk, baseline):
     """With the depth taken 30 ms before the colour, the run is centimetres off unless it moves
     each keyframe's depth to the colour's instant; with the timing estimated from the data
@@ -318,6 +319,7 @@ def _idle_worker_before_each_frame(pipeline):
     return hook
 
 
+@pytest.mark.slow
 def test_an_overlapped_run_takes_a_keyframe_whenever_its_worker_is_idle(walk):
     """``keyframe_when_idle``: any frame at least N after the last keyframe is one while the
     worker has nothing in flight. Fed so that the worker is idle before each frame (a camera
@@ -421,6 +423,7 @@ def test_a_replay_reads_its_next_frames_on_another_thread_with_the_same_result(w
     assert ate(ahead) < 0.8 * ate_odometry(ahead)
 
 
+@pytest.mark.slow
 def test_an_overlapped_run_waiting_for_its_second_thread_reads_on_its_own(walk):
     """With a field slower than the odometry, an overlapped run's keyframes wait for the
     correction in flight: the run then reads each frame itself (a reader thread would compete
@@ -614,6 +617,7 @@ def test_a_run_stops_fitting_the_self_calibrated_camera_once_the_given_one_keeps
     assert all(k.intrinsics_model == "fixed" for k in both_always.keyframes)
 
 
+@pytest.mark.slow
 def test_a_run_whose_camera_is_wrong_keeps_fitting_both_models(walk):
     """Frames whose intrinsics are 10% and 10 px off (Evaluation K's HARSH cell): the
     self-calibrated model wins again and again, so the run never settles on the given

@@ -30,6 +30,7 @@ def _errors(truth, poses) -> tuple[float, float]:
     return float(np.median(np.linalg.norm(e[:, 3:], axis=1))), float(np.median(np.linalg.norm(e[:, :3], axis=1)))
 
 
+@pytest.mark.slow
 def test_refinement_recovers_part_of_injected_pose_errors(noisy_survey):
     truth, noisy = noisy_survey
     idx = np.arange(len(noisy))
@@ -47,6 +48,7 @@ def test_refinement_recovers_part_of_injected_pose_errors(noisy_survey):
     assert np.linalg.norm(shift) < 1e-3
 
 
+@pytest.mark.slow
 def test_a_field_built_with_refined_poses_records_them(noisy_survey):
     _, noisy = noisy_survey
     field, report = build_field(noisy, "splat", timing=None, refine_poses=1, refine_method="map", measure_error=False,

@@ -144,6 +144,7 @@ def test_registered_depth_lands_where_the_simulator_says(walk):
 
 # --- the run on a recording -----------------------------------------------------------------
 
+@pytest.mark.slow
 def test_run_on_a_recording_removes_drift_as_on_the_sequence_folder(walk, tmp_path, capsys):
     sim, noisy, _ = walk
     common = ("--field", sim, "--keyframe-every", 3)
@@ -167,6 +168,7 @@ def test_run_on_a_recording_removes_drift_as_on_the_sequence_folder(walk, tmp_pa
     np.testing.assert_allclose(stamps, SimSequence(sim).timestamps, atol=1e-6)
 
 
+@pytest.mark.slow
 def test_compare_on_a_recording_runs_every_estimator_with_its_imu(walk, tmp_path, capsys):
     sim, noisy, _ = walk
     rc, err = _cli(capsys, "compare", "--traj", "realsense", "--data", noisy, "--groundtruth", sim / "groundtruth.txt",
@@ -271,6 +273,7 @@ def test_intrinsics_match_the_simulator(walk):
     assert (K.width, K.height) == (192, 144) and K.fx == pytest.approx(SimSequence(sim).intrinsics.fx)
 
 
+@pytest.mark.slow
 def test_train_field_and_export_take_a_recording_with_poses(walk, tmp_path, capsys):
     from nap3d_graph.fields import load_field
 

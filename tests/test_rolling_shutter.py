@@ -72,6 +72,7 @@ def test_to_mid_readout_moves_each_point_along_the_twist():
         RowMotion(TWIST, -0.01)
 
 
+@pytest.mark.slow
 def test_rolling_shutter_frame_aligned_as_of_its_middle_row(room, shuttered):
     _, field = room
     plain, compensated = [], []
@@ -145,6 +146,7 @@ class _ShutteredRecording:
 
 
 @pytest.mark.parametrize("readout_s", [0.0, 0.033])
+@pytest.mark.slow
 def test_colour_timing_estimates_the_readout(room, readout_s):
     """The keypoints of frame pairs reproject best with each row placed at its own instant: the
     estimate finds a 33 ms readout within 6 ms (and the colour stamps' offset within 3 ms), and

@@ -135,6 +135,7 @@ def test_run_on_the_bag_gives_the_folders_trajectory(bags, sim_dir):
     assert ate["estimate"] < 0.5 * ate["odometry"], ate
 
 
+@pytest.mark.slow
 def test_cli_run_on_bags_matches_the_folder_and_writes_a_bag(bags, sim_dir, tmp_path):
     from rosbags.highlevel import AnyReader
 
@@ -266,6 +267,7 @@ def test_realsense_bags_are_left_to_the_realsense_reader(tmp_path):
     assert not is_rosbag(tmp_path / "missing.bag")
 
 
+@pytest.mark.slow
 def test_train_field_compare_and_study_read_bags(bags, tmp_path):
     """The other commands that take a recording open a bag by itself (its ground truth from tf)."""
     import json

@@ -36,6 +36,7 @@ def _same_run(first, again) -> None:
 
 
 @pytest.mark.parametrize("case", ["bag", "imu", "window"])
+@pytest.mark.slow
 def test_a_run_is_reproduced_bit_for_bit_from_its_config(case, walk, tmp_path):
     if case == "bag":
         bag = write_sequence_bag(SimSequence(walk), tmp_path / "walk.bag", ros=1)
@@ -67,6 +68,7 @@ def test_a_run_is_reproduced_bit_for_bit_from_its_config(case, walk, tmp_path):
     assert reproduced["resolved"] == written["resolved"]
 
 
+@pytest.mark.slow
 def test_flags_beside_config_win_even_at_their_default(walk, tmp_path):
     first = tmp_path / "first"
     _run("--traj", "sim", "--data", walk, "--field", "oracle", "--odom", "noisy", "--render-size", "160x120",

@@ -17,6 +17,7 @@ def recording(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_study_runs_and_its_table_is_its_files(recording, tmp_path, capsys):
     from nap3d_graph.cli import main
 
@@ -57,6 +58,7 @@ def test_study_refuses_a_bad_split(recording, tmp_path, capsys):
     assert "--split must be in" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cross_recording_study_corrects_one_recording_with_anothers_map(tmp_path, capsys):
     """The product's use case: a map made from one recording (a survey), a robot's other
     recording of the same room (a traversal, another day) corrected with it."""
@@ -89,6 +91,7 @@ def test_cross_recording_study_corrects_one_recording_with_anothers_map(tmp_path
     assert "--map and --query go together" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_study_is_reproduced_from_its_config(recording, tmp_path, capsys):
     """study --config CONFIG.yaml: the recording, frames and settings it wrote come back; flags
     given beside it win; the study's figures are identical."""

@@ -71,6 +71,7 @@ def test_spec_grid_and_checks(recordings):
         SweepSpec.load(_spec(root, "recordings: [{data: nowhere}]"))
 
 
+@pytest.mark.slow
 def test_sweep_table_agrees_with_the_cells_and_fields_are_shared(recordings, tmp_path):
     from nap3d_graph.cli import main
 
@@ -95,6 +96,7 @@ def test_sweep_table_agrees_with_the_cells_and_fields_are_shared(recordings, tmp
     assert (out / "plot_field_model.png").stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_failed_cells_are_retried_once_and_recorded(recordings, tmp_path):
     from nap3d_graph.cli import main
 
@@ -131,6 +133,7 @@ def test_one_sweep_per_folder(recordings, tmp_path):
     assert main(["sweep", str(other), "--out", str(out)]) == 2  # another sweep's folder
 
 
+@pytest.mark.slow
 def test_a_killed_sweep_resumes_with_only_the_unfinished_cells(recordings, tmp_path):
     from nap3d_graph.cli import main
 
@@ -160,6 +163,7 @@ def test_a_killed_sweep_resumes_with_only_the_unfinished_cells(recordings, tmp_p
     assert not (out / "sweep.lock").exists()
 
 
+@pytest.mark.slow
 def test_ray_sweep_gives_the_pools_table(recordings, tmp_path):
     """A local Ray instance with 2 CPUs runs the cells; the table is the process pool's."""
     from nap3d_graph.cli import main

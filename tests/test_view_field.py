@@ -30,6 +30,7 @@ def built(survey, tmp_path_factory):
     return load_field(out), json.loads(out.with_name("views.report.json").read_text()), out
 
 
+@pytest.mark.slow
 def test_held_out_renders_keep_the_rooms_texture_and_depth(built):
     field, report, _ = built
     assert isinstance(field, ViewField) and isinstance(field, RadianceField) and field.meta["model"] == "views"
@@ -246,6 +247,7 @@ def test_a_run_with_a_view_field_from_the_command_line(built, survey, tmp_path, 
     assert metrics["estimate"]["ate_m"]["rmse"] < 0.5 * metrics["odometry"]["ate_m"]["rmse"], metrics
 
 
+@pytest.mark.slow
 def test_a_splat_field_measures_its_error_growth_with_a_view_field_of_its_frames(built, survey, tmp_path):
     """train-field --error-growth: a splat (or grid) field adds to its own error near its
     training frames the growth a view field of the same frames measured, with the views'

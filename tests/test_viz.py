@@ -15,6 +15,7 @@ def sim_dir(tmp_path_factory):
     return simulate_sequence(tmp_path_factory.mktemp("sim") / "room", SimConfig(frames=16, width=160, height=120, seed=5))
 
 
+@pytest.mark.slow
 def test_run_writes_a_rerun_recording_with_every_keyframe(sim_dir, tmp_path):
     from nap3d_graph.cli import main
     from nap3d_graph.run.viz import keyframe_entries
