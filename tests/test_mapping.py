@@ -438,3 +438,36 @@ def test_a_run_never_found_in_the_map_says_so(xyz_map, sim_walk):
     assert run.num_accepted == 0
     np.testing.assert_allclose(run.T_world_cam_estimate[0], np.eye(4), atol=1e-6)
     assert "never placed" in pipeline.placement.describe()
+
+
+def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_map, tmp_path):
+    """The map's report without ground truth: nothing past its bad line on the real frames; a
+    map bent away from its own loops and a survey that closed no loop are told."""
+    import shutil
+
+    from nap3d_graph.conventions import exp_se3
+    from nap3d_graph.mapping.report import LOOP_RESIDUAL_BAD, loop_residuals, map_report
+
+    map_folder = xyz_map[1].folder
+
+    info = json.loads((map_folder / "map.json").read_text())
+    assert info["report"]["past_bad_line"] == [], (map_folder / "report.md").read_text()
+    assert "survey ATE against the ground truth" in (map_folder / "report.md").read_text()
+    residuals = loop_residuals(map_folder)
+    assert len(residuals) == info["loops"]["accepted"] and np.median(residuals[:, 0]) < 0.01
+    # A map bent away from its own loops (what a false loop forced into the graph does): the
+    # later keyframes moved 5 cm and turned 2 degrees.
+    bent = tmp_path / "bent"
+    shutil.copytree(map_folder, bent)
+    T = np.load(bent / "keyframe_poses.npy")
+    T[len(T) // 2:] = T[len(T) // 2:] @ exp_se3(np.array([0.0, 0.035, 0.0, 0.05, 0.0, 0.0]))
+    np.save(bent / "keyframe_poses.npy", T)
+    report = map_report(bent)
+    assert report.values["loop_residual"]["median_m"] > LOOP_RESIDUAL_BAD[0]
+    assert any(figure.startswith("loop residual") for figure in report.bad)
+    # A survey that closed no loop.
+    alone = tmp_path / "alone"
+    shutil.copytree(map_folder, alone)
+    info["loops"]["accepted"] = 0
+    (alone / "map.json").write_text(json.dumps(info))
+    assert any(figure.startswith("loops:") for figure in map_report(alone).bad)

@@ -104,6 +104,10 @@ def summary(info: dict, out: Path) -> str:
     stages = info.get("stages", {})
     if "field" in stages:
         lines.append(f"field: {out / 'field.pt'} ({stages['field']['model']}, {stages['field']['seconds']:.0f} s)")
+    bad = (info.get("report") or {}).get("past_bad_line")
+    if bad is not None:
+        lines.append(f"report: {out / 'report.md'} (" + ("look at: " + "; ".join(bad) if bad else
+                                                         "nothing past its bad line") + ")")
     total = sum(s.get("seconds", 0.0) for s in stages.values())
     lines.append(f"time: {total:.0f} s in all stages; use it with: nap3d-graph run --field {out} --data ... (the start "
                  "is found in the map: --initial-pose auto)")

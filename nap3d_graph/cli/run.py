@@ -95,6 +95,9 @@ def run(args) -> int:
         if hint:
             print(f"warning: {hint}", file=sys.stderr)
     print(f"results: {writer.dir}  (also {Path(args.out) / 'latest'})")
+    bad = metrics.get("report", {}).get("past_bad_line")
+    print(f"report: {writer.dir / 'report.md'} (" + ("look at: " + "; ".join(bad) if bad else
+                                                     "nothing past its bad line") + ")")
     if result.partial:
         print(f"interrupted after {len(result.timestamps)} of {len(prepared.sequence)} frames: the results are partial "
               "(metrics.json says so)", file=sys.stderr)

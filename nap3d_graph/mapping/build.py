@@ -243,6 +243,10 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     info["keyframes"] = int(len(keys))
     _write_json(info_path, info)
     _plot(out / "map.png", T_map_cam, T_map_key, verified, sequence, info.get("survey_ate"))
+    from .report import write_map_report
+
+    info["report"] = {"file": "report.md", "past_bad_line": write_map_report(out).bad}
+    _write_json(info_path, info)
     return MapResult(out, info)
 
 

@@ -212,6 +212,10 @@ class RunWriter:
                                              "turned_deg": round(gravity_angle_deg(result.gravity_world,
                                                                                    result.gravity_world_prior), 3)}
         metrics.update(extra or {})
+        from .report import write_run_report
+
+        report = write_run_report(run, result.keyframes, metrics)
+        metrics["report"] = {"file": "report.md", "past_bad_line": report.bad}
         (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
         plot_top_view(run / "trajectory_top_view.png", result)
         plot_error_over_time(run / "translation_error.png", result)
