@@ -15,10 +15,12 @@ The figures and the lines past which they say something went wrong:
   wrong depth unit, a bent map).
 - **field on held-out survey frames**: the field rendered at survey frames it was not
   trained on, against those frames: PSNR (after a per-frame affine colour fit), median depth
-  error and the share of the frame it covers. Below 12 dB it does not look like the place
-  (the line is set from fr1/desk's splat maps, 14-17 dB: a crude field of a real room; a
-  blurred field or another room's falls below); a median depth error beyond 3 cm or less
-  than 70% covered, NAP3D has too little of the field to align with.
+  error and the share of the frame it covers, and NAP3D of those frames against the field
+  (how many fail, how far from the map's pose they land). Below 12 dB it does not look like
+  the place (the line is set from fr1/desk's splat maps, 14-17 dB: a crude field of a real
+  room); a median depth error beyond 3 cm or less than 70% covered, NAP3D has too little of
+  the field to align with; more than half failing or a median beyond 3 cm, the field cannot
+  correct a run.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = ["MapReport", "map_report", "write_map_report", "LOOP_RESIDUAL_BAD", "REPROJECTION_BAD_PX",
-           "HELD_OUT_PSNR_BAD_DB", "HELD_OUT_DEPTH_BAD_M", "COVERED_BAD"]
+           "HELD_OUT_PSNR_BAD_DB", "HELD_OUT_DEPTH_BAD_M", "COVERED_BAD", "HELD_OUT_NAP3D_BAD_M"]
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +46,9 @@ HELD_OUT_PSNR_BAD_DB = 12.0
 HELD_OUT_DEPTH_BAD_M = 0.03
 #: Held-out share of the frame the field covers below this.
 COVERED_BAD = 0.7
+#: NAP3D of held-out survey frames against the field landing further than this from the map's
+#: pose (median; metres), or more than half of them failing: the field cannot correct a run.
+HELD_OUT_NAP3D_BAD_M = 0.03
 
 
 class MapReport:
@@ -139,6 +144,17 @@ def _field(report: MapReport, folder: Path) -> None:
                f"<= {HELD_OUT_DEPTH_BAD_M * 100:.0f} cm", depth <= HELD_OUT_DEPTH_BAD_M)
     report.add("field on held-out survey frames: share of the frame covered", f"{covered:.0%}",
                f">= {COVERED_BAD:.0%}", covered >= COVERED_BAD)
+    measured = json.loads(path.read_text()).get("field_error") or {}
+    if measured.get("frames"):
+        failed = int(measured.get("failed", 0))
+        tried = int(measured["frames"]) + failed
+        moved = float(measured.get("translation_error_m_median", float("nan")))
+        report.values["held_out_nap3d"] = {"frames": tried, "failed": failed, "median_m": moved}
+        report.add("NAP3D on held-out survey frames against the field (failed; median distance from the map's pose)",
+                   f"{failed} of {tried} failed; " + (f"{moved * 100:.2f} cm" if np.isfinite(moved) else
+                                                      "too few to measure"),
+                   f"most align, within {HELD_OUT_NAP3D_BAD_M * 100:.0f} cm",
+                   False if failed > tried / 2 else None if not np.isfinite(moved) else moved <= HELD_OUT_NAP3D_BAD_M)
 
 
 def map_report(folder) -> MapReport:

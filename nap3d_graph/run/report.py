@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from factors.gate import chi2_threshold
+from nap3d_graph.factors.gate import chi2_threshold
 
 from .output import refusal_kind
 

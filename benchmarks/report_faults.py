@@ -1,0 +1,226 @@
+"""Do the reports tell a failure without ground truth? Faults injected into a real map and
+real runs, each against the figure meant to reveal it.
+
+On fr1/desk at 15 Hz (shared data): the first half is the survey (its map, built here unless
+``--map`` gives one), the second half the query. Cases:
+
+- clean: the map's report, and the second half run in the map: nothing past a bad line;
+- blurred field: the map's splats' colours averaged over 12 cm cubes (a blurred field), its
+  held-out PSNR and the run's corrections;
+- false loop forced in: the pose graph solved again with one wrong loop (two keyframes far
+  apart said to be 10 cm from where they are) as a non-robust edge; the kept loops' residuals
+  at the bent poses;
+- depth in the wrong unit: the query read at 1000 units per metre (x5 too far): the warning
+  before any work, and the run's corrections;
+- map of another room: 7-Scenes' kitchen run in the desk's map: never placed.
+
+The ground truth only scores afterwards (the ATE column), never the verdicts.
+
+    python benchmarks/report_faults.py --desk ../shared/data/tum/rgbd_dataset_freiburg1_desk \\
+        --kitchen ../shared/data/7scenes/redkitchen --work /tmp/faults \\
+        --out benchmarks/results/report_faults_fr1_desk.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from provenance import write_result
+
+
+def cli(*args: str) -> tuple[int, str]:
+    """Run ``nap3d-graph ARGS`` in a fresh process; (exit code, stderr)."""
+    done = subprocess.run([sys.executable, "-m", "nap3d_graph", *args], capture_output=True, text=True)
+    if done.returncode not in (0, 2):
+        print(done.stderr[-2000:], file=sys.stderr)
+    return done.returncode, done.stderr
+
+
+def run_case(data: Path, frames: str, map_dir: Path, out: Path, extra=()) -> dict:
+    """The query run in ``map_dir``; its report's verdicts and figures."""
+    if out.exists():
+        shutil.rmtree(out)
+    t0 = time.perf_counter()
+    rc, err = cli("run", "--data", str(data), "--frames", frames, "--field", str(map_dir), "--out", str(out), *extra)
+    entry: dict = {"exit": rc, "seconds": round(time.perf_counter() - t0, 1),
+                   "warnings": [line for line in err.splitlines() if line.startswith("warning: ")][:5]}
+    metrics_path = out / "latest" / "metrics.json"
+    if rc != 0 or not metrics_path.is_file():
+        entry["error"] = err.strip().splitlines()[-1] if err.strip() else "no output"
+        return entry
+    metrics = json.loads(metrics_path.read_text())
+    from nap3d_graph.run.report import run_report
+
+    keyframes = _records(out / "latest" / "corrections.csv")
+    report = run_report(keyframes, metrics)
+    entry.update({"past_bad_line": report.bad, "rows": [list(r) for r in report.rows],
+                  "ate_m": (metrics.get("estimate") or {}).get("ate_m", {}).get("rmse"),
+                  "ate_se3_aligned_m": (metrics.get("estimate") or {}).get("ate_se3_aligned_m")})
+    return entry
+
+
+def _records(path: Path) -> list:
+    """corrections.csv's rows as keyframe records (what the report reads)."""
+    import csv
+
+    from nap3d_graph.run.records import KeyframeRecord
+
+    out = []
+    with path.open(newline="") as f:
+        for row in csv.DictReader(f):
+            out.append(KeyframeRecord(int(row["run_index"]), float(row["timestamp"]), 0, accepted=row["accepted"] == "1",
+                                      reason=row["reason"], gate_d2=float(row["gate_d2"] or "nan"),
+                                      correction_m=float(row["correction_m"] or "nan")))
+    return out
+
+
+def blurred_map(map_dir: Path, out: Path, cell_m: float) -> Path:
+    """A copy of ``map_dir`` whose splat field is blurred: each splat takes the mean colour of
+    the splats in its ``cell_m`` cube (a box blur of the field's texture; depth untouched)."""
+    import torch
+
+    from nap3d_graph.fields import load_field
+
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(map_dir, out)
+    field = load_field(out / "field.pt")
+    points, colours = field.points.numpy(), field.colors.numpy()
+    _, cell = np.unique(np.floor(points / cell_m).astype(np.int64), axis=0, return_inverse=True)
+    cell = cell.ravel()
+    counts = np.bincount(cell)
+    means = np.stack([np.bincount(cell, weights=colours[:, c]) / counts for c in range(colours.shape[1])], axis=1)
+    field.colors = torch.as_tensor(means[cell].astype(np.float32))
+    field.save(out / "field.pt")
+    return out
+
+
+def _held_out(map_dir: Path, sequence) -> dict:
+    """The field's figures on the survey frames it did not train on, measured again."""
+    from nap3d_graph.fields import load_field
+    from nap3d_graph.fields.evaluation import evaluate_field
+    from nap3d_graph.mapping.posed import PosedSequence
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    report = json.loads((map_dir / "field.report.json").read_text())
+    frames = report["held_out"]["frames"]
+    stamps, T = read_tum_trajectory(map_dir / "poses.txt")
+    posed = PosedSequence(sequence, _by_stamp(sequence, stamps, T), "map")
+    field = load_field(map_dir / "field.pt")
+    size = tuple(report["held_out"]["render_size"])
+    report["held_out"] = evaluate_field(field, posed, frames, None, size=size)
+    # NAP3D of the held-out frames against the field, as map measures it.
+    from nap3d_graph.datasets.depth_timing import CaptureTiming
+    from nap3d_graph.fields.build import ERROR_FRAMES
+    from nap3d_graph.fields.field_error import measure_field_error
+    from nap3d_graph.fields.training_data import split_posed_frames
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    _, error_idx = split_posed_frames(posed, 1, ERROR_FRAMES)
+    report["field_error"] = measure_field_error(field, posed, error_idx, CaptureTiming.of(field.meta.get("timing")),
+                                                AlignConfig(matcher=report["field_error"].get("matcher", "xfeat")),
+                                                size)
+    (map_dir / "field.report.json").write_text(json.dumps(report, indent=1, default=float))
+    return report
+
+
+def _by_stamp(sequence, stamps: np.ndarray, T: np.ndarray) -> np.ndarray:
+    out = np.full((len(sequence), 4, 4), np.nan)
+    index = {round(float(s), 6): k for k, s in enumerate(stamps)}
+    for i, s in enumerate(sequence.timestamps):
+        k = index.get(round(float(s), 6))
+        if k is not None:
+            out[i] = T[k]
+    return out
+
+
+def false_loop_map(map_dir: Path, out: Path, error_m: float) -> Path:
+    """A copy of ``map_dir`` whose keyframe poses were solved again by the pose graph with the
+    loops it had kept and, when ``error_m`` > 0, one false loop (the first and the middle
+    keyframe said to be ``error_m`` from where the map has them) forced in as a non-robust
+    edge (``error_m`` 0: the same solve without it, the reference)."""
+    from nap3d_graph.conventions import exp_se3, inv_T
+    from nap3d_graph.mapping.build import _load_edges
+    from nap3d_graph.mapping.pose_graph import Edge, solve
+
+    if out.exists():
+        shutil.rmtree(out)
+    shutil.copytree(map_dir, out)
+    chain, loops, _ = _load_edges(out / "edges.npz")
+    T_key = np.load(out / "keyframe_poses.npy")
+    import csv
+
+    with (out / "loops.csv").open(newline="") as f:
+        kept = [row["status"] == "accepted" for row in csv.DictReader(f)]
+    a, b = 0, len(T_key) // 2
+    T_ab = inv_T(T_key[a]) @ T_key[b] @ exp_se3(np.array([0, 0, 0, error_m, 0, 0]))
+    forced = [Edge(a, b, T_ab, np.diag([1e-6] * 3 + [1e-6] * 3), "alignment")] if error_m > 0 else []
+    loop_edges = [Edge(lp.a, lp.b, lp.T_a_b, lp.covariance, "loop") for lp, k in zip(loops, kept) if k]
+    graph = solve(T_key, [*chain, *forced], loop_edges, 0.999)
+    np.save(out / "keyframe_poses.npy", graph.T_map_key)
+    return out
+
+
+def main() -> None:
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.datasets.depth_unit import inspect_depth_unit
+    from nap3d_graph.mapping.report import map_report
+
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--desk", type=Path, required=True, help="TUM fr1/desk (15 Hz, shared data)")
+    parser.add_argument("--kitchen", type=Path, required=True, help="7-Scenes redkitchen (another room)")
+    parser.add_argument("--map", type=Path, default=None, help="a map of the desk's first half (default: built in --work)")
+    parser.add_argument("--blur-m", type=float, default=0.12,
+                        help="the blurred field's cube: each splat takes its cube's mean colour (default 0.12 m)")
+    parser.add_argument("--work", type=Path, required=True)
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    map_dir = args.map or args.work / "map"
+    if args.map is None and not (map_dir / "field.pt").is_file():
+        rc, err = cli("map", str(args.desk), "--frames", "0:0.5", "--model", "splat", "--out", str(map_dir), "--quiet")
+        assert rc == 0, err
+    survey = open_sequence(args.desk, frames="0:0.5")
+    result: dict = {"desk": str(args.desk), "kitchen": str(args.kitchen), "map": {}, "runs": {}}
+
+    def map_case(name: str, folder: Path) -> None:
+        report = map_report(folder)
+        result["map"][name] = {"past_bad_line": report.bad, "rows": [list(r) for r in report.rows],
+                               "values": report.values}
+        print(f"map {name}: past the bad line: {report.bad or 'nothing'}")
+
+    result["blur_m"] = args.blur_m
+    map_case("clean", map_dir)
+    blurred = blurred_map(map_dir, args.work / "map_blurred", args.blur_m)
+    _held_out(blurred, survey)
+    map_case("blurred field", blurred)
+    map_case("graph solved again (reference for the false loop)", false_loop_map(map_dir, args.work / "map_resolved", 0.0))
+    map_case("false loop forced in", false_loop_map(map_dir, args.work / "map_false_loop", 0.10))
+
+    look = inspect_depth_unit(open_sequence(args.desk, frames="0.5:1", depth_scale=1000))
+    result["depth_unit_warning_before_work"] = list(look.warnings)
+    print(f"query read at 1000 per metre: {look.warnings}")
+
+    cases = {"clean": (args.desk, "0.5:1", map_dir, ()),
+             "blurred field": (args.desk, "0.5:1", blurred, ()),
+             "depth in the wrong unit": (args.desk, "0.5:1", map_dir, ("--depth-scale", "1000")),
+             "map of another room": (args.kitchen, "0:150", map_dir, ())}
+    for name, (data, frames, folder, extra) in cases.items():
+        entry = run_case(data, frames, folder, args.work / f"run_{name.replace(' ', '_')}", extra)
+        result["runs"][name] = entry
+        print(f"run {name}: past the bad line: {entry.get('past_bad_line', entry.get('error'))}; ATE "
+              f"{entry.get('ate_m')}")
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_result(args.out, result, args)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
