@@ -37,7 +37,7 @@ def test_every_command_of_the_walkthrough_runs_as_written(recordings, monkeypatc
 
     monkeypatch.chdir(recordings)
     commands = _commands()
-    assert [c.split()[:2] for c in commands] == [["nap3d-graph", "run"], ["nap3d-graph", "map"],
+    assert [c.split()[:2] for c in commands] == [["nap3d-graph", "run"], ["nap3d-graph", "map"], ["nap3d-graph", "run"],
                                                   ["nap3d-graph", "run"], ["cat", "my_map/report.md"]]
     for command in commands:
         words = [w.replace("survey.bag", "survey.db3").replace("walk.bag", "walk.db3") for w in shlex.split(command)]
@@ -55,3 +55,5 @@ def test_every_command_of_the_walkthrough_runs_as_written(recordings, monkeypatc
             assert rc == 0 and "report: my_map/report.md (nothing past its bad line)" in out, out
         else:
             assert rc == 0 and "placed in the map at frame" in out and "(nothing past its bad line)" in out, out
+            if "--pace" in words:  # fed at the camera's rate: overlapped, as live
+                assert "paced at 1x the camera's rate (overlapped" in out, out
