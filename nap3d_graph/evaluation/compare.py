@@ -18,9 +18,9 @@ import logging
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
 
 from nap3d_graph.conventions import inv_T, log_se3
+from nap3d_graph.factors.gate import chi2_threshold
 from nap3d_graph.provenance import provenance
 from nap3d_graph.trajectory import Trajectory
 
@@ -81,7 +81,7 @@ def _row(name: str, T: np.ndarray, P, stream, result, which: str) -> dict:
     nees = nees_at_keyframes(T, P, T_world_cam_gt, stream.keyframes) if P is not None else np.array([])
     k = len(nees)
     # Band of the mean of k chi-square(6) values, were they independent (95%).
-    band = (chi2.ppf(0.025, 6 * k) / k, chi2.ppf(0.975, 6 * k) / k) if k else (np.nan, np.nan)
+    band = (chi2_threshold(0.025, 6 * k) / k, chi2_threshold(0.975, 6 * k) / k) if k else (np.nan, np.nan)
     steps = np.asarray(result.step_seconds[1:]) * 1000.0
     online = which == "causal" and len(steps)
     return {"estimator": name, "ate_rmse_m": a["rmse"], "ate_mean_m": a["mean"], "ate_max_m": a["max"],

@@ -330,11 +330,11 @@ def _chain(keyframes: list[Keyframe], survey: SurveyOdometry, settings: MapSetti
     """Consecutive keyframes tied by their own alignment where it verified and agrees with the
     odometry's chained steps (chi-square gate), else by the chain; and the inlier matches of
     the aligned ones."""
-    from scipy.stats import chi2
+    from nap3d_graph.factors.gate import chi2_threshold
 
     config = _align_config(settings)
     edges, kinds, matches = [], [], []
-    threshold = chi2.ppf(settings.gate_p, 6)
+    threshold = chi2_threshold(settings.gate_p, 6)
     for a in range(len(keyframes) - 1):
         i, j = keyframes[a].index, keyframes[a + 1].index
         T_odom, cov_odom = survey.between(i, j)

@@ -16,9 +16,9 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2
 
 from nap3d_graph.conventions import T_to_pose3, inv_T, log_se3, pose3_to_T
+from nap3d_graph.factors.gate import chi2_threshold
 
 __all__ = ["Edge", "GraphResult", "solve", "floor_covariance", "mahalanobis_sq"]
 
@@ -114,7 +114,7 @@ def solve(T_init: np.ndarray, chain: list[Edge], loops: list[Edge], gate_p: floa
         weights = np.zeros(0)
     kept = weights > 0.5
     # Once more with the kept loops alone, as Gaussians, and each one gated at the solution.
-    threshold = chi2.ppf(gate_p, 6)
+    threshold = chi2_threshold(gate_p, 6)
     for _ in range(len(loops) + 1):
         graph = _graph(num_keys, chain + [e for e, k in zip(loops, kept) if k])
         values = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
