@@ -162,9 +162,13 @@ def report_faults_table() -> str:
             rows.append(f"| {name} | run | refused: {run.get('error', '')} | | | | | |")
             continue
         d2 = _row_value(run["rows"], "gate consistency").split(" over ")[0]
+        placed = _row_value(run["rows"], "placed in the map")
+        # Never placed, the run's poses are in its own frame: only an SE(3)-aligned ATE means anything.
+        ate = (f"{_cm(run.get('ate_se3_aligned_m'))} (SE(3)-aligned: never placed)" if placed == "never"
+               else _cm(run.get("ate_m")))
         rows.append(f"| {name} | run | {'; '.join(run['past_bad_line']) or 'nothing'} | | | "
                     f"{_row_value(run['rows'], 'corrections accepted')}; {_row_value(run['rows'], 'map coverage')}; "
-                    f"{d2} | {_row_value(run['rows'], 'placed in the map')} | {_cm(run.get('ate_m'))} |")
+                    f"{d2} | {placed} | {ate} |")
     warned = r.get("depth_unit_warning_before_work") or []
     rows.append("")
     rows.append("Before any work, the query read at 1000 units per metre: " +
