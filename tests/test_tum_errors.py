@@ -290,3 +290,32 @@ def test_the_command_line_names_stamps_file_order_and_reads_the_folder_with_it(t
     stamps, _ = read_tum_trajectory(run / "estimate.txt")
     # The intervals' running sum: 33-34 ms apart, as the camera took them.
     assert len(stamps) == 6 and np.all((np.diff(stamps) > 0.0325) & (np.diff(stamps) < 0.0345)), stamps
+
+
+def test_mixed_sizes_unregistered_depth_and_a_wrong_camera_are_refused_before_any_frame(tmp_path, capsys):
+    """Real frames: one colour image of another size, depth of another size than colour, and
+    images of another size than the camera each stop the command in one line (exit 2), before
+    any frame is read."""
+    from nap3d_graph.cli import main
+
+    def shrink(path: Path) -> None:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(path), cv2.resize(image, (320, 240), interpolation=cv2.INTER_NEAREST))
+
+    mixed = small_copy(tmp_path / "mixed")
+    shrink(sorted((mixed / "rgb").glob("*.png"))[2])
+    with pytest.raises(DatasetError, match=r"the colour images are of 2 sizes .* mix recordings"):
+        TumSequence(mixed)
+    unregistered = small_copy(tmp_path / "unregistered")
+    for png in (unregistered / "depth").glob("*.png"):
+        shrink(png)
+    with pytest.raises(DatasetError, match=r"depth is 320x240, colour 640x480: the depth is not registered to colour"):
+        TumSequence(unregistered)
+    small = small_copy(tmp_path / "small")
+    for png in [*(small / "depth").glob("*.png"), *(small / "rgb").glob("*.png")]:
+        shrink(png)
+    with pytest.raises(DatasetError, match=r"images are 320x240 but the camera \(freiburg1\) is 640x480"):
+        TumSequence(small)
+    assert main(["map", str(mixed), "--out", str(tmp_path / "map")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "mix recordings" in err and "\n" not in err and not (tmp_path / "map").exists()

@@ -203,6 +203,19 @@ def depth_scale_of(folder: Path, depth_scale=None) -> tuple[float, str]:
     return TUM_DEPTH_SCALE, "TUM default"
 
 
+def _png_size(path: Path) -> tuple[int, int] | None:
+    """A PNG's (width, height) from its header; None for another format or an unreadable file
+    (such a frame is said when it is read)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n":
+        return None
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
 # --- sequence -------------------------------------------------------------------------------
 
 
@@ -355,6 +368,33 @@ class TumSequence(GroundTruthLookup):
         if self.missing_images:
             logger.warning("%s: %d listed image(s) not found, e.g. %s; those frames will fail to load",
                            self.name, len(self.missing_images), self.missing_images[0])
+        self._check_image_sizes()
+
+    def _check_image_sizes(self) -> None:
+        """One line, before any frame is read, for a folder whose images are not all of one size
+        (two recordings mixed), whose depth is not the colour's size (not registered to
+        colour), or whose images are not the size the camera says. PNG headers only: cheap."""
+        sizes = {}
+        for kind, paths in (("colour", self.rgb_paths), ("depth", self.depth_paths)):
+            found = {}
+            for path in paths:
+                size = _png_size(path)
+                if size is not None:
+                    found.setdefault(size, path)
+            if len(found) > 1:
+                (a, first), (b, other) = list(found.items())[:2]
+                raise DatasetError(f"{self.path}: the {kind} images are of {len(found)} sizes ({first.name} is "
+                                   f"{a[0]}x{a[1]}, {other.name} {b[0]}x{b[1]}): does the folder mix recordings?")
+            sizes[kind] = next(iter(found), None)
+        colour, depth = sizes["colour"], sizes["depth"]
+        if colour and depth and colour != depth:
+            raise DatasetError(f"{self.path}: depth is {depth[0]}x{depth[1]}, colour {colour[0]}x{colour[1]}: the depth "
+                               "is not registered to colour (record it aligned to colour, e.g. librealsense's "
+                               "rs.align, or read the .bag itself)")
+        K = self.raw_intrinsics
+        if colour and colour != (K.width, K.height):
+            raise DatasetError(f"{self.path}: the images are {colour[0]}x{colour[1]} but the camera "
+                               f"({self.intrinsics_source}) is {K.width}x{K.height}: give its intrinsics.json")
 
     def _select(self, start: int, stop: int) -> None:
         """Keep frames ``start:stop`` of the associated frames (``frames=`` of the constructor)."""
