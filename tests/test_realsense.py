@@ -1,6 +1,7 @@
 """RealSense recordings: written offline through pyrealsense2, read back at the sensor level,
 registered depth, the drift-correction run on a recording, and the one-line errors."""
 
+import dataclasses
 import json
 import logging
 
@@ -122,6 +123,15 @@ def test_real_d435_file_with_two_hardware_clocks_pairs_by_arrival(caplog):
     assert valid.size > 0.2 * depth.size
     assert 0.2 < float(np.median(valid)) < 10.0  # metres
     assert rec.raw.depth_units == pytest.approx(0.001)
+    # The file's own calibration: its depth unit and the depth camera's stereo baseline (a
+    # D435's 50 mm), which the map's bundle adjustment takes instead of a Kinect's 75 mm.
+    assert rec.depth_units_per_m == pytest.approx(1000.0)
+    assert rec.stereo_baseline_m == pytest.approx(0.0502, abs=0.0005)
+    from nap3d_graph.mapping.build import MapSettings, _bundle_settings
+
+    assert _bundle_settings(rec, MapSettings()).baseline_m == pytest.approx(rec.stereo_baseline_m)
+    chosen = MapSettings(bundle_settings=dataclasses.replace(MapSettings().bundle_settings, baseline_m=0.06))
+    assert _bundle_settings(rec, chosen).baseline_m == 0.06  # a baseline set by hand is kept
 
 
 def test_registered_depth_lands_where_the_simulator_says(walk):

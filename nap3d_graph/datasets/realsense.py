@@ -138,6 +138,7 @@ class RealSenseRecording(GroundTruthLookup):
         # The device's depth unit, as the file stores it (a D435: 0.001 m).
         self.depth_units_per_m = 1.0 / float(raw.depth_units)
         self.depth_scale_source = "the recording's depth units"
+        self.stereo_baseline_m = raw.stereo_baseline_m  # the depth noise model's baseline (map's bundle)
         self._pair(raw)
         self.imu = self._imu(raw)
         self.imu_config = self.config.imu_config(self.T_colour_depth)

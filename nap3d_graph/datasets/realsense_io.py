@@ -63,7 +63,8 @@ class RawRecording:
 
     depth: (stamps (D,), frame numbers (D,), list of (H, W) uint16); colour: the same with
     (H, W, 3) uint8 RGB; accel / gyro: (stamps (M,), (M, 3) float32 samples);
-    depth_units: metres per depth unit; T_colour_depth (4, 4) or None.
+    depth_units: metres per depth unit; T_colour_depth (4, 4) or None; stereo_baseline_m: the
+    depth camera's stereo baseline (m) where the file records it.
     arrival: ``{"depth": (D,), "colour": (C,)}`` each frame's arrival on the host (librealsense's
     ``time_of_arrival``, seconds, the recording computer's system clock; NaN where the file has
     none), in the order of the stamps above: the one clock the streams share when their own
@@ -81,6 +82,7 @@ class RawRecording:
     info: dict = field(default_factory=dict)
     arrival: dict = field(default_factory=dict)
     fps: dict = field(default_factory=dict)
+    stereo_baseline_m: float | None = None
 
 
 def _intrinsics(profile) -> StreamIntrinsics:
@@ -198,6 +200,7 @@ def _collect(rs, device, frames, path: Path) -> RawRecording:
         depth_units = float(device.first_depth_sensor().get_depth_scale())
     except RuntimeError:
         depth_units = 0.001
+    baseline_m = _stereo_baseline_m(rs, device)
     info = {}
     for key in ("name", "serial_number", "firmware_version"):
         try:
@@ -207,7 +210,20 @@ def _collect(rs, device, frames, path: Path) -> RawRecording:
     return RawRecording(out["depth"], out["colour"], out["accel"], out["gyro"],
                         _intrinsics(profiles["depth"]) if "depth" in profiles else None,
                         _intrinsics(profiles["colour"]) if "colour" in profiles else None,
-                        depth_units, T_colour_depth, info, arrival, fps)
+                        depth_units, T_colour_depth, info, arrival, fps, baseline_m)
+
+
+def _stereo_baseline_m(rs, device) -> float | None:
+    """The depth camera's stereo baseline (metres) as the file records it (librealsense's
+    "Stereo Baseline" option, in millimetres: a D435's ~50 mm), or None where it has none."""
+    try:
+        sensor = device.first_depth_sensor()
+        if not sensor.supports(rs.option.stereo_baseline):
+            return None
+        baseline_mm = float(sensor.get_option(rs.option.stereo_baseline))
+    except (RuntimeError, AttributeError):
+        return None
+    return baseline_mm / 1000.0 if baseline_mm > 0 else None
 
 
 def _rs_intrinsics(rs, K: StreamIntrinsics):

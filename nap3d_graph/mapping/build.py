@@ -195,7 +195,10 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
         pair_matches = chain_matches + [lp.matches_kept for lp in verified if lp.status == "accepted"
                                         and lp.matches_kept is not None]
         K = _working_intrinsics(sequence, settings)
-        T_map_key, bundle_report = bundle_adjust(graph.T_map_key, pair_matches, K, settings.bundle_settings)
+        bundle_settings = _bundle_settings(sequence, settings)
+        T_map_key, bundle_report = bundle_adjust(graph.T_map_key, pair_matches, K, bundle_settings)
+        bundle_report["baseline_from"] = ("the recording's calibration" if bundle_settings is not settings.bundle_settings
+                                          else "the settings")
         info["bundle"] = bundle_report
         _say(say, f"bundle adjustment: {bundle_report.get('landmarks', 0)} landmarks, "
                   f"{bundle_report.get('observations', 0)} observations; keyframes moved "
@@ -264,6 +267,17 @@ def _align_config(settings: MapSettings):
 
     # Both sides are the same camera: no self-calibration of the intrinsics between them.
     return AlignConfig(matcher=settings.matcher, min_opacity=0.5, estimate_intrinsics=False)
+
+
+def _bundle_settings(sequence, settings: MapSettings) -> BundleSettings:
+    """The bundle's settings with the recording's own stereo baseline (a RealSense file says
+    it: a D435's 50 mm, not a Kinect's 75) where the settings keep the default."""
+    import dataclasses
+
+    baseline_m = getattr(sequence, "stereo_baseline_m", None)
+    if baseline_m is None or settings.bundle_settings.baseline_m != BundleSettings.baseline_m:
+        return settings.bundle_settings
+    return dataclasses.replace(settings.bundle_settings, baseline_m=float(baseline_m))
 
 
 def _working_intrinsics(sequence, settings: MapSettings):
