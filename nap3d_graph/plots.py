@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["plot_top_view", "plot_error_over_time", "plot_trajectories", "plot_errors", "view_axes", "colour_of",
+__all__ = ["pyplot", "plot_top_view", "plot_error_over_time", "plot_trajectories", "plot_errors", "view_axes", "colour_of",
            "error_axis_floor"]
 
 #: One colour per trajectory name, the same in every figure (run and compare alike).
@@ -33,7 +33,7 @@ def colour_of(name: str) -> str | None:
     return COLOURS.get(name)
 
 
-def _pyplot():
+def pyplot():
     import matplotlib
 
     matplotlib.use("Agg")
@@ -64,7 +64,7 @@ def plot_trajectories(path: Path, trajectories: dict, T_world_cam_gt: np.ndarray
                       title: str = "trajectories") -> Path:
     """Trajectories ``{name: (N, 4, 4)}`` (and the ground truth) in the plane they span most
     (:func:`view_axes`); ``markers``: ``{label: (points (M, 3), style, colour)}``."""
-    plt = _pyplot()
+    plt = pyplot()
     reference = T_world_cam_gt[:, :3, 3] if T_world_cam_gt is not None else next(iter(trajectories.values()))[:, :3, 3]
     a, b = view_axes(reference)
     fig, ax = plt.subplots(figsize=(6.5, 5.5))
@@ -92,7 +92,7 @@ def plot_errors(path: Path, t: np.ndarray, trajectories: dict, T_world_cam_gt: n
                 title: str = "translation error") -> Path:
     """Translation error (cm, log axis) of each trajectory against ``T_world_cam_gt`` over time ``t``;
     ``markers``: ``{label: (times (M,), errors_cm (M,), style, colour)}``."""
-    plt = _pyplot()
+    plt = pyplot()
     posed = np.all(np.isfinite(T_world_cam_gt), axis=(1, 2))
     fig, ax = plt.subplots(figsize=(7.5, 3.8))
     curves = []

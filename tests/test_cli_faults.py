@@ -162,6 +162,7 @@ def test_run_folders_created_at_the_same_moment_never_collide(tmp_path):
     assert not errors and len(set(made)) == 16
 
 
+@pytest.mark.slow
 def test_a_full_disk_mid_run_is_one_line_and_keeps_what_was_written(walk, tmp_path, capsys, monkeypatch):
     from nap3d_graph.run.output import RunWriter
 

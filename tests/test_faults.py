@@ -89,6 +89,7 @@ def test_a_non_rigid_estimate_is_refused(walk):
     assert not c.success and "not a rigid transform" in c.reason
 
 
+@pytest.mark.slow
 def test_a_wrong_correction_that_passes_the_gate_is_weighed_out(walk, clean):
     """After a stretch without corrections (the field covered none of it) the prediction is
     uncertain enough for the gate to let a 16 cm wrong correction in, and then to refuse the

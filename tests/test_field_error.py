@@ -71,6 +71,7 @@ def test_measured_field_error_brings_an_unseen_walks_nees_to_about_twice_the_chi
     assert np.median(nees_exact) > 3.0 * np.median(nees_measured)
 
 
+@pytest.mark.slow
 def test_field_error_survives_the_checkpoint_and_fields_without_it_are_exact(room, tmp_path):
     field, _, walk, _ = room
     field.save(tmp_path / "f.pt")

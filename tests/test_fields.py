@@ -18,7 +18,7 @@ from nap3d_graph.fields.grid import CHECKPOINT_VERSION, GridField
 from nap3d_graph.fields.training_data import split_frames
 
 TRAIN_STEPS = 300
-QUICK_STEPS = 80
+QUICK_STEPS = 40
 
 
 @pytest.fixture(scope="module")

@@ -22,6 +22,7 @@ def _graph_size(pipeline) -> tuple[int, int]:
     return pipeline.graph.isam.calculateEstimate().size(), live
 
 
+@pytest.mark.slow
 def test_a_long_run_keeps_a_bounded_graph_and_the_same_trajectory():
     walk = ImagelessWalk(3000)
     base = PipelineConfig(keyframe_every=5, progress=False)
@@ -81,6 +82,7 @@ def _kept(pipeline) -> int:
                len(pipeline.keyframe_indices._items), len(pipeline.records._items), len(pipeline.graph.frozen))
 
 
+@pytest.mark.slow
 def test_a_long_run_that_retires_its_past_keeps_flat_memory_and_the_same_result(tmp_path):
     from nap3d_graph.run.history import join_segments
     from nap3d_graph.trajectory import read_tum_trajectory

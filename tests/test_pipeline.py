@@ -180,6 +180,7 @@ class HalfField:
         return view
 
 
+@pytest.mark.slow
 def test_damaged_tum_folder_runs_to_the_end(walk, tmp_path):
     import cv2
 

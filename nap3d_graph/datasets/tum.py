@@ -393,8 +393,10 @@ class TumSequence(GroundTruthLookup):
                                "rs.align, or read the .bag itself)")
         K = self.raw_intrinsics
         if colour and colour != (K.width, K.height):
-            raise DatasetError(f"{self.path}: the images are {colour[0]}x{colour[1]} but the camera "
-                               f"({self.intrinsics_source}) is {K.width}x{K.height}: give its intrinsics.json")
+            source = ("TUM's default camera, a guess" if self.intrinsics_source == "default"
+                      else self.intrinsics_source)
+            raise DatasetError(f"{self.path}: the images are {colour[0]}x{colour[1]} but the camera ({source}) is "
+                               f"{K.width}x{K.height}: give its intrinsics.json")
 
     def _select(self, start: int, stop: int) -> None:
         """Keep frames ``start:stop`` of the associated frames (``frames=`` of the constructor)."""

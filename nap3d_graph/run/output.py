@@ -24,6 +24,8 @@ from nap3d_graph.evaluation.metrics import trajectory_metrics
 from nap3d_graph.motion.imu import gravity_angle_deg
 from nap3d_graph.plots import plot_error_over_time, plot_top_view
 
+from .records import refusal_kind
+
 __all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary", "CORRECTION_COLUMNS",
            "refusal_reasons"]
 
@@ -94,13 +96,6 @@ REFUSAL_HINTS = {
     "innovation": "the corrections disagree with the odometry's prediction: is the field in this recording's "
                   "frame (--anchor), or the odometry noisier than its model (--odom-rot-sigma, --odom-trans-sigma)?",
 }
-
-
-def refusal_kind(reason: str) -> str:
-    """A refusal's kind: its words before the first number or detail."""
-    import re
-
-    return re.split(r"[(:=0-9]", reason or "unknown")[0].strip() or "unknown"
 
 
 def refusal_hint_for(kind: str) -> str:

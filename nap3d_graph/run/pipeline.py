@@ -520,7 +520,8 @@ class Pipeline:
         """Warn (once per streak) when the last REFUSAL_STREAK keyframes were all refused for
         the same reason: the run then goes on on its odometry alone, and the user should know
         it now, not from the summary."""
-        from nap3d_graph.run.output import refusal_hint_for, refusal_kind
+        from nap3d_graph.run.output import refusal_hint_for
+        from nap3d_graph.run.records import refusal_kind
 
         if record.accepted:
             self._streak = (None, 0)

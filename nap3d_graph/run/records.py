@@ -11,7 +11,14 @@ import numpy as np
 if TYPE_CHECKING:
     from nap3d_graph.trajectory import Trajectory
 
-__all__ = ["KeyframeRecord", "RunResult"]
+__all__ = ["KeyframeRecord", "RunResult", "refusal_kind"]
+
+
+def refusal_kind(reason: str) -> str:
+    """A refusal's kind: its words before the first number or detail."""
+    import re
+
+    return re.split(r"[(:=0-9]", reason or "unknown")[0].strip() or "unknown"
 
 
 @dataclass

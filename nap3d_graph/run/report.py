@@ -27,7 +27,7 @@ import numpy as np
 
 from nap3d_graph.factors.gate import chi2_threshold
 
-from .output import refusal_kind
+from .records import refusal_kind
 
 __all__ = ["RunReport", "run_report", "write_run_report", "ACCEPTED_SHARE_BAD", "COVERAGE_BAD"]
 
@@ -110,9 +110,9 @@ def run_report(keyframes, metrics: dict) -> RunReport:
 def _plot(path: Path, keyframes) -> None:
     """Corrections over the run: accepted sizes, refused keyframes by kind, and d2 against
     the chi-square's 99% line."""
-    from nap3d_graph.plots import _pyplot
+    from nap3d_graph.plots import pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
     frames = np.array([k.frame_index for k in keyframes])
     accepted = np.array([k.accepted for k in keyframes], dtype=bool)
