@@ -101,10 +101,11 @@ def test_failed_cells_are_retried_once_and_recorded(recordings, tmp_path):
     from nap3d_graph.cli import main
 
     root = recordings[0]
-    # --odom recorded needs the simulator's odometry.txt: the TUM-layout copy below has none.
+    # --odom recorded needs the simulator's odometry.txt: the TUM-layout copy below has none (its camera,
+    # intrinsics.json, it keeps: without it the folder is refused before the odometry is asked for).
     bare = tmp_path / "bare"
     bare.mkdir()
-    for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "rgb", "depth"):
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt", "rgb", "depth", "intrinsics.json"):
         (bare / name).symlink_to(recordings[1] / name)
     spec_path = _spec(root, f"recordings: [{{data: {bare}}}]\nfield: {{model: none}}\nrun: {{odom: recorded}}\n")
     out = tmp_path / "failing"
