@@ -90,6 +90,7 @@ def test_rolling_shutter_frame_aligned_as_of_its_middle_row(room, shuttered):
     assert np.median(plain[:, 0]) > 0.005 and np.median(plain[:, 0]) > 10 * np.median(compensated[:, 0])
 
 
+@pytest.mark.slow
 def test_a_run_takes_the_readout_and_its_velocity(room, shuttered):
     _, field = room
     frame, T_mid, T_est = shuttered[0]
@@ -163,6 +164,7 @@ def test_colour_timing_estimates_the_readout(room, readout_s):
         assert found.readout_s == 0.0 and found.error_px == found.global_error_px, found
 
 
+@pytest.mark.slow
 def test_a_run_takes_the_readout_of_its_capture_timing(room, shuttered):
     """With no readout configured (the default), a keyframe is aligned with the readout its
     capture timing records; a configured 0 turns it off."""
