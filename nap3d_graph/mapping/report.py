@@ -31,6 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.run.report import FigureReport
+
 __all__ = ["MapReport", "map_report", "write_map_report", "LOOP_RESIDUAL_BAD", "REPROJECTION_BAD_PX",
            "HELD_OUT_PSNR_BAD_DB", "HELD_OUT_DEPTH_BAD_M", "COVERED_BAD", "HELD_OUT_NAP3D_BAD_M"]
 
@@ -51,19 +53,12 @@ COVERED_BAD = 0.7
 HELD_OUT_NAP3D_BAD_M = 0.03
 
 
-class MapReport:
-    """The figures of one map (``rows``: figure, value, good when, verdict; ``bad``: the
-    figures past their line; ``values``: the numbers, for metrics and benchmarks)."""
+class MapReport(FigureReport):
+    """The figures of one map; ``values``: its numbers, for metrics and benchmarks."""
 
     def __init__(self):
-        self.rows: list[tuple[str, str, str, str]] = []
-        self.bad: list[str] = []
+        super().__init__()
         self.values: dict = {}
-
-    def add(self, figure: str, value: str, good: str, ok: bool | None) -> None:
-        self.rows.append((figure, value, good, "n/a" if ok is None else ("good" if ok else "BAD")))
-        if ok is False:
-            self.bad.append(figure)
 
 
 def loop_residuals(folder: Path) -> np.ndarray:
@@ -179,12 +174,5 @@ def write_map_report(folder) -> MapReport:
     """Write ``report.md`` into the map folder; returns the report."""
     folder = Path(folder)
     report = map_report(folder)
-    lines = ["# Is the map good?", "",
-             "Figures that need no ground truth (what each means and what a bad value looks like: "
-             "docs/usage/7-own-camera.md, \"Reading the reports\").", "",
-             "| figure | value | good when | verdict |", "|---|---|---|---|"]
-    lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in report.rows]
-    lines += ["", ("**Look at:** " + "; ".join(report.bad) + ".") if report.bad else "Nothing is past its bad line.",
-              "", "![the map from above, loops drawn](map.png)", ""]
-    (folder / "report.md").write_text("\n".join(lines))
+    report.write(folder / "report.md", "Is the map good?", "![the map from above, loops drawn](map.png)")
     return report

@@ -29,7 +29,7 @@ from nap3d_graph.factors.gate import chi2_threshold
 
 from .records import refusal_kind
 
-__all__ = ["RunReport", "run_report", "write_run_report", "ACCEPTED_SHARE_BAD", "COVERAGE_BAD"]
+__all__ = ["FigureReport", "RunReport", "run_report", "write_run_report", "ACCEPTED_SHARE_BAD", "COVERAGE_BAD"]
 
 log = logging.getLogger(__name__)
 
@@ -45,21 +45,39 @@ def _median_chi2_6() -> float:
     return chi2_threshold(0.5, 6)
 
 
-class RunReport:
-    """The figures of one run (``rows``: (figure, value, good when, verdict)), built from its
-    keyframe records and ``metrics``."""
+class FigureReport:
+    """Figures against their bad lines (``rows``: figure, value, good when, verdict; ``bad``:
+    the figures past their line), written as ``report.md``. The map's report is one too."""
 
-    def __init__(self, keyframes, metrics: dict):
-        self.keyframes = list(keyframes)
-        self.metrics = metrics
+    def __init__(self):
         self.rows: list[tuple[str, str, str, str]] = []
         self.bad: list[str] = []
 
     def add(self, figure: str, value: str, good: str, ok: bool | None) -> None:
-        verdict = "n/a" if ok is None else ("good" if ok else "BAD")
-        self.rows.append((figure, value, good, verdict))
+        self.rows.append((figure, value, good, "n/a" if ok is None else ("good" if ok else "BAD")))
         if ok is False:
             self.bad.append(figure)
+
+    def write(self, path: Path, title: str, picture: str) -> None:
+        """``path`` (report.md): ``title``, the table, what to look at, then ``picture``
+        (a markdown image line)."""
+        lines = [f"# {title}", "",
+                 "Figures that need no ground truth (what each means and what a bad value looks like: "
+                 "docs/usage/7-own-camera.md, \"Reading the reports\").", "",
+                 "| figure | value | good when | verdict |", "|---|---|---|---|"]
+        lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in self.rows]
+        lines += ["", ("**Look at:** " + "; ".join(self.bad) + ".") if self.bad else "Nothing is past its bad line.",
+                  "", picture, ""]
+        Path(path).write_text("\n".join(lines))
+
+
+class RunReport(FigureReport):
+    """The figures of one run, built from its keyframe records and ``metrics``."""
+
+    def __init__(self, keyframes, metrics: dict):
+        super().__init__()
+        self.keyframes = list(keyframes)
+        self.metrics = metrics
 
 
 def _covered(k) -> bool:
@@ -141,17 +159,10 @@ def write_run_report(run_dir: Path, keyframes, metrics: dict) -> RunReport:
     """Write ``report.md`` and ``corrections.png`` into ``run_dir``; returns the report."""
     run_dir = Path(run_dir)
     report = run_report(keyframes, metrics)
-    lines = ["# Did the run work?", "",
-             "Figures that need no ground truth (what each means and what a bad value looks like: "
-             "docs/usage/7-own-camera.md, \"Reading the reports\").", "",
-             "| figure | value | good when | verdict |", "|---|---|---|---|"]
-    lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in report.rows]
-    lines += ["", ("**Look at:** " + "; ".join(report.bad) + ".") if report.bad else "Nothing is past its bad line.",
-              "", "![corrections over the run](corrections.png)", ""]
     if keyframes:
         try:
             _plot(run_dir / "corrections.png", report.keyframes)
         except (OSError, ValueError) as exc:  # a plot must not lose the run's files
             log.warning("corrections.png not written (%s)", exc)
-    (run_dir / "report.md").write_text("\n".join(lines))
+    report.write(run_dir / "report.md", "Did the run work?", "![corrections over the run](corrections.png)")
     return report
