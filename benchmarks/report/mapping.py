@@ -9,6 +9,7 @@ from pathlib import Path
 from report import RESULTS, Section
 
 MAP_SURVEY_FILES = ("map_survey_fr1_desk.json", "map_survey_redkitchen.json")
+ORBSLAM3_FILES = ("orbslam3_fr1_desk.json", "orbslam3_fr1_desk_repeat.json")
 
 
 def _cm(value) -> str:
@@ -94,6 +95,38 @@ def map_checks_table() -> str:
             f"(range) of {o['a_survey_ate_rmse_m']['n']} runs: ORB-SLAM3 {_range_cm(o['a_survey_ate_rmse_m'])} "
             f"(lost at frame {o['a_survey_first_not_ok_frame']['median']:.0f}; before: "
             f"{_range_cm(o['a_survey_ate_before_first_loss_rmse_m'])}); map {_cm(m['survey']['ate']['map']['rmse_m'])} |")
+    return "\n".join(rows)
+
+
+def _lost(states: dict) -> int:
+    """Frames ORB-SLAM3 reported lost (RECENTLY_LOST or LOST; not the first frame's NO_IMAGES_YET)."""
+    return sum(count for state, count in states.items() if "LOST" in state)
+
+
+def orbslam3_trials_table() -> str:
+    """Every ORB-SLAM3 trial of both files, each as it ran: frames tracked and lost, the
+    first lost frame, the survey's ATE over what it saved and before its first loss, and
+    (localisation mode) the query's ATE through the survey's alignment."""
+    rows = ["| file | mode | trial | survey frames OK / lost | first lost | survey ATE cm (before first loss) | "
+            "query frames OK / lost | query ATE cm via survey |", "|---|---|---:|---|---:|---|---|---:|"]
+    for name in ORBSLAM3_FILES:
+        path = RESULTS / name
+        if not path.is_file():
+            continue
+        runs = json.loads(path.read_text())["runs"]
+        for mode, trials in runs.items():
+            for n, trial in enumerate(trials, 1):
+                s, q = trial["survey"], trial.get("query")
+                states = s["tracking_states"]
+                first = s.get("first_not_ok_frame")
+                before = s.get("ate_before_first_loss")
+                query_cells = ("n/a", "n/a") if q is None else (
+                    f"{q['tracking_states'].get('OK', 0)} / {q['lost_frames']}",
+                    _cm(q["ate_through_survey_alignment"]["rmse_m"]))
+                rows.append(
+                    f"| `{name}` | {mode} | {n} | {states.get('OK', 0)} / {_lost(states)} | "
+                    f"{'none' if first is None else first} | {_cm(s['ate']['rmse_m'])} "
+                    f"({'n/a' if before is None else _cm(before['rmse_m'])}) | {query_cells[0]} | {query_cells[1]} |")
     return "\n".join(rows)
 
 
@@ -184,6 +217,12 @@ SECTIONS = [
             ("map_false_loops.json", "map_relocalise_fr1_desk_grid.json", "orbslam3_fr1_desk.json"),
             "python benchmarks/map_false_loops.py; python benchmarks/map_survey.py --only-relocalise ...; "
             "python benchmarks/orbslam3/compare.py", map_checks_table),
+    Section("ORB-SLAM3 RGB-D on fr1/desk at 15 Hz, every trial of both files: the first half as the survey "
+            "(mode survey: SLAM alone; mode localise: SLAM, then the second half localised in its saved atlas)",
+            ORBSLAM3_FILES, "python benchmarks/orbslam3/compare.py --data D --vocab V --work W --out ...",
+            orbslam3_trials_table,
+            note="A frame that is not OK is lost (RECENTLY_LOST or LOST); the survey's ATE is over the frames its "
+                 "saved trajectory holds, SE(3)-aligned; the query's through the survey's own alignment."),
     Section("Starting anywhere in the map: fr1/desk split in halves, each half the survey in turn, the other "
             "relocalised (every 5th frame, one thread) and run from its own first frame (--odom vo, XFeat, splat "
             "fields); the placement rule was chosen on fr1/xyz and the simulator",
