@@ -302,36 +302,44 @@ def _frame_points(frame, T_world_depth: np.ndarray, T_world_colour: np.ndarray, 
         has_colour
 
 
-def _fuse(keys, frame_of, points, colours, weights, colour_weights, gains, offsets):
-    """Weighted means per voxel key; returns (unique keys inverse, mean points, colours,
-    weight sums, view counts)."""
+def _voxels(keys, frame_of):
+    """``(inverse, n, views)``: each point's voxel among the ``n`` occupied ones, and how many
+    frames see each voxel. The same for every exposure round: computed once."""
     unique, inverse = np.unique(keys, return_inverse=True)
     n = len(unique)
+    frames = frame_of.max() + 1
+    views = np.bincount(np.unique(inverse.astype(np.int64) * frames + frame_of) // frames, minlength=n)
+    return inverse, n, views
+
+
+def _fuse(inverse, n, frame_of, points, colours, weights, colour_weights, gains, offsets):
+    """Weighted means per voxel (``inverse``, ``n``: :func:`_voxels`); returns (mean points,
+    colours, weight sums)."""
     corrected = np.clip(colours * gains[frame_of] + offsets[frame_of], 0.0, 1.0)
     wsum = np.bincount(inverse, weights=weights, minlength=n)
     csum = np.maximum(np.bincount(inverse, weights=colour_weights, minlength=n), 1e-12)
     mean_p = np.stack([np.bincount(inverse, weights=weights * points[:, k], minlength=n) for k in range(3)], 1)
     mean_c = np.stack([np.bincount(inverse, weights=colour_weights * corrected[:, k], minlength=n) for k in range(3)],
                       1) * (wsum / csum)[:, None]
-    views = np.bincount(np.unique(inverse.astype(np.int64) * (frame_of.max() + 1) + frame_of) // (frame_of.max() + 1),
-                        minlength=n)
-    return inverse, mean_p / wsum[:, None], mean_c / wsum[:, None], wsum, views
+    return mean_p / wsum[:, None], mean_c / wsum[:, None], wsum
 
 
 def _exposure_fit(frame_of, colours, target, weights, frames: int):
-    """Per frame and channel, the affine map ``a c + b`` of its colours onto the fused ones."""
+    """Per frame and channel, the affine map ``a c + b`` of its colours onto the fused ones
+    (weighted least squares, from per-frame sums: one pass over the points, not one a frame)."""
     gains = np.ones((frames, 3), np.float64)
     offsets = np.zeros((frames, 3), np.float64)
-    for f in range(frames):
-        mine = frame_of == f
-        if mine.sum() < 100:
-            continue
-        w = weights[mine]
-        for k in range(3):
-            x, y = colours[mine, k], target[mine, k]
-            A = np.stack([x, np.ones_like(x)], 1) * np.sqrt(w)[:, None]
-            (a, b), *_ = np.linalg.lstsq(A, y * np.sqrt(w), rcond=None)
-            gains[f, k], offsets[f, k] = a, b
+    counts = np.bincount(frame_of, minlength=frames)
+    sw = np.bincount(frame_of, weights=weights, minlength=frames)
+    for k in range(3):
+        x, y = colours[:, k].astype(np.float64), target[:, k].astype(np.float64)
+        sx, sy = (np.bincount(frame_of, weights=weights * v, minlength=frames) for v in (x, y))
+        sxx, sxy = (np.bincount(frame_of, weights=weights * x * v, minlength=frames) for v in (x, y))
+        det = sw * sxx - sx * sx
+        solvable = (counts >= 100) & (det > 1e-12 * np.maximum(sw * sxx, 1e-300))
+        a = np.divide(sw * sxy - sx * sy, det, out=np.ones(frames), where=solvable)
+        b = np.divide(sy - a * sx, sw, out=np.zeros(frames), where=solvable)
+        gains[solvable, k], offsets[solvable, k] = a[solvable], b[solvable]
     # Keep the overall exposure where it was: the mean map is the identity.
     gains /= gains.mean(axis=0, keepdims=True)
     offsets -= offsets.mean(axis=0, keepdims=True)
@@ -385,9 +393,10 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
     span = cell.max(axis=0) + 1
     keys = (cell[:, 2] * span[1] + cell[:, 1]) * span[0] + cell[:, 0]
     gains, offsets = np.ones((len(indices), 3)), np.zeros((len(indices), 3))
+    inverse, n_voxels, views = _voxels(keys, frame_of)
     for _ in range(max(config.exposure_rounds, 0) + 1):
-        inverse, mean_p, mean_c, wsum, views = _fuse(keys, frame_of, points, colours, weights, colour_weights,
-                                                     gains, offsets)
+        mean_p, mean_c, wsum = _fuse(inverse, n_voxels, frame_of, points, colours, weights, colour_weights, gains,
+                                     offsets)
         if _ == config.exposure_rounds:
             break
         gains, offsets = _exposure_fit(frame_of, colours, mean_c[inverse], weights * has_colour, len(indices))
