@@ -172,8 +172,9 @@ class Relocaliser:
             return self.T_map_key[k], False
         return self.T_map_key[k] @ inv_T(T_query_key), True
 
-    def _query(self, frame: RGBDFrame):
-        """The query at the kept images' width with its features (None without kept images)."""
+    def _query(self, frame: RGBDFrame, detected=None):
+        """The query at the kept images' width with its features (None without kept images);
+        ``detected``: ``(shape, features)`` of the frame already detected at that shape."""
         from nap3d_graph.nap3d.correct import at_width
         from nap3d_graph.nap3d.matching import detect_features
 
@@ -184,6 +185,8 @@ class Relocaliser:
         small = at_width(frame, self.keyframe_frames[0].intrinsics.width)
         if small.intrinsics.width != self.keyframe_frames[0].intrinsics.width:
             return None  # a query narrower than the map's images: render from the keyframes' poses
+        if detected is not None and detected[0] == small.intrinsics.shape:
+            return Keyframe(-1, small, detected[1])
         return Keyframe(-1, small, detect_features(small.rgb, self.config.max_features, matcher=self.config.matcher))
 
     def _agreeing(self, found: list) -> list:
@@ -199,18 +202,22 @@ class Relocaliser:
 
     def locate(self, frame: RGBDFrame) -> Relocalisation:
         """Where ``frame`` is in the map; never raises on data (``success`` False, ``reason``)."""
-        from nap3d_graph.nap3d.correct import correct_pose
+        from nap3d_graph.nap3d.correct import correct_pose, real_features
 
         started = time.perf_counter()
         s = self.settings
         order = np.argsort(-similarities(self.descriptor(frame), self.descriptors))[: s.top_k]
         found, reasons, wide = [], [], 0
-        query = self._query(frame)
+        # The frame's features at the render's size, detected once for every candidate's correction
+        # (and for the real-vs-real step too when the kept images are that size).
+        render_intrinsics = self.render_intrinsics or frame.intrinsics
+        feats_real, _ = real_features(frame, render_intrinsics, self.config)
+        query = self._query(frame, (render_intrinsics.shape, feats_real))
         for k in order:
             T_start, started_wide = self._start_pose(query, int(k))
             wide += started_wide
-            correction = correct_pose(frame, self.field, T_start, iterations=s.iterations,
-                                      config=self.config, render_intrinsics=self.render_intrinsics)
+            correction = correct_pose(frame, self.field, T_start, iterations=s.iterations, config=self.config,
+                                      render_intrinsics=self.render_intrinsics, feats_real=feats_real)
             a = correction.alignment
             if not correction.success:
                 reasons.append(correction.reason)
@@ -236,7 +243,7 @@ class Relocaliser:
             found.sort(key=lambda f: f[0])
             sigma_m, k, T, cov, inliers, sigma_deg = found[0]
             again = correct_pose(frame, self.field, T, iterations=1, config=self.config,
-                                 render_intrinsics=self.render_intrinsics)
+                                 render_intrinsics=self.render_intrinsics, feats_real=feats_real)
             if again.success and again.alignment.num_inliers >= s.min_inliers:
                 cov2 = again.covariance
                 s2 = float(np.sqrt(np.max(np.linalg.eigvalsh(cov2[3:, 3:]))))
