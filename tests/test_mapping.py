@@ -471,3 +471,14 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     info["loops"]["accepted"] = 0
     (alone / "map.json").write_text(json.dumps(info))
     assert any(figure.startswith("loops:") for figure in map_report(alone).bad)
+
+
+def test_the_grid_trains_for_what_the_map_budget_leaves():
+    from nap3d_graph.mapping.build import training_minutes
+
+    default = MapSettings()  # a 5-minute map, 90 s kept for what follows the training
+    assert training_minutes(default, 120.0) == pytest.approx((300 - 120 - 90) / 60)
+    assert training_minutes(default, 280.0) == pytest.approx(default.min_train_minutes)  # never below the floor
+    assert training_minutes(MapSettings(minutes=2.5), 280.0) == 2.5  # its own budget wins
+    assert training_minutes(MapSettings(steps=100), 10.0) is None
+    assert training_minutes(MapSettings(budget_minutes=None), 10.0) is None  # the trainer's own default

@@ -130,6 +130,24 @@ def orbslam3_trials_table() -> str:
     return "\n".join(rows)
 
 
+def map_speed_table() -> str:
+    """``nap3d-graph map`` from nothing with its defaults: wall time and each stage's."""
+    rows = ["| recording | frames | field | wall s | per 300 frames s | odometry / keyframes / loops / graph s | "
+            "field s: timing, train, error, total | survey ATE cm |", "|---|---:|---|---:|---:|---|---|---:|"]
+    path = RESULTS / "map_speed.json"
+    if not path.is_file():
+        return "\n".join(rows)
+    for r in json.loads(path.read_text())["runs"]:
+        st, f = r["stages_s"], r["field_s"]
+        rows.append(
+            f"| {Path(r['data'].split(':')[0]).name}{'' if ':' not in r['data'] else ' ' + r['data'].split(':', 1)[1]} | "
+            f"{r['frames']} | {r['model']} | {r['wall_s']:.0f} | {r['wall_s'] * 300 / r['frames']:.0f} | "
+            f"{st['odometry']:.0f} / {st['keyframes']:.0f} / {st['loops']:.0f} / {st['graph']:.0f} | "
+            f"{f['timing']:.0f}, {f['build_or_train']:.0f}, {f['field_error']:.0f}, {f['total']:.0f} | "
+            f"{_cm(r['survey_ate_m'])} |")
+    return "\n".join(rows)
+
+
 def start_anywhere_table() -> str:
     """Each direction of fr1/desk's split: relocalisation of every n-th query frame and the
     query run from its own first frame."""
@@ -217,6 +235,12 @@ SECTIONS = [
             ("map_false_loops.json", "map_relocalise_fr1_desk_grid.json", "orbslam3_fr1_desk.json"),
             "python benchmarks/map_false_loops.py; python benchmarks/map_survey.py --only-relocalise ...; "
             "python benchmarks/orbslam3/compare.py", map_checks_table),
+    Section("How long a map takes: `nap3d-graph map` from nothing with its defaults (grid field trained for what "
+            "the 5-minute budget leaves) on two cores",
+            ("map_speed.json",), "python benchmarks/map_speed.py --data D [--data D:START:STOP] --out ...",
+            map_speed_table,
+            note="The target is 300 frames in 5 minutes, field included; 'per 300 frames' scales the wall time "
+                 "linearly. The field's error measurement and the odometry are what is left to make faster."),
     Section("ORB-SLAM3 RGB-D on fr1/desk at 15 Hz, every trial of both files: the first half as the survey "
             "(mode survey: SLAM alone; mode localise: SLAM, then the second half localised in its saved atlas)",
             ORBSLAM3_FILES, "python benchmarks/orbslam3/compare.py --data D --vocab V --work W --out ...",

@@ -18,6 +18,7 @@ from .common import (
     add_matcher_argument,
     add_topics_argument,
     add_unit_arguments,
+    non_negative_float,
     non_negative_int,
     positive_float,
     positive_int,
@@ -48,7 +49,11 @@ def add_parser(sub) -> None:
     p.add_argument("--keyframe-every", type=positive_int, default=5,
                    help="a keyframe every N frames, sooner after 10 cm or 10 deg of motion (default 5)")
     p.add_argument("--model", choices=("grid", "splat", "views"), default="grid", help="the field (default grid)")
-    p.add_argument("--minutes", type=positive_float, default=5.0, help="grid: training budget in minutes (default 5)")
+    p.add_argument("--budget-minutes", type=non_negative_float, default=5.0, metavar="MIN",
+                   help="the whole map's time budget, field included: the grid trains for what the other stages "
+                   "leave (at least a minute; default 5; 0: no budget, the grid trains for --minutes or 5)")
+    p.add_argument("--minutes", type=positive_float, default=None,
+                   help="grid: its own training budget in minutes instead of what --budget-minutes leaves")
     p.add_argument("--steps", type=positive_int, default=None,
                    help="grid: training budget in steps instead of minutes (the same field on any machine)")
     p.add_argument("--refine-rounds", type=non_negative_int, default=0, metavar="N",
@@ -78,6 +83,7 @@ def run(args) -> int:
     matcher = chosen_matcher(args.matcher, sequence)
     settings = MapSettings(odometry=args.odom, matcher=matcher, width=args.width, keyframe_every=args.keyframe_every,
                            model=args.model, minutes=None if args.steps else args.minutes, steps=args.steps,
+                           budget_minutes=args.budget_minutes or None,
                            refine_rounds=args.refine_rounds, seed=args.seed)
     try:
         result = build_map(sequence, args.out, settings, progress=not args.quiet, say=print,

@@ -45,7 +45,8 @@ __all__ = ["MapSettings", "MapResult", "build_map", "load_map_info", "MAP_INFO"]
 log = logging.getLogger(__name__)
 
 #: Settings of the field alone: changing them re-trains the field, not the poses.
-FIELD_SETTINGS = ("model", "minutes", "steps", "refine_rounds")
+FIELD_SETTINGS = ("model", "minutes", "steps", "refine_rounds", "budget_minutes", "budget_reserve_s",
+                  "min_train_minutes")
 
 #: The file that marks a folder as a map.
 MAP_INFO = "map.json"
@@ -57,7 +58,12 @@ class MapSettings:
     the odometry, the descriptors and the verification; ``width``: keyframes (and ``vo``)
     work at this width in pixels (None: as read); keyframe_*: a keyframe every so many frames
     or after so much motion; ``edge_floor_m`` / ``edge_floor_rad``: added to every edge's
-    sigma (what pairwise residuals cannot see); ``model`` and the field's budget;
+    sigma (what pairwise residuals cannot see); ``model`` and the grid's budget: ``steps``, or
+    ``minutes`` of its own, or else what ``budget_minutes`` for the whole map leaves once the
+    stages before the field have run and ``budget_reserve_s`` is kept for what follows the
+    training (capture timing, held-out scoring, the field's error, the report: 70-80 s on two
+    cores for fr1/desk's 277 frames, ``benchmarks/map_speed.py``), at least
+    ``min_train_minutes``;
     ``refine_rounds``: the depth refinement of the training poses before the field;
     ``bundle``: refine the pose graph's keyframes by the bundle adjustment over every verified
     match (:mod:`.bundle`)."""
@@ -74,8 +80,11 @@ class MapSettings:
     edge_floor_rad: float = 0.002
     gate_p: float = 0.999
     model: str = "grid"
-    minutes: float | None = 5.0
+    minutes: float | None = None
     steps: int | None = None
+    budget_minutes: float | None = 5.0
+    budget_reserve_s: float = 90.0
+    min_train_minutes: float = 1.0
     refine_rounds: int = 0
     seed: int = 0
     bundle: bool = True
@@ -117,6 +126,7 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     """Build (or resume) the map of ``sequence`` in ``out``. The sequence's ground truth is
     never read before the survey's poses are final (only ``survey_ate.json`` uses it)."""
     settings = settings or MapSettings()
+    started = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     info_path = out / MAP_INFO
@@ -228,7 +238,11 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
         t0 = time.perf_counter()
         from nap3d_graph.fields.build import build_field
 
-        field_obj, report = build_field(posed_sequence, settings.model, steps=settings.steps, minutes=settings.minutes,
+        minutes = training_minutes(settings, t0 - started)
+        if settings.model == "grid" and settings.steps is None and settings.minutes is None and minutes is not None:
+            _say(say, f"field: the grid trains for {minutes:.1f} min (what the {settings.budget_minutes:g}-minute "
+                      f"budget leaves)")
+        field_obj, report = build_field(posed_sequence, settings.model, steps=settings.steps, minutes=minutes,
                                         seed=settings.seed, device=device, progress=progress,
                                         matcher=settings.matcher, refine_poses=settings.refine_rounds,
                                         refine_method="depth")
@@ -236,7 +250,8 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
         report["poses"] = "map (self-posed survey)"
         field_obj.save(field_path)
         _write_json(out / "field.report.json", report)
-        done("field", time.perf_counter() - t0, model=settings.model, settings=field_settings)
+        done("field", time.perf_counter() - t0, model=settings.model, settings=field_settings,
+             **({"train_minutes": round(minutes, 2)} if settings.model == "grid" and minutes is not None else {}))
 
     # Outputs: the plot and, only now, the comparison with the recording's ground truth.
     info["survey_ate"] = _survey_ate(out, sequence, T_map_cam, survey, start, stop,
@@ -251,6 +266,17 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     info["report"] = {"file": "report.md", "past_bad_line": write_map_report(out).bad}
     _write_json(info_path, info)
     return MapResult(out, info)
+
+
+def training_minutes(settings: MapSettings, elapsed_s: float) -> float | None:
+    """The grid's training budget in minutes once ``elapsed_s`` seconds of the map are spent:
+    its own ``minutes`` when set (None with ``steps``), else what ``budget_minutes`` leaves
+    after the reserve, at least ``min_train_minutes``; None when neither is set (the trainer's
+    default)."""
+    if settings.steps is not None or settings.minutes is not None or settings.budget_minutes is None:
+        return None if settings.steps is not None else settings.minutes
+    left_s = settings.budget_minutes * 60.0 - elapsed_s - settings.budget_reserve_s
+    return max(settings.min_train_minutes, left_s / 60.0)
 
 
 def _ranges(start: int, stop: int, n: int) -> list[str]:
