@@ -23,6 +23,7 @@ from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.matching import Features
 
 from .retrieval import similarities
+from .verification import Verification, worst_sigmas
 
 __all__ = ["Keyframe", "Loop", "LoopSettings", "as_view", "candidates", "verify", "verify_pair"]
 
@@ -58,6 +59,11 @@ class LoopSettings:
     min_inliers: int = 30
     max_sigma_m: float = 0.02
     max_sigma_deg: float = 1.5
+
+    @property
+    def verification(self) -> Verification:
+        """The thresholds a verified loop must reach, as the rule shared with relocalisation."""
+        return Verification(self.min_inliers, self.max_sigma_m, self.max_sigma_deg)
 
 
 @dataclass
@@ -177,18 +183,10 @@ def verify(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config:
             loops.append(loop)
             continue
         loop.rmse_m = float(alignment.inlier_rmse_m)
-        loop.sigma_m = float(np.sqrt(np.max(np.linalg.eigvalsh(cov[3:, 3:]))))
-        loop.sigma_deg = float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov[:3, :3])))))
+        loop.sigma_m, loop.sigma_deg = worst_sigmas(cov)
         loop.T_a_b, loop.covariance = T_a_b, cov
-        if loop.inliers < settings.min_inliers:
-            loop.status, loop.reason = "refused", f"{loop.inliers} inliers < {settings.min_inliers}"
-        elif not np.isfinite(loop.sigma_m) or loop.sigma_m > settings.max_sigma_m:
-            loop.status, loop.reason = "refused", f"translation sigma {loop.sigma_m * 100:.1f} cm > " \
-                f"{settings.max_sigma_m * 100:.1f} cm"
-        elif loop.sigma_deg > settings.max_sigma_deg:
-            loop.status, loop.reason = "refused", f"rotation sigma {loop.sigma_deg:.2f} deg > {settings.max_sigma_deg} deg"
-        else:
-            loop.status = "verified"
+        loop.reason = settings.verification.refusal(loop.inliers, loop.sigma_m, loop.sigma_deg)
+        loop.status = "refused" if loop.reason else "verified"
         loops.append(loop)
     return loops
 

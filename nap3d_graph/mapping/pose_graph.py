@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nap3d_graph.conventions import T_to_pose3, inv_T, log_se3, pose3_to_T
+from nap3d_graph.conventions import T_to_pose3, pose3_to_T
 from nap3d_graph.factors.gate import chi2_threshold
 
 __all__ = ["Edge", "GraphResult", "solve", "floor_covariance", "mahalanobis_sq"]
@@ -56,10 +56,27 @@ def floor_covariance(covariance: np.ndarray, rot_sigma_rad: float, trans_sigma_m
 
 
 def mahalanobis_sq(T_a: np.ndarray, T_b: np.ndarray, edge: Edge) -> float:
-    """Squared Mahalanobis distance of ``edge`` at poses ``T_a``, ``T_b`` (unwhitened error
-    ``Log(T_a_b^-1 T_a^-1 T_b)`` under the edge's covariance)."""
-    error = log_se3(inv_T(edge.T_a_b) @ inv_T(T_a) @ T_b)
-    return float(error @ np.linalg.solve(edge.covariance, error))
+    """Squared Mahalanobis distance of ``edge`` at poses ``T_a``, ``T_b``: the gate's
+    (:func:`nap3d_graph.factors.mahalanobis_sq`) on the edge's between factor."""
+    import gtsam
+    from gtsam.symbol_shorthand import X
+
+    from nap3d_graph.factors import mahalanobis_sq as factor_mahalanobis_sq
+
+    values = gtsam.Values()
+    values.insert(X(edge.a), T_to_pose3(T_a))
+    values.insert(X(edge.b), T_to_pose3(T_b))
+    return factor_mahalanobis_sq(_between(edge), values)
+
+
+def _between(edge: Edge):
+    """The edge as a GTSAM between factor of keys X(a), X(b), weighted by its covariance."""
+    import gtsam
+    from gtsam.symbol_shorthand import X
+
+    from nap3d_graph.factors import noise_model
+
+    return gtsam.BetweenFactorPose3(X(edge.a), X(edge.b), T_to_pose3(edge.T_a_b), noise_model(covariance=edge.covariance))
 
 
 def _graph(num_keys: int, edges: list[Edge]):
@@ -71,8 +88,7 @@ def _graph(num_keys: int, edges: list[Edge]):
     graph = gtsam.NonlinearFactorGraph()
     graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), noise_model(rot_sigma_rad=1e-6, trans_sigma_m=1e-6)))
     for edge in edges:
-        graph.add(gtsam.BetweenFactorPose3(X(edge.a), X(edge.b), T_to_pose3(edge.T_a_b),
-                                           noise_model(covariance=edge.covariance)))
+        graph.add(_between(edge))
     return graph
 
 

@@ -28,6 +28,7 @@ from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.nap3d.config import AlignConfig
 
 from .retrieval import Vocabulary, similarities, vlad
+from .verification import Verification, worst_sigmas
 
 __all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "KEYFRAME_FRAMES", "save_keyframe_frames"]
 
@@ -86,6 +87,12 @@ class RelocaliseSettings:
     max_sigma_deg: float = 2.0
     agree_m: float = 0.05
     agree_deg: float = 3.0
+
+    @property
+    def verification(self) -> Verification:
+        """What a verified candidate must reach, as the rule shared with the survey's loops
+        (looser here: a render is farther from the frame than a keyframe pair)."""
+        return Verification(self.min_inliers, self.max_sigma_m, self.max_sigma_deg)
 
 
 @dataclass
@@ -223,12 +230,10 @@ class Relocaliser:
                 reasons.append(correction.reason)
                 continue
             cov = correction.covariance
-            sigma_m = float(np.sqrt(np.max(np.linalg.eigvalsh(cov[3:, 3:]))))
-            sigma_deg = float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov[:3, :3])))))
-            if a.num_inliers < s.min_inliers:
-                reasons.append(f"{a.num_inliers} inliers < {s.min_inliers}")
-            elif not (sigma_m <= s.max_sigma_m and sigma_deg <= s.max_sigma_deg):
-                reasons.append(f"sigma {sigma_m * 100:.1f} cm / {sigma_deg:.1f} deg")
+            sigma_m, sigma_deg = worst_sigmas(cov)
+            refusal = s.verification.refusal(a.num_inliers, sigma_m, sigma_deg)
+            if refusal:
+                reasons.append(refusal)
             else:
                 found.append((sigma_m, int(k), correction.T_world_cam_corrected, cov, a.num_inliers, sigma_deg))
                 if len(self._agreeing(found)) > s.min_agreeing:
@@ -245,11 +250,9 @@ class Relocaliser:
             again = correct_pose(frame, self.field, T, iterations=1, config=self.config,
                                  render_intrinsics=self.render_intrinsics, feats_real=feats_real)
             if again.success and again.alignment.num_inliers >= s.min_inliers:
-                cov2 = again.covariance
-                s2 = float(np.sqrt(np.max(np.linalg.eigvalsh(cov2[3:, 3:]))))
+                s2, d2 = worst_sigmas(again.covariance)
                 if s2 <= s.max_sigma_m:
-                    found[0] = (s2, k, again.T_world_cam_corrected, cov2, again.alignment.num_inliers,
-                                float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov2[:3, :3]))))))
+                    found[0] = (s2, k, again.T_world_cam_corrected, again.covariance, again.alignment.num_inliers, d2)
         seconds = time.perf_counter() - started
         if not found:
             why = "; ".join(sorted(set(reasons))[:3]) or "no candidate"
