@@ -100,9 +100,7 @@ def main() -> None:
     for key in ("stages_640x480", "stages_320x240"):
         st = result[key]
         print(f"{key}: " + ", ".join(f"{k} {v:.1f}" for k, v in st.items()))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

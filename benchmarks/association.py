@@ -38,9 +38,7 @@ def main() -> None:
         result[method] = {"median_s": float(np.median(times)), "max_s": float(np.max(times)), "pairs": len(pairs)}
         print(f"{method:8s} association of {args.frames} frames: {np.median(times) * 1000:.1f} ms median "
               f"(max {np.max(times) * 1000:.1f} ms, {len(pairs)} pairs)")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

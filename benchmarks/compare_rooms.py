@@ -120,9 +120,7 @@ def main(argv=None) -> None:
                   + (f"; bias |z| max {np.max(np.abs(per_sequence[name]['bias_z_final'])):.1f}"
                      if "bias_z_final" in per_sequence[name] else ""), flush=True)
         result["paths"][path] = {"per_sequence": per_sequence, "pooled": pooled(per_sequence)}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -230,9 +230,7 @@ def main(argv=None) -> None:
                   f"odometry {r['ate_odometry_m'] * 100:.2f}), {r['accepted']}/{r['keyframes']} accepted", flush=True)
     s = result["at_true_pose"]
     print(json.dumps(s, indent=1))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

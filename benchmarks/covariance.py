@@ -103,9 +103,7 @@ def main(argv=None) -> None:
                                      "settings": {k: v for k, v in settings.items() if k != "methods"}}
             print(f"{key:18s} pooled: " + ", ".join(f"{b} {pooled[b]:.2f} [{bands[b][0]:.2f}, {bands[b][1]:.2f}]"
                                                       for b in pooled), flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -90,7 +90,6 @@ def main() -> None:
         out[name].update({"vs_gpu_depth_mm_median": float(np.nanmedian(dz) * 1000),
                           "vs_gpu_depth_mm_p99": float(np.nanmax(p99) * 1000),
                           "vs_gpu_opacity_flips": float(np.mean(flips)), "vs_gpu_colour_levels": float(np.mean(colour))})
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, out, args)
     print(json.dumps(out, indent=1))
 

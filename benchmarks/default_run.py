@@ -58,9 +58,7 @@ def main(argv=None) -> None:
         "seconds_per_keyframe": metrics["seconds_per_keyframe_median"],
     }
     print(json.dumps(result, indent=1))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -104,7 +104,6 @@ def main() -> None:
     result["mistakes"] = sum(c["mistake"] for c in result["cases"].values())
     result["false_alarms"] = sum(c["told"] for c in result["cases"].values() if not c["mistake"])
     shutil.rmtree(work, ignore_errors=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
     print(f"mistakes told {result['mistakes_told']}/{result['mistakes']}, false alarms {result['false_alarms']}; "
           f"wrote {args.out}")

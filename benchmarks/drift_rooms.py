@@ -113,9 +113,7 @@ def main(argv=None) -> None:
         print(f"{field:8s}: ATE with NAP3D {s['ate_estimate_m']['mean'] * 100:.2f} cm mean "
               f"({s['ate_estimate_m']['min'] * 100:.2f}-{s['ate_estimate_m']['max'] * 100:.2f}), odometry "
               f"{s['ate_odometry_m']['mean'] * 100:.2f} cm, {s['accepted_fraction'] * 100:.0f}% accepted")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -107,9 +107,7 @@ def main(argv=None) -> None:
                       f"{r['nees_band_95'][1]:.2f}), median {r['nees_median']:.2f}; ATE {r['ate_estimate_m'] * 100:.2f}"
                       f" cm (causal {r['ate_causal_m'] * 100:.2f}, odometry {r['ate_odometry_m'] * 100:.2f}); "
                       f"{r['accepted']}/{r['keyframes']} accepted", flush=True)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
         write_result(args.out, out, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -59,9 +59,7 @@ def main(argv=None) -> None:
     for frames in args.frames:
         for imu in (False, True):
             result["runs"][f"{frames}_{'imu' if imu else 'odometry'}"] = bench(frames, imu, args.seed)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

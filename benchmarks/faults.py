@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from provenance import write_result
+from scoring import unaligned_ate_m
 
 from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets import SimSequence
@@ -35,8 +36,7 @@ CONFIG = PipelineConfig(keyframe_every=3, render_width=None, render_height=None,
 
 
 def ate(result) -> float:
-    return float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in
-                                  zip(result.T_world_cam_estimate, result.T_world_cam_gt)])))
+    return unaligned_ate_m(result.T_world_cam_estimate, result.T_world_cam_gt)
 
 
 def _run(seq, hook=None, sequence=None):
@@ -122,7 +122,6 @@ def main() -> None:
                for k in keys}
     summary["scale_error_rel_max_abs"] = max(abs(r["every_frame_scaled_1.035"]["scale_error_rel"])
                                              for r in rooms.values())
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, {"benchmark": "faults", "rooms": rooms, "summary": summary}, args)
     print(json.dumps(summary, indent=1))
 

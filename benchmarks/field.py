@@ -208,7 +208,6 @@ def main(argv=None) -> int:
         "targets": {k: list(v) for k, v in TARGETS.items()},
     }
     print_table(results)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, results, args)
     print(f"\nwrote {args.out}")
     if tmp is not None:

@@ -121,9 +121,7 @@ def main(argv=None) -> None:
         print(f"{name:36s} NEES mean {r['nees_mean']:.1f} (band {r['nees_band_95'][0]:.2f}-{r['nees_band_95'][1]:.2f}), "
               f"median {r['nees_median']:.1f}; ATE {r['ate_estimate_m'] * 100:.2f} cm (odometry "
               f"{r['ate_odometry_m'] * 100:.2f}); accepted {r['accepted']}/{r['keyframes']}", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

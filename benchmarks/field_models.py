@@ -106,9 +106,7 @@ def main(argv=None) -> None:
               f"{d['p90']:.2f} deg (median / p90 / max), {r['failed']} failed of {r['frames']}, "
               f"{r['inliers_median']:.0f} inliers, render {r['render_ms_median']:.0f} ms, held-out "
               f"{psnr} dB, lag-1 correlation {r['lag1_correlation']:.2f} ({time.perf_counter() - started:.0f} s)", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

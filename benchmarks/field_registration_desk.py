@@ -101,9 +101,7 @@ def main() -> None:
               f"{s['psnr_flow_warped_db']['max']:.1f}); flow median {s['flow_px_median']['median']:.2f} px "
               f"({s['flow_px_median']['min']:.2f}-{s['flow_px_median']['max']:.2f}), p90 "
               f"{s['flow_px_p90']['median']:.1f} px (per frame medians over {len(rows)} frames)", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, out, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -148,9 +148,7 @@ def main() -> None:
               f"10k, {last[-1]:.3f} at {out['keyframes']} (p90 {out['isam_ms_p90_last_1000']:.3f}); RSS "
               f"{out['rss_mb_at']} MB; final solve {out['final_solve_s']:.1f} s; ATE {out['ate_m'] * 100:.2f} cm; "
               f"{out['graph_variables_at_end']} variables at the end", flush=True)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
         write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

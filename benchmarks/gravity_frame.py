@@ -98,7 +98,6 @@ def main() -> None:
             print(f"  {way:14s} ATE median {w['ate_median_m'] * 1000:8.1f} mm p90 {w['ate_p90_m'] * 1000:8.1f} max "
                   f"{w['ate_max_m'] * 1000:8.1f}; gravity off {w['gravity_off_median_deg']:.2f} deg (max "
                   f"{w['gravity_off_max_deg']:.2f}); lost {w['runs_with_under_80pct_accepted']}/{w['runs']}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, out, args)
 
 

@@ -210,7 +210,6 @@ def main() -> None:
         result["against_fields"] = compare(result, args.compare)
     if args.by_baseline:
         result["by_baseline"] = measure_by_baseline(args.data, args.field, args.matcher, args.step, args.by_baseline)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
     t = result["translation_mm"]
     print(f"{args.data.name}: {result['measured']} frames, each against its {args.nearest} nearest first-half frames (gap "

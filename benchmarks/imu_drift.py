@@ -109,7 +109,6 @@ def main(argv=None) -> None:
               f"(ratio {row['ratio']:.2f})")
     result = {"seeds": args.seeds, "duration_s": DURATION_S, "table": table,
               "note": "RMS over seeds; with N seeds a ratio within about 1 +- 2/sqrt(2N) agrees (chi distribution)"}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
     _plot(args.out.with_suffix(".png"), t, errors, mc_rms, predictions)
     print(f"wrote {args.out} and {args.out.with_suffix('.png')}")

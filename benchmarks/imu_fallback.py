@@ -67,7 +67,6 @@ def main() -> None:
         print(f"{name:10s} end {pooled[name]['end_m']['median'] * 100:7.1f} cm median (max "
               f"{pooled[name]['end_m']['max'] * 100:7.1f}); causal end {pooled[name]['end_causal_m']['median'] * 100:7.1f}"
               f" cm; worst after the field {pooled[name]['max_after_field_m']['max'] * 100:7.1f} cm")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, {"command": "python benchmarks/imu_fallback.py", "rooms": list(ROOMS),
                             "mapped_frames": MAPPED_FRAMES, "rows": rows, "pooled": pooled}, args)
 

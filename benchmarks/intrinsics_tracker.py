@@ -86,9 +86,7 @@ def main(argv=None) -> None:
               f"both always {b['ate_m'] * 100:.2f} cm ({b['accepted']}/{b['keyframes']}), "
               f"{b['measure_ms_median']:.0f} ms, {b['calibrated']} calibrated | "
               f"{'same trajectory' if same else 'trajectories differ'}", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, {"settings": results}, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

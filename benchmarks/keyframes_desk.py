@@ -72,9 +72,7 @@ def main(argv=None) -> None:
               f"{r['ate_causal_m'] * 100:.2f}; odometry {r['ate_odometry_m'] * 100:.2f}), accepted "
               f"{r['accepted']}/{r['keyframes']}, inliers {r['median_inliers']}, postponed {r['postponed']}, "
               f"doubt {r['doubt_keyframes']}", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -291,7 +291,6 @@ def main() -> None:
     # 4. relocalisation from random query frames
     result["relocalisation"] = relocalisation(map_dir, info, query, args, second_reference(args, survey, query,
                                                                                             T_map_full))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
     print(json.dumps({k: v for k, v in result.items() if k != "relocalisation"}, indent=1, default=float)[:4000])
     print({k: v for k, v in result["relocalisation"].items() if k != "per_attempt"})

@@ -70,9 +70,7 @@ def main(argv=None) -> None:
         print(f"{matcher:18s} ATE {r.get('ate_estimate_m', float('nan')) * 100:.2f} cm (odometry "
               f"{r.get('ate_odometry_m', float('nan')) * 100:.2f} cm), accepted {r.get('accepted')}/{r.get('keyframes')}, "
               f"median inliers {r.get('median_inliers')}", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

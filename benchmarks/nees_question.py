@@ -69,9 +69,7 @@ def main(argv=None) -> None:
         print(f"{name}: corrections NEES mean {c['nees_mean']:.1f} (median {c['nees_median']:.1f}), whitened std "
               f"{c['whitened_std_per_axis']}; estimators " + ", ".join(
                   f"{k} {v['nees_mean']:.1f}" for k, v in entry["estimators"].items() if v["nees_mean"] is not None))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, out, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -90,7 +90,6 @@ def main() -> None:
         stages = ", ".join(f"{k} {v['p50_ms']:.1f}/{v['p90_ms']:.1f}" for k, v in result["stages"].items())
         print(f"{name:9s} step {result['step']['p50_ms']:.1f} ms p50 / {result['step']['p90_ms']:.1f} p90, read "
               f"{result['read']['p50_ms']:.1f}; {stages} (ms p50/p90); {result['frames_per_s_at_p50']} frame/s")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, out, args)
 
 

@@ -146,9 +146,7 @@ def main(argv=None) -> None:
                       f"{s['trans_mm']['p90']:6.2f} max {s['trans_mm']['max']:7.2f} mm | rot median "
                       f"{s['rot_deg']['median']:.3f} p90 {s['rot_deg']['p90']:.3f} deg | success {s['success_rate']:.2f}")
     result["pooled"] = {f: {name: stats(r) for name, r in d.items()} for f, d in pooled.items()}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -106,9 +106,7 @@ def main() -> None:
     print("per keyframe (median s): " + ", ".join(f"{k} {v:.4f}" for k, v in per.items() if isinstance(v, float)))
     print(f"  total {per.get('total_per_keyframe', float('nan')):.3f} s (aim <= 0.5 s at 320x240)")
     print("iSAM2 update: " + ", ".join(f"{k} {v:.2f}" for k, v in result["isam2"].items()))
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

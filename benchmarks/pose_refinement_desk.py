@@ -64,9 +64,7 @@ def main(argv=None) -> None:
                          for odom, r in entry["runs"].items())
         print(f"{name:20s} agreement {refinement.get('agreement_before_mm', entry['timing_agreement_mm'])} -> "
               f"{refinement.get('agreement_after_mm', '-')} mm, PSNR {held['psnr_db']:.2f} dB; {runs}", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

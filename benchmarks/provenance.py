@@ -21,6 +21,11 @@ def _json_value(value):
 
 
 def write_result(path: str | Path, result: dict, args=None) -> None:
-    """``result`` with its ``provenance`` (``args``: the parsed arguments) to ``path`` (JSON, atomically)."""
+    """``result`` with its ``provenance`` (``args``: the parsed arguments) to ``path`` (JSON,
+    atomically; its folder made when missing), and a line saying so: every benchmark's
+    closing block."""
     settings = vars(args) if args is not None else None
-    write_json_atomic(Path(path), {"provenance": provenance(settings), **result}, default=_json_value)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, {"provenance": provenance(settings), **result}, default=_json_value)
+    print(f"wrote {path}")

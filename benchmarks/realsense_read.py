@@ -74,7 +74,6 @@ def main() -> None:
         "frames_per_s_end_to_end": rate(np.asarray(open_times) + np.asarray(iterate_times), n),
         "machine": {"cpus": __import__("os").cpu_count(), "python": platform.python_version()},
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
     print(f"{n} frames {args.width}x{args.height} + {imu} IMU samples ({size_mb:.0f} MB): "
           f"read {result['frames_per_s_read_raw']['median']:.0f} frame/s, opened as a sequence "

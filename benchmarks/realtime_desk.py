@@ -37,19 +37,15 @@ from pathlib import Path
 
 import numpy as np
 from provenance import write_result
+from scoring import unaligned_ate_m
 
 from nap3d_graph.cli.sources import LAND_WITHIN_FRAME_SHARE
-from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields import load_field
 from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pacing import CameraPace
 from nap3d_graph.run.pipeline import Pipeline
-
-
-def ate_m(T: np.ndarray, T_world_cam_gt: np.ndarray) -> float:
-    return float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(T, T_world_cam_gt)])))
 
 
 def stage_ms(records, key: str) -> dict | None:
@@ -87,8 +83,8 @@ def run(sequence, field, overlap: bool, keyframe_every: int, matcher: str, paced
         "behind_camera_s": None if pacer is None else {"median": float(np.median(pacer.behind_s)),
                                                        "max": float(np.max(pacer.behind_s))},
         "frames_per_s": len(sequence) / wall_s,
-        "ate_m": ate_m(result.T_world_cam_estimate, T_world_cam_gt), "causal_ate_m": ate_m(result.T_world_cam_online, T_world_cam_gt),
-        "odometry_ate_m": ate_m(result.T_world_cam_odometry, T_world_cam_gt),
+        "ate_m": unaligned_ate_m(result.T_world_cam_estimate, T_world_cam_gt), "causal_ate_m": unaligned_ate_m(result.T_world_cam_online, T_world_cam_gt),
+        "odometry_ate_m": unaligned_ate_m(result.T_world_cam_odometry, T_world_cam_gt),
         "keyframes": len(result.keyframes), "accepted": result.num_accepted,
         # Keyframes measured twice: the depth's scale fit said the metre is off by more than
         # AlignConfig.scale_tolerance, so the frame was aligned again with its depth rescaled.
@@ -208,7 +204,6 @@ def main() -> None:
             r.update(field=name, frames_per_s_vs_first_inline=r["frames_per_s"] / reference[every])
             out["runs"].append(r)
             report(name, r)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, out, args)
 
 

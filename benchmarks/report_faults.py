@@ -217,9 +217,7 @@ def main() -> None:
         result["runs"][name] = entry
         print(f"run {name}: past the bad line: {entry.get('past_bad_line', entry.get('error'))}; ATE "
               f"{entry.get('ate_m')}")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -111,7 +111,6 @@ def main() -> None:
                       f"keyframes {e.get('median', float('nan')):.1f} mm median (fast half "
                       f"{e.get('fast_half_median') or float('nan'):.1f}), NEES {row['nees_mean'] or float('nan'):.2f}",
                       flush=True)
-                args.out.parent.mkdir(parents=True, exist_ok=True)
                 write_result(args.out, out, args)
 
 

@@ -135,7 +135,6 @@ def main() -> None:
         for run in runs.values():
             run.pop("estimate")
         result["runs"] = runs
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
     for name, source in result["sources"].items():
         print(f"{name}: {source['read_frames_per_s']:.0f} frame/s" + (

@@ -78,9 +78,7 @@ def main() -> None:
               f"{ok.sum()}/{len(errors)} pairs, {entry['pair_error_cm']['median']:.2f} cm median "
               f"(p90 {entry['pair_error_cm']['p90']:.2f}, max {entry['pair_error_cm']['max']:.2f}), "
               f"{entry['pair_error_deg']['median']:.3f} deg")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

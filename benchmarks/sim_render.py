@@ -35,9 +35,7 @@ def main() -> None:
             times.append(time.perf_counter() - t0)
         result[f"{w}x{h}"] = {"median_s": float(np.median(times)), "min_s": float(np.min(times))}
         print(f"render {w}x{h}: {np.median(times):.3f} s per frame (median of {args.repeats})")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
-    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

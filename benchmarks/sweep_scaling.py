@@ -70,7 +70,6 @@ def main() -> None:
     ratio = result["runs"]["workers_2"]["seconds"] / result["runs"]["workers_1"]["seconds"]
     result.update({"cells": cells, "fields": 2, "ratio_2_to_1_workers": ratio, "same_table_up_to_timings": same,
                    "target_ratio": 0.6})
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
     print(f"{cells} cells on {args.pool}: 1 worker {result['runs']['workers_1']['seconds']:.1f} s, 2 workers "
           f"{result['runs']['workers_2']['seconds']:.1f} s: ratio {ratio:.2f} (target <= 0.6); same table: {same}")

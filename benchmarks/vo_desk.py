@@ -65,7 +65,6 @@ def main() -> None:
         print(f"{kind:6s}: {r['step_ms']['median']:.0f} ms per step (+{r['read_ms']['median']:.0f} ms reading), "
               f"{r['frames_per_s']:.1f} frame/s; drift ATE {r['ate_m'] * 100:.1f} cm, final {r['final_error_m'] * 100:.1f} cm, "
               f"{r['failed_steps']} failed steps")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, result, args)
 
 

@@ -24,12 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from provenance import write_result
-
-from nap3d_graph.conventions import pose_error
-
-
-def ate_m(T: np.ndarray, T_gt: np.ndarray) -> float:
-    return float(np.sqrt(np.mean([pose_error(a, b)[0] ** 2 for a, b in zip(T, T_gt)])))
+from scoring import unaligned_ate_m
 
 
 def odometry_alone(sequence, matcher: str, width: int | None) -> dict:
@@ -44,7 +39,7 @@ def odometry_alone(sequence, matcher: str, width: int | None) -> dict:
         inc = odometry.increment(i, frame)
         step_s.append(time.perf_counter() - t0)
         T.append(T[-1] @ inc.T_prev_cur)
-    return {"ate_m": ate_m(np.array(T), sequence.T_world_cam_gt),
+    return {"ate_m": unaligned_ate_m(np.array(T), sequence.T_world_cam_gt),
             "step_ms": {"median": 1000 * float(np.median(step_s)), "p90": 1000 * float(np.percentile(step_s, 90))}}
 
 
@@ -64,8 +59,8 @@ def paced_run(sequence, field, matcher: str, width: int | None) -> dict:
     result = Pipeline(sequence, field, make_odometry("vo", sequence, matcher=matcher, vo_width=width),
                       config).run(stop=pace)
     gt = sequence.T_world_cam_gt
-    return {"camera_rate_hz": 1.0 / period_s, **pace.summary(), "ate_m": ate_m(result.T_world_cam_estimate, gt),
-            "ate_causal_m": ate_m(result.T_world_cam_online, gt),
+    return {"camera_rate_hz": 1.0 / period_s, **pace.summary(), "ate_m": unaligned_ate_m(result.T_world_cam_estimate, gt),
+            "ate_causal_m": unaligned_ate_m(result.T_world_cam_online, gt),
             "accepted": sum(k.accepted for k in result.keyframes), "keyframes": len(result.keyframes)}
 
 
@@ -93,8 +88,8 @@ def whole_run(sequence, field, matcher: str, width: int | None, overlap: bool) -
         correct_module.detect_features = detect
     gt = sequence.T_world_cam_gt
     return {"overlap": overlap, "frames_per_s": len(sequence) / wall_s,
-            "ate_m": ate_m(result.T_world_cam_estimate, gt), "ate_causal_m": ate_m(result.T_world_cam_online, gt),
-            "ate_odometry_m": ate_m(result.T_world_cam_odometry, gt),
+            "ate_m": unaligned_ate_m(result.T_world_cam_estimate, gt), "ate_causal_m": unaligned_ate_m(result.T_world_cam_online, gt),
+            "ate_odometry_m": unaligned_ate_m(result.T_world_cam_odometry, gt),
             "accepted": sum(k.accepted for k in result.keyframes), "keyframes": len(result.keyframes),
             "real_frame_detections": len(calls)}
 
@@ -138,7 +133,6 @@ def main() -> None:
                   f"{1000 * paced['behind_camera_s']['max']:.0f} ms behind the camera "
                   f"({paced['frames_over_a_period_late']} frames over a period late), ATE {100 * paced['ate_m']:.2f} cm "
                   f"(causal {100 * paced['ate_causal_m']:.2f}), {paced['accepted']}/{paced['keyframes']}", flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     write_result(args.out, out, args)
 
 
