@@ -26,8 +26,9 @@ from provenance import write_result
 def main() -> None:
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, _load_edges, _working_intrinsics, place_frames
+    from nap3d_graph.mapping.build import MapSettings, _working_intrinsics, place_frames
     from nap3d_graph.mapping.bundle import BundleSettings, bundle_adjust
+    from nap3d_graph.mapping.loops import load_edges
     from nap3d_graph.mapping.pose_graph import Edge, floor_covariance, solve
     from nap3d_graph.mapping.survey import SurveyOdometry
 
@@ -45,7 +46,7 @@ def main() -> None:
     references = {"ground truth": np.asarray(sequence.T_world_cam_gt)}
     if args.second_gt is not None:
         references["second ground truth"] = second_gt_for(sequence, read_sfm_pseudo_gt(args.second_gt))
-    chain, loops, chain_matches = _load_edges(args.map / "edges.npz")
+    chain, loops, chain_matches = load_edges(args.map / "edges.npz")
     keys = np.load(args.map / "keyframes.npz")["indices"]
     survey = SurveyOdometry.load(args.map / "odometry.npz")
     start, stop = info["segment"]["start"], info["segment"]["stop"]

@@ -28,9 +28,9 @@ from provenance import write_result
 
 def false_loops(map_dir: Path, sequence) -> dict:
     from nap3d_graph.conventions import inv_T, log_se3
-    from nap3d_graph.mapping.build import _load_edges
+    from nap3d_graph.mapping.loops import load_edges
 
-    _, loops, _ = _load_edges(map_dir / "edges.npz")
+    _, loops, _ = load_edges(map_dir / "edges.npz")
     import csv
 
     status = {(int(r["keyframe_a"]), int(r["keyframe_b"])): r["status"]
@@ -76,8 +76,8 @@ def forced_twin_pairs(map_dir: Path, survey: Path, matcher: str, limit: int = 40
     from nap3d_graph.conventions import inv_T, log_se3
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, _align_config, _keyframes, _load_edges, place_frames
-    from nap3d_graph.mapping.loops import verify_pair
+    from nap3d_graph.mapping.build import MapSettings, _align_config, _keyframes, place_frames
+    from nap3d_graph.mapping.loops import load_edges, verify_pair
     from nap3d_graph.mapping.pose_graph import Edge, floor_covariance, solve
     from nap3d_graph.mapping.survey import SurveyOdometry
     from nap3d_graph.sims.scene import Poster, Scene
@@ -109,7 +109,7 @@ def forced_twin_pairs(map_dir: Path, survey: Path, matcher: str, limit: int = 40
             forced.append(Edge(a, b, T_a_b, floor_covariance(cov, settings.edge_floor_rad, settings.edge_floor_m),
                                "loop"))
         rows.append(row)
-    chain, loops, _ = _load_edges(map_dir / "edges.npz")
+    chain, loops, _ = load_edges(map_dir / "edges.npz")
     own = [Edge(lp.a, lp.b, lp.T_a_b, floor_covariance(lp.covariance, settings.edge_floor_rad, settings.edge_floor_m),
                 "loop") for lp in loops if lp.status == "verified"]
     survey_odometry = SurveyOdometry.load(map_dir / "odometry.npz")

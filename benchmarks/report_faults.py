@@ -147,13 +147,13 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float) -> Path:
     keyframe said to be ``error_m`` from where the map has them) forced in as a non-robust
     edge (``error_m`` 0: the same solve without it, the reference)."""
     from nap3d_graph.conventions import exp_se3, inv_T
-    from nap3d_graph.mapping.build import _load_edges
+    from nap3d_graph.mapping.loops import load_edges
     from nap3d_graph.mapping.pose_graph import Edge, solve
 
     if out.exists():
         shutil.rmtree(out)
     shutil.copytree(map_dir, out)
-    chain, loops, _ = _load_edges(out / "edges.npz")
+    chain, loops, _ = load_edges(out / "edges.npz")
     T_key = np.load(out / "keyframe_poses.npy")
     import csv
 

@@ -318,7 +318,7 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
     record: dict = {}
     if map_dir is not None:
         from nap3d_graph.mapping import reframed
-        from nap3d_graph.mapping.build import load_map_info
+        from nap3d_graph.mapping.folder import load_map_info
 
         info = load_map_info(map_dir)
         T_gt_map = (info.get("survey_ate") or {}).get("T_gt_map")

@@ -12,20 +12,26 @@ Verification cannot tell a repeated texture from a revisit; the robust pose grap
 
 from __future__ import annotations
 
+import csv
 import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from nap3d_graph.camera import RenderedView, RGBDFrame
 from nap3d_graph.conventions import inv_T, rotation_angle_deg
+from nap3d_graph.factors.gate import chi2_threshold
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.matching import Features
 
+from .bundle import PairMatches
+from .pose_graph import Edge, floor_covariance, mahalanobis_sq
 from .retrieval import similarities
 from .verification import Verification, worst_sigmas
 
-__all__ = ["Keyframe", "Loop", "LoopSettings", "as_view", "candidates", "verify", "verify_pair"]
+__all__ = ["Keyframe", "Loop", "LoopSettings", "as_view", "candidates", "verify", "verify_pair", "consecutive_edges",
+           "save_edges", "load_edges", "write_loops_csv"]
 
 log = logging.getLogger(__name__)
 
@@ -143,7 +149,6 @@ def verify_pair(key_a: Keyframe, key_b: Keyframe, config: AlignConfig, a: int = 
     from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
     from nap3d_graph.results import Alignment
 
-    from .bundle import PairMatches
 
     view = as_view(key_b.frame)
     try:
@@ -195,3 +200,90 @@ def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     """(metres, degrees) between two poses."""
     T = inv_T(T_a) @ T_b
     return float(np.linalg.norm(T[:3, 3])), float(rotation_angle_deg(T[:3, :3]))
+
+
+def consecutive_edges(keyframes: list[Keyframe], survey, config: AlignConfig, min_inliers: int, gate_p: float,
+                      floor_rad: float, floor_m: float) -> tuple[list[Edge], list[str], list[PairMatches]]:
+    """Consecutive keyframes tied by their own alignment where it has ``min_inliers`` and
+    agrees with the odometry's chained steps (``survey.between``; chi-square gate at
+    ``gate_p``), else by the odometry; every edge's covariance floored (``floor_rad``,
+    ``floor_m``). Returns the edges, each one's kind ('alignment' or 'odometry') and the inlier
+    matches of the aligned ones."""
+    edges, kinds, matches = [], [], []
+    threshold = chi2_threshold(gate_p, 6)
+    for a in range(len(keyframes) - 1):
+        i, j = keyframes[a].index, keyframes[a + 1].index
+        T_odom, cov_odom = survey.between(i, j)
+        cov_odom = floor_covariance(cov_odom, floor_rad, floor_m)
+        T_align, cov_align, alignment = verify_pair(keyframes[a], keyframes[a + 1], config, a, a + 1)
+        if alignment.success and alignment.num_inliers >= min_inliers:
+            cov_align = floor_covariance(cov_align, floor_rad, floor_m)
+            d2 = mahalanobis_sq(np.eye(4), T_odom, Edge(0, 1, T_align, cov_align + cov_odom, "alignment"))
+            if d2 <= threshold:
+                edges.append(Edge(a, a + 1, T_align, cov_align, "alignment"))
+                kinds.append("alignment")
+                matches.append(alignment.diagnostics["matches"])
+                continue
+        edges.append(Edge(a, a + 1, T_odom, cov_odom, "odometry"))
+        kinds.append("odometry")
+    return edges, kinds, matches
+
+
+# --- the loop stage's files -------------------------------------------------------------
+
+
+def save_edges(path: Path, chain: list[Edge], loops: list[Loop], chain_matches: list[PairMatches]) -> None:
+    """The chain's edges, the loops and every inlier match, in one compressed file (``edges.npz``)."""
+    pairs = list(chain_matches) + [lp.matches_kept for lp in loops if lp.matches_kept is not None]
+    owner = [-1] * len(chain_matches) + [n for n, lp in enumerate(loops) if lp.matches_kept is not None]
+    sizes = [len(p.z_a) for p in pairs]
+    np.savez_compressed(
+        path,
+        pm_owner=np.array(owner, dtype=int), pm_ab=np.array([[p.a, p.b] for p in pairs], dtype=int).reshape(-1, 2),
+        pm_size=np.array(sizes, dtype=int),
+        pm_uv_a=np.concatenate([p.uv_a for p in pairs]).reshape(-1, 2) if pairs else np.zeros((0, 2)),
+        pm_uv_b=np.concatenate([p.uv_b for p in pairs]).reshape(-1, 2) if pairs else np.zeros((0, 2)),
+        pm_z_a=np.concatenate([p.z_a for p in pairs]) if pairs else np.zeros(0),
+        pm_z_b=np.concatenate([p.z_b for p in pairs]) if pairs else np.zeros(0),
+        chain_ab=np.array([[e.a, e.b] for e in chain], dtype=int).reshape(-1, 2),
+        chain_T=np.array([e.T_a_b for e in chain]).reshape(-1, 4, 4),
+        chain_cov=np.array([e.covariance for e in chain]).reshape(-1, 6, 6),
+        chain_kind=np.array([e.kind for e in chain]),
+        loop_abij=np.array([[lp.a, lp.b, lp.i, lp.j, lp.matches, lp.inliers] for lp in loops], dtype=int).reshape(-1, 6),
+        loop_T=np.array([lp.T_a_b for lp in loops]).reshape(-1, 4, 4),
+        loop_cov=np.array([lp.covariance for lp in loops]).reshape(-1, 6, 6),
+        loop_stats=np.array([[lp.rmse_m, lp.sigma_m, lp.sigma_deg] for lp in loops]).reshape(-1, 3),
+        loop_text=np.array([[lp.source, lp.status, lp.reason] for lp in loops], dtype=str).reshape(-1, 3))
+
+
+def load_edges(path: Path) -> tuple[list[Edge], list[Loop], list[PairMatches]]:
+    """What :func:`save_edges` wrote: the chain's edges, the loops (decisions of the graph
+    forgotten: it decides again) and the chain's matches."""
+    with np.load(path) as d:
+        bounds = np.concatenate([[0], np.cumsum(d["pm_size"])]).astype(int)
+        pairs = [PairMatches(int(a), int(b), d["pm_uv_a"][s:e], d["pm_uv_b"][s:e], d["pm_z_a"][s:e], d["pm_z_b"][s:e])
+                 for (a, b), s, e in zip(d["pm_ab"], bounds[:-1], bounds[1:])]
+        owners = d["pm_owner"]
+        chain = [Edge(int(a), int(b), T, c, str(k)) for (a, b), T, c, k in
+                 zip(d["chain_ab"], d["chain_T"], d["chain_cov"], d["chain_kind"])]
+        loops = []
+        for (a, b, i, j, m, n), T, c, (rmse, sm, sd), (source, status, reason) in zip(
+                d["loop_abij"], d["loop_T"], d["loop_cov"], d["loop_stats"], d["loop_text"]):
+            status = "verified" if status in ("accepted", "rejected") else str(status)
+            loops.append(Loop(int(a), int(b), int(i), int(j), str(source), int(m), int(n), float(rmse), float(sm),
+                              float(sd), T, c, status, str(reason)))
+    for owner, pair in zip(owners, pairs):
+        if owner >= 0:
+            loops[owner].matches_kept = pair
+    return chain, loops, [p for o, p in zip(owners, pairs) if o < 0]
+
+
+def write_loops_csv(path: Path, loops: list[Loop]) -> None:
+    """Every loop, its verification and decision, as CSV (atomically)."""
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(Loop.CSV_HEADER)
+        for lp in loops:
+            writer.writerow(lp.csv_row())
+    tmp.replace(path)

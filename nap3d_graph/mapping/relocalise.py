@@ -27,15 +27,14 @@ from nap3d_graph.camera import Intrinsics, RGBDFrame
 from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.nap3d.config import AlignConfig
 
+from .folder import MapFolder
 from .retrieval import Vocabulary, similarities, vlad
 from .verification import Verification, worst_sigmas
 
-__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "KEYFRAME_FRAMES", "save_keyframe_frames"]
+__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames"]
 
 log = logging.getLogger(__name__)
 
-#: The map's keyframe images (colour and depth at ``KEYFRAME_WIDTH``), for real-vs-real relocalisation.
-KEYFRAME_FRAMES = "keyframe_frames.npz"
 #: Width in pixels of the kept keyframe images (a correction's render size; ~0.3 MB a keyframe compressed).
 KEYFRAME_WIDTH = 320
 
@@ -136,20 +135,20 @@ class Relocaliser:
 
     def __init__(self, map_dir, field_obj, config: AlignConfig | None = None,
                  render_intrinsics: Intrinsics | None = None, settings: RelocaliseSettings | None = None):
-        folder = Path(map_dir)
-        with np.load(folder / "keyframes.npz") as data:
+        folder = MapFolder(Path(map_dir))
+        with np.load(folder.keyframes) as data:
             self.indices = data["indices"].astype(int)
             self.descriptors = data["descriptors"]
             self.vocabulary = Vocabulary(data["centres"])
             self.matcher = str(data["matcher"])
             width = int(data["width"])
             self.width = None if width < 0 else width
-        self.T_map_key = np.load(folder / "keyframe_poses.npy")
+        self.T_map_key = np.load(folder.keyframe_poses)
         self.field = field_obj
         self.config = config or AlignConfig(matcher=self.matcher)
         self.render_intrinsics = render_intrinsics
         self.settings = settings or RelocaliseSettings()
-        self.keyframe_frames = _load_keyframe_frames(folder / KEYFRAME_FRAMES)
+        self.keyframe_frames = _load_keyframe_frames(folder.keyframe_frames)
         self._keyframe_features: dict[int, object] = {}  # detected once, when first a candidate
 
     def descriptor(self, frame: RGBDFrame) -> np.ndarray:

@@ -31,9 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.conventions import inv_T
 from nap3d_graph.run.report import FigureReport
+from nap3d_graph.textfiles import write_json_atomic
 
-__all__ = ["MapReport", "map_report", "write_map_report", "LOOP_RESIDUAL_BAD", "REPROJECTION_BAD_PX",
+from .folder import MapFolder
+
+__all__ = ["MapReport", "map_report", "write_map_report", "write_outputs", "LOOP_RESIDUAL_BAD", "REPROJECTION_BAD_PX",
            "HELD_OUT_PSNR_BAD_DB", "HELD_OUT_DEPTH_BAD_M", "COVERED_BAD", "HELD_OUT_NAP3D_BAD_M"]
 
 log = logging.getLogger(__name__)
@@ -69,7 +73,8 @@ def loop_residuals(folder: Path) -> np.ndarray:
 
     from nap3d_graph.conventions import inv_T, pose_error
 
-    edges, poses, table = folder / "edges.npz", folder / "keyframe_poses.npy", folder / "loops.csv"
+    files = MapFolder(Path(folder))
+    edges, poses, table = files.edges, files.keyframe_poses, files.loops_table
     if not (edges.is_file() and poses.is_file() and table.is_file()):
         return np.zeros((0, 2))
     with table.open(newline="") as f:
@@ -119,7 +124,7 @@ def _bundle(report: MapReport, info: dict) -> None:
 
 
 def _field(report: MapReport, folder: Path) -> None:
-    path = folder / "field.report.json"
+    path = MapFolder(Path(folder)).field_report
     if not path.is_file():
         report.add("field", "not built (--no-field)", "built", None)
         return
@@ -155,7 +160,7 @@ def _field(report: MapReport, folder: Path) -> None:
 def map_report(folder) -> MapReport:
     """The map's figures without ground truth, read from its folder."""
     folder = Path(folder)
-    info = json.loads((folder / "map.json").read_text())
+    info = MapFolder.read(folder).info
     report = MapReport()
     _loops(report, info, folder)
     _bundle(report, info)
@@ -172,7 +177,98 @@ def map_report(folder) -> MapReport:
 
 def write_map_report(folder) -> MapReport:
     """Write ``report.md`` into the map folder; returns the report."""
-    folder = Path(folder)
-    report = map_report(folder)
-    report.write(folder / "report.md", "Is the map good?", "![the map from above, loops drawn](map.png)")
+    files = MapFolder(Path(folder))
+    report = map_report(files.root)
+    report.write(files.report, "Is the map good?", f"![the map from above, loops drawn]({files.plot.name})")
     return report
+
+
+# --- written once the survey's poses are final ------------------------------------------
+
+
+def write_outputs(folder: MapFolder, sequence, survey, segment: tuple[int, int], T_map_cam: np.ndarray,
+                  T_map_key: np.ndarray, T_graph_cam: np.ndarray | None, loops: list, verified: list) -> None:
+    """The map's last outputs, once its poses are final: ``survey_ate.json`` where the
+    recording has ground truth (read only now), the loop counts in ``map.json``, ``map.png``
+    and ``report.md`` (its verdict in ``map.json`` too). ``T_graph_cam``: the frames placed by
+    the pose graph before the bundle adjustment (None without one)."""
+    start, stop = segment
+    info = folder.info
+    info["survey_ate"] = _survey_ate(folder, sequence, T_map_cam, survey, start, stop, T_graph_cam)
+    accepted = sum(lp.status == "accepted" for lp in verified)
+    info["loops"] = {"candidates": len(loops), "verified": len(verified), "accepted": accepted,
+                     "rejected": len(verified) - accepted}
+    info["keyframes"] = int(len(T_map_key))
+    folder.save()
+    _plot(folder.plot, T_map_cam, T_map_key, verified, sequence, info.get("survey_ate"))
+    info["report"] = {"file": folder.report.name, "past_bad_line": write_map_report(folder.root).bad}
+    folder.save()
+
+
+def _survey_ate(folder: MapFolder, sequence, T_map_cam: np.ndarray, survey, start: int, stop: int,
+                T_graph_cam: np.ndarray | None = None) -> dict | None:
+    """``survey_ate.json`` where the recording has ground truth: the map's poses and the
+    odometry's alone against it, each SE(3)-aligned, with per-frame errors and the transform
+    ``T_gt_map`` that runs use to score in the ground truth's frame."""
+    T_gt = getattr(sequence, "T_world_cam_gt", None)
+    if T_gt is None:
+        return None
+    from nap3d_graph.evaluation.alignment import aligned_errors
+
+    stamps = np.asarray(sequence.timestamps, dtype=float)
+    T_odom = np.full_like(T_map_cam, np.nan)
+    T_odom[start:stop] = survey.T_odom_cam[start:stop]
+    mapped = aligned_errors(stamps, T_gt, T_map_cam)
+    if mapped is None:
+        return None
+    odometry = aligned_errors(stamps, T_gt, T_odom)
+    graph_only = None if T_graph_cam is None else aligned_errors(stamps, T_gt, T_graph_cam)
+    report = {"ground_truth": "the recording's own (never read to build the map)",
+              "map": mapped.summary(), "odometry_only": None if odometry is None else odometry.summary(),
+              "pose_graph_only": None if graph_only is None else graph_only.summary(),
+              "T_gt_map": mapped.T_ref_est.tolist(),
+              "per_frame": {"timestamp": mapped.stamps.tolist(), "error_m": mapped.errors_m.round(6).tolist()}}
+    if odometry is not None and mapped.rmse_m > odometry.rmse_m:
+        report["warning"] = (f"the map's poses are worse than the odometry's alone ({mapped.rmse_m * 100:.2f} against "
+                             f"{odometry.rmse_m * 100:.2f} cm ATE): a wrong loop or a bad edge bent it")
+        log.warning(report["warning"])
+    write_json_atomic(folder.survey_ate, report, default=float)
+    return {k: report[k] for k in ("map", "odometry_only", "pose_graph_only", "T_gt_map")} | (
+        {"warning": report["warning"]} if "warning" in report else {})
+
+
+def _plot(path: Path, T_map_cam: np.ndarray, T_map_key: np.ndarray, loops: list, sequence, ate) -> None:
+    """Top view (the first camera's x and z) of the path, keyframes and loop edges (accepted
+    green, rejected red), and the ground truth moved into the map where known."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    posed = np.all(np.isfinite(T_map_cam), axis=(1, 2))
+    if ate and sequence.T_world_cam_gt is not None:
+        T_gt_in_map = inv_T(np.asarray(ate["T_gt_map"])) @ np.asarray(sequence.T_world_cam_gt)
+        ok = np.all(np.isfinite(T_gt_in_map), axis=(1, 2))
+        ax.plot(T_gt_in_map[ok, 0, 3], T_gt_in_map[ok, 2, 3], color="0.6", lw=2, label="ground truth (aligned)")
+    ax.plot(T_map_cam[posed, 0, 3], T_map_cam[posed, 2, 3], "b-", lw=1, label="map poses")
+    ax.plot(T_map_key[:, 0, 3], T_map_key[:, 2, 3], "b.", ms=4)
+    for label, status, colour in (("accepted loops", "accepted", "g"), ("rejected loops", "rejected", "r")):
+        first = True
+        for lp in loops:
+            if lp.status != status:
+                continue
+            a, b = T_map_key[lp.a, :3, 3], T_map_key[lp.b, :3, 3]
+            ax.plot([a[0], b[0]], [a[2], b[2]], colour + "-", lw=0.6, alpha=0.7, label=label if first else None)
+            first = False
+    title = "map: survey poses from the camera alone"
+    if ate:
+        title += f"\nATE {ate['map']['rmse_m'] * 100:.2f} cm (odometry alone {ate['odometry_only']['rmse_m'] * 100:.2f})"
+    ax.set_title(title)
+    ax.set_xlabel("x (m, first camera)")
+    ax.set_ylabel("z (m, first camera)")
+    ax.axis("equal")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
