@@ -249,8 +249,8 @@ def main() -> None:
             "gt_posed": run_query(args.data, args.traj, query_frames, gt_field, work / "run_gt",
                                   ("--matcher", args.matcher))}
     if second is not None:  # the map pinned to the second ground truth, trained as train-field would
+        from nap3d_graph.datasets.posed import PosedSequence
         from nap3d_graph.fields.build import build_field
-        from nap3d_graph.mapping import PosedSequence
 
         sfm_field = work / "sfm_field.pt"
         if not sfm_field.is_file():

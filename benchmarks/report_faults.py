@@ -104,9 +104,9 @@ def blurred_map(map_dir: Path, out: Path, cell_m: float) -> Path:
 
 def _held_out(map_dir: Path, sequence) -> dict:
     """The field's figures on the survey frames it did not train on, measured again."""
+    from nap3d_graph.datasets.posed import PosedSequence
     from nap3d_graph.fields import load_field
     from nap3d_graph.fields.evaluation import evaluate_field
-    from nap3d_graph.mapping.posed import PosedSequence
     from nap3d_graph.trajectory import read_tum_trajectory
 
     report = json.loads((map_dir / "field.report.json").read_text())

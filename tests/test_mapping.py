@@ -305,8 +305,8 @@ class _JumpingOdometry:
 
 @pytest.mark.slow
 def test_a_run_that_loses_track_recovers_by_relocalising_in_the_map(xyz_map):
+    from nap3d_graph.datasets.posed import reframed
     from nap3d_graph.fields import resolve_field
-    from nap3d_graph.mapping import reframed
     from nap3d_graph.mapping.relocalise import Relocaliser
     from nap3d_graph.motion.odometry import VisualOdometry
     from nap3d_graph.nap3d.config import AlignConfig
@@ -358,7 +358,7 @@ class _BlindUntil:
 
 
 def _in_map(sequence, result):
-    from nap3d_graph.mapping import reframed
+    from nap3d_graph.datasets.posed import reframed
 
     T_gt_map = np.asarray(json.loads((result.folder / "survey_ate.json").read_text())["T_gt_map"])
     return reframed(sequence._base, inv_T(T_gt_map), "ground truth in the map's frame")

@@ -317,7 +317,7 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
     map_dir = (getattr(field_obj, "meta", None) or {}).get("map")
     record: dict = {}
     if map_dir is not None:
-        from nap3d_graph.mapping import reframed
+        from nap3d_graph.datasets.posed import reframed
         from nap3d_graph.mapping.folder import load_map_info
 
         info = load_map_info(map_dir)

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.datasets.posed import PosedSequence
 
 from ..conventions import exp_se3, inv_T, log_se3
 
@@ -49,42 +50,32 @@ class PoseRefinementConfig:
     history: list = field(default_factory=list)
 
 
-class PoseCorrectedSequence:
+class PoseCorrectedSequence(PosedSequence):
     """``sequence`` with each frame ``i`` of ``corrections`` posed at ``T_world_cam_gt[i] @ D_i`` (D_i: a
     body-frame correction (4, 4)); ``ground_truth_at(t)`` applies the correction of the frame
     nearest in time, so the capture-timing interpolation of a field build still works."""
 
     def __init__(self, sequence, corrections: dict[int, np.ndarray]):
-        self._sequence = sequence
-        self._corrections = self.corrections = corrections
-        self._order = np.array(sorted(corrections), dtype=int)
         poses = np.array(sequence.T_world_cam_gt, dtype=float)
         for i, D in corrections.items():
             poses[i] = poses[i] @ D
-        self.T_world_cam_gt = poses
-
-    def __getattr__(self, name):
-        return getattr(self._sequence, name)
-
-    def __len__(self) -> int:
-        return len(self._sequence)
-
-    def __getitem__(self, i):
-        return self._sequence[i]
+        super().__init__(sequence, poses, "refined training poses")
+        self.corrections = corrections
+        self._order = np.array(sorted(corrections), dtype=int)
 
     def ground_truth_at(self, stamps) -> np.ndarray | None:
-        base = self._sequence.ground_truth_at(stamps)
+        base = self._base.ground_truth_at(stamps)
         if base is None or not len(self._order):
             return base
         stamps = np.asarray(stamps, dtype=float)
-        all_stamps = np.asarray(self._sequence.timestamps, dtype=float)
+        all_stamps = np.asarray(self._base.timestamps, dtype=float)
         frame_stamps = all_stamps[self._order]
         gap = np.abs(stamps[:, None] - frame_stamps[None, :])
         nearest = gap.argmin(axis=1)
         # Only instants of a corrected frame's own capture (its depth a few ms off its colour):
         # a frame that was not refined (held out) keeps its input pose.
         reach = 0.5 * float(np.median(np.diff(all_stamps))) if len(all_stamps) > 1 else np.inf
-        return np.stack([T @ self._corrections[int(self._order[k])] if gap[j, k] < reach else T
+        return np.stack([T @ self.corrections[int(self._order[k])] if gap[j, k] < reach else T
                          for j, (T, k) in enumerate(zip(base, nearest))])
 
 

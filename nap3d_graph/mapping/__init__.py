@@ -10,7 +10,3 @@ poses; :mod:`.folder` names the map folder's files, :mod:`.report` writes its ou
 :mod:`.verification` is what "verified" means for loops and relocalisation; :mod:`.posed` presents a sequence with the map's poses as if they were its own;
 :mod:`.relocalise` finds a frame in a map.
 """
-
-from .posed import PosedSequence, reframed
-
-__all__ = ["PosedSequence", "reframed"]

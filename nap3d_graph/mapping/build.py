@@ -282,7 +282,7 @@ def _field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: M
                  progress: bool, say, device: str | None) -> None:
     """Stage 5: the field of ``settings.model`` trained at the map's poses (kept when one with
     the same field settings finished before)."""
-    from .posed import PosedSequence
+    from nap3d_graph.datasets.posed import PosedSequence
 
     field_settings = {k: getattr(settings, k) for k in FIELD_SETTINGS}
     if folder.info["stages"].get("field", {}).get("settings") == field_settings and folder.field.is_file():

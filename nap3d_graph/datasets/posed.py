@@ -1,16 +1,18 @@
-"""A sequence seen through other poses than its ground truth.
+"""A sequence seen through other poses than its ground truth: the one wrapper for it.
 
 Training a field reads a sequence's ``T_world_cam_gt`` (and ``ground_truth_at`` for the
-capture timing): :class:`PosedSequence` gives the map's own poses there, so the field is built
-exactly as for a recording with ground truth, without one. :func:`reframed` moves a
-sequence's ground truth into a map's frame (for evaluation in that frame).
+capture timing): :class:`PosedSequence` gives other poses there (a map's own, a second
+ground truth), so the field is built exactly as for a recording with ground truth, without
+one. :func:`reframed` moves a sequence's ground truth into a map's frame (for evaluation in
+that frame); :class:`~nap3d_graph.fields.pose_refinement.PoseCorrectedSequence` is the
+training poses corrected frame by frame.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from nap3d_graph.datasets.association import interpolate_poses
+from .association import interpolate_poses
 
 __all__ = ["PosedSequence", "ReframedSequence", "reframed"]
 
