@@ -329,8 +329,9 @@ def _ranges(start: int, stop: int, n: int) -> list[str]:
 def _align_config(settings: MapSettings):
     from nap3d_graph.nap3d.config import AlignConfig
 
-    # Both sides are the same camera: no self-calibration of the intrinsics between them.
-    return AlignConfig(matcher=settings.matcher, min_opacity=0.5, estimate_intrinsics=False)
+    # Both sides are the same camera: no self-calibration of the intrinsics between them, and
+    # no depth-scale estimate (nothing in the map reads it).
+    return AlignConfig(matcher=settings.matcher, min_opacity=0.5, estimate_intrinsics=False, estimate_scale=False)
 
 
 def _bundle_settings(sequence, settings: MapSettings) -> BundleSettings:

@@ -16,6 +16,7 @@ verified candidate: a clear refusal, never a guess.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -145,7 +146,8 @@ class Relocaliser:
             self.width = None if width < 0 else width
         self.T_map_key = np.load(folder.keyframe_poses)
         self.field = field_obj
-        self.config = config or AlignConfig(matcher=self.matcher)
+        # No depth-scale estimate: nothing here reads it, and its RANSAC is a tenth of an attempt.
+        self.config = dataclasses.replace(config or AlignConfig(matcher=self.matcher), estimate_scale=False)
         self.render_intrinsics = render_intrinsics
         self.settings = settings or RelocaliseSettings()
         self.keyframe_frames = _load_keyframe_frames(folder.keyframe_frames)
