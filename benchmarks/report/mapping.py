@@ -130,6 +130,52 @@ def orbslam3_trials_table() -> str:
     return "\n".join(rows)
 
 
+#: Which data chose each default of the map and of starting in it (the values are read from the
+#: code when the page is made). "Reported on it" marks a default chosen on a recording whose
+#: figures the results page then reports: those figures are not held-out.
+MAP_DEFAULT_TUNING = (
+    ("mapping.build.MapSettings", "keyframe_every", "set when map was first written (no sweep recorded)"),
+    ("mapping.build.MapSettings", "keyframe_distance_m", "set when map was first written (no sweep recorded)"),
+    ("mapping.build.MapSettings", "keyframe_angle_deg", "set when map was first written (no sweep recorded)"),
+    ("mapping.build.MapSettings", "vocabulary_k", "set when map was first written (no sweep recorded)"),
+    ("mapping.build.MapSettings", "edge_floor_m", "set when map was first written (no sweep recorded)"),
+    ("mapping.build.MapSettings", "edge_floor_rad", "set when map was first written (no sweep recorded)"),
+    ("mapping.build.MapSettings", "gate_p", "a convention (chi-square 6 dof), not tuned"),
+    ("mapping.build.MapSettings", "budget_minutes", "issue 48's target (300 frames in 5 minutes)"),
+    ("mapping.build.MapSettings", "budget_reserve_s",
+     "fr1/desk's whole recording, the stages after training (map_speed.json; reported on it)"),
+    ("mapping.loops.LoopSettings", "min_inliers", "set when map was first written (no sweep recorded)"),
+    ("mapping.loops.LoopSettings", "max_sigma_m", "set when map was first written (no sweep recorded)"),
+    ("mapping.loops.LoopSettings", "max_sigma_deg", "set when map was first written (no sweep recorded)"),
+    ("mapping.loops.LoopSettings", "proximity_m", "set when map was first written (no sweep recorded)"),
+    ("mapping.bundle.BundleSettings", "disparity_to_pixel",
+     "map_bundle sweeps on fr1/desk's first half and redkitchen against all three references "
+     "(map_bundle_*.json; reported on them)"),
+    ("mapping.bundle.BundleSettings", "baseline_m", "Kinect v1's specification (a .bag's own baseline replaces it)"),
+    ("mapping.relocalise.RelocaliseSettings", "min_agreeing",
+     "fr1/desk's second half in its first half's map, where lone answers landed wrong (reported on it)"),
+    ("mapping.relocalise.RelocaliseSettings", "top_k", "set when map was first written (no sweep recorded)"),
+    ("mapping.relocalise.RelocaliseSettings", "max_sigma_m", "set when map was first written (no sweep recorded)"),
+    ("mapping.relocalise.RelocaliseSettings", "agree_m", "set with min_agreeing, on fr1/desk (reported on it)"),
+    ("mapping.start.PlacementSettings", "confirmations", "the simulator and fr1/xyz (tests), held out from the results"),
+    ("mapping.start.PlacementSettings", "agree_m", "the relocalisation's own agreement radius"),
+)
+
+
+def map_defaults_table() -> str:
+    """Every default the map and a start in it depend on, its value as the code has it, and
+    the data that chose it."""
+    import importlib
+
+    rows = ["| setting | default | chosen on |", "|---|---|---|"]
+    for owner, name, why in MAP_DEFAULT_TUNING:
+        module, cls = owner.rsplit(".", 1)
+        value = getattr(getattr(importlib.import_module(f"nap3d_graph.{module}"), cls)(), name)
+        rows.append(f"| `{cls}.{name}` | {value:g} | {why} |" if isinstance(value, (int, float))
+                    else f"| `{cls}.{name}` | {value} | {why} |")
+    return "\n".join(rows)
+
+
 def map_speed_table() -> str:
     """``nap3d-graph map`` from nothing with its defaults: wall time and each stage's."""
     rows = ["| recording | frames | field | wall s | per 300 frames s | odometry / keyframes / loops / graph s | "
@@ -235,6 +281,11 @@ SECTIONS = [
             ("map_false_loops.json", "map_relocalise_fr1_desk_grid.json", "orbslam3_fr1_desk.json"),
             "python benchmarks/map_false_loops.py; python benchmarks/map_survey.py --only-relocalise ...; "
             "python benchmarks/orbslam3/compare.py", map_checks_table),
+    Section("The map's defaults and the data that chose them", (), "python benchmarks/tables.py --write",
+            map_defaults_table,
+            note="Read from the code when this page is made. A default chosen on a recording this page reports is "
+                 "marked: its figures there are not held-out. Defaults set when the map was first written were "
+                 "not swept on any recording."),
     Section("How long a map takes: `nap3d-graph map` from nothing with its defaults (grid field trained for what "
             "the 5-minute budget leaves) on two cores",
             ("map_speed.json",), "python benchmarks/map_speed.py --data D [--data D:START:STOP] --out ...",
