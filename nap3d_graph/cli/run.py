@@ -20,7 +20,7 @@ from nap3d_graph.run.pacing import CameraPace
 from .binding import add_options
 from .common import StopOnSignal, UsageError, writable_dir
 from .run_options import RUN_OPTIONS
-from .sources import add_source_arguments, prepare
+from .sources import add_source_arguments, detected_source, prepare, validated_settings
 
 __all__ = ["add_parser", "run"]
 
@@ -50,8 +50,8 @@ def run(args) -> int:
         from .run_config import apply_run_config
 
         apply_run_config(args, args.config)
-    if getattr(args, "vo_width", None) is not None and args.odom not in (None, "vo"):
-        raise UsageError(f"--vo-width is for --odom vo, not --odom {args.odom}")
+    args.traj = detected_source(args)
+    validated_settings(args)  # every flag combination refused in one line before anything is written
     writable_dir(args.out)  # before the run, not after it
     if args.write_bag is not None:
         _check_bag_path(args.write_bag)

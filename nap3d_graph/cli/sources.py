@@ -381,75 +381,111 @@ def prepare(args) -> Prepared:
     """Open the sequence and the field, make the odometry and the pipeline's config; the
     settings tree as the run resolved them (its odometry, matcher, overlap...) is
     ``record["settings"]``, what it found beside them ``record["resolved"]``."""
+    auto_start, initial_pose = _checked_options(args)
+    data, sequence, field_obj, field_desc, name = _open_inputs(args)
+    trained_on = _look_at_inputs(args, sequence, field_obj)
+    sequence, initial_pose, start_record = _start_in_map(args, sequence, field_obj, initial_pose, auto_start)
+    odometry = _resolved_odometry(args, sequence, initial_pose)
+    settings = validated_settings(args)  # again, with the odometry and the overlap resolved
+    runner, readout_s = _pipeline(args, settings, sequence, field_obj, odometry)
+    resolved = _resolved(runner.config, data, sequence, field_desc, trained_on, readout_s, initial_pose, start_record,
+                         odometry if args.odom == "imu" else None)
+    record = {"settings": settings.to_dict(), "resolved": resolved}
+    _give_map(runner, start_record, field_obj, sequence, args)
+    return Prepared(sequence, field_obj, odometry, runner.config, record, name, runner)
+
+
+def validated_settings(args):
+    """The run's settings tree from its options, validated (``RunSettings.validate``: every
+    flag combination a run cannot honour), or a one-line usage error."""
+    from nap3d_graph.run.settings import SettingsError
+
+    try:
+        settings = settings_from_args(args)
+        settings.validate()
+    except SettingsError as exc:
+        raise UsageError(str(exc)) from None
+    return settings
+
+
+def _checked_options(args) -> tuple[bool, object]:
+    """The source resolved and the options checked before any data is read; ``(auto_start,
+    initial_pose)``: whether the start is to be found in a map, else the pose given (or None)."""
+    args.traj = detected_source(args)
+    validated_settings(args)
+    parse_size(args.render_size)  # a one-line error now, not after the data is read
+    auto_start = args.initial_pose == "auto"
+    return auto_start, None if auto_start else parse_pose(args.initial_pose, args.initial_pose_file)
+
+
+def _open_inputs(args):
+    """``(data, sequence, field, field description, run name)``: the recording opened as
+    the options say, and the field resolved against it."""
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.fields import resolve_field
-    from nap3d_graph.run.pipeline import Pipeline
 
-    args.traj = detected_source(args)
-    if args.traj != "realsense" and (args.groundtruth or args.realsense_config or args.record):
-        raise UsageError("--groundtruth, --realsense-config and --record are for --traj realsense")
-    parse_size(args.render_size)  # a one-line error now, not after the data is read
-    use_anchor = bool(getattr(args, "anchor", False))
-    auto_start = args.initial_pose == "auto"
-    initial_pose = None if auto_start else parse_pose(args.initial_pose, args.initial_pose_file)
-    if auto_start and args.initial_pose_file is not None:
-        raise UsageError("give --initial-pose auto or --initial-pose-file, not both")
     data, field_obj, field_desc, name = _inputs(args)
-    if args.topics and args.traj != "rosbag":
-        raise UsageError("--topics is for --traj rosbag")
     extra = {"groundtruth": args.groundtruth, "realsense_config": args.realsense_config} if args.traj == "realsense" \
         else {"topics": args.topics} if args.traj == "rosbag" else {}
     sequence = open_sequence(data, frames=args.frames, depth_scale=args.depth_scale, stamps=args.stamps, **extra)
     if args.data is not None:
         field_obj = resolve_field(args.field, sequence)
+    return data, sequence, field_obj, field_desc, name
+
+
+def _look_at_inputs(args, sequence, field_obj):
+    """The warnings a user should see before the run (frames the field was trained on, depth
+    units, a guessed camera) and the matcher chosen for the recording; returns the frames the
+    field was trained on."""
     trained_on = warn_trained_frames(field_obj, sequence, "frames of this run")
     warn_depth_units(sequence)
     warn_guessed_camera(sequence)
     args.matcher = chosen_matcher(args.matcher, sequence)
-    sequence, initial_pose, start_record = _start_in_map(args, sequence, field_obj, initial_pose, auto_start)
+    return trained_on
+
+
+def _resolved_odometry(args, sequence, initial_pose):
+    """The run's odometry, its kind and the live settings that follow from it written back
+    into the options."""
     odom_kind, odometry = _odometry(args, sequence, initial_pose)
     args.odom = odom_kind
     live_defaults(args, odom_kind)
-    _check_thread_and_window_flags(args, odom_kind, use_anchor)
-    settings = _settings(args)
+    return odometry
+
+
+def _pipeline(args, settings, sequence, field_obj, odometry):
+    """``(pipeline, readout_s)``: the run's :class:`~nap3d_graph.run.pipeline.Pipeline` (it
+    resolves the field's error, once) and the rolling-shutter readout it compensates, with the
+    lines a user reads about both."""
+    from nap3d_graph.run.pipeline import Pipeline
+
     config = settings.pipeline_config(land_within_s=land_within_s(_land_within_default(args), sequence),
                                       overlap=args.overlap, keyframe_when_idle=args.keyframe_when_idle,
                                       timing=_timing(args, field_obj, sequence))
-    runner = Pipeline(sequence, field_obj, odometry, config)  # resolves the field's error, once
-    config = runner.config
-    readout_s = _say_readout(config, field_obj)
-    _say_field_error(args, config)
+    runner = Pipeline(sequence, field_obj, odometry, config)
+    readout_s = _say_readout(runner.config, field_obj)
+    _say_field_error(args, runner.config)
+    return runner, readout_s
+
+
+def _resolved(config, data, sequence, field_desc, trained_on, readout_s: float, initial_pose, start_record,
+              imu_odometry) -> dict:
+    """What the run found beside its settings (``config.yaml``'s ``resolved``): its data,
+    field, readout, start, the pipeline's and aligner's configuration as built and, for
+    ``imu_odometry``, the IMU's."""
     resolved = {"data": str(data), "frame_range": list(sequence.frame_range), "field": field_desc,
-                "frames_the_field_was_trained_on": trained_on, "rolling_shutter_readout_s": round(readout_s, 6),
+                "frames_the_field_was_trained_on": trained_on,
+                "rolling_shutter_readout_s": round(readout_s, 6),
                 "initial_pose": None if initial_pose is None else initial_pose.tolist(),
                 "pipeline": {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in vars(config).items()
                              if k != "align"},
                 "align": vars(config.align)}
     if start_record:
         resolved["start"] = start_record
-    if odom_kind == "imu":
-        resolved["imu"] = {**odometry.stream.config.to_dict(),
-                           "fallback_odometry": getattr(odometry.fallback, "name", "none")}
-    record = {"settings": settings.to_dict(), "resolved": resolved}
-    _give_map(runner, start_record, field_obj, sequence, args)
-    return Prepared(sequence, field_obj, odometry, config, record, name, runner)
-
-
-def _check_thread_and_window_flags(args, odom_kind: str, use_anchor: bool) -> None:
-    """One-line errors for overlap-only flags without --overlap, and for the flag combinations
-    the overlap and the bounded graph do not allow."""
-    if args.render_ahead and not args.overlap:
-        raise UsageError("--render-ahead works ahead on the second thread: it needs --overlap")
-    if args.keyframe_when_idle and not args.overlap:
-        raise UsageError("--keyframe-when-idle takes keyframes while the second thread is idle: it needs --overlap")
-    if args.land_within and not args.overlap:
-        raise UsageError("--land-within waits for the second thread's correction: it needs --overlap")
-    if args.overlap and odom_kind == "imu":
-        raise UsageError("--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)")
-    if args.graph_window and (odom_kind == "imu" or use_anchor):
-        raise UsageError("--graph-window does not apply to --odom imu or --anchor")
-    if args.graph_window and args.graph_window < 3:
-        raise UsageError(f"--graph-window must be 0 (every keyframe) or at least 3, got {args.graph_window}")
+    if imu_odometry is not None:
+        resolved["imu"] = {**imu_odometry.stream.config.to_dict(),
+                           "fallback_odometry": getattr(imu_odometry.fallback, "name", "none")}
+    return resolved
 
 
 def _say_field_error(args, config) -> None:
@@ -473,12 +509,3 @@ def _give_map(runner, start_record: dict, field_obj, sequence, args) -> None:
         runner.relocaliser = map_relocaliser(start_record["map"], field_obj, sequence, args)
 
 
-def _settings(args):
-    """The run's settings tree from its options (as resolved), or a one-line error for a
-    value the tree refuses."""
-    from nap3d_graph.run.settings import SettingsError
-
-    try:
-        return settings_from_args(args)
-    except SettingsError as exc:
-        raise UsageError(str(exc)) from None

@@ -260,6 +260,37 @@ class RunSettings(SettingsTree):
     threads: ThreadSettings = dataclasses.field(default_factory=ThreadSettings)
     output: OutputSettings = dataclasses.field(default_factory=OutputSettings)
 
+    def validate(self) -> None:
+        """Every combination of settings a run cannot honour, in one place: a one-line
+        :class:`SettingsError` for the first found (named by the command line's flags). What
+        the run resolves later (the odometry's kind, whether it overlaps) is checked once
+        known: a None there passes, so a tree is validated before and again after it."""
+        source, odometry, graph, threads = self.source, self.odometry, self.graph, self.threads
+        kind, overlap = odometry.kind, threads.overlap
+        problems = (
+            (source.traj not in ("realsense", "auto") and bool(source.groundtruth or source.realsense_config
+                                                               or source.record),
+             "--groundtruth, --realsense-config and --record are for --traj realsense"),
+            (bool(source.topics) and source.traj not in ("rosbag", "auto"), "--topics is for --traj rosbag"),
+            (source.initial_pose == "auto" and source.initial_pose_file is not None,
+             "give --initial-pose auto or --initial-pose-file, not both"),
+            (odometry.vo_width is not None and kind not in (None, "vo"), f"--vo-width is for --odom vo, not --odom {kind}"),
+            (threads.render_ahead and overlap is False,
+             "--render-ahead works ahead on the second thread: it needs --overlap"),
+            (bool(self.keyframes.when_idle) and overlap is False,
+             "--keyframe-when-idle takes keyframes while the second thread is idle: it needs --overlap"),
+            (bool(threads.land_within) and overlap is False,
+             "--land-within waits for the second thread's correction: it needs --overlap"),
+            (bool(overlap) and kind == "imu",
+             "--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)"),
+            (bool(graph.window) and (kind == "imu" or graph.anchor), "--graph-window does not apply to --odom imu or --anchor"),
+            (bool(graph.window) and graph.window < 3,
+             f"--graph-window must be 0 (every keyframe) or at least 3, got {graph.window}"),
+        )
+        for problem, message in problems:
+            if problem:
+                raise SettingsError(message)
+
     def pipeline_config(self, *, land_within_s: float, overlap: bool, keyframe_when_idle: int, timing=None,
                         progress: bool = True) -> PipelineConfig:
         """The :class:`PipelineConfig` these settings make: every field bound to one
