@@ -284,6 +284,25 @@ class TumSequence(GroundTruthLookup):
         depth_scale: float | None = None,
     ):
         self.path = Path(path)
+        self._check_arguments(stamps, association)
+        self.name = self.path.name
+        self.max_difference = float(max_difference)
+        self.association = association
+        self.offset = offset
+        self._resolve_camera(intrinsics, undistort, undistort_depth, depth_scale)
+        rgb_list, depth_list, (rgb_stamps, rgb_names), (depth_stamps, depth_names) = self._read_lists()
+        pairs = self._associate(rgb_list, depth_list, rgb_stamps, depth_stamps)
+        self._keep_pairs(pairs, rgb_list, depth_list, rgb_stamps, rgb_names, depth_stamps, depth_names)
+        self.T_world_cam_gt = None
+        self._gt_raw: tuple[np.ndarray, np.ndarray] | None = None
+        self._attach_ground_truth(self.path / "groundtruth.txt")
+        self.frame_range = parse_frame_range(frames, len(self.timestamps))
+        self._select(*self.frame_range)
+        self._check_images_exist()
+        self._check_image_sizes()
+
+    def _check_arguments(self, stamps: str, association: str) -> None:
+        """One-line errors for a folder that is not there or options it cannot take."""
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: sequence folder not found")
         if stamps not in STAMPS_OPTIONS:
@@ -291,10 +310,10 @@ class TumSequence(GroundTruthLookup):
         self.stamps_mode = stamps
         if association not in ASSOCIATION_METHODS:
             raise DatasetError(f"{self.path}: association must be one of {ASSOCIATION_METHODS}, got {association!r}")
-        self.name = self.path.name
-        self.max_difference = float(max_difference)
-        self.association = association
-        self.offset = offset
+
+    def _resolve_camera(self, intrinsics, undistort: bool, undistort_depth: bool, depth_scale: float | None) -> None:
+        """The camera (as resolved and as delivered), whether images are undistorted, and the
+        depth's unit."""
         self.raw_intrinsics = _resolve_intrinsics(self.path, intrinsics)
         self.intrinsics_source = _intrinsics_source(self.path, intrinsics)
         self.depth_units_per_m, self.depth_scale_source = depth_scale_of(self.path, depth_scale)
@@ -311,6 +330,9 @@ class TumSequence(GroundTruthLookup):
             self.intrinsics = self.raw_intrinsics  # raw images: say so with the distortion
         self._maps: tuple[np.ndarray, np.ndarray] | None = None
 
+    def _read_lists(self):
+        """``(rgb.txt, depth.txt, (rgb stamps, names), (depth stamps, names))``, the stamps as
+        ``stamps_mode`` says (refused when they go backwards, or kept in file order)."""
         if (self.path / "PARTIAL.txt").is_file():
             raise DatasetError(f"{self.path}: the command that wrote this folder did not finish (PARTIAL.txt); "
                                "redo it with `force`, or remove the folder")
@@ -331,11 +353,17 @@ class TumSequence(GroundTruthLookup):
         else:
             rgb_stamps = file_order_stamps(rgb_list, rgb_stamps)
             depth_stamps = file_order_stamps(depth_list, depth_stamps)
+        return rgb_list, depth_list, (rgb_stamps, rgb_names), (depth_stamps, depth_names)
+
+    def _associate(self, rgb_list: Path, depth_list: Path, rgb_stamps: np.ndarray, depth_stamps: np.ndarray
+                   ) -> np.ndarray:
+        """(M, 2) indices of the colour and depth entries paired (``offset`` estimated when
+        'auto'); a one-line error when none pair."""
         if self.offset == "auto":
             self.offset, pairs = pair_streams(rgb_stamps, depth_stamps, self.max_difference, self.association)
         else:
             self.offset = float(self.offset)
-            pairs = associate(rgb_stamps, depth_stamps, self.max_difference, self.offset, association)
+            pairs = associate(rgb_stamps, depth_stamps, self.max_difference, self.offset, self.association)
         if len(pairs) == 0:
             raise DatasetError(
                 f"{depth_list}: no depth timestamp within {self.max_difference} s of any in {rgb_list.name}"
@@ -344,6 +372,11 @@ class TumSequence(GroundTruthLookup):
             "%s: %d rgb, %d depth frames, %d associated within %.3f s",
             self.name, len(rgb_stamps), len(depth_stamps), len(pairs), self.max_difference,
         )
+        return pairs
+
+    def _keep_pairs(self, pairs: np.ndarray, rgb_list: Path, depth_list: Path, rgb_stamps, rgb_names, depth_stamps,
+                    depth_names) -> None:
+        """The associated frames' stamps, paths and line indices, and what identifies the recording."""
         self.timestamps = rgb_stamps[pairs[:, 0]]
         self.depth_timestamps = depth_stamps[pairs[:, 1]]
         # Each frame's line among rgb.txt's data lines: what a run reports as its frame index,
@@ -355,20 +388,16 @@ class TumSequence(GroundTruthLookup):
                                 self.path / rgb_names[0], self.path / rgb_names[-1]]
         self._recording_id: str | None = None
         self.depth_paths = [self.path / depth_names[j] for j in pairs[:, 1]]
-        self.T_world_cam_gt = None
-        self._gt_raw: tuple[np.ndarray, np.ndarray] | None = None
-        self._attach_ground_truth(self.path / "groundtruth.txt")
-        self.frame_range = parse_frame_range(frames, len(self.timestamps))
-        self._select(*self.frame_range)
-        # A listed image that is gone does not make the whole sequence unusable: say so now,
-        # and raise (naming the file) only when that frame is read, so a run can skip it.
+
+    def _check_images_exist(self) -> None:
+        """A listed image that is gone does not make the whole sequence unusable: say so now,
+        and raise (naming the file) only when that frame is read, so a run can skip it."""
         self.missing_images = [p for p in (*self.rgb_paths, *self.depth_paths) if not p.is_file()]
         if len(self.missing_images) == len(self.rgb_paths) + len(self.depth_paths):
             raise DatasetError(f"{self.path}: none of the listed images exist (first: {self.missing_images[0]})")
         if self.missing_images:
             logger.warning("%s: %d listed image(s) not found, e.g. %s; those frames will fail to load",
                            self.name, len(self.missing_images), self.missing_images[0])
-        self._check_image_sizes()
 
     def _check_image_sizes(self) -> None:
         """One line, before any frame is read, for a folder whose images are not all of one size
