@@ -43,9 +43,22 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from nap3d_graph.run.output import RunWriter
-
     t0 = time.perf_counter()
+    _check_options(args)
+    prepared = prepare(args)
+    pipeline, writer, result, pace, recorder = _run(args, prepared)
+    extra = {} if pace is None else {"paced": pace.summary()}
+    extra.update(_map_metrics(prepared.record["resolved"].get("start"), pipeline, result))
+    metrics = writer.finish(result, partial=result.partial, extra=extra or None)
+    if pace is not None:
+        _say_pace(args.pace, metrics, pipeline.config)
+    _finish_extras(args, prepared, result, recorder)
+    return _say_results(args, prepared, writer, metrics, result, time.perf_counter() - t0)
+
+
+def _check_options(args) -> None:
+    """A ``--config`` applied, the source resolved and every option checked before anything is
+    written or read (one-line errors)."""
     if args.config is not None:
         from .run_config import apply_run_config
 
@@ -57,7 +70,14 @@ def run(args) -> int:
         _check_bag_path(args.write_bag)
     if args.viz is not None:
         _check_viz(args.viz)
-    prepared = prepare(args)
+
+
+def _run(args, prepared):
+    """The run, its keyframes written as they come (and recorded for rerun with ``--viz``),
+    paced with ``--pace``, stopped cleanly on Ctrl-C; ``(pipeline, writer, result, pace,
+    recorder)``."""
+    from nap3d_graph.run.output import RunWriter
+
     writer = RunWriter(args.out, prepared.name, prepared.record, getattr(prepared.sequence, "rgb_line_index", None))
     pipeline = prepared.pipeline()
     recorder, on_keyframe, pace = None, writer.add_keyframe, None
@@ -78,11 +98,11 @@ def run(args) -> int:
         writer.close()
         if recorder is not None and sys.exc_info()[0] is not None:
             recorder.close()  # what was recorded stays readable
-    extra = {} if pace is None else {"paced": pace.summary()}
-    extra.update(_map_metrics(prepared.record["resolved"].get("start"), pipeline, result))
-    metrics = writer.finish(result, partial=result.partial, extra=extra or None)
-    if pace is not None:
-        _say_pace(args.pace, metrics, pipeline.config)
+    return pipeline, writer, result, pace, recorder
+
+
+def _finish_extras(args, prepared, result, recorder) -> None:
+    """The rerun recording closed (``--viz``) and the ROS bag written (``--write-bag``)."""
     if recorder is not None:
         recorder.finish(result)
         recorder.close()
@@ -90,7 +110,12 @@ def run(args) -> int:
                                                  if args.viz != "spawn" else ""))
     if args.write_bag is not None:
         _write_bag(args.write_bag, prepared.sequence, result)
-    print(summary_table(metrics, time.perf_counter() - t0, with_field=prepared.field is not None))
+
+
+def _say_results(args, prepared, writer, metrics: dict, result, seconds: float) -> int:
+    """The summary, hints, where the results and the report are; the exit status (130 for an
+    interrupted run)."""
+    print(summary_table(metrics, seconds, with_field=prepared.field is not None))
     for hint in (refusal_hint(metrics), pace_hint(metrics)):
         if hint:
             print(f"warning: {hint}", file=sys.stderr)
