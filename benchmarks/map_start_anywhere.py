@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from map_survey import cli, run_query
+from map_survey import cli, errors_in, read_sfm_pseudo_gt, run_query, second_gt_for
 from provenance import write_result
 
 from nap3d_graph.conventions import inv_T, log_se3
@@ -47,7 +47,9 @@ def covered(T_map_cam: np.ndarray, T_map_key: np.ndarray, metres: float = 0.40, 
     return any(d <= metres and a <= degrees for d, a in (_pose_gap(T_map_cam, T) for T in T_map_key))
 
 
-def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.ndarray) -> dict:
+def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.ndarray, second=None) -> dict:
+    """``second``: ``(T_ref_cam (N, 4, 4) of the query, T_ref_map)``, a second ground truth and
+    the survey's alignment to it: each answer scored against it too."""
     import torch
 
     torch.set_num_threads(1)
@@ -66,13 +68,19 @@ def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.
                "seconds": round(found.seconds, 3), "wide_baseline": found.wide_baseline}
         if found.success:
             row["error_m"], row["error_deg"] = _pose_gap(T_true, found.T_map_cam)
+            if second is not None and np.all(np.isfinite(second[0][i])):
+                row["error_second_gt_m"], row["error_second_gt_deg"] = _pose_gap(inv_T(second[1]) @ second[0][i],
+                                                                                 found.T_map_cam)
         else:
             row["reason"] = found.reason
         rows.append(row)
     cov = [r for r in rows if r["covered"]]
     good = [r for r in cov if r["success"] and r["error_m"] <= 0.05 and r["error_deg"] <= 3.0]
     seconds = np.array([r["seconds"] for r in rows])
-    return {"attempts": len(rows), "covered": len(cov), "covered_found_within_5cm_3deg": len(good),
+    extra = {} if second is None else {"covered_found_within_5cm_3deg_second_gt": sum(
+        r["success"] and r.get("error_second_gt_m", 1) <= 0.05 and r.get("error_second_gt_deg", 9) <= 3.0 for r in cov),
+        "accepted_farther_than_10cm_second_gt": sum(r["success"] and r.get("error_second_gt_m", 0) > 0.10 for r in rows)}
+    return {**extra, "attempts": len(rows), "covered": len(cov), "covered_found_within_5cm_3deg": len(good),
             "share_of_covered": len(good) / max(len(cov), 1),
             "accepted_farther_than_10cm": sum(r["success"] and r["error_m"] > 0.10 for r in rows),
             "accepted_uncovered": sum(r["success"] and not r["covered"] for r in rows),
@@ -95,11 +103,23 @@ def direction(args, survey_half: str) -> dict:
                  "loops": info["loops"]}
     T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
     query = open_sequence(args.data, frames=HALVES[query_half])
-    out["relocalisation"] = relocalisation(map_dir, query, args.every, args.matcher, T_map_gt)
+    second = None
+    if args.second_gt is not None:  # the survey's alignment to the second ground truth, from its own poses
+        from nap3d_graph.evaluation.alignment import aligned_errors
+        from nap3d_graph.trajectory import read_tum_trajectory
+
+        table = read_sfm_pseudo_gt(args.second_gt)
+        survey = open_sequence(args.data, frames=HALVES[survey_half])
+        _, T_poses = read_tum_trajectory(map_dir / "poses.txt")  # every frame of the kept segment
+        T_map_survey = np.full((len(survey), 4, 4), np.nan)
+        T_map_survey[info["segment"]["start"]:info["segment"]["stop"]] = T_poses
+        T_ref_map = aligned_errors(survey.timestamps, second_gt_for(survey, table), T_map_survey).T_ref_est
+        second = (second_gt_for(query, table), T_ref_map)
+    out["relocalisation"] = relocalisation(map_dir, query, args.every, args.matcher, T_map_gt, second)
     for extra in args.extra_query:
         out[f"relocalisation_{Path(extra).name}"] = relocalisation(map_dir, open_sequence(extra), args.every,
                                                                    args.matcher, T_map_gt)
-    runs = {"self_posed": run_query(args.data, "tum", HALVES[query_half], map_dir, work / "run_self",
+    runs = {"self_posed": run_query(args.data, args.traj, HALVES[query_half], map_dir, work / "run_self",
                                     ("--matcher", args.matcher))}
     metrics = json.loads((work / "run_self" / "latest" / "metrics.json").read_text())
     placement = metrics["map"].get("placement") or {}
@@ -112,9 +132,25 @@ def direction(args, survey_half: str) -> dict:
         if not gt_field.is_file():
             cli("train-field", str(args.data), "--frames", HALVES[survey_half], "--out", str(gt_field), "--model",
                 args.model, "--matcher", args.matcher, "--quiet")
-        runs["gt_posed"] = run_query(args.data, "tum", HALVES[query_half], gt_field, work / "run_gt",
+        runs["gt_posed"] = run_query(args.data, args.traj, HALVES[query_half], gt_field, work / "run_gt",
                                      ("--matcher", args.matcher))
         out["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
+    if second is not None:  # each run against the second ground truth, through its map's alignment to it
+        from nap3d_graph.datasets.association import interpolate_poses
+        from nap3d_graph.evaluation.alignment import aligned_errors
+
+        def second_at(stamps):
+            return interpolate_poses(np.asarray(query.timestamps), second[0], stamps, max_gap=0.2)
+
+        frames = {"self_posed": second[1]}
+        if "gt_posed" in runs:  # the ground-truth-posed map's frame is the first ground truth's
+            frames["gt_posed"] = aligned_errors(survey.timestamps, second_gt_for(survey, table),
+                                                np.asarray(survey.T_world_cam_gt)).T_ref_est
+        for name, T_ref_frame in frames.items():
+            runs[name]["ate_second_gt_m"] = errors_in(second_at, runs[name]["_stamps"], runs[name]["_T"], T_ref_frame)
+        if "gt_posed" in runs:
+            out["ratio_self_to_gt_posed_second_gt"] = (runs["self_posed"]["ate_second_gt_m"]
+                                                       / runs["gt_posed"]["ate_second_gt_m"])
     for r in runs.values():
         for k in ("_stamps", "_T", "_T_online"):
             r.pop(k, None)
@@ -125,6 +161,9 @@ def direction(args, survey_half: str) -> dict:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True)
+    parser.add_argument("--traj", default="tum", help="the recording's source for the runs (tum, 7scenes, auto)")
+    parser.add_argument("--second-gt", type=Path, default=None,
+                        help="a second ground truth (7-Scenes' SfM poses): everything scored against it too")
     parser.add_argument("--extra-query", type=Path, action="append", default=[])
     parser.add_argument("--model", default="splat")
     parser.add_argument("--matcher", default="xfeat")
