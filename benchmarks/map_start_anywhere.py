@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from map_survey import cli, errors_in, read_sfm_pseudo_gt, run_query, second_gt_for
+from map_survey import cli, errors_in, read_sfm_pseudo_gt, run_query, second_gt_for, second_reference
 from provenance import write_result
 
 from nap3d_graph.conventions import inv_T, log_se3
@@ -89,36 +89,60 @@ def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.
 
 
 def direction(args, survey_half: str) -> dict:
+    """One direction: the survey half mapped, the other half relocalised in it and run from
+    its own first frame (beside the ground-truth-posed map unless ``--no-gt-map``)."""
     from nap3d_graph.datasets import open_sequence
 
     query_half = "second" if survey_half == "first" else "first"
     work = args.work / f"survey_{survey_half}"
+    map_dir, info, out = _map(args, survey_half, query_half, work)
+    T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
+    survey, query = open_sequence(args.data, frames=HALVES[survey_half]), open_sequence(args.data,
+                                                                                         frames=HALVES[query_half])
+    second = None if args.second_gt is None else second_reference(args, survey, query, _survey_poses(map_dir, info,
+                                                                                                     survey))
+    out["relocalisation"] = relocalisation(map_dir, query, args.every, args.matcher, T_map_gt, second)
+    for extra in args.extra_query:
+        out[f"relocalisation_{Path(extra).name}"] = relocalisation(map_dir, open_sequence(extra), args.every,
+                                                                   args.matcher, T_map_gt)
+    runs = _runs(args, survey_half, query_half, work, map_dir)
+    if "gt_posed" in runs:
+        out["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
+    if second is not None:
+        _score_second(args, runs, out, survey, query, second)
+    for r in runs.values():
+        for k in ("_stamps", "_T", "_T_online"):
+            r.pop(k, None)
+    out["runs"] = runs
+    return out
+
+
+def _map(args, survey_half: str, query_half: str, work: Path) -> tuple[Path, dict, dict]:
+    """The survey half mapped (reused when the folder holds it): ``(map folder, map.json,
+    the direction's first figures)``."""
     map_dir = work / "map"
     t0 = time.perf_counter()
     cli("map", str(args.data), "--frames", HALVES[survey_half], "--out", str(map_dir), "--model", args.model,
         "--matcher", args.matcher, "--quiet")
     info = json.loads((map_dir / "map.json").read_text())
-    out: dict = {"survey": survey_half, "query": query_half, "map_seconds_this_call": round(time.perf_counter() - t0, 1),
-                 "survey_ate_m": info["survey_ate"]["map"]["rmse_m"], "keyframes": info["keyframes"],
-                 "loops": info["loops"]}
-    T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
-    query = open_sequence(args.data, frames=HALVES[query_half])
-    second = None
-    if args.second_gt is not None:  # the survey's alignment to the second ground truth, from its own poses
-        from nap3d_graph.evaluation.alignment import aligned_errors
-        from nap3d_graph.trajectory import read_tum_trajectory
+    out = {"survey": survey_half, "query": query_half, "map_seconds_this_call": round(time.perf_counter() - t0, 1),
+           "survey_ate_m": info["survey_ate"]["map"]["rmse_m"], "keyframes": info["keyframes"], "loops": info["loops"]}
+    return map_dir, info, out
 
-        table = read_sfm_pseudo_gt(args.second_gt)
-        survey = open_sequence(args.data, frames=HALVES[survey_half])
-        _, T_poses = read_tum_trajectory(map_dir / "poses.txt")  # every frame of the kept segment
-        T_map_survey = np.full((len(survey), 4, 4), np.nan)
-        T_map_survey[info["segment"]["start"]:info["segment"]["stop"]] = T_poses
-        T_ref_map = aligned_errors(survey.timestamps, second_gt_for(survey, table), T_map_survey).T_ref_est
-        second = (second_gt_for(query, table), T_ref_map)
-    out["relocalisation"] = relocalisation(map_dir, query, args.every, args.matcher, T_map_gt, second)
-    for extra in args.extra_query:
-        out[f"relocalisation_{Path(extra).name}"] = relocalisation(map_dir, open_sequence(extra), args.every,
-                                                                   args.matcher, T_map_gt)
+
+def _survey_poses(map_dir: Path, info: dict, survey) -> np.ndarray:
+    """The map's pose of every survey frame (N, 4, 4; NaN outside the kept segment)."""
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    _, T_poses = read_tum_trajectory(map_dir / "poses.txt")  # every frame of the kept segment
+    T_map_survey = np.full((len(survey), 4, 4), np.nan)
+    T_map_survey[info["segment"]["start"]:info["segment"]["stop"]] = T_poses
+    return T_map_survey
+
+
+def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path) -> dict:
+    """The query run in the self-made map (with how it was placed) and, unless
+    ``--no-gt-map``, on a field trained at the survey's ground-truth poses."""
     runs = {"self_posed": run_query(args.data, args.traj, HALVES[query_half], map_dir, work / "run_self",
                                     ("--matcher", args.matcher))}
     metrics = json.loads((work / "run_self" / "latest" / "metrics.json").read_text())
@@ -134,28 +158,27 @@ def direction(args, survey_half: str) -> dict:
                 args.model, "--matcher", args.matcher, "--quiet")
         runs["gt_posed"] = run_query(args.data, args.traj, HALVES[query_half], gt_field, work / "run_gt",
                                      ("--matcher", args.matcher))
-        out["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
-    if second is not None:  # each run against the second ground truth, through its map's alignment to it
-        from nap3d_graph.datasets.association import interpolate_poses
-        from nap3d_graph.evaluation.alignment import aligned_errors
+    return runs
 
-        def second_at(stamps):
-            return interpolate_poses(np.asarray(query.timestamps), second[0], stamps, max_gap=0.2)
 
-        frames = {"self_posed": second[1]}
-        if "gt_posed" in runs:  # the ground-truth-posed map's frame is the first ground truth's
-            frames["gt_posed"] = aligned_errors(survey.timestamps, second_gt_for(survey, table),
-                                                np.asarray(survey.T_world_cam_gt)).T_ref_est
-        for name, T_ref_frame in frames.items():
-            runs[name]["ate_second_gt_m"] = errors_in(second_at, runs[name]["_stamps"], runs[name]["_T"], T_ref_frame)
-        if "gt_posed" in runs:
-            out["ratio_self_to_gt_posed_second_gt"] = (runs["self_posed"]["ate_second_gt_m"]
-                                                       / runs["gt_posed"]["ate_second_gt_m"])
-    for r in runs.values():
-        for k in ("_stamps", "_T", "_T_online"):
-            r.pop(k, None)
-    out["runs"] = runs
-    return out
+def _score_second(args, runs: dict, out: dict, survey, query, second) -> None:
+    """Each run against the second ground truth, through its map's alignment to it (the
+    ground-truth-posed map's frame is the first ground truth's)."""
+    from nap3d_graph.datasets.association import interpolate_poses
+    from nap3d_graph.evaluation.alignment import aligned_errors
+
+    def second_at(stamps):
+        return interpolate_poses(np.asarray(query.timestamps), second[0], stamps, max_gap=0.2)
+
+    frames = {"self_posed": second[1]}
+    if "gt_posed" in runs:
+        table = read_sfm_pseudo_gt(args.second_gt)
+        frames["gt_posed"] = aligned_errors(survey.timestamps, second_gt_for(survey, table),
+                                            np.asarray(survey.T_world_cam_gt)).T_ref_est
+    for name, T_ref_frame in frames.items():
+        runs[name]["ate_second_gt_m"] = errors_in(second_at, runs[name]["_stamps"], runs[name]["_T"], T_ref_frame)
+    if "gt_posed" in runs:
+        out["ratio_self_to_gt_posed_second_gt"] = runs["self_posed"]["ate_second_gt_m"] / runs["gt_posed"]["ate_second_gt_m"]
 
 
 def main() -> None:
