@@ -63,7 +63,7 @@ def run_one(data: Path, field, odom: str, readout_s: float | None, frames: str) 
     fast = speeds > np.median(speeds) if speeds.size else np.zeros(0, bool)
     return {
         "odometry": odom, "matcher": matcher, "readout_s": readout_s,
-        "readout_used_s": readout_of(config, pipeline._timing()),
+        "readout_used_s": readout_of(config, pipeline.jobs.timing()),
         "ate_odometry_m": ate(stamps, T_gt[posed], result.T_world_cam_odometry[posed])["rmse"],
         "ate_estimate_m": ate(stamps, T_gt[posed], result.T_world_cam_estimate[posed])["rmse"],
         "ate_causal_m": ate(stamps, T_gt[posed], result.T_world_cam_online[posed])["rmse"],

@@ -78,7 +78,7 @@ def test_graph_window_is_refused_where_it_does_not_apply():
 def _kept(pipeline) -> int:
     """The most per-frame or per-keyframe items the run holds."""
     motion = pipeline.motion
-    return max(len(motion.T_world_cam_odom._items), len(motion.increments._items), len(pipeline._online._items),
+    return max(len(motion.T_world_cam_odom._items), len(motion.increments._items), len(pipeline.online._items),
                len(pipeline.keyframe_indices._items), len(pipeline.records._items), len(pipeline.graph.frozen))
 
 

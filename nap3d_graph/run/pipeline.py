@@ -12,6 +12,13 @@ prediction); a correction then enters only if it passes the chi-square gate agai
 prediction. The motion model chains the frames between keyframes.
 
 ``Pipeline.run()`` reads as its steps; no failed correction stops a run or reaches the graph.
+Its parts, each with a public interface the overlapped path (:mod:`nap3d_graph.run.overlapped`)
+uses as the inline one does: :class:`~nap3d_graph.run.frames.FrameReader` (``frames``),
+:class:`~nap3d_graph.run.jobs.KeyframeJobs` (``jobs``: what measuring a keyframe needs),
+:class:`~nap3d_graph.run.corrections.CorrectionGate` (``corrections``: the graph half, with the
+refusal watch), :class:`~nap3d_graph.run.recovery.MapRecovery` (``recovery``: placement in a
+map and recovery), :class:`~nap3d_graph.run.stream.MeasurementStream` (``stream``) and
+:func:`~nap3d_graph.run.retire.retired_segment` (a bounded graph's retirement).
 """
 
 from __future__ import annotations
@@ -23,28 +30,30 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import M, X
 
-from nap3d_graph.camera import Intrinsics
-from nap3d_graph.conventions import inv_T, pose3_to_T, pose_error
-from nap3d_graph.datasets.depth_timing import CaptureTiming, resolve_capture_timing
+from nap3d_graph.conventions import pose3_to_T
 from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
 from nap3d_graph.mapping.start import MapPlacement, PlacementSettings
-from nap3d_graph.results import Alignment, Correction
-from nap3d_graph.run.chain import chain_from_nearest_keyframe
+from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig, with_field_error
+from nap3d_graph.run.corrections import CorrectionGate
+from nap3d_graph.run.frames import FrameReader
 from nap3d_graph.run.graph import KeyframeGraph
 from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
 from nap3d_graph.run.intrinsics_model import IntrinsicsModelTracker
-from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, KeyframeJob, measure_keyframe
+from nap3d_graph.run.jobs import KeyframeJobs
+from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, measure_keyframe
 from nap3d_graph.run.library_threads import library_threads
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
 from nap3d_graph.run.overlapped import OverlappedSteps
-from nap3d_graph.run.read_ahead import FrameReadAhead, reads_concurrently
-from nap3d_graph.run.records import KeyframeRecord, RunResult
+from nap3d_graph.run.records import KeyframeRecord, RunResult, ground_truth_reader, tell
+from nap3d_graph.run.recovery import MapRecovery
+from nap3d_graph.run.retire import retired_segment
 from nap3d_graph.run.selection import KeyframeSelector
+from nap3d_graph.run.stream import MeasurementStream
 
-__all__ = ["Pipeline", "motion_model", "motion_kind"]
+__all__ = ["Pipeline", "motion_model", "motion_kind", "trained_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -82,12 +91,31 @@ class Pipeline:
         puts the pieces together). Without it the run keeps everything.
     """
 
+    # The run's state and parts, made fresh by start().
+    motion: MotionModel
+    graph: KeyframeGraph
+    anchored: bool
+    keyframe_indices: FrameLog[int]  # by keyframe number; with on_retire the oldest are dropped
+    records: FrameLog[KeyframeRecord]  # in the order they were done
+    online: FrameLog[np.ndarray]  # each frame's pose as known at that frame (causal)
+    T_world_kf_pred: np.ndarray  # (4, 4) the latest keyframe's prediction
+    pending_record: KeyframeRecord | None  # the keyframe being measured
+    last_correction: Correction | None  # the latest keyframe's correction and factor (a live caller reads them)
+    last_factor: gtsam.NonlinearFactor | None
+    last_correction_frame: int
+    selector: KeyframeSelector
+    frames: FrameReader
+    jobs: KeyframeJobs
+    depth_scale: DepthScaleTracker
+    intrinsics_model: IntrinsicsModelTracker
+    stream: MeasurementStream
+    corrections: CorrectionGate
+    recovery: MapRecovery
+    _trained: np.ndarray
+
     def __init__(self, sequence: FrameSource, field, odometry, config: PipelineConfig | None = None,
                  correction_hook=None, on_retire=None):
         self.sequence = sequence
-        # What frames are read from: the sequence, or a FrameReadAhead over it while run() goes.
-        self._frames: FrameSource | FrameReadAhead = sequence
-        self._waits_for_worker = False  # the latest keyframe had to wait for the one in flight
         self.on_retire = on_retire
         self.worker: CorrectionWorker | None = None  # an overlapped run's, while it runs
         self._overlap: OverlappedSteps | None = None  # its steps (nap3d_graph.run.overlapped)
@@ -102,7 +130,6 @@ class Pipeline:
         # against is what went wrong). Each recovery is listed in ``recoveries``.
         self.relocaliser = None
         self.recoveries: list[dict] = []
-        self._refused_in_a_row = 0
         # Placing the run in the map (nap3d_graph.mapping.start): None when the start is given;
         # set by start_in_map for a run that starts from anywhere in a map.
         self._placement_settings: PlacementSettings | None = None
@@ -137,11 +164,6 @@ class Pipeline:
         from anywhere in a map and has not been placed yet."""
         return self.placement is None or self.placement.placed
 
-    def _motion(self) -> MotionModel:
-        stamps = self.sequence.timestamps
-        # A live run (DriftCorrector) starts before its first frame: no stamp yet.
-        return motion_model(self.odometry, self.config, float(stamps[0]) if len(stamps) else 0.0)
-
     # --- the run, as its steps ---------------------------------------------------------
 
     def run(self, on_keyframe=None, stop=None) -> RunResult:
@@ -150,7 +172,7 @@ class Pipeline:
         when it says so, the run ends there with what it has (``RunResult.partial``).
         numpy's BLAS works with ``config.library_threads`` threads meanwhile."""
         t_start = time.perf_counter()
-        self._start()
+        self.start()
         with library_threads(self.config.library_threads):
             result = self._run_frames(on_keyframe, stop)
         result.wall_time_s = time.perf_counter() - t_start
@@ -163,14 +185,9 @@ class Pipeline:
         done, partial = n, False
         worker = CorrectionWorker(self.field, self.config) if self.overlaps() else None
         self.worker = worker  # a caller's stop hook may watch it
-        # Only a run that reads every frame reads ahead (one that moves with recorded or IMU
-        # odometry reads its keyframes alone).
-        reads_all = self.motion.needs_frames or self.selector.reads_every_frame
-        if self.config.read_ahead and reads_all and reads_concurrently(self.sequence):
-            # A third thread on two cores: when the second thread is what the run waits for, the
-            # reader would only slow it down, and reading here costs nothing (the run would wait).
-            self._frames = FrameReadAhead(self.sequence, self.config.read_ahead, n,
-                                          wanted=lambda: not self._waits_for_worker)
+        # A third thread on two cores: when the second thread is what the run waits for, the
+        # reader would only slow it down (FrameReader.hold_back), and reading here costs nothing.
+        self.frames.read_ahead(self.config.read_ahead, n)
         try:
             for i in progress_bar(range(n), desc="run", unit="frame", disable=not self.config.progress):
                 if stop is not None and stop():
@@ -183,392 +200,29 @@ class Pipeline:
             if worker is not None:
                 worker.close()
             self.worker = None
-            if isinstance(self._frames, FrameReadAhead):
-                self._frames.close()
-            self._frames = self.sequence
-        result = self._finish(max(done, 1))
+            self.frames.close()
+        result = self.result(max(done, 1))
         result.partial = partial
         return result
 
-    def start(self) -> None:
-        """A fresh graph and state, before frame 0 (``run`` starts itself)."""
-        self._start()
-
-    def result(self, n: int) -> RunResult:
-        """The run over its first ``n`` frames as it stands: the final solve, every frame's
-        pose (``run`` returns this at its end)."""
-        return self._finish(n)
-
     def step(self, i: int, worker: CorrectionWorker | None = None, on_keyframe=None) -> None:
-        """Frame i (after frames 0..i-1; ``_start`` first): its odometry, and when it is a
+        """Frame i (after frames 0..i-1; :meth:`start` first): its odometry, and when it is a
         keyframe, its node, its correction and the solve. ``run`` is this over the sequence;
         :class:`nap3d_graph.run.live.DriftCorrector` calls it a frame at a time. With a
         ``worker`` the keyframe is measured on it while the run goes on
         (:mod:`nap3d_graph.run.overlapped`)."""
         if worker is not None:
-            self._overlapped(worker).step(i, on_keyframe)
+            if self._overlap is None or self._overlap.worker is not worker:
+                self._overlap = OverlappedSteps(self, worker)  # made once per worker
+            self._overlap.step(i, on_keyframe)
             return
-        frame = self._predict(i, self._frame_for_odometry(i))
-        if self._is_keyframe(i, frame, idle=False):
-            self._add_keyframe(i)  # its node and motion factor: the prediction
-            frame = self._keyframe_frame(i, frame)
+        frame = self.predict(i, self.frames.for_odometry(i))
+        if self.is_keyframe(i, frame, idle=False):
+            self.add_keyframe(i)  # its node and motion factor: the prediction
+            frame = self.frames.for_keyframe(i, frame, needed=self.field is not None)
             self._correct_keyframe(i, frame)  # measured, gated, added, solved
-            self._report(self._finish_keyframe(), on_keyframe)
-        self._online.append(self.motion.causal_pose())
-
-    def _overlapped(self, worker: CorrectionWorker) -> OverlappedSteps:
-        """The overlapped steps of this run with ``worker`` (made once per worker)."""
-        if self._overlap is None or self._overlap.worker is not worker:
-            self._overlap = OverlappedSteps(self, worker)
-        return self._overlap
-
-    def _frame_for_odometry(self, i: int):
-        """Frame i when the motion model or the keyframe selection reads every frame, else None
-        (a run on recorded or IMU odometry reads its keyframes alone)."""
-        return self._read_frame(i) if self.motion.needs_frames or self.selector.reads_every_frame else None
-
-    def _predict(self, i: int, frame):
-        """Frame i's odometry step (the motion model's prediction of its pose); returns ``frame``."""
-        if i > 0:
-            t = float(self.sequence.timestamps[i])
-            self.motion.frame(i, frame, t, t - float(self.sequence.timestamps[i - 1]))
-        return frame
-
-    def _is_keyframe(self, i: int, frame, idle: bool) -> bool:
-        """Whether frame i is a keyframe (``idle``: an overlapped run's worker has nothing in flight)."""
-        last = self.keyframe_indices[-1] if self.keyframe_indices else None
-        return self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe(), idle)
-
-    def _keyframe_frame(self, i: int, frame):
-        """The keyframe's image: read now if the odometry did not (without a field a keyframe
-        needs none)."""
-        if frame is None and self.field is not None:
-            return self._read_frame(i)
-        return frame
-
-    @staticmethod
-    def _report(record: KeyframeRecord | None, on_keyframe) -> None:
-        """Tell ``on_keyframe`` about a finished keyframe."""
-        if on_keyframe is not None and record is not None:
-            on_keyframe(record)
-
-    @property
-    def current_estimate(self) -> np.ndarray:
-        """(4, 4) the latest frame's pose as known now (the causal estimate)."""
-        return np.array(self._online[-1])
-
-    # --- steps -----------------------------------------------------------------------------
-
-    def _start(self) -> None:
-        self._frames, self._waits_for_worker = self.sequence, False  # as in __init__, for a new run
-        self._overlap = None
-        self.motion = self._motion()
-        anchor = self.motion.anchor_prior()
-        self.anchored = self.config.use_anchor or anchor is not None
-        self.graph = KeyframeGraph(self.config, self.anchored)
-        # Indexed by keyframe number (records: in the order they were done); with on_retire
-        # the oldest are dropped (FrameLog), like the motion model's per-frame lists.
-        self.keyframe_indices: FrameLog[int] = FrameLog()
-        self.records: FrameLog[KeyframeRecord] = FrameLog()
-        self.T_world_kf_pred = self.motion.T_world_cam_odom[0]
-        self._pending_record: KeyframeRecord | None = None
-        self._frame_intrinsics: Intrinsics | None = None  # the last frame read's camera (a render made ahead uses it)
-        self._online: FrameLog[np.ndarray] = FrameLog()  # each frame's pose as known at that frame (causal)
-        # The latest keyframe's correction and factor (a live caller reads them).
-        self.last_correction: Correction | None = None
-        self.last_factor: gtsam.NonlinearFactor | None = None
-        self._streak: tuple[str | None, int] = (None, 0)  # the current run of refusals for one reason
-        self.last_correction_frame = -1
-        self._trained = self._trained_timestamps()
-        self.placement = None if self.relocaliser is None else MapPlacement(
-            self.relocaliser, self._placement_settings, placed=not self._starts_unplaced)
-        self.recoveries, self._refused_in_a_row = [], 0
-        self.selector = KeyframeSelector(self.config)
-        timing = self._timing()
-        self.depth_scale = DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, self.config)
-        self.intrinsics_model = IntrinsicsModelTracker.for_run(self.config)
-        # The measurement stream, for estimators compared on the same inputs
-        # (nap3d_graph.estimators): each keyframe interval's odometry as its factor has it,
-        # and every successful correction (gated out or not) with its covariance.
-        self.interval_odometry: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        self.measured_corrections: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        if self.config.use_anchor:  # the field's frame in the odometry's world, to be estimated
-            anchor = (anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
-                                          self.config.anchor_trans_sigma_m), np.eye(4))
-        if anchor is not None:
-            self.graph.add_anchor(*anchor)
-
-    def _read_frame(self, i: int):
-        """Frame i, or None when it cannot be read (the reason is logged and recorded)."""
-        from nap3d_graph.datasets import DatasetError
-
-        try:
-            frame = self._frames[i]
-        except (DatasetError, OSError) as exc:
-            log.warning("frame %d unreadable: %s", i, exc)
-            self._frame_error = str(exc)
-            return None
-        if i == 0:
-            self.motion.prime(frame)
-        self._frame_intrinsics = frame.intrinsics
-        return frame
-
-    def _keyframe_record(self, i: int, key: int, **extra) -> KeyframeRecord:
-        """The record of keyframe i (why it is one, its sharpness); starts the next interval."""
-        why, sharp, waited = self.selector.take()
-        trained = bool(self._trained[i]) if i < len(self._trained) else False  # a live run's frames: unknown
-        return KeyframeRecord(i, float(self.sequence.timestamps[i]), key, trained_frame=trained,
-                              why=why, sharpness=sharp, postponed=waited, **extra)
-
-    def _add_keyframe(self, i: int) -> None:
-        """The keyframe's pose enters iSAM2 with its motion factor: that is the prediction."""
-        j = len(self.keyframe_indices)
-        self.keyframe_indices.append(i)
-        entry = self.motion.add_keyframe(j, i, float(self.sequence.timestamps[i]))
-        self.graph.enter(entry)
-        self.T_world_kf_pred = entry.T_world_kf_pred
-        if entry.interval is not None:
-            self.interval_odometry[i] = entry.interval
-        self._pending_record = self._keyframe_record(i, X(j))
-        self._update_isam()
-
-    def _correct_keyframe(self, i: int, frame) -> None:
-        """Measure the pending keyframe's correction and give it to the graph, now; then the
-        motion model hears whether it landed, and adds its own notes of the interval."""
-        record = self._pending()
-        if self._placing():
-            self._place_keyframe(record, i, frame)
-        elif (job := self._job(i, frame)) is not None:
-            self._apply_correction(record, i, measure_keyframe(job, self.field, self.config), job.T_field_cam_render)
-            self._recover_if_lost(record, i, frame)
-        if notes := self.motion.interval_notes():
-            record.reason = f"{record.reason}; {notes}" if record.reason else notes
-        self.motion.after_correction(i, frame, record.accepted)
-
-    def _pending(self) -> KeyframeRecord:
-        """The record of the keyframe being measured (between ``_add_keyframe`` and
-        ``_finish_keyframe`` / ``_launch``)."""
-        if self._pending_record is None:
-            raise RuntimeError("no keyframe is pending: _add_keyframe comes first")
-        return self._pending_record
-
-    def _job(self, i: int, frame, T_field_cam_render: np.ndarray | None = None) -> KeyframeJob | None:
-        """What measuring keyframe i needs, or None (the reason recorded) when it cannot be;
-        rendered at its prediction, or at ``T_field_cam_render`` (4, 4) when given."""
-        record = self._pending()
-        if self.field is None:
-            record.reason = "no field"
-            return None
-        if frame is None:
-            record.reason = f"frame unreadable: {getattr(self, '_frame_error', 'unknown error')}"
-            return None
-        if T_field_cam_render is not None:
-            pass
-        elif self.anchored:
-            T_field_cam_render = inv_T(self.graph.anchor()) @ self.T_world_kf_pred  # the field's frame
-        else:
-            T_field_cam_render = self.T_world_kf_pred
-        render_intrinsics = self._render_intrinsics(frame.intrinsics)
-        return KeyframeJob(i, frame, T_field_cam_render, self._velocity(i), self._timing(), self.depth_scale.scale,
-                           render_intrinsics, feats_real=self._odometry_features(i, render_intrinsics),
-                           fit_intrinsics=self.intrinsics_model.fits_both(i))
-
-    def _odometry_features(self, i: int, render_intrinsics: Intrinsics):
-        """``(features, 0.0)``: frame i's features as the feature odometry detected them, when they
-        are what its correction would detect (``--odom vo --vo-width`` at the render's width);
-        else None."""
-        features_of = getattr(self.odometry, "features_of", None)
-        features = features_of(i, render_intrinsics, self.config.align) if features_of is not None else None
-        return None if features is None else (features, 0.0)
-
-    def _odometry_shares_features(self, intrinsics: Intrinsics) -> bool:
-        shares = getattr(self.odometry, "shares_features", None)
-        return shares is not None and shares(self._render_intrinsics(intrinsics), self.config.align)
-
-    def _due_by_count(self, i: int) -> bool:
-        """Frame i is due to be a keyframe by ``keyframe_every`` alone (what can be known before
-        its odometry; the other reasons a keyframe is taken cannot)."""
-        return len(self.keyframe_indices) > 0 and i - self.keyframe_indices[-1] >= self.config.keyframe_every
-
-    def _apply_correction(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render) -> None:
-        """The graph half (:meth:`_gate_and_add`), and a warning while the run goes when
-        corrections keep failing for one reason."""
-        self._gate_and_add(record, i, correction, T_field_cam_render)
-        self._watch_refusals(record)
-
-    def _latest_key(self) -> int:
-        """The graph key of the latest keyframe."""
-        return X(len(self.keyframe_indices) - 1)
-
-    def _placing(self) -> bool:
-        """Whether this keyframe goes to the map placement (:mod:`nap3d_graph.mapping.start`)
-        rather than to a correction: the run is not placed yet, or a recovery waits for its
-        confirmation."""
-        return self.placement is not None and (not self.placement.placed or self.placement.candidate is not None)
-
-    def _recover_if_lost(self, record: KeyframeRecord, i: int, frame) -> None:
-        """After ``relocalise_after`` keyframes refused in a row (the estimate drifted off the
-        map, or the odometry lost track), relocalise this frame in the map: a verified
-        relocalisation becomes a candidate that the next keyframes confirm
-        (:meth:`_place_keyframe`), then enters without the gate, which would compare it with
-        the prediction that is lost."""
-        self._refused_in_a_row = 0 if record.accepted else self._refused_in_a_row + 1
-        after = self.config.relocalise_after
-        if (self.placement is None or frame is None or not after or self._refused_in_a_row < after
-                or self.anchored):
-            return
-        found = self.placement.propose(i, record.key, frame, self.T_world_kf_pred)
-        entry = {"frame": int(i), "step": "relocalise", "refused_in_a_row": self._refused_in_a_row,
-                 "found": found is not None,
-                 "seconds": self.placement.events[-1]["seconds"]}
-        if found is None:  # tried again at the next keyframe
-            entry["reason"] = self.placement.events[-1].get("reason", "")
-        else:
-            self._refused_in_a_row = 0
-            if self.placement.settings.confirmations == 0:
-                self._place(record, i)
-        self.recoveries.append(entry)
-
-    def _place_keyframe(self, record: KeyframeRecord, i: int, frame) -> None:
-        """Keyframe i while the run is not placed in the map (or a recovery waits): it confirms
-        the pending candidate (rendered where the candidate puts it), or relocalises afresh.
-        Nothing enters the graph until a candidate is confirmed; then :meth:`_place`."""
-        placement = self.placement
-        assert placement is not None
-        lost = placement.placed  # a recovery, not the start
-        if frame is None or self.field is None:
-            record.reason = "no frame to relocalise" if frame is None else "no field"
-            return
-        if placement.candidate is not None:
-            T_map_cam_pred = placement.predicted(self.T_world_kf_pred)
-            job = self._job(i, frame, T_field_cam_render=T_map_cam_pred)
-            if job is None:
-                return
-            correction = measure_keyframe(job, self.field, self.config)
-            record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
-                                                                 correction.iterations)
-            verdict = placement.confirm(i, record.key, correction, T_map_cam_pred)
-            if verdict == "confirmed":
-                self._place(record, i)
-                return
-            if verdict == "agrees":
-                record.reason = "relocalised in the map: confirming (agrees so far)"
-                return
-            if lost:  # refuted while recovering: back to counting refusals
-                record.reason = f"recovery refuted: {placement.events[-1].get('reason', '')}"
-                return
-        found = placement.propose(i, record.key, frame, self.T_world_kf_pred)
-        if found is not None and placement.settings.confirmations == 0:
-            self._place(record, i)
-            return
-        record.reason = ("not yet placed in the map: relocalised, to be confirmed by the next keyframe" if found
-                         else f"not yet placed in the map: {placement.events[-1].get('reason', 'not found')}")
-
-    def _place(self, record: KeyframeRecord, i: int) -> None:
-        """The pending candidate is confirmed at keyframe i: at the start, everything so far
-        moves into the map's frame (:meth:`_reframe`); then the relocalisation and each
-        confirming correction enter the graph past the gate."""
-        placement = self.placement
-        assert placement is not None
-        first = not placement.placed
-        cand = placement.accept(i)
-        if first:
-            self._reframe(cand.T_map_run)
-        found = cand.found
-        alignment = Alignment(success=True, num_inliers=int(found.inliers), covariance=found.covariance)
-        relocalised = Correction(found.T_map_cam, found.T_map_cam, found.covariance, alignment, 1, True, "", {})
-        T_pred = self.T_world_kf_pred
-        for frame_index, key, correction in [(cand.frame, cand.key, relocalised), *cand.confirmed]:
-            if not self.graph.has(key) and key != record.key:
-                continue  # left a bounded graph meanwhile
-            try:
-                self.graph.add_past_gate(key, correction, frame_index)
-            except ValueError as exc:  # a covariance GTSAM cannot use: that one stays out
-                log.warning("frame %d: relocalisation not usable (%s)", frame_index, exc)
-        self._update_isam(extra_step=True, record=record)
-        last = cand.confirmed[-1][2] if cand.confirmed else relocalised
-        record.correction_m, record.correction_deg = pose_error(last.T_world_cam_corrected, T_pred)
-        record.accepted = True
-        record.reason = ""
-        self.last_correction, self.last_correction_frame = last, i
-        if first:
-            log.warning("frame %d: %s", i, placement.describe())
-        else:
-            jump_m, jump_deg = pose_error(self.graph.pose(record.key), T_pred)
-            entry = {"frame": int(i), "step": "recovered", "recovered_from_frame": cand.frame, "jump_m": round(jump_m, 4),
-                     "jump_deg": round(jump_deg, 3), "keyframe": int(found.keyframe), "inliers": int(found.inliers),
-                     "success": True}
-            self.recoveries.append(entry)
-            log.warning("frame %d: recovered in the map (relocalised at frame %d, confirmed); the estimate jumped "
-                        "%.2f m / %.1f deg", i, cand.frame, jump_m, jump_deg)
-        self._refused_in_a_row = 0
-
-    def _reframe(self, T_map_run: np.ndarray) -> None:
-        """Move the run so far from its provisional frame into the map's by ``T_map_run``
-        (4, 4): the odometry, the causal poses, the prediction and the graph (which drops its
-        provisional first-pose prior: the relocalisation now holds the gauge)."""
-        T = np.asarray(T_map_run, dtype=float)
-        self.motion.reframe(T)
-        self._online = self._online.mapped(lambda T_run_cam: T @ T_run_cam)
-        self.T_world_kf_pred = T @ self.T_world_kf_pred
-        self.graph = self.graph.reframed(T)
-
-    #: Consecutive keyframes refused for one reason before the run says so.
-    REFUSAL_STREAK = 5
-
-    def _watch_refusals(self, record: KeyframeRecord) -> None:
-        """Warn (once per streak) when the last REFUSAL_STREAK keyframes were all refused for
-        the same reason: the run then goes on on its odometry alone, and the user should know
-        it now, not from the summary."""
-        from nap3d_graph.run.output import refusal_hint_for
-        from nap3d_graph.run.records import refusal_kind
-
-        if record.accepted:
-            self._streak = (None, 0)
-            return
-        kind = refusal_kind(record.reason)
-        previous, count = self._streak
-        count = count + 1 if kind == previous else 1
-        self._streak = (kind, count)
-        if count == self.REFUSAL_STREAK:
-            log.warning("the last %d keyframes (to frame %d) were all refused for '%s' (the last: %s); the run goes "
-                        "on on its odometry alone until corrections land again. %s", count, record.frame_index, kind,
-                        record.reason, refusal_hint_for(kind))
-
-    def _gate_and_add(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render) -> None:
-        """The graph half: depth-scale check, gate, factor (see the module docstring)."""
-        record.intrinsics_model = self.intrinsics_model.observe(i, correction)
-        if correction.success and self.config.depth_scale_check:
-            correction = self.depth_scale.check(correction, record)
-        if correction.success:
-            self.measured_corrections[i] = (np.array(correction.T_world_cam_corrected), np.array(correction.covariance))
-        if self.correction_hook is not None:
-            correction = self.correction_hook(i, correction)
-        self.last_correction, self.last_factor = correction, None
-        self.last_correction_frame = i  # which keyframe last_correction is (an observer checks)
-        record.timings_s.update({k: round(v, 4) for k, v in correction.timings_s.items()})
-        record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
-                                                             correction.iterations)
-        if not correction.success:
-            record.reason = correction.reason
-            return
-        record.correction_m, record.correction_deg = pose_error(correction.T_world_cam_corrected, T_field_cam_render)
-        if not self.graph.has(record.key):
-            record.reason = "keyframe left the graph window before its correction landed"
-            return
-        t0 = time.perf_counter()
-        factor, gate = self.graph.gated_correction(record.key, correction, i)
-        record.timings_s["gate"] = round(time.perf_counter() - t0, 5)
-        record.gate_d2 = gate.d2 if gate is not None else float("nan")
-        if factor is None:
-            # Gated out against a prediction that may itself be wrong: the final solve weighs it
-            # again with everything else (KeyframeGraph.final_estimate).
-            record.reason = gate.reason if gate is not None else "invalid covariance"
-            return
-        self.last_factor = factor
-        record.accepted = True
-        # Two iSAM2 steps: a correction can move the pose a long way from its linearisation.
-        self._update_isam(extra_step=True, record=record)
+            tell(on_keyframe, self.finish_keyframe())
+        self.online.append(self.motion.causal_pose())
 
     def overlaps(self) -> bool:
         """Whether keyframes are measured on a worker thread (``config.overlap``, a field, and a
@@ -578,83 +232,130 @@ class Pipeline:
     def land_pending(self, worker: CorrectionWorker, on_keyframe=None) -> None:
         """The measurement still in flight, if any, waited for and put in the graph (the end of
         an overlapped run)."""
-        self._overlapped(worker).land_pending(on_keyframe)
+        if self._overlap is None or self._overlap.worker is not worker:
+            self._overlap = OverlappedSteps(self, worker)
+        self._overlap.land_pending(on_keyframe)
 
-    def _timing(self) -> CaptureTiming | None:
-        """The capture timing the run compensates: the config's, else the field's (None: off)."""
-        return resolve_capture_timing(self.field, given=self.config.timing, compensate=self.config.compensate_timing)[0]
+    @property
+    def current_estimate(self) -> np.ndarray:
+        """(4, 4) the latest frame's pose as known now (the causal estimate)."""
+        return np.array(self.online[-1])
 
-    def _velocity(self, i: int) -> np.ndarray | None:
-        """Body twist per second (GTSAM order) of the camera at frame i, by the motion model."""
-        t = float(self.sequence.timestamps[i])
-        dt = t - float(self.sequence.timestamps[i - 1]) if i >= 1 else 0.0
-        return self.motion.twist(i, t, dt)
+    # --- a frame's steps (the inline path here; nap3d_graph.run.overlapped the other) -------
 
-    def _update_isam(self, extra_step: bool = False, record: KeyframeRecord | None = None) -> None:
+    def predict(self, i: int, frame):
+        """Frame i's odometry step (the motion model's prediction of its pose); returns ``frame``."""
+        if i > 0:
+            t = float(self.sequence.timestamps[i])
+            self.motion.frame(i, frame, t, t - float(self.sequence.timestamps[i - 1]))
+        return frame
+
+    def is_keyframe(self, i: int, frame, idle: bool) -> bool:
+        """Whether frame i is a keyframe (``idle``: an overlapped run's worker has nothing in flight)."""
+        last = self.keyframe_indices[-1] if self.keyframe_indices else None
+        return self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe(), idle)
+
+    def add_keyframe(self, i: int) -> None:
+        """Frame i becomes a keyframe: its pose enters iSAM2 with its motion factor (that is
+        the prediction), and its record is pending (:meth:`pending`) until it is measured."""
+        j = len(self.keyframe_indices)
+        self.keyframe_indices.append(i)
+        entry = self.motion.add_keyframe(j, i, float(self.sequence.timestamps[i]))
+        self.graph.enter(entry)
+        self.T_world_kf_pred = entry.T_world_kf_pred
+        if entry.interval is not None:
+            self.stream.add_interval(i, entry.interval)
+        why, sharp, waited = self.selector.take()
+        trained = bool(self._trained[i]) if i < len(self._trained) else False  # a live run's frames: unknown
+        self.pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j), trained_frame=trained,
+                                             why=why, sharpness=sharp, postponed=waited)
+        self.update_graph()
+
+    def pending(self) -> KeyframeRecord:
+        """The record of the keyframe being measured (between :meth:`add_keyframe` and
+        :meth:`finish_keyframe`, or an overlapped run's launch)."""
+        if self.pending_record is None:
+            raise RuntimeError("no keyframe is pending: add_keyframe comes first")
+        return self.pending_record
+
+    def _correct_keyframe(self, i: int, frame) -> None:
+        """Measure the pending keyframe's correction and give it to the graph, now; then the
+        motion model hears whether it landed, and adds its own notes of the interval."""
+        record = self.pending()
+        if self.recovery.placing():
+            self.recovery.place_keyframe(record, i, frame)
+        elif (job := self.jobs.job(record, i, frame)) is not None:
+            self.corrections.apply(record, i, measure_keyframe(job, self.field, self.config), job.T_field_cam_render)
+            self.recovery.recover_if_lost(record, i, frame)
+        if notes := self.motion.interval_notes():
+            record.reason = f"{record.reason}; {notes}" if record.reason else notes
+        self.motion.after_correction(i, frame, record.accepted)
+
+    def finish_keyframe(self) -> KeyframeRecord | None:
+        """The latest keyframe is done: the motion model hears its estimate, its record is kept
+        and returned (None when it was already handed on)."""
+        j = len(self.keyframe_indices) - 1
+        self.motion.keyframe_estimated(self.graph, j, float(self.sequence.timestamps[self.keyframe_indices[j]]))
+        record, self.pending_record = self.pending_record, None
+        if record is not None:
+            self.records.append(record)
+        return record
+
+    def update_graph(self, extra_step: bool = False, record: KeyframeRecord | None = None) -> None:
+        """An iSAM2 step (two with ``extra_step``); with a bounded graph, what left its window
+        is forgotten (and handed to ``on_retire``). The time goes to ``record``'s timings (the
+        pending keyframe's when not given)."""
         t0 = time.perf_counter()
         self.graph.update(extra_step)
         # Until the run is placed in the map its graph holds every keyframe (it will be moved whole).
         cut = self.graph.bound(len(self.keyframe_indices)) if self.placed else None
         if cut is not None:  # the window moved: the stream forgets what left it
-            oldest_frame = self.keyframe_indices[cut]
-            for kept in (self.interval_odometry, self.measured_corrections):
-                for frame in [frame for frame in kept if frame < oldest_frame]:
-                    del kept[frame]
-            if self.on_retire is not None:
-                self._retire(cut)
-        record = record or self._pending_record
+            self.stream.forget_before(self.keyframe_indices[cut])
+            if self.on_retire is not None and (segment := retired_segment(self, cut)) is not None:
+                self.on_retire(segment)
+        record = record or self.pending_record
         if record is not None:
             record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
 
-    def _retire(self, cut: int) -> None:
-        """Keyframes before ``cut`` have left the graph with their poses fixed: the frames before
-        the last of them have their final smoothed poses (each is chained from a fixed
-        keyframe). Hand them to ``on_retire`` and forget them; the last fixed keyframe stays, the
-        frames after it are chained from it at the end."""
-        first, last_fixed = self._online.start, self.keyframe_indices[cut - 1]
-        if last_fixed <= first:
-            return
-        fixed = {idx: self.graph.frozen[j] for j, idx in self.keyframe_indices.items() if j < cut}
-        T_world_cam_est = chain_from_nearest_keyframe(fixed, self.motion.increments, last_fixed, start=first)
-        stamps = np.asarray(self.sequence.timestamps[first:last_fixed], dtype=float)
-        keyframes_gone = self.keyframe_indices.drop_before(self.keyframe_indices.first(lambda idx: idx >= last_fixed))
-        records_gone = self.records.drop_before(self.records.first(lambda r: r.frame_index >= last_fixed))
-        for j in [j for j in self.graph.frozen if j < self.keyframe_indices.start]:
-            del self.graph.frozen[j]
-        segment = RunResult(stamps, T_world_cam_est, np.stack(self.motion.T_world_cam_odom.drop_before(last_fixed)),
-                            self._ground_truth(first, last_fixed), records_gone, keyframes_gone,
-                            T_world_cam_online=np.stack(self._online.drop_before(last_fixed)),
-                            increments=self.motion.increments.drop_before(last_fixed), first_frame=first)
-        self.on_retire(segment)
+    # --- start and result ------------------------------------------------------------------
 
-    def _finish_keyframe(self) -> KeyframeRecord | None:
-        j = len(self.keyframe_indices) - 1
-        self.motion.keyframe_estimated(self.graph, j, float(self.sequence.timestamps[self.keyframe_indices[j]]))
-        record, self._pending_record = self._pending_record, None
-        if record is not None:
-            self.records.append(record)
-        return record
+    def start(self) -> None:
+        """A fresh graph and state, before frame 0 (:meth:`run` starts itself)."""
+        self._overlap = None
+        stamps = self.sequence.timestamps
+        # A live run (DriftCorrector) starts before its first frame: no stamp yet.
+        self.motion = motion_model(self.odometry, self.config, float(stamps[0]) if len(stamps) else 0.0)
+        anchor = self.motion.anchor_prior()
+        self.anchored = self.config.use_anchor or anchor is not None
+        self.graph = KeyframeGraph(self.config, self.anchored)
+        self.keyframe_indices, self.records, self.online = FrameLog(), FrameLog(), FrameLog()
+        self.T_world_kf_pred = self.motion.T_world_cam_odom[0]
+        self.pending_record, self.last_correction, self.last_factor, self.last_correction_frame = None, None, None, -1
+        self._trained = trained_frames(self.field, self.sequence)
+        self.selector = KeyframeSelector(self.config)
+        self.frames = FrameReader(self.sequence, self.motion.prime,
+                                  self.motion.needs_frames or self.selector.reads_every_frame)
+        self.jobs = KeyframeJobs(self)
+        timing = self.jobs.timing()
+        self.depth_scale = DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, self.config)
+        self.intrinsics_model = IntrinsicsModelTracker.for_run(self.config)
+        self.stream = MeasurementStream()
+        self.corrections = CorrectionGate(self)
+        self.placement = None if self.relocaliser is None else MapPlacement(
+            self.relocaliser, self._placement_settings, placed=not self._starts_unplaced)
+        self.recovery = MapRecovery(self, self.placement)
+        self.recoveries = self.recovery.recoveries
+        if self.config.use_anchor:  # the field's frame in the odometry's world, to be estimated
+            anchor = (anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
+                                          self.config.anchor_trans_sigma_m), np.eye(4))
+        if anchor is not None:
+            self.graph.add_anchor(*anchor)
 
-    def _trained_timestamps(self) -> np.ndarray:
-        from nap3d_graph.fields import frames_seen_in_training
-
-        return frames_seen_in_training(self.field, self.sequence) if self.field is not None else \
-            np.zeros(len(self.sequence), dtype=bool)
-
-    def _ground_truth(self, start: int, stop: int):
-        """A function reading the sequence's ground truth of frames ``start:stop`` (None when
-        it has none) when a result is asked for it, not before: the run never sees it."""
-        sequence = self.sequence
-
-        def read():
-            T = sequence.T_world_cam_gt
-            return None if T is None else np.asarray(T[start:stop])
-
-        return read
-
-    def _finish(self, n: int) -> RunResult:
-        first = self._online.start  # frames before it were retired (on_retire)
-        T_world_cam_gt = self._ground_truth(first, n)
+    def result(self, n: int) -> RunResult:
+        """The run over its first ``n`` frames as it stands: the final solve, every frame's
+        pose (``run`` returns this at its end)."""
+        first = self.online.start  # frames before it were retired (on_retire)
+        T_world_cam_gt = ground_truth_reader(self.sequence, first, n)
         stamps = np.asarray(self.sequence.timestamps[first:n], dtype=float)
         if not len(self.keyframe_indices):  # stopped before the first keyframe: odometry is all there is
             T_world_cam_odom = np.stack(self.motion.T_world_cam_odom[:n])
@@ -665,24 +366,22 @@ class Pipeline:
         T_world_kf_by_frame = {idx: frozen[j] if j in frozen else pose3_to_T(estimate.atPose3(X(j)))
                                for j, idx in self.keyframe_indices.items()}
         T_world_cam_est = self.motion.smoothed(estimate, T_world_kf_by_frame, self.keyframe_indices, stamps)
-        T_online = self.motion.causal(self._online, stamps)
+        T_online = self.motion.causal(self.online, stamps)
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
         result = RunResult(stamps, T_world_cam_est, np.stack(self.motion.T_world_cam_odom[:n]), T_world_cam_gt,
                            list(self.records), list(self.keyframe_indices), T_map, T_world_cam_online=T_online,
                            gnc_outliers=list(self.graph.gnc_outliers), gnc_recovered=list(self.graph.gnc_recovered),
-                           depth_scale=self.depth_scale.scale, interval_odometry=dict(self.interval_odometry),
-                           corrections=dict(self.measured_corrections), increments=list(self.motion.increments[:n]),
+                           depth_scale=self.depth_scale.scale, interval_odometry=dict(self.stream.interval_odometry),
+                           corrections=dict(self.stream.corrections), increments=list(self.motion.increments[:n]),
                            first_frame=first)
         self.motion.finish(estimate, self.graph, accepted, self.keyframe_indices, result)
         if self.placement is not None:
             result.placement = self.placement.summary()
         return result
 
-    # --- helpers -----------------------------------------------------------------------------
 
-    def _render_intrinsics(self, intrinsics: Intrinsics) -> Intrinsics:
-        """The render's camera: the frame's (``intrinsics``) at the configured render size."""
-        w, h = self.config.render_width, self.config.render_height
-        if w is None or h is None or (w, h) == (intrinsics.width, intrinsics.height):
-            return intrinsics
-        return intrinsics.scaled(w, h)
+def trained_frames(field, sequence) -> np.ndarray:
+    """(N,) bool: which frames of ``sequence`` ``field`` was trained on (none without a field)."""
+    from nap3d_graph.fields import frames_seen_in_training
+
+    return frames_seen_in_training(field, sequence) if field is not None else np.zeros(len(sequence), dtype=bool)

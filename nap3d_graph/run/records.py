@@ -11,7 +11,7 @@ import numpy as np
 if TYPE_CHECKING:
     from nap3d_graph.trajectory import Trajectory
 
-__all__ = ["KeyframeRecord", "RunResult", "refusal_kind"]
+__all__ = ["KeyframeRecord", "RunResult", "ground_truth_reader", "refusal_kind", "tell"]
 
 
 def refusal_kind(reason: str) -> str:
@@ -19,6 +19,17 @@ def refusal_kind(reason: str) -> str:
     import re
 
     return re.split(r"[(:=0-9]", reason or "unknown")[0].strip() or "unknown"
+
+
+def ground_truth_reader(sequence, start: int, stop: int) -> Callable[[], np.ndarray | None]:
+    """A function reading ``sequence``'s ground truth of frames ``start:stop`` (None when it
+    has none) when a result is asked for it, not before: the run never sees it."""
+
+    def read():
+        T = sequence.T_world_cam_gt
+        return None if T is None else np.asarray(T[start:stop])
+
+    return read
 
 
 @dataclass
@@ -43,6 +54,12 @@ class KeyframeRecord:
     postponed: int = 0  # frames it was taken after it was due (keyframe_window)
     depth_scale: float = float("nan")
     intrinsics_model: str = ""  # the camera model its alignment kept (IntrinsicsModelTracker.observe)
+
+
+def tell(on_keyframe: Callable[[KeyframeRecord], object] | None, record: KeyframeRecord | None) -> None:
+    """Tell ``on_keyframe`` (a caller's hook, or None) about a finished keyframe."""
+    if on_keyframe is not None and record is not None:
+        on_keyframe(record)
 
 
 @dataclass

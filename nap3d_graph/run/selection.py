@@ -49,6 +49,12 @@ class KeyframeSelector:
             return "distance"
         return "angle" if self.config.keyframe_angle_deg > 0 and turned_deg >= self.config.keyframe_angle_deg else ""
 
+    def due_by_count(self, i: int, last_keyframe: int | None) -> bool:
+        """Frame i is due to be a keyframe by ``keyframe_every`` alone (what can be known before
+        its odometry; the other reasons a keyframe is taken cannot). ``last_keyframe``: the last
+        keyframe's frame (None before the first)."""
+        return last_keyframe is not None and i - last_keyframe >= self.config.keyframe_every
+
     def idle_due(self, i: int, last_keyframe: int | None) -> bool:
         """Frame i is far enough from the last keyframe to be taken while the worker is idle
         (``keyframe_when_idle``)."""

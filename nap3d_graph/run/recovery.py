@@ -1,0 +1,161 @@
+"""A run in a map finding where it is: at its start (it began anywhere in the map, in a
+provisional frame) and again when it is lost (keyframes refused in a row).
+
+:class:`MapRecovery` drives a run's :class:`~nap3d_graph.mapping.start.MapPlacement`: each
+keyframe while the run is not placed (or while a recovery waits) relocalises in the map or
+confirms the pending candidate; a confirmed candidate enters the graph past the gate, which
+would compare it with the prediction that is lost, and at the start everything so far moves
+into the map's frame with it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from nap3d_graph.conventions import pose_error
+from nap3d_graph.mapping.start import MapPlacement
+from nap3d_graph.results import Alignment, Correction
+from nap3d_graph.run.keyframe import measure_keyframe
+from nap3d_graph.run.records import KeyframeRecord
+
+__all__ = ["MapRecovery"]
+
+log = logging.getLogger(__name__)
+
+
+class MapRecovery:
+    """Placement and recovery of ``run`` (a :class:`~nap3d_graph.run.pipeline.Pipeline`: its
+    field, graph, motion model, causal poses and prediction) in the map of ``placement``
+    (None: the run has no map; nothing to do). ``recoveries``: each relocalisation tried after
+    refusals, and each recovery (metrics.json's record)."""
+
+    def __init__(self, run, placement: MapPlacement | None):
+        self.run = run
+        self.placement = placement
+        self.recoveries: list[dict] = []
+        self.refused_in_a_row = 0
+
+    def placing(self) -> bool:
+        """Whether this keyframe goes to the placement rather than to a correction: the run is
+        not placed yet, or a recovery waits for its confirmation."""
+        return self.placement is not None and (not self.placement.placed or self.placement.candidate is not None)
+
+    def recover_if_lost(self, record: KeyframeRecord, i: int, frame) -> None:
+        """After ``relocalise_after`` keyframes refused in a row (the estimate drifted off the
+        map, or the odometry lost track), relocalise keyframe i in the map: a verified
+        relocalisation becomes a candidate that the next keyframes confirm
+        (:meth:`place_keyframe`)."""
+        self.refused_in_a_row = 0 if record.accepted else self.refused_in_a_row + 1
+        after, placement = self.run.config.relocalise_after, self.placement
+        if (placement is None or frame is None or not after or self.refused_in_a_row < after
+                or self.run.anchored):
+            return
+        found = placement.propose(i, record.key, frame, self.run.T_world_kf_pred)
+        entry = {"frame": int(i), "step": "relocalise", "refused_in_a_row": self.refused_in_a_row,
+                 "found": found is not None, "seconds": placement.events[-1]["seconds"]}
+        if found is None:  # tried again at the next keyframe
+            entry["reason"] = placement.events[-1].get("reason", "")
+        else:
+            self.refused_in_a_row = 0
+            if placement.settings.confirmations == 0:
+                self._place(record, i)
+        self.recoveries.append(entry)
+
+    def place_keyframe(self, record: KeyframeRecord, i: int, frame) -> None:
+        """Keyframe i while the run is not placed in the map (or a recovery waits): it confirms
+        the pending candidate (rendered where the candidate puts it), or relocalises afresh.
+        Nothing enters the graph until a candidate is confirmed."""
+        run, placement = self.run, self.placement
+        assert placement is not None
+        if frame is None or run.field is None:
+            record.reason = "no frame to relocalise" if frame is None else "no field"
+            return
+        if placement.candidate is not None and self._confirm(record, i, frame, lost=placement.placed):
+            return
+        found = placement.propose(i, record.key, frame, run.T_world_kf_pred)
+        if found is not None and placement.settings.confirmations == 0:
+            self._place(record, i)
+            return
+        record.reason = ("not yet placed in the map: relocalised, to be confirmed by the next keyframe" if found
+                         else f"not yet placed in the map: {placement.events[-1].get('reason', 'not found')}")
+
+    def _confirm(self, record: KeyframeRecord, i: int, frame, lost: bool) -> bool:
+        """Keyframe i measured where the pending candidate puts it: True when that settles the
+        keyframe (confirmed and placed, agreeing so far, refuted while recovering, or not
+        measurable), False when the candidate was refuted and the run relocalises afresh.
+        ``lost``: a recovery, not the start."""
+        run, placement = self.run, self.placement
+        assert placement is not None
+        T_map_cam_pred = placement.predicted(run.T_world_kf_pred)
+        job = run.jobs.job(record, i, frame, T_field_cam_render=T_map_cam_pred)
+        if job is None:
+            return True
+        correction = measure_keyframe(job, run.field, run.config)
+        record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
+                                                             correction.iterations)
+        verdict = placement.confirm(i, record.key, correction, T_map_cam_pred)
+        if verdict == "confirmed":
+            self._place(record, i)
+        elif verdict == "agrees":
+            record.reason = "relocalised in the map: confirming (agrees so far)"
+        elif lost:  # refuted while recovering: back to counting refusals
+            record.reason = f"recovery refuted: {placement.events[-1].get('reason', '')}"
+        else:
+            return False
+        return True
+
+    def _place(self, record: KeyframeRecord, i: int) -> None:
+        """The pending candidate is confirmed at keyframe i: at the start, everything so far
+        moves into the map's frame (:meth:`_reframe`); then the relocalisation and each
+        confirming correction enter the graph past the gate."""
+        run, placement = self.run, self.placement
+        assert placement is not None
+        first = not placement.placed
+        cand = placement.accept(i)
+        if first:
+            self._reframe(cand.T_map_run)
+        found = cand.found
+        alignment = Alignment(success=True, num_inliers=int(found.inliers), covariance=found.covariance)
+        relocalised = Correction(found.T_map_cam, found.T_map_cam, found.covariance, alignment, 1, True, "", {})
+        T_pred = run.T_world_kf_pred
+        for frame_index, key, correction in [(cand.frame, cand.key, relocalised), *cand.confirmed]:
+            if not run.graph.has(key) and key != record.key:
+                continue  # left a bounded graph meanwhile
+            try:
+                run.graph.add_past_gate(key, correction, frame_index)
+            except ValueError as exc:  # a covariance GTSAM cannot use: that one stays out
+                log.warning("frame %d: relocalisation not usable (%s)", frame_index, exc)
+        run.update_graph(extra_step=True, record=record)
+        last = cand.confirmed[-1][2] if cand.confirmed else relocalised
+        record.correction_m, record.correction_deg = pose_error(last.T_world_cam_corrected, T_pred)
+        record.accepted = True
+        record.reason = ""
+        run.last_correction, run.last_correction_frame = last, i
+        if first:
+            log.warning("frame %d: %s", i, placement.describe())
+        else:
+            self._recovered(i, cand, found, T_pred, run.graph.pose(record.key))
+        self.refused_in_a_row = 0
+
+    def _recovered(self, i: int, cand, found, T_pred: np.ndarray, T_now: np.ndarray) -> None:
+        """Record and say a recovery confirmed at keyframe i (the estimate jumped from
+        ``T_pred`` to ``T_now``, both (4, 4))."""
+        jump_m, jump_deg = pose_error(T_now, T_pred)
+        self.recoveries.append({"frame": int(i), "step": "recovered", "recovered_from_frame": cand.frame,
+                                "jump_m": round(jump_m, 4), "jump_deg": round(jump_deg, 3),
+                                "keyframe": int(found.keyframe), "inliers": int(found.inliers), "success": True})
+        log.warning("frame %d: recovered in the map (relocalised at frame %d, confirmed); the estimate jumped "
+                    "%.2f m / %.1f deg", i, cand.frame, jump_m, jump_deg)
+
+    def _reframe(self, T_map_run: np.ndarray) -> None:
+        """Move the run so far from its provisional frame into the map's by ``T_map_run``
+        (4, 4): the odometry, the causal poses, the prediction and the graph (which drops its
+        provisional first-pose prior: the relocalisation now holds the gauge)."""
+        run = self.run
+        T = np.asarray(T_map_run, dtype=float)
+        run.motion.reframe(T)
+        run.online = run.online.mapped(lambda T_run_cam: T @ T_run_cam)
+        run.T_world_kf_pred = T @ run.T_world_kf_pred
+        run.graph = run.graph.reframed(T)
