@@ -6,14 +6,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from report import RESULTS, Section
+from report import RESULTS, Section, cm
 
 MAP_SURVEY_FILES = ("map_survey_fr1_desk.json", "map_survey_redkitchen.json")
 ORBSLAM3_FILES = ("orbslam3_fr1_desk.json", "orbslam3_fr1_desk_repeat.json")
-
-
-def _cm(value) -> str:
-    return "n/a" if value is None else f"{value * 100:.2f}"
 
 
 def map_survey_table() -> str:
@@ -37,18 +33,18 @@ def map_survey_table() -> str:
             if run is None:
                 return "n/a"
             if key == "sfm_posed":  # its world is the second ground truth's: scored there only
-                return f"[{_cm(run['ate_second_gt_m'])}] ([{_cm(run['ate_second_gt_causal_m'])}])"
-            extra = f" [{_cm(run['ate_second_gt_m'])}]" if "ate_second_gt_m" in run else ""
-            return f"{_cm(run['ate_m'])} ({_cm(run['ate_causal_m'])}){extra}"
+                return f"[{cm(run['ate_second_gt_m'])}] ([{cm(run['ate_second_gt_causal_m'])}])"
+            extra = f" [{cm(run['ate_second_gt_m'])}]" if "ate_second_gt_m" in run else ""
+            return f"{cm(run['ate_m'])} ({cm(run['ate_causal_m'])}){extra}"
 
         nearer_second = second is not None and second["rmse_m"] < ate["map"]["rmse_m"]
         ratio = (r["ratio_self_to_sfm_posed_in_sfm_frame"] if nearer_second and "sfm_posed" in runs
                  else r["ratio_self_to_gt_posed"])
-        second_text = f" [{_cm(second['rmse_m'])}]" if second else ""
+        second_text = f" [{cm(second['rmse_m'])}]" if second else ""
         reloc_second = (f" [{reloc['within_5cm_3deg_second_gt']}]" if "within_5cm_3deg_second_gt" in reloc else "")
         rows.append(
             f"| {Path(r['data']).name} `{name}` "
-            f"| {_cm(ate['map']['rmse_m'])} / {_cm(ate['odometry_only']['rmse_m'])}{second_text} "
+            f"| {cm(ate['map']['rmse_m'])} / {cm(ate['odometry_only']['rmse_m'])}{second_text} "
             f"| {survey['loops']['accepted']} / {survey['loops']['verified']} "
             f"| {run_cell('self_posed')} | {run_cell('gt_posed')} | {run_cell('sfm_posed')} "
             f"| {ratio:.2f}{' (2nd GT)' if nearer_second else ''} "
@@ -73,7 +69,7 @@ def map_checks_table() -> str:
         rows.append(
             f"| twin pictures on opposite walls, simulated survey (`map_false_loops.json`) | false loops in the final "
             f"graph {ident['loops']['false_accepted']} of {ident['loops']['accepted']} accepted; survey ATE "
-            f"{_cm(ident['ate_map_m'])} cm against {_cm(diff['ate_map_m'])} with two different pictures; "
+            f"{cm(ident['ate_map_m'])} cm against {cm(diff['ate_map_m'])} with two different pictures; "
             f"{forced['pairs_tried']} twin-view pairs forced: {forced['verified']} verified at "
             f"{forced['min_inliers']} inliers, at {relaxed['min_inliers']}: {relaxed['verified']} verified "
             f"({relaxed['verified_false']} false), {relaxed['kept_by_graph']} kept by the graph |")
@@ -94,7 +90,7 @@ def map_checks_table() -> str:
             f"(`orbslam3_fr1_desk.json`) against `nap3d-graph map` (`map_survey_fr1_desk.json`) | survey ATE cm, median "
             f"(range) of {o['a_survey_ate_rmse_m']['n']} runs: ORB-SLAM3 {_range_cm(o['a_survey_ate_rmse_m'])} "
             f"(lost at frame {o['a_survey_first_not_ok_frame']['median']:.0f}; before: "
-            f"{_range_cm(o['a_survey_ate_before_first_loss_rmse_m'])}); map {_cm(m['survey']['ate']['map']['rmse_m'])} |")
+            f"{_range_cm(o['a_survey_ate_before_first_loss_rmse_m'])}); map {cm(m['survey']['ate']['map']['rmse_m'])} |")
     return "\n".join(rows)
 
 
@@ -122,11 +118,11 @@ def orbslam3_trials_table() -> str:
                 before = s.get("ate_before_first_loss")
                 query_cells = ("n/a", "n/a") if q is None else (
                     f"{q['tracking_states'].get('OK', 0)} / {q['lost_frames']}",
-                    _cm(q["ate_through_survey_alignment"]["rmse_m"]))
+                    cm(q["ate_through_survey_alignment"]["rmse_m"]))
                 rows.append(
                     f"| `{name}` | {mode} | {n} | {states.get('OK', 0)} / {_lost(states)} | "
-                    f"{'none' if first is None else first} | {_cm(s['ate']['rmse_m'])} "
-                    f"({'n/a' if before is None else _cm(before['rmse_m'])}) | {query_cells[0]} | {query_cells[1]} |")
+                    f"{'none' if first is None else first} | {cm(s['ate']['rmse_m'])} "
+                    f"({'n/a' if before is None else cm(before['rmse_m'])}) | {query_cells[0]} | {query_cells[1]} |")
     return "\n".join(rows)
 
 
@@ -190,7 +186,7 @@ def map_speed_table() -> str:
             f"{r['frames']} | {r['model']} | {r['wall_s']:.0f} | {r['wall_s'] * 300 / r['frames']:.0f} | "
             f"{st['odometry']:.0f} / {st['keyframes']:.0f} / {st['loops']:.0f} / {st['graph']:.0f} | "
             f"{f['timing']:.0f}, {f['build_or_train']:.0f}, {f['field_error']:.0f}, {f['total']:.0f} | "
-            f"{_cm(r['survey_ate_m'])} |")
+            f"{cm(r['survey_ate_m'])} |")
     return "\n".join(rows)
 
 
@@ -224,15 +220,15 @@ def start_anywhere_table() -> str:
 
             ratio = f"{d['ratio_self_to_gt_posed']:.2f}" if gt else "n/a"
             rows.append(
-                f"| {recording}: {d['survey']} -> {d['query']} | {_cm(d['survey_ate_m'])} "
+                f"| {recording}: {d['survey']} -> {d['query']} | {cm(d['survey_ate_m'])} "
                 f"| {rl['covered_found_within_5cm_3deg']}{sfm(rl.get('covered_found_within_5cm_3deg_second_gt'))}"
                 f"/{rl['covered']}; {rl['accepted_farther_than_10cm']}"
                 f"{sfm(rl.get('accepted_farther_than_10cm_second_gt'))}; "
                 f"{rl['accepted_uncovered']}; {rl['seconds_median']:.2f}, {rl['seconds_p90']:.2f}, {rl['seconds_max']:.2f} "
                 f"| {xyz_text} "
-                f"| {run['placed_at_frame'] if run['placed'] else 'never'}; {_cm(run['ate_m'])} ({_cm(run['ate_causal_m'])})"
-                f"{sfm(run.get('ate_second_gt_m'), _cm)} "
-                f"| {_cm(gt['ate_m']) if gt else 'n/a'}{sfm(gt.get('ate_second_gt_m') if gt else None, _cm)} "
+                f"| {run['placed_at_frame'] if run['placed'] else 'never'}; {cm(run['ate_m'])} ({cm(run['ate_causal_m'])})"
+                f"{sfm(run.get('ate_second_gt_m'), cm)} "
+                f"| {cm(gt['ate_m']) if gt else 'n/a'}{sfm(gt.get('ate_second_gt_m') if gt else None, cm)} "
                 f"| {ratio}{sfm(d.get('ratio_self_to_gt_posed_second_gt'), lambda v: f'{v:.2f}')} |")
     return "\n".join(rows)
 
@@ -267,10 +263,10 @@ def report_faults_table() -> str:
         v = m["values"]
         loop, held, nap = v.get("loop_residual", {}), v.get("held_out", {}), v.get("held_out_nap3d", {})
         rows.append(f"| {name} | map | {'; '.join(m['past_bad_line']) or 'nothing'} | "
-                    f"{_cm(loop.get('median_m'))} / {_cm(loop.get('p90_m'))} / {_cm(loop.get('max_m'))} | "
+                    f"{cm(loop.get('median_m'))} / {cm(loop.get('p90_m'))} / {cm(loop.get('max_m'))} | "
                     f"{held.get('psnr_affine_db', float('nan')):.1f}; {nap.get('failed', 'n/a')} of "
-                    f"{nap.get('frames', 0) + nap.get('failed', 0)}, {_cm(nap.get('median_m'))} | | | "
-                    f"{_cm(v.get('survey_ate_m'))} (survey) |")
+                    f"{nap.get('frames', 0) + nap.get('failed', 0)}, {cm(nap.get('median_m'))} | | | "
+                    f"{cm(v.get('survey_ate_m'))} (survey) |")
     for name, run in r["runs"].items():
         if "rows" not in run:
             rows.append(f"| {name} | run | refused: {run.get('error', '')} | | | | | |")
@@ -278,8 +274,8 @@ def report_faults_table() -> str:
         d2 = _row_value(run["rows"], "gate consistency").split(" over ")[0]
         placed = _row_value(run["rows"], "placed in the map")
         # Never placed, the run's poses are in its own frame: only an SE(3)-aligned ATE means anything.
-        ate = (f"{_cm(run.get('ate_se3_aligned_m'))} (SE(3)-aligned: never placed)" if placed == "never"
-               else _cm(run.get("ate_m")))
+        ate = (f"{cm(run.get('ate_se3_aligned_m'))} (SE(3)-aligned: never placed)" if placed == "never"
+               else cm(run.get("ate_m")))
         rows.append(f"| {name} | run | {'; '.join(run['past_bad_line']) or 'nothing'} | | | "
                     f"{_row_value(run['rows'], 'corrections accepted')}; {_row_value(run['rows'], 'map coverage')}; "
                     f"{d2} | {placed} | {ate} |")

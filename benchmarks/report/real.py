@@ -10,7 +10,7 @@ import math
 import re
 from pathlib import PurePosixPath
 
-from report import RESULTS, Section, cm, get, load, mm, num, table
+from report import RESULTS, Section, cm, get, load, mm, ms, num, pair, table
 
 NA = "n/a"
 STUDIES = ("study_fr1_desk", "study_fr1_desk_views", "study_7scenes_redkitchen")
@@ -103,16 +103,8 @@ def _deg(rad, digits: int = 2) -> str:
     return NA if rad is None else f"{math.degrees(rad):.{digits}f}"
 
 
-def _ms(seconds, digits: int = 0) -> str:
-    return mm(seconds, digits)
-
-
 def _range(low, high, fmt=num) -> str:
     return NA if low is None or high is None else f"{fmt(low)}-{fmt(high)}"
-
-
-def _pair(a: str, b: str) -> str:
-    return f"{a} / {b}"
 
 
 def _cm_of(value_cm, digits: int = 2) -> str:
@@ -125,7 +117,7 @@ def _cm_of(value_cm, digits: int = 2) -> str:
 def _run_cells(r: dict) -> list[str]:
     """ATE columns of one run record (odometry, corrected with median, max, causal, accepted)."""
     return [cm(get(r, "ate_odometry_m")),
-            _pair(cm(get(r, "ate_estimate_m")), cm(get(r, "ate_estimate_median_m"))),
+            pair(cm(get(r, "ate_estimate_m")), cm(get(r, "ate_estimate_median_m"))),
             cm(get(r, "ate_estimate_max_m"), 1), cm(get(r, "ate_causal_m")),
             _frac(get(r, "accepted"), get(r, "keyframes"))]
 
@@ -171,10 +163,10 @@ def _study_row(folder: str) -> list[str]:
     f, runs = _dict(s, "field"), _dict(s, "runs")
     return [_code(f"{folder}/summary.json"), f"{get(f, 'model')}, {get(s, 'config', 'matcher')}",
             f"{num(get(rep, 'train_seconds'), 0)} ({_int(get(rep, 'steps'))})", num(get(f, "build_seconds"), 0),
-            _pair(num(get(f, "psnr_db")), num(get(f, "psnr_affine_db"))),
-            _pair(cm(get(f, "depth_median_m")), cm(get(f, "depth_p90_m"))),
-            _pair(mm(get(rep, "field_error", "sigma_m")), _deg(get(rep, "field_error", "sigma_rad"))),
-            _ms(get(f, "timing", "readout_s")),
+            pair(num(get(f, "psnr_db")), num(get(f, "psnr_affine_db"))),
+            pair(cm(get(f, "depth_median_m")), cm(get(f, "depth_p90_m"))),
+            pair(mm(get(rep, "field_error", "sigma_m")), _deg(get(rep, "field_error", "sigma_rad"))),
+            ms(get(f, "timing", "readout_s"), 0),
             "; ".join(runs) or NA,
             _joined(runs, lambda r: cm(get(r, "ate_odometry_m"))),
             _joined(runs, lambda r: cm(get(r, "ate_estimate_m"))),
@@ -204,8 +196,8 @@ def eval_k_table() -> str:
             e = ek[name]
             rows.append([_code(f"{folder}/summary.json"), _int(get(s, "config", "eval_k_scenarios")), name,
                          _pct(get(e, "success_rate")),
-                         _pair(mm(get(e, "trans_median_m")), mm(get(e, "trans_p90_m"))),
-                         _pair(num(get(e, "rot_median_deg")), num(get(e, "rot_p90_deg"))),
+                         pair(mm(get(e, "trans_median_m")), mm(get(e, "trans_p90_m"))),
+                         pair(num(get(e, "rot_median_deg")), num(get(e, "rot_p90_deg"))),
                          num(get(e, "nees_mean"), 1)])
     return table(header, rows)
 
@@ -217,7 +209,7 @@ def _farthest(r: dict, run: dict) -> str:
     if not get(run, "field_error_by_view"):
         return "off"
     by_view = _dict(r, "field_error", "by_view")
-    return _pair(num(get(by_view, "gap_m", -1)), mm(get(by_view, "sigma_m", -1)))
+    return pair(num(get(by_view, "gap_m", -1)), mm(get(by_view, "sigma_m", -1)))
 
 
 def _nees_row(name: str, r: dict, setting: str, run: dict) -> list[str]:
@@ -225,10 +217,10 @@ def _nees_row(name: str, r: dict, setting: str, run: dict) -> list[str]:
     band = _list(run, "nees_band_95") or [None, None]
     return [_code(name), f"{_field_label(get(r, 'field'))} ({_int(get(r, 'field_error', 'frames'))} held out)",
             f"{get(r, 'matcher')}, {get(r, 'odometry')}", setting,
-            _pair(mm(get(run, "field_sigma_m")), _deg(get(run, "field_sigma_rad"))), _farthest(r, run),
+            pair(mm(get(run, "field_sigma_m")), _deg(get(run, "field_sigma_rad"))), _farthest(r, run),
             _int(get(run, "corrections")), num(get(run, "nees_mean"), 1), _range(band[0], band[-1]),
-            _pair(num(get(run, "nees_median"), 1), num(get(run, "nees_p90"), 1)), _pct(get(run, "within_chi2_997")),
-            _pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_causal_m"))),
+            pair(num(get(run, "nees_median"), 1), num(get(run, "nees_p90"), 1)), _pct(get(run, "within_chi2_997")),
+            pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_causal_m"))),
             _frac(get(run, "accepted"), get(run, "keyframes"))]
 
 
@@ -255,9 +247,9 @@ def _refinement_cells(f: dict) -> list[str]:
     sigma_m = _first(get(pr, "input_sigma_m"), get(pr, "config", "input_sigma_m"))
     sigma_rad = _first(get(pr, "input_sigma_rad"), get(pr, "config", "input_sigma_rad"))
     last = _dict(pr, "rounds", -1)
-    return [f"{get(pr, 'method')}, {len(_list(pr, 'rounds'))} rounds", _pair(mm(sigma_m), _deg(sigma_rad)),
+    return [f"{get(pr, 'method')}, {len(_list(pr, 'rounds'))} rounds", pair(mm(sigma_m), _deg(sigma_rad)),
             num(get(pr, "seconds"), 0), num(get(pr, "agreement_after_mm")),
-            _pair(num(get(last, "median_correction_mm"), 1), num(get(last, "median_correction_deg")))]
+            pair(num(get(last, "median_correction_mm"), 1), num(get(last, "median_correction_deg")))]
 
 
 def pose_refinement_table() -> str:
@@ -272,7 +264,7 @@ def pose_refinement_table() -> str:
             for odom, run in _dict(f, "runs").items():
                 rows.append([_code(name), f"{get(r, 'model')}, {get(r, 'matcher')}"] + _refinement_cells(f)
                             + [num(get(f, "held_out_psnr_db")), odom,
-                               _pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_estimate_max_m"), 1)),
+                               pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_estimate_max_m"), 1)),
                                cm(get(run, "ate_causal_m")), _frac(get(run, "accepted"), get(run, "keyframes"))])
     return table(header, rows)
 
@@ -318,10 +310,10 @@ def field_models_table() -> str:
             t, rot = _dict(f, "translation_mm"), _dict(f, "rotation_deg")
             rows.append([_code(name), _field_label(get(f, "field")), str(_first(get(r, "perturbation"), NA)),
                          f"{_int(get(f, 'frames'))} ({_int(get(f, 'failed'))})",
-                         _pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "max"), 1),
-                         _pair(num(get(rot, "median")), num(get(rot, "p90"))), num(get(f, "inliers_median"), 1),
+                         pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "max"), 1),
+                         pair(num(get(rot, "median")), num(get(rot, "p90"))), num(get(f, "inliers_median"), 1),
                          num(get(f, "render_ms_median"), 0), num(get(f, "held_out_psnr_db")),
-                         _pair(mm(get(f, "field_error", "sigma_m")), _deg(get(f, "field_error", "sigma_rad"))),
+                         pair(mm(get(f, "field_error", "sigma_m")), _deg(get(f, "field_error", "sigma_rad"))),
                          num(get(f, "lag1_correlation")), num(get(f, "nearest_view_gap_m_median")),
                          num(get(f, "build_seconds"), 0)])
     return table(header, rows)
@@ -347,9 +339,9 @@ def _floor_row(name: str, r: dict, label: str, e: dict) -> list[str]:
     fast, slow = get(e, "fast_translation_mm", "median"), get(e, "slow_translation_mm", "median")
     corr = get(e, "shared_with_composite", "correlation_xyz")
     return [_code(name), f"{_int(get(r, 'step'))}, {get(r, 'matcher')}",
-            _pair(_ms(get(r, "readout_s")), num(get(r, "fast_above_m_per_s"), 1)), label, _int(get(t, "n")),
-            _pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "rms"), 1), num(get(t, "max"), 1),
-            num(get(e, "rotation_deg", "median")), NA if fast is None else _pair(num(fast, 1), num(slow, 1)),
+            pair(ms(get(r, "readout_s"), 0), num(get(r, "fast_above_m_per_s"), 1)), label, _int(get(t, "n")),
+            pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "rms"), 1), num(get(t, "max"), 1),
+            num(get(e, "rotation_deg", "median")), NA if fast is None else pair(num(fast, 1), num(slow, 1)),
             NA if not corr else _range(min(corr), max(corr)),
             _pct(get(e, "shared_with_composite", "share_of_power_in_common")), num(get(e, "rms_if_independent"), 1)]
 
@@ -385,7 +377,7 @@ def floor_runs_table() -> str:
         r = load(name)
         for run in _list(r, "runs"):
             rows.append([_code(name), _field_label(get(r, "field")), _int(get(run, "keyframe_every")),
-                         cm(get(run, "ate_odometry_m")), _pair(cm(get(run, "ate_m")), cm(get(run, "ate_median_m"))),
+                         cm(get(run, "ate_odometry_m")), pair(cm(get(run, "ate_m")), cm(get(run, "ate_median_m"))),
                          cm(get(run, "ate_max_m"), 1), cm(get(run, "ate_causal_m")),
                          _frac(get(run, "accepted"), get(run, "keyframes")), num(get(run, "seconds"), 0)])
     return table(header, rows)
@@ -405,7 +397,7 @@ def _gt_rows(name: str, r: dict) -> list[list[str]]:
     label = f"first half's {_int(get(r, 'nearest'))} nearest frames (one frame in {_int(get(r, 'step'))})"
     rows = [[_code(name), label,
              f"{_int(get(r, 'measured'))} ({_int(get(r, 'failed'))})", num(get(r, "gap_m_median")), NA,
-             _pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "max"), 1),
+             pair(num(get(t, "median"), 1), num(get(t, "p90"), 1)), num(get(t, "max"), 1),
              num(get(r, "rotation_deg_median")), NA, _cosines(r)]]
     bb = _dict(r, "by_baseline")
     offsets = ", ".join(str(o) for o in _list(bb, "offsets"))
@@ -413,7 +405,7 @@ def _gt_rows(name: str, r: dict) -> list[list[str]]:
         gap = _list(b, "gap_m") or [None, None]
         rows.append([_code(name), f"second-half frames {offsets} apart", f"{_int(get(b, 'pairs'))} pairs",
                      _range(gap[0], gap[-1]), num(get(b, "baseline_m_median"), 3),
-                     _pair(num(get(b, "translation_mm_median"), 1), num(get(b, "translation_mm_p90"), 1)), NA,
+                     pair(num(get(b, "translation_mm_median"), 1), num(get(b, "translation_mm_p90"), 1)), NA,
                      num(get(b, "rotation_deg_median")), num(get(b, "inliers_median"), 0), NA])
     return rows
 
@@ -435,7 +427,7 @@ def _paced_cells(p) -> list[str]:
     """Fed at the camera's rate: how far behind, frames late, causal ATE."""
     if not p:
         return [NA, NA, NA]
-    return [_pair(_ms(get(p, "behind_camera_s", "p90")), _ms(get(p, "behind_camera_s", "max"))),
+    return [pair(ms(get(p, "behind_camera_s", "p90"), 0), ms(get(p, "behind_camera_s", "max"), 0)),
             _int(get(p, "frames_over_a_period_late")), cm(get(p, "ate_causal_m"))]
 
 
@@ -452,11 +444,11 @@ def vo_width_table() -> str:
             alone, inline, over = _dict(run, "odometry_alone"), _dict(run, "inline"), _dict(run, "overlapped")
             rows.append([_code(name), _field_label(get(r, "field")), str(get(run, "matcher")),
                          "as read" if get(run, "vo_width") is None else str(get(run, "vo_width")),
-                         _pair(num(get(alone, "step_ms", "median"), 0), num(get(alone, "step_ms", "p90"), 0)),
+                         pair(num(get(alone, "step_ms", "median"), 0), num(get(alone, "step_ms", "p90"), 0)),
                          cm(get(alone, "ate_m")),
-                         _pair(num(get(inline, "frames_per_s"), 1), num(get(over, "frames_per_s"), 1)),
+                         pair(num(get(inline, "frames_per_s"), 1), num(get(over, "frames_per_s"), 1)),
                          num(get(inline, "frames_per_s_vs_as_read")), cm(get(inline, "ate_m")),
-                         _pair(cm(get(inline, "ate_causal_m")), cm(get(over, "ate_causal_m"))),
+                         pair(cm(get(inline, "ate_causal_m")), cm(get(over, "ate_causal_m"))),
                          _frac(get(inline, "accepted"), get(inline, "keyframes"))]
                         + _paced_cells(get(run, "paced")))
     return table(header, rows)
@@ -466,7 +458,7 @@ def vo_width_table() -> str:
 
 def _readout(run: dict) -> str:
     """The readout asked for and the one the run used, ms."""
-    used = _ms(_first(get(run, "readout_used_s"), get(run, "readout_s")))
+    used = ms(_first(get(run, "readout_used_s"), get(run, "readout_s")), 0)
     return f"auto: {used}" if get(run, "readout_s") is None else used
 
 
@@ -482,10 +474,10 @@ def rolling_shutter_table() -> str:
             rows.append([_code(name), _field_label(get(run, "field")),
                          f"{get(run, 'odometry')}, {get(run, 'matcher')}", _readout(run),
                          cm(get(run, "ate_odometry_m")),
-                         _pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_causal_m"))),
+                         pair(cm(get(run, "ate_estimate_m")), cm(get(run, "ate_causal_m"))),
                          _frac(get(run, "accepted"), get(run, "keyframes")),
-                         _pair(num(get(ke, "median"), 1), num(get(ke, "p90"), 1)),
-                         _pair(num(get(ke, "fast_half_median"), 1), num(get(ke, "slow_half_median"), 1)),
+                         pair(num(get(ke, "median"), 1), num(get(ke, "p90"), 1)),
+                         pair(num(get(ke, "fast_half_median"), 1), num(get(ke, "slow_half_median"), 1)),
                          num(get(run, "nees_mean"), 1), _range(band[0], band[-1]), num(get(run, "nees_median"), 1)])
     return table(header, rows)
 
@@ -498,14 +490,14 @@ def _tracker_row(s: dict) -> list[str]:
     field, odom, matcher = (rest.rsplit(":", 2) + [NA, NA])[:3]
     t, b = _dict(s, "tracked"), _dict(s, "both_always")
     return [_code("intrinsics_tracker.json"), recording, _field_label(field), f"{odom}, {matcher}",
-            _pair(_int(get(t, "check_every")), _int(get(b, "check_every"))),
+            pair(_int(get(t, "check_every")), _int(get(b, "check_every"))),
             "yes" if get(s, "same_trajectory") else "no",
-            _pair(cm(get(t, "ate_m")), cm(get(b, "ate_m"))),
-            _pair(cm(get(t, "ate_causal_m")), cm(get(b, "ate_causal_m"))),
-            f"{_pair(_int(get(t, 'accepted')), _int(get(b, 'accepted')))} of {_int(get(t, 'keyframes'))}",
-            _pair(num(get(t, "measure_ms_median"), 1), num(get(b, "measure_ms_median"), 1)),
-            _pair(num(get(t, "measure_ms_p90"), 1), num(get(b, "measure_ms_p90"), 1)),
-            _int(get(t, "fixed_only")), _pair(_int(get(t, "calibrated")), _int(get(b, "calibrated")))]
+            pair(cm(get(t, "ate_m")), cm(get(b, "ate_m"))),
+            pair(cm(get(t, "ate_causal_m")), cm(get(b, "ate_causal_m"))),
+            f"{pair(_int(get(t, 'accepted')), _int(get(b, 'accepted')))} of {_int(get(t, 'keyframes'))}",
+            pair(num(get(t, "measure_ms_median"), 1), num(get(b, "measure_ms_median"), 1)),
+            pair(num(get(t, "measure_ms_p90"), 1), num(get(b, "measure_ms_p90"), 1)),
+            _int(get(t, "fixed_only")), pair(_int(get(t, "calibrated")), _int(get(b, "calibrated")))]
 
 
 def intrinsics_table() -> str:
