@@ -110,54 +110,79 @@ def correct_pose(
     intrinsics = render_intrinsics or frame.intrinsics
     if prepared is not None and prepared.intrinsics.shape != intrinsics.shape:
         prepared = None  # rendered for another camera: render afresh
-    timings = {"render": 0.0, "align": 0.0}
-    T_current = T_est
-    alignment = Alignment.failure("not run")
-    rounds = 0
-    shown = None  # the render the kept alignment compared (for Correction.views)
-    config = config or AlignConfig()
     # The real frame is the same every round: resize it and detect its features once.
-    real = at_render_size(frame, intrinsics)
-    # The real frame's features while the first render is made: the two do not depend on each
-    # other, and OpenCV and torch both release the GIL, so the second core takes one of them.
-    if feats_real is None:
-        detecting = _detector().submit(_timed_detect, real.rgb, config)
-    for rounds in range(1, max(1, iterations) + 1):
-        feats_view = None
-        if rounds == 1 and prepared is not None:  # rendered ahead: align to it from where it was made
-            T_current, view, feats_view, reason = prepared.T_world_cam, prepared.view, prepared.features, ""
-            timings["render_ahead"] = prepared.seconds
-        else:
-            t0 = time.perf_counter()
-            view, reason = render_safely(field, T_current, intrinsics)
-            timings["render"] += time.perf_counter() - t0
-        if rounds == 1 and feats_real is None:
-            feats_real, timings["detect"] = detecting.result()
-        if view is None:
-            alignment = Alignment.failure(reason)
-            break
-        t0 = time.perf_counter()
-        step = align_views(real, view, config, feats_real=feats_real, feats_view=feats_view, motion=motion)
-        timings["align"] += time.perf_counter() - t0
-        for key, value in step.timings_s.items():
-            timings[key] = timings.get(key, 0.0) + value
-        if not step.success:
-            # A failed re-render round keeps the previous round's good result.
-            if not alignment.success:
-                alignment, shown = step, view
-            break
-        alignment, shown = step, view
-        T_next = step.corrected_pose(T_current)
-        update = log_se3(inv_T(T_current) @ T_next)
-        T_current = T_next
-        if float(update @ np.linalg.solve(step.covariance, update)) < stop_mahalanobis**2:
-            break
-    views = {"real_rgb": real.rgb, "render_rgb": None if shown is None else shown.rgb,
+    rounds = _Rounds(field, at_render_size(frame, intrinsics), intrinsics, config or AlignConfig(), motion, feats_real)
+    T_current = rounds.run(T_est, iterations, stop_mahalanobis, prepared)
+    alignment, shown = rounds.alignment, rounds.shown
+    views = {"real_rgb": rounds.real.rgb, "render_rgb": None if shown is None else shown.rgb,
              **{k: alignment.diagnostics[k] for k in ("inlier_uv_real", "inlier_uv_render") if k in alignment.diagnostics}}
     if not alignment.success:
-        return Correction(T_est, T_est.copy(), np.full((6, 6), np.inf), alignment, rounds, False,
-                          alignment.reason, timings, views)
-    return Correction(T_est, T_current, alignment.covariance, alignment, rounds, True, "", timings, views)
+        return Correction(T_est, T_est.copy(), np.full((6, 6), np.inf), alignment, rounds.done, False,
+                          alignment.reason, rounds.timings, views)
+    return Correction(T_est, T_current, alignment.covariance, alignment, rounds.done, True, "", rounds.timings, views)
+
+
+class _Rounds:
+    """The render-and-align rounds of one :func:`correct_pose`: ``alignment`` the kept one,
+    ``shown`` the render it compared, ``done`` how many rounds ran, ``timings`` (seconds) what
+    they cost. ``real``: the frame at the render's size."""
+
+    def __init__(self, field, real: RGBDFrame, intrinsics: Intrinsics, config: AlignConfig, motion, feats_real):
+        self.field, self.real, self.intrinsics, self.config, self.motion = field, real, intrinsics, config, motion
+        self.timings = {"render": 0.0, "align": 0.0}
+        self.alignment = Alignment.failure("not run")
+        self.shown = None
+        self.done = 0
+        self.feats_real = feats_real
+        # The real frame's features while the first render is made: the two do not depend on each
+        # other, and OpenCV and torch both release the GIL, so the second core takes one of them.
+        self.detecting = _detector().submit(_timed_detect, real.rgb, config) if feats_real is None else None
+
+    def run(self, T_est: np.ndarray, iterations: int, stop_mahalanobis: float, prepared) -> np.ndarray:
+        """Up to ``iterations`` rounds from ``T_est`` (4, 4); returns the last corrected pose."""
+        T_current = T_est
+        for self.done in range(1, max(1, iterations) + 1):
+            T_current, view, feats_view, reason = self._view(T_current, prepared if self.done == 1 else None)
+            if self.detecting is not None:
+                self.feats_real, self.timings["detect"] = self.detecting.result()
+                self.detecting = None
+            if view is None:
+                self.alignment = Alignment.failure(reason)
+                break
+            step = self._align(view, feats_view)
+            if not step.success:
+                # A failed re-render round keeps the previous round's good result.
+                if not self.alignment.success:
+                    self.alignment, self.shown = step, view
+                break
+            self.alignment, self.shown = step, view
+            T_next = step.corrected_pose(T_current)
+            update = log_se3(inv_T(T_current) @ T_next)
+            T_current = T_next
+            if float(update @ np.linalg.solve(step.covariance, update)) < stop_mahalanobis**2:
+                break
+        return T_current
+
+    def _view(self, T_current: np.ndarray, prepared):
+        """``(T_world_cam, view, features or None, reason)``: the render a round aligns to,
+        made ahead (``prepared``: aligned to from where it was made) or rendered now."""
+        if prepared is not None:
+            self.timings["render_ahead"] = prepared.seconds
+            return prepared.T_world_cam, prepared.view, prepared.features, ""
+        t0 = time.perf_counter()
+        view, reason = render_safely(self.field, T_current, self.intrinsics)
+        self.timings["render"] += time.perf_counter() - t0
+        return T_current, view, None, reason
+
+    def _align(self, view, feats_view):
+        """One round's alignment of the real frame to ``view``, its stage timings added up."""
+        t0 = time.perf_counter()
+        step = align_views(self.real, view, self.config, feats_real=self.feats_real, feats_view=feats_view,
+                           motion=self.motion)
+        self.timings["align"] += time.perf_counter() - t0
+        for key, value in step.timings_s.items():
+            self.timings[key] = self.timings.get(key, 0.0) + value
+        return step
 
 
 def at_render_size(frame: RGBDFrame, intrinsics: Intrinsics) -> RGBDFrame:
