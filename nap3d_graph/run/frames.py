@@ -23,11 +23,12 @@ class FrameReader:
     """Frames of ``sequence`` for one run.
 
     prime: called with frame 0 when it is read (the motion model's first frame).
-    reads_every_frame: the motion model or the keyframe selection reads every frame (else a
-        run on recorded or IMU odometry reads its keyframes alone).
+    reads_every_frame: asked at each frame, whether the motion model or the keyframe selection
+        reads every frame now (else a run on recorded or IMU odometry reads its keyframes
+        alone; an IMU run falling back on visual odometry reads every frame while it does).
     """
 
-    def __init__(self, sequence: FrameSource, prime: Callable, reads_every_frame: bool):
+    def __init__(self, sequence: FrameSource, prime: Callable, reads_every_frame: Callable[[], bool]):
         self.sequence = sequence
         self.source: FrameSource | FrameReadAhead = sequence
         self.prime = prime
@@ -41,7 +42,7 @@ class FrameReader:
     def read_ahead(self, depth: int, n: int) -> None:
         """Read up to ``depth`` frames of the first ``n`` ahead on a thread of their own, when
         the run reads every frame and the sequence allows it."""
-        if depth and self.reads_every_frame and reads_concurrently(self.sequence):
+        if depth and self.reads_every_frame() and reads_concurrently(self.sequence):
             self.source = FrameReadAhead(self.sequence, depth, n, wanted=lambda: not self.hold_back)
 
     def close(self) -> None:
@@ -67,7 +68,7 @@ class FrameReader:
 
     def for_odometry(self, i: int):
         """Frame i when the run reads every frame, else None."""
-        return self.read(i) if self.reads_every_frame else None
+        return self.read(i) if self.reads_every_frame() else None
 
     def for_keyframe(self, i: int, frame, needed: bool):
         """The keyframe's image: ``frame`` when the odometry read it, else read now when

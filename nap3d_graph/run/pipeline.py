@@ -334,7 +334,7 @@ class Pipeline:
         self._trained = trained_frames(self.field, self.sequence)
         self.selector = KeyframeSelector(self.config)
         self.frames = FrameReader(self.sequence, self.motion.prime,
-                                  self.motion.needs_frames or self.selector.reads_every_frame)
+                                  lambda: self.motion.needs_frames or self.selector.reads_every_frame)
         self.jobs = KeyframeJobs(self)
         timing = self.jobs.timing()
         self.depth_scale = DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, self.config)
