@@ -166,7 +166,7 @@ def relocalisation(map_dir: Path, info: dict, query, args, second=None) -> dict:
             "per_attempt": attempts}
 
 
-def main() -> None:
+def parse_args() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--traj", default="tum")
@@ -182,112 +182,155 @@ def main() -> None:
     parser.add_argument("--only-relocalise", action="store_true",
                         help="measure the relocalisation again (alone on the machine) with the map in --work, and "
                         "replace it in --out; everything else in --out stays")
-    args = parser.parse_args()
-    global REUSE_RUNS
-    REUSE_RUNS = args.reuse_runs
-    work = args.work or Path(tempfile.mkdtemp(prefix="map_survey_"))
+    return parser.parse_args()
+
+
+def halves(args):
+    """``(survey_frames, query_frames, survey, query)``: the two halves' frame ranges and sequences."""
+    from nap3d_graph.datasets import open_sequence
+
     survey_frames, query_frames = f"0:{args.split}", f"{args.split}:1"
-    if args.only_relocalise:
-        from nap3d_graph.datasets import open_sequence
+    return (survey_frames, query_frames, open_sequence(args.data, frames=survey_frames),
+            open_sequence(args.data, frames=query_frames))
 
-        result = (json.loads(args.out.read_text()) if args.out.is_file()
-                  else {"data": str(args.data), "survey_frames": survey_frames, "query_frames": query_frames,
-                        "matcher": args.matcher})
-        info = json.loads((work / "map" / "map.json").read_text())
-        survey, query = open_sequence(args.data, frames=survey_frames), open_sequence(args.data, frames=query_frames)
-        from nap3d_graph.trajectory import read_tum_trajectory
 
-        _, T_map_survey = read_tum_trajectory(work / "map" / "poses.txt")
-        T_map_full = np.full((len(survey), 4, 4), np.nan)
-        T_map_full[info["segment"]["start"]:info["segment"]["stop"]] = T_map_survey
-        result["relocalisation"] = relocalisation(work / "map", info, query, args,
-                                                  second_reference(args, survey, query, T_map_full))
-        result["relocalisation"]["command"] = " ".join(sys.argv)
-        write_result(args.out, result, args)
-        print({k: v for k, v in result["relocalisation"].items() if k != "per_attempt"})
-        return
-    result: dict = {"command": " ".join(sys.argv), "data": str(args.data), "survey_frames": survey_frames,
-                    "query_frames": query_frames, "model": args.model, "matcher": args.matcher, "odometry": "vo"}
+def map_poses(map_dir: Path, info: dict, survey) -> np.ndarray:
+    """(N, 4, 4) the map's pose of every survey frame (NaN outside its tracked segment)."""
+    from nap3d_graph.trajectory import read_tum_trajectory
 
-    # 1. the self-posed map (resumed, or reused whole, from --work)
-    map_dir = work / "map"
+    _, T_map_survey = read_tum_trajectory(map_dir / "poses.txt")
+    T_map_full = np.full((len(survey), 4, 4), np.nan)
+    T_map_full[info["segment"]["start"]:info["segment"]["stop"]] = T_map_survey
+    return T_map_full
+
+
+def relocalise_only(args, work: Path) -> None:
+    """``--only-relocalise``: the relocalisation measured again with the map in ``work``,
+    replaced in ``--out``."""
+    survey_frames, query_frames, survey, query = halves(args)
+    result = (json.loads(args.out.read_text()) if args.out.is_file()
+              else {"data": str(args.data), "survey_frames": survey_frames, "query_frames": query_frames,
+                    "matcher": args.matcher})
+    info = json.loads((work / "map" / "map.json").read_text())
+    T_map_full = map_poses(work / "map", info, survey)
+    result["relocalisation"] = relocalisation(work / "map", info, query, args,
+                                              second_reference(args, survey, query, T_map_full))
+    result["relocalisation"]["command"] = " ".join(sys.argv)
+    write_result(args.out, result, args)
+    print({k: v for k, v in result["relocalisation"].items() if k != "per_attempt"})
+
+
+def self_posed_map(args, map_dir: Path, survey_frames: str, result: dict) -> dict:
+    """1. The self-posed map (resumed, or reused whole, from --work); its figures go to
+    ``result``. Returns its map.json."""
     result["map_seconds"] = round(cli("map", str(args.data), "--frames", survey_frames, "--out", str(map_dir),
                                       "--model", args.model, "--matcher", args.matcher, "--quiet"), 1)
     info = json.loads((map_dir / "map.json").read_text())
     result["survey"] = {"ate": info["survey_ate"], "loops": info["loops"], "keyframes": info["keyframes"],
                         "segment": info["segment"], "stages_s": {k: v["seconds"] for k, v in info["stages"].items()}}
+    return info
 
-    from nap3d_graph.datasets import open_sequence
+
+def second_truth(args, survey, query, T_map_full: np.ndarray, result: dict) -> dict | None:
+    """The second ground truth of both halves (``{"survey": (N, 4, 4), "query": (M, 4, 4)}``),
+    the survey scored against it in ``result``; None without ``--second-gt``."""
+    if args.second_gt is None:
+        return None
     from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.trajectory import read_tum_trajectory
 
-    survey = open_sequence(args.data, frames=survey_frames)
-    query = open_sequence(args.data, frames=query_frames)
-    _, T_map_survey = read_tum_trajectory(map_dir / "poses.txt")
-    T_map_full = np.full((len(survey), 4, 4), np.nan)
-    seg = info["segment"]
-    T_map_full[seg["start"]:seg["stop"]] = T_map_survey
-    second = None
-    if args.second_gt is not None:
-        table = read_sfm_pseudo_gt(args.second_gt)
-        second = {"survey": second_gt_for(survey, table), "query": second_gt_for(query, table)}
-        sfm = aligned_errors(survey.timestamps, second["survey"], T_map_full)
-        result["survey"]["ate_second_gt"] = sfm.summary()
-        T_kf = np.asarray(survey.T_world_cam_gt)
-        result["ground_truths_disagree_on_survey_m"] = aligned_errors(survey.timestamps, second["survey"], T_kf).summary()
+    table = read_sfm_pseudo_gt(args.second_gt)
+    second = {"survey": second_gt_for(survey, table), "query": second_gt_for(query, table)}
+    result["survey"]["ate_second_gt"] = aligned_errors(survey.timestamps, second["survey"], T_map_full).summary()
+    T_kf = np.asarray(survey.T_world_cam_gt)
+    result["ground_truths_disagree_on_survey_m"] = aligned_errors(survey.timestamps, second["survey"], T_kf).summary()
+    return second
 
-    # 2. the map pinned to the ground truth
+
+def gt_posed_field(args, work: Path, survey_frames: str, result: dict) -> Path:
+    """2. The map pinned to the ground truth (a benchmark run again in the same --work reuses it)."""
     gt_field = work / "gt_field.pt"
-    if not gt_field.is_file():  # a benchmark run again in the same --work reuses it
+    if not gt_field.is_file():
         result["gt_field_seconds"] = round(cli("train-field", str(args.data), "--frames", survey_frames, "--out",
                                                str(gt_field), "--model", args.model, "--matcher", args.matcher,
                                                "--quiet"), 1)
+    return gt_field
 
-    # 3. the query on both maps
+
+def sfm_posed_run(args, work: Path, survey, query_frames: str, second: dict, result: dict) -> dict:
+    """The query on the map pinned to the second ground truth, trained as train-field would.
+    Its world is the SfM frame: it starts at the SfM pose of the first query frame and is
+    scored against the SfM poses as they are (its "ate_m" against KinectFusion's means nothing)."""
+    from nap3d_graph.conventions import T_to_tum
+    from nap3d_graph.datasets.posed import PosedSequence
+    from nap3d_graph.fields.build import build_field
+
+    sfm_field = work / "sfm_field.pt"
+    if not sfm_field.is_file():
+        t0 = time.perf_counter()
+        field_obj, _ = build_field(PosedSequence(survey, second["survey"], "second ground truth"), args.model,
+                                   matcher=args.matcher, progress=False)
+        field_obj.save(sfm_field)
+        result["sfm_field_seconds"] = round(time.perf_counter() - t0, 1)
+    start = " ".join(f"{v:.9f}" for v in T_to_tum(second["query"][0]))  # tx ty tz qx qy qz qw
+    return run_query(args.data, args.traj, query_frames, sfm_field, work / "run_sfm_start",
+                     ("--matcher", args.matcher, "--initial-pose", start))
+
+
+def score_against_second(runs: dict, survey, query, second: dict, T_map_full: np.ndarray) -> None:
+    """Each run's ATE against the second ground truth, moved there through its map's own
+    alignment to it (the SfM-posed map is in its frame already)."""
+    from nap3d_graph.datasets.association import interpolate_poses
+    from nap3d_graph.evaluation.alignment import aligned_errors
+
+    def sfm_at(stamps):
+        return interpolate_poses(np.asarray(query.timestamps), second["query"], stamps, max_gap=0.2)
+
+    T_sfm_map = aligned_errors(survey.timestamps, second["survey"], T_map_full).T_ref_est
+    T_sfm_kf = aligned_errors(survey.timestamps, second["survey"], np.asarray(survey.T_world_cam_gt)).T_ref_est
+    for name, T_ref_frame in (("self_posed", T_sfm_map), ("gt_posed", T_sfm_kf), ("sfm_posed", np.eye(4))):
+        r = runs[name]
+        r["ate_second_gt_m"] = errors_in(sfm_at, r["_stamps"], r["_T"], T_ref_frame)
+        r["ate_second_gt_causal_m"] = errors_in(sfm_at, r["_stamps"], r["_T_online"], T_ref_frame)
+
+
+def query_runs(args, work: Path, map_dir: Path, gt_field: Path, survey, query, query_frames: str,
+               second: dict | None, T_map_full: np.ndarray, result: dict) -> dict:
+    """3. The query on both maps (and on the second ground truth's, with one), scored."""
     runs = {"self_posed": run_query(args.data, args.traj, query_frames, map_dir, work / "run_self",
                                     ("--matcher", args.matcher)),
             "gt_posed": run_query(args.data, args.traj, query_frames, gt_field, work / "run_gt",
                                   ("--matcher", args.matcher))}
-    if second is not None:  # the map pinned to the second ground truth, trained as train-field would
-        from nap3d_graph.datasets.posed import PosedSequence
-        from nap3d_graph.fields.build import build_field
-
-        sfm_field = work / "sfm_field.pt"
-        if not sfm_field.is_file():
-            t0 = time.perf_counter()
-            field_obj, _ = build_field(PosedSequence(survey, second["survey"], "second ground truth"), args.model,
-                                       matcher=args.matcher, progress=False)
-            field_obj.save(sfm_field)
-            result["sfm_field_seconds"] = round(time.perf_counter() - t0, 1)
-        # Its world is the SfM frame: it starts at the SfM pose of the first query frame and is
-        # scored against the SfM poses as they are (its "ate_m" against KinectFusion's means nothing).
-        from nap3d_graph.conventions import T_to_tum
-
-        start = " ".join(f"{v:.9f}" for v in T_to_tum(second["query"][0]))  # tx ty tz qx qy qz qw
-        runs["sfm_posed"] = run_query(args.data, args.traj, query_frames, sfm_field, work / "run_sfm_start",
-                                      ("--matcher", args.matcher, "--initial-pose", start))
-        from nap3d_graph.datasets.association import interpolate_poses
-
-        def sfm_at(stamps):
-            return interpolate_poses(np.asarray(query.timestamps), second["query"], stamps, max_gap=0.2)
-
-        T_gt_map = np.asarray(info["survey_ate"]["T_gt_map"])
-        T_sfm_map = aligned_errors(survey.timestamps, second["survey"], T_map_full).T_ref_est
-        T_sfm_kf = aligned_errors(survey.timestamps, second["survey"], np.asarray(survey.T_world_cam_gt)).T_ref_est
-        for name, T_ref_frame in (("self_posed", T_sfm_map), ("gt_posed", T_sfm_kf), ("sfm_posed", np.eye(4))):
-            r = runs[name]
-            r["ate_second_gt_m"] = errors_in(sfm_at, r["_stamps"], r["_T"], T_ref_frame)
-            r["ate_second_gt_causal_m"] = errors_in(sfm_at, r["_stamps"], r["_T_online"], T_ref_frame)
-        del T_gt_map
+    if second is not None:
+        runs["sfm_posed"] = sfm_posed_run(args, work, survey, query_frames, second, result)
+        score_against_second(runs, survey, query, second, T_map_full)
     for r in runs.values():
         for k in ("_stamps", "_T", "_T_online"):
             r.pop(k)
-    result["runs"] = runs
+    return runs
+
+
+def main() -> None:
+    args = parse_args()
+    global REUSE_RUNS
+    REUSE_RUNS = args.reuse_runs
+    work = args.work or Path(tempfile.mkdtemp(prefix="map_survey_"))
+    if args.only_relocalise:
+        relocalise_only(args, work)
+        return
+    survey_frames, query_frames, survey, query = halves(args)
+    result: dict = {"command": " ".join(sys.argv), "data": str(args.data), "survey_frames": survey_frames,
+                    "query_frames": query_frames, "model": args.model, "matcher": args.matcher, "odometry": "vo"}
+    map_dir = work / "map"
+    info = self_posed_map(args, map_dir, survey_frames, result)
+    T_map_full = map_poses(map_dir, info, survey)
+    second = second_truth(args, survey, query, T_map_full, result)
+    gt_field = gt_posed_field(args, work, survey_frames, result)
+    runs = result["runs"] = query_runs(args, work, map_dir, gt_field, survey, query, query_frames, second,
+                                       T_map_full, result)
     result["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
     if "sfm_posed" in runs:
         result["ratio_self_to_sfm_posed_in_sfm_frame"] = (runs["self_posed"]["ate_second_gt_m"]
                                                           / runs["sfm_posed"]["ate_second_gt_m"])
-
     # 4. relocalisation from random query frames
     result["relocalisation"] = relocalisation(map_dir, info, query, args, second_reference(args, survey, query,
                                                                                             T_map_full))

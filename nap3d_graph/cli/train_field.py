@@ -30,6 +30,14 @@ def add_parser(sub) -> None:
         "(held-out PSNR, depth errors, opacity, unit check, the field's own error) beside it. An existing "
         "checkpoint is not replaced without --force.",
     )
+    _source_arguments(p)
+    _training_arguments(p)
+    _refinement_and_check_arguments(p)
+    p.set_defaults(func=run)
+
+
+def _source_arguments(p) -> None:
+    """What is trained on and where the checkpoint goes."""
     p.add_argument("data", type=Path, help="sequence folder (TUM layout, with ground-truth poses), a ROS bag with its "
                    "ground truth in /tf or a pose topic (.bag or ROS 2 folder; see --topics), or a RealSense "
                    "recording (.bag/.db3) with --poses")
@@ -39,6 +47,10 @@ def add_parser(sub) -> None:
     p.add_argument("--out", type=Path, required=True, help="checkpoint to write (FIELD.pt; its report goes to "
                    "FIELD.report.json)")
     p.add_argument("--force", action="store_true", help="replace an existing checkpoint and its report")
+
+
+def _training_arguments(p) -> None:
+    """The field's model, its budget and the frames it trains on."""
     p.add_argument("--model", choices=("grid", "splat", "views"), default="grid",
                    help="grid (default, chosen by measurement: see the README): a voxel-grid radiance field trained "
                    "with torch; splat: surface splats fused from the frames, no training (seconds, not minutes); "
@@ -64,6 +76,10 @@ def add_parser(sub) -> None:
     p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
     add_matcher_argument(p, RUN_MATCHER)
+
+
+def _refinement_and_check_arguments(p) -> None:
+    """Pose refinement before training, the field's error and the depth unit's check."""
     p.add_argument("--refine-poses", type=non_negative_int, default=0, metavar="ROUNDS",
                    help="refine the training frames' poses first, for ROUNDS rounds (default 0: the poses as given; "
                    "see --refine-method). The report gives each round and the multi-view depth agreement before "
@@ -90,7 +106,6 @@ def add_parser(sub) -> None:
                         "at another unit's scale (e.g. millimetre PNGs read at TUM's 5000 per metre, 5x short); "
                         "trust: build with the depth as read")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=run)
 
 
 def run(args) -> int:
