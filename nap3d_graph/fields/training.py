@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -238,96 +238,20 @@ def train_field(
 def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_indices, oracle,
            snapshot_seconds, callback, timing=None) -> tuple[GridField, dict]:
     generator = torch.Generator(device=device).manual_seed(config.seed)
-
     train_idx, held_idx = split_posed_frames(sequence, config.every, config.eval_frames)
-    if eval_sequence is None:
-        eval_sequence, eval_indices = sequence, (held_idx if eval_indices is None else eval_indices)
-        oracle = oracle if oracle is not None else oracle_for(sequence)
-    else:
-        if eval_indices is None:
-            n = len(eval_sequence)
-            eval_indices = np.unique(np.round(np.linspace(0, n - 1, min(config.eval_frames, n))).astype(int))
-        oracle = oracle if oracle is not None else oracle_for(eval_sequence)
-
+    held_out = _held_out(sequence, config, held_idx, eval_sequence, eval_indices, oracle, timing)
     started = time.perf_counter()
     rays = TrainingRays.from_sequence(sequence, train_idx, config, device, progress=progress, timing=timing)
     bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), ray_poses(rays),
                                      rays.intrinsics, margin_m=config.bounds_margin_m)
     load_seconds = time.perf_counter() - started
-    log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), rays.num_valid, bounds.round(2).tolist())
-
-    stages = _stages(config)
-    field = GridField.empty(bounds, stages[0][0], device=device,
-                            color_voxel_size=stages[0][0] / config.color_voxel_ratio)
-    if config.init_from_depth:
-        started_init = time.perf_counter()
-        splat_init(field, rays, config)
-        log.info("initialised the grid from the depth images in %.1f s", time.perf_counter() - started_init)
-    budget_s = config.minutes * 60.0
-    snapshots = sorted(float(s) for s in snapshot_seconds if 0 < float(s) < budget_s)
-    snapshot_reports = []
-    history = []
-    train_seconds = 0.0
-    steps = 0
-    last_psnr, last_depth = float("nan"), float("nan")
-
-    from nap3d_graph.progress import progress_bar
-
-    bar = progress_bar(total=round(budget_s) if not config.max_steps else config.max_steps,
-               desc="train field", unit="s" if not config.max_steps else "step", disable=not progress,
-               bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} {unit} [{elapsed}<{remaining}{postfix}]")
-    trainer = None
-    stage_index = -1
-    try:
-        while True:
-            fraction = (steps / config.max_steps) if config.max_steps else (train_seconds / budget_s)
-            if fraction >= 1.0:
-                break
-            wanted = _stage_at(stages, fraction)
-            if wanted != stage_index:
-                if stage_index >= 0:
-                    voxel = stages[wanted][0]
-                    field = trainer.sync_field().resampled(voxel, voxel / config.color_voxel_ratio)
-                stage_index = wanted
-                trainer = _Trainer(field, rays, config, generator)
-            trainer.set_lr_scale(config.lr_final_ratio ** fraction)
-            tick = time.perf_counter()
-            rgb_mse, depth_err = trainer.step()
-            train_seconds += time.perf_counter() - tick
-            steps += 1
-            last_psnr, last_depth = psnr(rgb_mse), depth_err
-            if steps % 20 == 0:
-                history.append({"step": steps, "seconds": round(train_seconds, 2), "train_psnr_db": round(last_psnr, 2),
-                                "train_depth_err_m": round(last_depth, 5)})
-                bar.set_postfix_str(f"PSNR {last_psnr:.1f} dB, depth err {last_depth * 100:.2f} cm, step {steps}")
-                bar.n = steps if config.max_steps else min(round(train_seconds), bar.total)
-                bar.refresh()
-                if callback is not None:
-                    callback(history[-1])
-            if snapshots and train_seconds >= snapshots[0]:
-                snapshots.pop(0)
-                view_field = _frozen(trainer.sync_field())
-                snap = evaluate_field(view_field, eval_sequence, eval_indices, oracle, timing=timing)
-                snap.pop("per_frame", None)
-                snapshot_reports.append({"train_seconds": round(train_seconds, 2), "steps": steps, **snap})
-    finally:
-        bar.close()
-
-    field = _frozen(trainer.sync_field() if trainer is not None else field)
-    field.meta = {
-        "trained_by": "nap3d-graph train-field",
-        "checkpoint_version": CHECKPOINT_VERSION,
-        "train_config": config.to_dict(),
-        "source": str(getattr(sequence, "path", type(sequence).__name__)),
-        "train_frames": [int(i) for i in train_idx],
-        # Colour stamps of the frames trained on: runs and evaluations warn when they use one.
-        "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx]
-        if hasattr(sequence, "timestamps") else [],
-        "train_recording": getattr(sequence, "recording_id", None),
-        "steps": steps,
-        "train_seconds": round(train_seconds, 2),
-    }
-    evaluation = evaluate_field(field, eval_sequence, eval_indices, oracle, timing=timing) if len(eval_indices) else None
+    log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), rays.num_valid,
+             bounds.round(2).tolist())
+    field = _initial_field(bounds, rays, config, device)
+    loop = _TrainingLoop(config, rays, generator, held_out, snapshot_seconds, callback)
+    field = loop.run(field, progress)
+    field.meta = _field_meta(sequence, config, train_idx, loop)
+    evaluation = held_out.evaluate(field) if len(held_out.indices) else None
     report = {
         "field": repr(field),
         "voxel_size_m": field.voxel_size,
@@ -337,17 +261,147 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
         "torch_threads": config.threads if config.threads is not None else torch.get_num_threads(),
         "train_frames": len(train_idx),
         "train_rays_with_depth": int(rays.num_valid),
-        "steps": steps,
-        "train_seconds": round(train_seconds, 2),
+        "steps": loop.steps,
+        "train_seconds": round(loop.train_seconds, 2),
         "load_seconds": round(load_seconds, 2),
-        "final_train_psnr_db": round(last_psnr, 2),
-        "final_train_depth_err_m": round(last_depth, 5),
+        "final_train_psnr_db": round(loop.last_psnr, 2),
+        "final_train_depth_err_m": round(loop.last_depth, 5),
         "held_out": evaluation,
-        "snapshots": snapshot_reports,
-        "history": history,
+        "snapshots": loop.snapshot_reports,
+        "history": loop.history,
         "config": config.to_dict(),
     }
     return field, report
+
+
+@dataclass
+class _HeldOut:
+    """The frames a field is evaluated on (``indices`` of ``sequence``) and the oracle that
+    scores them, with the capture ``timing`` training used."""
+
+    sequence: object
+    indices: np.ndarray
+    oracle: object
+    timing: object = None
+
+    def evaluate(self, field) -> dict:
+        return evaluate_field(field, self.sequence, self.indices, self.oracle, timing=self.timing)
+
+
+def _held_out(sequence, config: TrainConfig, held_idx, eval_sequence, eval_indices, oracle, timing) -> _HeldOut:
+    """The training sequence's held-out frames, or ``eval_indices`` of ``eval_sequence``
+    (evenly spread ones where not given), with their oracle."""
+    if eval_sequence is None:
+        eval_sequence, eval_indices = sequence, (held_idx if eval_indices is None else eval_indices)
+        oracle = oracle if oracle is not None else oracle_for(sequence)
+    else:
+        if eval_indices is None:
+            n = len(eval_sequence)
+            eval_indices = np.unique(np.round(np.linspace(0, n - 1, min(config.eval_frames, n))).astype(int))
+        oracle = oracle if oracle is not None else oracle_for(eval_sequence)
+    return _HeldOut(eval_sequence, eval_indices, oracle, timing)
+
+
+def _initial_field(bounds: np.ndarray, rays: TrainingRays, config: TrainConfig, device) -> GridField:
+    """The empty grid of the first stage over ``bounds`` ((2, 3) metres), initialised from the
+    depth images when ``config.init_from_depth``."""
+    voxel = _stages(config)[0][0]
+    field = GridField.empty(bounds, voxel, device=device, color_voxel_size=voxel / config.color_voxel_ratio)
+    if config.init_from_depth:
+        started_init = time.perf_counter()
+        splat_init(field, rays, config)
+        log.info("initialised the grid from the depth images in %.1f s", time.perf_counter() - started_init)
+    return field
+
+
+class _TrainingLoop:
+    """The optimisation, stage by stage, until its budget (steps, or minutes of training) is
+    spent: ``steps``, ``train_seconds``, the last training PSNR and depth error, ``history``
+    every 20 steps and ``snapshot_reports`` (the held-out frames at ``snapshot_seconds``)."""
+
+    def __init__(self, config: TrainConfig, rays: TrainingRays, generator, held_out: _HeldOut,
+                 snapshot_seconds, callback):
+        self.config, self.rays, self.generator, self.held_out, self.callback = (config, rays, generator, held_out,
+                                                                               callback)
+        self.stages = _stages(config)
+        self.budget_s = config.minutes * 60.0
+        self.snapshots = sorted(float(s) for s in snapshot_seconds if 0 < float(s) < self.budget_s)
+        self.snapshot_reports: list[dict] = []
+        self.history: list[dict] = []
+        self.train_seconds = 0.0
+        self.steps = 0
+        self.last_psnr, self.last_depth = float("nan"), float("nan")
+
+    def run(self, field: GridField, progress: bool) -> GridField:
+        """Train ``field`` (resampled at each stage); returns it frozen."""
+        from nap3d_graph.progress import progress_bar
+
+        config = self.config
+        bar = progress_bar(total=round(self.budget_s) if not config.max_steps else config.max_steps,
+                           desc="train field", unit="s" if not config.max_steps else "step", disable=not progress,
+                           bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} {unit} [{elapsed}<{remaining}{postfix}]")
+        trainer = None
+        stage_index = -1
+        try:
+            while (fraction := self._fraction()) < 1.0:
+                wanted = _stage_at(self.stages, fraction)
+                if wanted != stage_index:
+                    if trainer is not None:
+                        voxel = self.stages[wanted][0]
+                        field = trainer.sync_field().resampled(voxel, voxel / config.color_voxel_ratio)
+                    stage_index = wanted
+                    trainer = _Trainer(field, self.rays, config, self.generator)
+                trainer.set_lr_scale(config.lr_final_ratio ** fraction)
+                self._step(trainer, bar)
+        finally:
+            bar.close()
+        return _frozen(trainer.sync_field() if trainer is not None else field)
+
+    def _fraction(self) -> float:
+        """How much of the budget is spent (0 to 1)."""
+        config = self.config
+        return (self.steps / config.max_steps) if config.max_steps else (self.train_seconds / self.budget_s)
+
+    def _step(self, trainer, bar) -> None:
+        """One optimisation step; every 20 the history, the bar and the callback; a snapshot
+        when one is due."""
+        tick = time.perf_counter()
+        rgb_mse, depth_err = trainer.step()
+        self.train_seconds += time.perf_counter() - tick
+        self.steps += 1
+        self.last_psnr, self.last_depth = psnr(rgb_mse), depth_err
+        if self.steps % 20 == 0:
+            self.history.append({"step": self.steps, "seconds": round(self.train_seconds, 2),
+                                 "train_psnr_db": round(self.last_psnr, 2),
+                                 "train_depth_err_m": round(self.last_depth, 5)})
+            bar.set_postfix_str(f"PSNR {self.last_psnr:.1f} dB, depth err {self.last_depth * 100:.2f} cm, "
+                                f"step {self.steps}")
+            bar.n = self.steps if self.config.max_steps else min(round(self.train_seconds), bar.total)
+            bar.refresh()
+            if self.callback is not None:
+                self.callback(self.history[-1])
+        if self.snapshots and self.train_seconds >= self.snapshots[0]:
+            self.snapshots.pop(0)
+            snap = self.held_out.evaluate(_frozen(trainer.sync_field()))
+            snap.pop("per_frame", None)
+            self.snapshot_reports.append({"train_seconds": round(self.train_seconds, 2), "steps": self.steps, **snap})
+
+
+def _field_meta(sequence, config: TrainConfig, train_idx, loop: _TrainingLoop) -> dict:
+    """What a trained field's checkpoint records of how it was trained."""
+    return {
+        "trained_by": "nap3d-graph train-field",
+        "checkpoint_version": CHECKPOINT_VERSION,
+        "train_config": config.to_dict(),
+        "source": str(getattr(sequence, "path", type(sequence).__name__)),
+        "train_frames": [int(i) for i in train_idx],
+        # Colour stamps of the frames trained on: runs and evaluations warn when they use one.
+        "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx]
+        if hasattr(sequence, "timestamps") else [],
+        "train_recording": getattr(sequence, "recording_id", None),
+        "steps": loop.steps,
+        "train_seconds": round(loop.train_seconds, 2),
+    }
 
 
 def _stages(config: TrainConfig) -> list[tuple[float, float]]:
