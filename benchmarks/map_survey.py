@@ -232,15 +232,18 @@ def self_posed_map(args, map_dir: Path, survey_frames: str, result: dict) -> dic
 
 
 def second_truth(args, survey, query, T_map_full: np.ndarray, result: dict) -> dict | None:
-    """The second ground truth of both halves (``{"survey": (N, 4, 4), "query": (M, 4, 4)}``),
-    the survey scored against it in ``result``; None without ``--second-gt``."""
+    """The second ground truth of both halves (``"survey"`` (N, 4, 4), ``"query"`` (M, 4, 4))
+    and the map's alignment to it (``"T_ref_map"``), the survey scored against it in
+    ``result``; None without ``--second-gt``."""
     if args.second_gt is None:
         return None
     from nap3d_graph.evaluation.alignment import aligned_errors
 
     table = read_sfm_pseudo_gt(args.second_gt)
     second = {"survey": second_gt_for(survey, table), "query": second_gt_for(query, table)}
-    result["survey"]["ate_second_gt"] = aligned_errors(survey.timestamps, second["survey"], T_map_full).summary()
+    survey_errors = aligned_errors(survey.timestamps, second["survey"], T_map_full)
+    result["survey"]["ate_second_gt"] = survey_errors.summary()
+    second["T_ref_map"] = survey_errors.T_ref_est
     T_kf = np.asarray(survey.T_world_cam_gt)
     result["ground_truths_disagree_on_survey_m"] = aligned_errors(survey.timestamps, second["survey"], T_kf).summary()
     return second
@@ -276,7 +279,7 @@ def sfm_posed_run(args, work: Path, survey, query_frames: str, second: dict, res
                      ("--matcher", args.matcher, "--initial-pose", start))
 
 
-def score_against_second(runs: dict, survey, query, second: dict, T_map_full: np.ndarray) -> None:
+def score_against_second(runs: dict, survey, query, second: dict) -> None:
     """Each run's ATE against the second ground truth, moved there through its map's own
     alignment to it (the SfM-posed map is in its frame already)."""
     from nap3d_graph.datasets.association import interpolate_poses
@@ -285,7 +288,7 @@ def score_against_second(runs: dict, survey, query, second: dict, T_map_full: np
     def sfm_at(stamps):
         return interpolate_poses(np.asarray(query.timestamps), second["query"], stamps, max_gap=0.2)
 
-    T_sfm_map = aligned_errors(survey.timestamps, second["survey"], T_map_full).T_ref_est
+    T_sfm_map = second["T_ref_map"]
     T_sfm_kf = aligned_errors(survey.timestamps, second["survey"], np.asarray(survey.T_world_cam_gt)).T_ref_est
     for name, T_ref_frame in (("self_posed", T_sfm_map), ("gt_posed", T_sfm_kf), ("sfm_posed", np.eye(4))):
         r = runs[name]
@@ -294,7 +297,7 @@ def score_against_second(runs: dict, survey, query, second: dict, T_map_full: np
 
 
 def query_runs(args, work: Path, map_dir: Path, gt_field: Path, survey, query, query_frames: str,
-               second: dict | None, T_map_full: np.ndarray, result: dict) -> dict:
+               second: dict | None, result: dict) -> dict:
     """3. The query on both maps (and on the second ground truth's, with one), scored."""
     runs = {"self_posed": run_query(args.data, args.traj, query_frames, map_dir, work / "run_self",
                                     ("--matcher", args.matcher)),
@@ -302,7 +305,7 @@ def query_runs(args, work: Path, map_dir: Path, gt_field: Path, survey, query, q
                                   ("--matcher", args.matcher))}
     if second is not None:
         runs["sfm_posed"] = sfm_posed_run(args, work, survey, query_frames, second, result)
-        score_against_second(runs, survey, query, second, T_map_full)
+        score_against_second(runs, survey, query, second)
     for r in runs.values():
         for k in ("_stamps", "_T", "_T_online"):
             r.pop(k)
@@ -325,15 +328,14 @@ def main() -> None:
     T_map_full = map_poses(map_dir, info, survey)
     second = second_truth(args, survey, query, T_map_full, result)
     gt_field = gt_posed_field(args, work, survey_frames, result)
-    runs = result["runs"] = query_runs(args, work, map_dir, gt_field, survey, query, query_frames, second,
-                                       T_map_full, result)
+    runs = result["runs"] = query_runs(args, work, map_dir, gt_field, survey, query, query_frames, second, result)
     result["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
     if "sfm_posed" in runs:
         result["ratio_self_to_sfm_posed_in_sfm_frame"] = (runs["self_posed"]["ate_second_gt_m"]
                                                           / runs["sfm_posed"]["ate_second_gt_m"])
     # 4. relocalisation from random query frames
-    result["relocalisation"] = relocalisation(map_dir, info, query, args, second_reference(args, survey, query,
-                                                                                            T_map_full))
+    result["relocalisation"] = relocalisation(map_dir, info, query, args,
+                                              None if second is None else (second["query"], second["T_ref_map"]))
     write_result(args.out, result, args)
     print(json.dumps({k: v for k, v in result.items() if k != "relocalisation"}, indent=1, default=float)[:4000])
     print({k: v for k, v in result["relocalisation"].items() if k != "per_attempt"})

@@ -212,9 +212,7 @@ class Pipeline:
         ``worker`` the keyframe is measured on it while the run goes on
         (:mod:`nap3d_graph.run.overlapped`)."""
         if worker is not None:
-            if self._overlap is None or self._overlap.worker is not worker:
-                self._overlap = OverlappedSteps(self, worker)  # made once per worker
-            self._overlap.step(i, on_keyframe)
+            self._overlapped(worker).step(i, on_keyframe)
             return
         frame = self.predict(i, self.frames.for_odometry(i))
         if self.is_keyframe(i, frame, idle=False):
@@ -232,9 +230,13 @@ class Pipeline:
     def land_pending(self, worker: CorrectionWorker, on_keyframe=None) -> None:
         """The measurement still in flight, if any, waited for and put in the graph (the end of
         an overlapped run)."""
+        self._overlapped(worker).land_pending(on_keyframe)
+
+    def _overlapped(self, worker: CorrectionWorker) -> OverlappedSteps:
+        """The overlapped steps of this run with ``worker`` (made once per worker)."""
         if self._overlap is None or self._overlap.worker is not worker:
             self._overlap = OverlappedSteps(self, worker)
-        self._overlap.land_pending(on_keyframe)
+        return self._overlap
 
     @property
     def current_estimate(self) -> np.ndarray:

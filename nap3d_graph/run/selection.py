@@ -40,7 +40,7 @@ class KeyframeSelector:
             return "first" if i == 0 else ""
         if self.config.keyframe_on_doubt and doubted:
             return "doubt"
-        if i - last_keyframe >= self.config.keyframe_every:
+        if self.due_by_count(i, last_keyframe):
             return "every"
         if worker_idle and self.idle_due(i, last_keyframe):
             return "idle"
