@@ -7,7 +7,12 @@ subprocess, and its stages' seconds are read back from ``map.json`` and
 report.
 
     python benchmarks/map_speed.py --data ../shared/data/tum/rgbd_dataset_freiburg1_desk \\
-        --data ../shared/data/7scenes/redkitchen:0:300 --out benchmarks/results/map_speed.json
+        --data ../shared/data/7scenes/redkitchen:0:300 --data ../shared/data/7scenes/redkitchen:200:500 \\
+        --out benchmarks/results/map_speed.json
+
+The grid's training fills what the whole map's budget (``MapSettings.budget_minutes``) leaves,
+so the wall time of a recording shorter than 300 frames is not scaled up: what its stages
+before the field did not spend, the training spends.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from provenance import write_result
 def one(spec: str, work: Path, extra: list[str]) -> dict:
     """Map ``spec`` (``PATH`` or ``PATH:START:STOP``) in a fresh folder; its figures."""
     path, _, frames = spec.partition(":")
-    out = work / Path(path).name
+    out = work / (Path(path).name + (f"_{frames.replace(':', '_')}" if frames else ""))
     command = [sys.executable, "-m", "nap3d_graph", "map", path, "--out", str(out), "--quiet", *extra]
     if frames:
         command += ["--frames", frames]
@@ -43,7 +48,9 @@ def one(spec: str, work: Path, extra: list[str]) -> dict:
                           "field_error": (field.get("field_error") or {}).get("seconds"),
                           "total": field.get("total_seconds")},
               "survey_ate_m": (info.get("survey_ate") or {}).get("map", {}).get("rmse_m"),
-              "within_5_minutes_per_300_frames": wall * 300 / frames_mapped <= 300}
+              # The grid trains for what the 5-minute budget leaves once the stages before it ran, so a
+              # map of fewer frames does not finish sooner in proportion: its wall time is the figure.
+              "within_5_minutes": wall <= 300.0}
     print(f"{spec}: {frames_mapped} frames in {wall:.0f} s ({result['stages_s']})")
     return result
 

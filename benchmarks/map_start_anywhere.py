@@ -29,7 +29,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from map_survey import cli, errors_in, read_sfm_pseudo_gt, run_query, second_gt_for, second_reference
+from map_survey import cli, errors_in, read_sfm_pseudo_gt, run_query, second_gt_for, second_reference, sfm_posed_run
 from provenance import write_result
 
 from nap3d_graph.conventions import inv_T, log_se3
@@ -47,15 +47,19 @@ def covered(T_map_cam: np.ndarray, T_map_key: np.ndarray, metres: float = 0.40, 
     return any(d <= metres and a <= degrees for d, a in (_pose_gap(T_map_cam, T) for T in T_map_key))
 
 
-def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.ndarray, second=None) -> dict:
+def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.ndarray, second=None,
+                   settings=None, field_obj=None) -> dict:
     """``second``: ``(T_ref_cam (N, 4, 4) of the query, T_ref_map)``, a second ground truth and
-    the survey's alignment to it: each answer scored against it too."""
+    the survey's alignment to it: each answer scored against it too. ``settings``: the
+    relocaliser's rules (default: its own); ``field_obj``: the map's field already loaded."""
     import torch
 
     torch.set_num_threads(1)
     from nap3d_graph.mapping.start import map_relocaliser
 
-    relocaliser = map_relocaliser(map_dir, None, matcher, query.intrinsics.scaled(320, 240))
+    relocaliser = map_relocaliser(map_dir, field_obj, matcher, query.intrinsics.scaled(320, 240))
+    if settings is not None:
+        relocaliser.settings = settings
     T_map_key = relocaliser.T_map_key
     rows = []
     for i in range(0, len(query), every):
@@ -106,6 +110,8 @@ def direction(args, survey_half: str) -> dict:
         out[f"relocalisation_{Path(extra).name}"] = relocalisation(map_dir, open_sequence(extra), args.every,
                                                                    args.matcher, T_map_gt)
     runs = _runs(args, survey_half, query_half, work, map_dir)
+    if second is not None and not args.no_gt_map:
+        runs["sfm_posed"] = _sfm_posed_run(args, work, survey, query, query_half, out)
     if "gt_posed" in runs:
         out["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
     if second is not None:
@@ -161,6 +167,14 @@ def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path) ->
     return runs
 
 
+def _sfm_posed_run(args, work: Path, survey, query, query_half: str, out: dict) -> dict:
+    """The query on a field trained at the survey's second ground truth (7-Scenes' SfM
+    poses), started at the query's first SfM pose: the map the issue's SfM figures compare with."""
+    table = read_sfm_pseudo_gt(args.second_gt)
+    poses = {"survey": second_gt_for(survey, table), "query": second_gt_for(query, table)}
+    return sfm_posed_run(args, work, survey, HALVES[query_half], poses, out)
+
+
 def _score_second(args, runs: dict, out: dict, survey, query, second) -> None:
     """Each run against the second ground truth, through its map's alignment to it (the
     ground-truth-posed map's frame is the first ground truth's)."""
@@ -175,10 +189,15 @@ def _score_second(args, runs: dict, out: dict, survey, query, second) -> None:
         table = read_sfm_pseudo_gt(args.second_gt)
         frames["gt_posed"] = aligned_errors(survey.timestamps, second_gt_for(survey, table),
                                             np.asarray(survey.T_world_cam_gt)).T_ref_est
+    if "sfm_posed" in runs:
+        frames["sfm_posed"] = np.eye(4)  # trained and started in the SfM frame itself
     for name, T_ref_frame in frames.items():
         runs[name]["ate_second_gt_m"] = errors_in(second_at, runs[name]["_stamps"], runs[name]["_T"], T_ref_frame)
     if "gt_posed" in runs:
         out["ratio_self_to_gt_posed_second_gt"] = runs["self_posed"]["ate_second_gt_m"] / runs["gt_posed"]["ate_second_gt_m"]
+    if "sfm_posed" in runs:
+        out["ratio_self_to_sfm_posed_second_gt"] = (runs["self_posed"]["ate_second_gt_m"]
+                                                    / runs["sfm_posed"]["ate_second_gt_m"])
 
 
 def main() -> None:

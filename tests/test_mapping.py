@@ -173,6 +173,42 @@ def test_relocalisation_refuses_a_frame_from_elsewhere(xyz_map):
     assert not found.success and "verified" in found.reason
 
 
+def test_relocalisation_asks_a_verified_answers_neighbours_for_the_second_view(xyz_map, monkeypatch):
+    """Retrieval ranks by appearance, so after the first verified candidate its next ones can
+    lie elsewhere in the map (here: the other keyframes moved 2 m away, ranked next); the
+    survey keyframe beside the answer, beyond the retrieval's top_k, gives the agreeing
+    second view. Without the neighbours rule the same frame is refused."""
+    import dataclasses
+
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping import relocalise
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    sequence, result = xyz_map
+    relocaliser = relocalise.Relocaliser(result.folder, resolve_field(str(result.folder)), AlignConfig(matcher="sift"))
+    n = len(relocaliser.T_map_key)
+    assert n >= 4
+    first, beside = 0, 1  # ranked first and last by "appearance"; the others far away in the map
+    for k in range(2, n):
+        relocaliser.T_map_key[k] = relocaliser.T_map_key[k] @ exp_se3(np.array([0, 0, 0, 2.0, 0, 0]))
+    ranks = np.empty(n)
+    for place, k in enumerate([first, *range(2, n), beside]):
+        ranks[k] = n - place  # the retrieval's similarity: this order
+    monkeypatch.setattr(relocalise, "similarities", lambda query, keys: ranks)
+    top = dataclasses.replace(relocaliser.settings, top_k=3)
+    T_map_gt = inv_T(np.asarray(json.loads((result.folder / "survey_ate.json").read_text())["T_gt_map"]))
+    frame = 3  # between keyframes 1 and 2 (frames 2 and 4)
+    relocaliser.settings = dataclasses.replace(top, neighbours=0)
+    alone = relocaliser.locate(sequence[frame])
+    assert not alone.success and "fewer than 1 other(s) agreeing" in alone.reason
+    relocaliser.settings = top
+    found = relocaliser.locate(sequence[frame])
+    assert found.success, found.reason
+    assert found.agreeing == 1 and found.tried == 2  # the first candidate, then its neighbour
+    error = log_se3(inv_T(T_map_gt @ sequence.T_world_cam_gt[frame]) @ found.T_map_cam)
+    assert np.linalg.norm(error[3:]) < 0.03 and np.degrees(np.linalg.norm(error[:3])) < 2.0
+
+
 def _line_survey(rng, n=30):
     """A camera that walks 3 m out and comes back along the same line (true poses), its
     odometry edges with 5 mm / 0.3 deg noise per step."""

@@ -77,9 +77,17 @@ class RelocaliseSettings:
     landed); min_inliers, max_sigma_m, max_sigma_deg: what a verified candidate must reach.
     One candidate alone, however many inliers it has, can be a wrong view of a similar
     place (on fr1/desk 3 of 40 lone answers were 7-13 cm off); two renders from different
-    keyframes that land together rarely are."""
+    keyframes that land together rarely are. ``neighbours``: once a candidate is verified with
+    no other agreeing yet, the survey keyframes nearest to where it landed (within
+    ``neighbour_m`` / ``neighbour_deg``, not yet tried) are tried next, at most this many:
+    retrieval ranks by appearance, so its next candidates can lie elsewhere in the map, while
+    a keyframe beside the answer sees what the frame sees from another viewpoint, the
+    independent second view the agreement asks for (0: retrieval order alone)."""
 
     top_k: int = 6
+    neighbours: int = 2
+    neighbour_m: float = 0.40
+    neighbour_deg: float = 30.0
     iterations: int = 1
     min_agreeing: int = 1
     min_inliers: int = 30
@@ -197,6 +205,16 @@ class Relocaliser:
             return Keyframe(-1, small, detected[1])
         return Keyframe(-1, small, detect_features(small.rgb, self.config.max_features, matcher=self.config.matcher))
 
+    def _neighbours(self, T_map_cam: np.ndarray, tried: set) -> list[int]:
+        """The survey keyframes (indices into the map's keyframes) nearest to ``T_map_cam``
+        within the neighbourhood, nearest first, not in ``tried``, at most ``neighbours``."""
+        s = self.settings
+        if s.neighbours <= 0:
+            return []
+        gaps = [(_gap(T_map_cam, T), k) for k, T in enumerate(self.T_map_key) if k not in tried]
+        near = [(m, k) for (m, deg), k in gaps if m <= s.neighbour_m and deg <= s.neighbour_deg]
+        return [k for _, k in sorted(near)[: s.neighbours]]
+
     def _agreeing(self, found: list) -> list:
         """The largest group of verified candidates that agree with one of them (that one
         first), or all of them when none agree (each its own group)."""
@@ -221,8 +239,13 @@ class Relocaliser:
         render_intrinsics = self.render_intrinsics or frame.intrinsics
         feats_real, _ = real_features(frame, render_intrinsics, self.config)
         query = self._query(frame, (render_intrinsics.shape, feats_real))
-        for k in order:
-            T_start, started_wide = self._start_pose(query, int(k))
+        queue, tried_keys = [int(k) for k in order], set()
+        while queue:
+            k = queue.pop(0)
+            if k in tried_keys:
+                continue
+            tried_keys.add(k)
+            T_start, started_wide = self._start_pose(query, k)
             wide += started_wide
             correction = correct_pose(frame, self.field, T_start, iterations=s.iterations, config=self.config,
                                       render_intrinsics=self.render_intrinsics, feats_real=feats_real)
@@ -235,10 +258,12 @@ class Relocaliser:
             refusal = s.verification.refusal(a.num_inliers, sigma_m, sigma_deg)
             if refusal:
                 reasons.append(refusal)
-            else:
-                found.append((sigma_m, int(k), correction.T_world_cam_corrected, cov, a.num_inliers, sigma_deg))
-                if len(self._agreeing(found)) > s.min_agreeing:
-                    break
+                continue
+            found.append((sigma_m, k, correction.T_world_cam_corrected, cov, a.num_inliers, sigma_deg))
+            if len(self._agreeing(found)) > s.min_agreeing:
+                break
+            if len(found) == 1:  # the first verified answer: its neighbours next, for a second view of it
+                queue = self._neighbours(correction.T_world_cam_corrected, tried_keys) + queue
         tried = len(reasons) + len(found)
         found = self._agreeing(found)
         if len(found) <= s.min_agreeing:
@@ -265,7 +290,13 @@ class Relocaliser:
                               wide_baseline=wide)
 
 
+def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """``(metres, degrees)`` between two poses."""
+    d = log_se3(inv_T(T_a) @ T_b)
+    return float(np.linalg.norm(d[3:])), float(np.degrees(np.linalg.norm(d[:3])))
+
+
 def _close(T_a: np.ndarray, T_b: np.ndarray, metres: float, degrees: float) -> bool:
     """Whether two poses are within ``metres`` and ``degrees`` of each other."""
-    d = log_se3(inv_T(T_a) @ T_b)
-    return bool(np.linalg.norm(d[3:]) <= metres and np.degrees(np.linalg.norm(d[:3])) <= degrees)
+    m, deg = _gap(T_a, T_b)
+    return m <= metres and deg <= degrees
