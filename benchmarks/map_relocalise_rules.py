@@ -42,7 +42,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, required=True, help="the survey recording (fr1/desk)")
     parser.add_argument("--query", type=Path, required=True, help="the tuning queries (fr1/xyz)")
     parser.add_argument("--frames", action="append", default=None,
-                        help="a range of --data to map (repeat; default: 0:1, 0:0.5 and 0.5:1)")
+                        help="a range of --data to map, or 'all' (repeat; default: all, 0:0.5 and 0.5:1)")
     parser.add_argument("--work", type=Path, required=True, help="folder for the maps (reused when there)")
     parser.add_argument("--matcher", default="xfeat")
     parser.add_argument("--every", type=int, default=1)
@@ -56,9 +56,10 @@ def main() -> None:
     query = open_sequence(args.query)
     maps, totals = {}, {name: {"covered": 0, "found": 0, "beyond_10cm": 0, "refused": 0, "seconds": []}
                         for name in VARIANTS}
-    for frames in args.frames or ["0:1", "0:0.5", "0.5:1"]:
+    for frames in args.frames or ["all", "0:0.5", "0.5:1"]:
         map_dir = args.work / f"map_{frames.replace(':', '_')}"
-        cli("map", str(args.data), "--frames", frames, "--out", str(map_dir), "--matcher", args.matcher, "--quiet")
+        cli("map", str(args.data), *(() if frames == "all" else ("--frames", frames)), "--out", str(map_dir),
+            "--matcher", args.matcher, "--quiet")
         info = json.loads((map_dir / "map.json").read_text())
         T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
         field_obj = resolve_field(str(map_dir))
