@@ -48,6 +48,7 @@ def one(spec: str, work: Path, extra: list[str]) -> dict:
                           "field_error": (field.get("field_error") or {}).get("seconds"),
                           "total": field.get("total_seconds")},
               "survey_ate_m": (info.get("survey_ate") or {}).get("map", {}).get("rmse_m"),
+              "survey_rotation_median_deg": (info.get("survey_ate") or {}).get("map", {}).get("rotation_median_deg"),
               # The grid trains for what the 5-minute budget leaves once the stages before it ran, so a
               # map of fewer frames does not finish sooner in proportion: its wall time is the figure.
               "within_5_minutes": wall <= 300.0}

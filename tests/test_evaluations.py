@@ -215,3 +215,22 @@ def test_eval_k_moves_each_depth_to_its_colour_instant(tmp_path):
     assert np.median(moved) < 0.5 * np.median(stamped), (np.median(moved), np.median(stamped))
     assert at_colour_instant(seq, 5, None) is not None and np.array_equal(at_colour_instant(seq, 5, None).depth_m,
                                                                          seq[5].depth_m)
+
+
+def test_survey_alignment_reports_orientation_errors_and_their_common_part():
+    """A trajectory whose every camera is turned by the same 1.15 deg (a reference's
+    camera-to-marker offset) in another frame: after the SE(3) alignment its orientation
+    errors are that turn, nearly all of it common to every frame; a trajectory turned at
+    random has no common part."""
+    from nap3d_graph.conventions import exp_se3
+    from nap3d_graph.evaluation.alignment import aligned_errors
+
+    rng = np.random.default_rng(0)
+    T_ref = np.stack([exp_se3(rng.normal(size=6) * [0.3, 0.3, 0.3, 1.0, 1.0, 1.0]) for _ in range(50)])
+    T_other_ref = exp_se3(np.array([0.1, 0.2, 0.3, 1.0, 2.0, 3.0]))
+    turn = exp_se3(np.array([0.02, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    fixed = aligned_errors(np.arange(50.0), T_ref, T_other_ref @ T_ref @ turn).summary()
+    assert 0.9 < fixed["rotation_median_deg"] < 1.2 and fixed["rotation_common_deg"] > 0.9
+    T_random = np.stack([T @ exp_se3(np.r_[rng.normal(size=3) * 0.02, 0.0, 0.0, 0.0]) for T in T_ref])
+    scattered = aligned_errors(np.arange(50.0), T_ref, T_other_ref @ T_random).summary()
+    assert scattered["rotation_median_deg"] > 1.0 and scattered["rotation_common_deg"] < 0.4

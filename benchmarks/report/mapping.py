@@ -178,7 +178,8 @@ def map_defaults_table() -> str:
 def map_speed_table() -> str:
     """``nap3d-graph map`` from nothing with its defaults: wall time and each stage's."""
     rows = ["| recording | frames | field | wall s | within 5 min | odometry / keyframes / loops / graph s | "
-            "field s: timing, train, error, total | survey ATE cm |", "|---|---:|---|---:|---|---|---|---:|"]
+            "field s: timing, train, error, total | survey ATE cm; orientation deg (median) |",
+            "|---|---:|---|---:|---|---|---|---:|"]
     path = RESULTS / "map_speed.json"
     if not path.is_file():
         return "\n".join(rows)
@@ -189,8 +190,12 @@ def map_speed_table() -> str:
             f"{r['frames']} | {r['model']} | {r['wall_s']:.0f} | {yes(r['wall_s'] <= 300.0)} | "
             f"{st['odometry']:.0f} / {st['keyframes']:.0f} / {st['loops']:.0f} / {st['graph']:.0f} | "
             f"{f['timing']:.0f}, {f['build_or_train']:.0f}, {f['field_error']:.0f}, {f['total']:.0f} | "
-            f"{cm(r['survey_ate_m'])} |")
+            f"{cm(r['survey_ate_m'])}; {_deg(r.get('survey_rotation_median_deg'))} |")
     return "\n".join(rows)
+
+
+def _deg(value) -> str:
+    return "n/a" if value is None else f"{value:.2f}"
 
 
 START_ANYWHERE_FILES = ("map_start_anywhere_fr1_desk.json", "map_start_anywhere_redkitchen.json")

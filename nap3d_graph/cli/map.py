@@ -104,7 +104,8 @@ def summary(info: dict, out: Path) -> str:
     if ate:
         lines.append(f"survey poses against the recording's ground truth (SE(3)-aligned, read only now): ATE "
                      f"{ate['map']['rmse_m'] * 100:.2f} cm (p90 {ate['map']['p90_m'] * 100:.2f}, max "
-                     f"{ate['map']['max_m'] * 100:.2f}); the odometry alone {ate['odometry_only']['rmse_m'] * 100:.2f} cm")
+                     f"{ate['map']['max_m'] * 100:.2f}); the odometry alone {ate['odometry_only']['rmse_m'] * 100:.2f} cm"
+                     + _orientation(ate["map"]))
         if "warning" in ate:
             lines.append(f"warning: {ate['warning']}")
     stages = info.get("stages", {})
@@ -118,3 +119,11 @@ def summary(info: dict, out: Path) -> str:
     lines.append(f"time: {total:.0f} s in all stages; use it with: nap3d-graph run --field {out} --data ... (the start "
                  "is found in the map: --initial-pose auto)")
     return "\n".join(lines)
+
+
+def _orientation(ate: dict) -> str:
+    """The survey's orientation errors, where the map's ``survey_ate`` holds them."""
+    if "rotation_median_deg" not in ate:
+        return ""
+    return (f"; orientation {ate['rotation_median_deg']:.2f} deg median (p90 {ate['rotation_p90_deg']:.2f}), "
+            f"{ate['rotation_common_deg']:.2f} deg of it one turn common to every camera")

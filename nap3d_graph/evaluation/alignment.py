@@ -26,22 +26,36 @@ __all__ = ["AlignedErrors", "aligned_errors"]
 class AlignedErrors:
     """``T_ref_est`` (4, 4): the reference frame <- the estimate's frame; ``stamps`` (M,) and
     ``errors_m`` (M,): the translation error of each frame both trajectories pose;
-    ``position_only_rmse_m``: evo's RMSE with its position-only Umeyama fit."""
+    ``position_only_rmse_m``: evo's RMSE with its position-only Umeyama fit; ``rotation_errors``
+    (M, 3): each frame's orientation error after the alignment, in its own camera frame
+    (radians, the rotation vector of ``R_est_aligned^T R_ref``)."""
 
     T_ref_est: np.ndarray
     stamps: np.ndarray
     errors_m: np.ndarray
     position_only_rmse_m: float = float("nan")
+    rotation_errors: np.ndarray | None = None
 
     @property
     def rmse_m(self) -> float:
         return float(np.sqrt(np.mean(self.errors_m**2)))
 
     def summary(self) -> dict:
+        """The translation errors' RMSE, median, p90 and max; with orientations, theirs in
+        degrees and ``rotation_common_deg``: the size of their mean in the camera frame, the
+        part of them that is one fixed turn of every camera (a camera-to-marker calibration
+        of the reference, or a survey bent the same way throughout), which no alignment of
+        the whole trajectory removes."""
         e = self.errors_m
-        return {"rmse_m": self.rmse_m, "median_m": float(np.median(e)), "p90_m": float(np.percentile(e, 90)),
-                "max_m": float(e.max()), "frames": int(len(e)),
-                "rmse_position_only_alignment_m": self.position_only_rmse_m}
+        out = {"rmse_m": self.rmse_m, "median_m": float(np.median(e)), "p90_m": float(np.percentile(e, 90)),
+               "max_m": float(e.max()), "frames": int(len(e)),
+               "rmse_position_only_alignment_m": self.position_only_rmse_m}
+        if self.rotation_errors is not None and len(self.rotation_errors):
+            deg = np.degrees(np.linalg.norm(self.rotation_errors, axis=1))
+            out.update(rotation_median_deg=float(np.median(deg)), rotation_p90_deg=float(np.percentile(deg, 90)),
+                       rotation_max_deg=float(deg.max()),
+                       rotation_common_deg=float(np.degrees(np.linalg.norm(self.rotation_errors.mean(axis=0)))))
+        return out
 
 
 def aligned_errors(stamps: np.ndarray, T_ref: np.ndarray, T_est: np.ndarray, orientation_weight_m2: float = 0.1
@@ -50,6 +64,7 @@ def aligned_errors(stamps: np.ndarray, T_ref: np.ndarray, T_est: np.ndarray, ori
     (finite), positions and orientations together (module docstring); None when fewer than
     3 frames are posed."""
     from evo.core.geometry import umeyama_alignment
+    from scipy.spatial.transform import Rotation
 
     from nap3d_graph.conventions import make_T
 
@@ -70,5 +85,7 @@ def aligned_errors(stamps: np.ndarray, T_ref: np.ndarray, T_est: np.ndarray, ori
     moved = p_est @ R.T + t
     R_evo, t_evo, _ = umeyama_alignment(p_est.T, p_ref.T, False)
     position_only = np.linalg.norm(p_est @ R_evo.T + t_evo - p_ref, axis=1)
+    R_moved = np.einsum("ij,njk->nik", R, R_est)
+    rotation_errors = Rotation.from_matrix(np.einsum("nji,njk->nik", R_moved, R_ref)).as_rotvec()
     return AlignedErrors(make_T(R, t), np.asarray(stamps, dtype=float)[both], np.linalg.norm(moved - p_ref, axis=1),
-                         float(np.sqrt(np.mean(position_only**2))))
+                         float(np.sqrt(np.mean(position_only**2))), rotation_errors)

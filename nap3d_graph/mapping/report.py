@@ -170,7 +170,9 @@ def map_report(folder) -> MapReport:
         odometry = info["survey_ate"].get("odometry_only", {})
         report.values["survey_ate_m"] = ate["rmse_m"]
         report.add("survey ATE against the ground truth (where there is one)",
-                   f"{ate['rmse_m'] * 100:.2f} cm (odometry alone {odometry.get('rmse_m', float('nan')) * 100:.2f})",
+                   f"{ate['rmse_m'] * 100:.2f} cm (odometry alone {odometry.get('rmse_m', float('nan')) * 100:.2f})"
+                   + (f"; orientation {ate['rotation_median_deg']:.2f} deg median"
+                      if "rotation_median_deg" in ate else ""),
                    "the reference the figures above are checked against", None)
     return report
 
