@@ -9,9 +9,11 @@ far from the keyframe. The field then renders there and NAP3D aligns the frame t
 re-rendering at the corrected pose (:func:`~nap3d_graph.nap3d.correct.correct_pose`); where
 the real-vs-real step fails (or the map has no keyframe images), the render starts at the
 keyframe's pose. A candidate is verified when its alignment to the field succeeded with
-enough inliers and a tight covariance. Among the verified ones the tightest
-wins, and how many others land within ``agree_m`` of it says how sure the answer is. No
-verified candidate: a clear refusal, never a guess.
+enough inliers and a tight covariance. Once one is verified, the survey keyframes beside
+where it landed are tried next (a second view of the same answer), then the retrieval's
+remaining candidates. Among the verified ones the tightest wins, and how many others land
+within ``agree_m`` of it says how sure the answer is. No verified candidate: a clear refusal,
+never a guess.
 """
 
 from __future__ import annotations
