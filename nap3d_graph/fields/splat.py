@@ -154,55 +154,21 @@ class SplatField:
         return p[inside, 2], u[inside], v[inside], idx[inside]
 
     def _rasterise(self, T_world_cam: np.ndarray, K: Intrinsics):
+        """The visible splats rasterised by :func:`~.splat_kernel.rasterise_splats`:
+        ``(rgb (H, W, 3), depth (H, W), opacity (H, W))`` float32 tensors."""
+        from .splat_kernel import rasterise_splats
+
         cfg = self.config
         h, w = K.height, K.width
         z, u, v, idx = self._visible(T_world_cam, K)
-        rgb = torch.zeros((h * w, 3))
-        depth = torch.zeros(h * w)
         if z.numel() == 0:
-            return rgb.reshape(h, w, 3), depth.reshape(h, w), torch.zeros((h, w))
+            return torch.zeros((h, w, 3)), torch.zeros((h, w)), torch.zeros((h, w))
         radius_px = (0.5 * (K.fx + K.fy) * cfg.splat_radius_vox * self.voxel_size / z).clamp(0.5, cfg.max_footprint_px)
-        inv_two_sigma2 = 2.0 / radius_px**2  # sigma = radius / 2
-        ui, vi = torch.round(u).long(), torch.round(v).long()
-        du, dv = u - ui, v - vi
-        conf = self.weights[idx]
-        # Splats grouped by how far their footprint reaches, so a far (small) splat is not
-        # tested against the offsets only a near (large) one needs.
-        reach_of = torch.ceil(radius_px).long()
-        zbuf = torch.full((h * w,), float("inf"))
-        parts = []
-        for reach in torch.unique(reach_of).tolist():
-            group = (reach_of == reach).nonzero()[:, 0]
-            g_u, g_v, g_du, g_dv, g_r2 = ui[group], vi[group], du[group], dv[group], radius_px[group] ** 2
-            for dy in range(-reach, reach + 1):
-                for dx in range(-reach, reach + 1):
-                    d2 = (dx - g_du) ** 2 + (dy - g_dv) ** 2
-                    px, py = g_u + dx, g_v + dy
-                    rows = ((d2 <= g_r2) & (px >= 0) & (px < w) & (py >= 0) & (py < h)).nonzero()[:, 0]
-                    pix = py[rows] * w + px[rows]
-                    sel = group[rows]
-                    # Pass 1: the nearest splat depth at each pixel (z-buffer over the footprints).
-                    zbuf.scatter_reduce_(0, pix, z[sel], reduce="amin")
-                    parts.append((sel, pix, torch.exp(-d2[rows] * inv_two_sigma2[sel])))
-        # Pass 2: blend the splats of the front surface at each pixel (colour and depth weighted
-        # by footprint and confidence), so a surface's depth is the mean of its splats.
-        weight = torch.zeros(h * w)
-        footprint = torch.zeros(h * w)
-        for sel, pix, g in parts:
-            zs = z[sel]
-            front = zs <= zbuf[pix] * (1.0 + cfg.blend_tolerance_rel) + cfg.blend_tolerance_m
-            sel, pix, g, zs = sel[front], pix[front], g[front], zs[front]
-            wgt = g * conf[sel]
-            weight.index_add_(0, pix, wgt)
-            footprint.index_add_(0, pix, g)
-            depth.index_add_(0, pix, wgt * zs)
-            rgb.index_add_(0, pix, wgt[:, None] * self.colors[idx[sel]])
-        seen = weight > 0
-        depth[seen] /= weight[seen]
-        rgb[seen] /= weight[seen][:, None]
-        opacity = 1.0 - torch.exp(-cfg.opacity_gain * footprint)
-        rgb = rgb * opacity[:, None]
-        return rgb.reshape(h, w, 3), depth.reshape(h, w), opacity.reshape(h, w)
+        rgb, depth, opacity = rasterise_splats(
+            z.numpy(), u.numpy(), v.numpy(), radius_px.numpy(), self.colors[idx].numpy(), self.weights[idx].numpy(),
+            w, h, cfg.blend_tolerance_rel, cfg.blend_tolerance_m, cfg.opacity_gain)
+        return (torch.from_numpy(rgb).reshape(h, w, 3), torch.from_numpy(depth).reshape(h, w),
+                torch.from_numpy(opacity).reshape(h, w))
 
     # --- checkpoints --------------------------------------------------------------------------
 
