@@ -507,6 +507,14 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     info["loops"]["accepted"] = 0
     (alone / "map.json").write_text(json.dumps(info))
     assert any(figure.startswith("loops:") for figure in map_report(alone).bad)
+    # A field that covers none of its held-out frames has no depth error to give: told, not a crash.
+    blind = tmp_path / "blind"
+    shutil.copytree(map_folder, blind)
+    field_report = json.loads((blind / "field.report.json").read_text())
+    field_report["held_out"].update(depth_abs_err_m={"median": None, "p90": None, "mean": None}, opaque_fraction=0.0)
+    (blind / "field.report.json").write_text(json.dumps(field_report))
+    told = map_report(blind).bad
+    assert any("depth error" in figure for figure in told) and any("covered" in figure for figure in told)
 
 
 def test_the_grid_trains_for_what_the_map_budget_leaves():

@@ -123,6 +123,11 @@ def _bundle(report: MapReport, info: dict) -> None:
                None)
 
 
+def _number(value) -> float:
+    """A figure read from a report, NaN where it is missing (None)."""
+    return float("nan") if value is None else float(value)
+
+
 def _field(report: MapReport, folder: Path) -> None:
     path = MapFolder(Path(folder)).field_report
     if not path.is_file():
@@ -132,9 +137,10 @@ def _field(report: MapReport, folder: Path) -> None:
     if not held.get("frames"):
         report.add("field on held-out survey frames", "none held out (too short a survey)", "some", None)
         return
-    psnr = float(held.get("psnr_affine_db", held.get("psnr_db", float("nan"))))
-    depth = float((held.get("depth_abs_err_m") or {}).get("median", float("nan")))
-    covered = float(held.get("opaque_fraction", float("nan")))
+    psnr = _number(held.get("psnr_affine_db", held.get("psnr_db")))
+    # No median where the field covered none of the held-out frames: the report says so, not a crash.
+    depth = _number((held.get("depth_abs_err_m") or {}).get("median"))
+    covered = _number(held.get("opaque_fraction"))
     report.values["held_out"] = {"frames": len(held["frames"]), "psnr_affine_db": psnr, "depth_median_m": depth,
                                  "covered": covered}
     n = len(held["frames"])
