@@ -33,14 +33,26 @@ def rasterise_splats(z_m: np.ndarray, u_px: np.ndarray, v_px: np.ndarray, radius
     ``blend_tolerance_rel`` of its depth plus ``blend_tolerance_m``), colour and depth weighted
     by footprint times confidence; opacity is ``1 - exp(-opacity_gain * footprint sum)`` and
     the colour is premultiplied by it. Depth 0 where nothing is seen."""
-    n_pixels = width * height
-    zbuf = np.full(n_pixels, np.float32(np.inf), dtype=np.float32)
-    n = z_m.shape[0]
-    for i in range(n):  # pass 1: the front surface
-        ui, vi = np.rint(u_px[i]), np.rint(v_px[i])
-        du, dv = u_px[i] - ui, v_px[i] - vi
-        r2 = radius_px[i] * radius_px[i]
-        reach = int(math.ceil(radius_px[i]))
+    zbuf = _front_surface(z_m, u_px, v_px, radius_px, width, height)
+    weight, footprint, depth, rgb = _blend(z_m, u_px, v_px, radius_px, colors, confidence, zbuf, width, height,
+                                           blend_tolerance_rel, blend_tolerance_m)
+    return _normalised(weight, footprint, depth, rgb, opacity_gain)
+
+
+@njit(cache=True, nogil=True)
+def _footprint(u: float, v: float, radius: float):
+    """``(ui, vi, du, dv, r2, reach)``: a splat's nearest pixel centre, its offset from it,
+    its squared radius and how many pixels its footprint reaches either side."""
+    ui, vi = np.rint(u), np.rint(v)
+    return ui, vi, u - ui, v - vi, radius * radius, int(math.ceil(radius))
+
+
+@njit(cache=True, nogil=True)
+def _front_surface(z_m, u_px, v_px, radius_px, width: int, height: int) -> np.ndarray:
+    """Pass 1: the nearest splat depth at each pixel within the footprints (inf: none)."""
+    zbuf = np.full(width * height, np.float32(np.inf), dtype=np.float32)
+    for i in range(z_m.shape[0]):
+        ui, vi, du, dv, r2, reach = _footprint(u_px[i], v_px[i], radius_px[i])
         for dy in range(-reach, reach + 1):
             py = int(vi) + dy
             if py < 0 or py >= height:
@@ -54,16 +66,22 @@ def rasterise_splats(z_m: np.ndarray, u_px: np.ndarray, v_px: np.ndarray, radius
                     k = py * width + px
                     if z_m[i] < zbuf[k]:
                         zbuf[k] = z_m[i]
+    return zbuf
+
+
+@njit(cache=True, nogil=True)
+def _blend(z_m, u_px, v_px, radius_px, colors, confidence, zbuf, width: int, height: int,
+           blend_tolerance_rel: float, blend_tolerance_m: float):
+    """Pass 2: the sums of weight, footprint, weighted depth and weighted colour of the splats
+    on the front surface at each pixel."""
+    n_pixels = width * height
     weight = np.zeros(n_pixels, dtype=np.float32)
     footprint = np.zeros(n_pixels, dtype=np.float32)
     depth = np.zeros(n_pixels, dtype=np.float32)
     rgb = np.zeros((n_pixels, 3), dtype=np.float32)
-    for i in range(n):  # pass 2: blend the front surface's splats
-        ui, vi = np.rint(u_px[i]), np.rint(v_px[i])
-        du, dv = u_px[i] - ui, v_px[i] - vi
-        r2 = radius_px[i] * radius_px[i]
+    for i in range(z_m.shape[0]):
+        ui, vi, du, dv, r2, reach = _footprint(u_px[i], v_px[i], radius_px[i])
         inv_two_sigma2 = np.float32(2.0) / r2
-        reach = int(math.ceil(radius_px[i]))
         for dy in range(-reach, reach + 1):
             py = int(vi) + dy
             if py < 0 or py >= height:
@@ -85,8 +103,15 @@ def rasterise_splats(z_m: np.ndarray, u_px: np.ndarray, v_px: np.ndarray, radius
                 depth[k] += wgt * z_m[i]
                 for c in range(3):
                     rgb[k, c] += wgt * colors[i, c]
-    opacity = np.empty(n_pixels, dtype=np.float32)
-    for k in range(n_pixels):
+    return weight, footprint, depth, rgb
+
+
+@njit(cache=True, nogil=True)
+def _normalised(weight, footprint, depth, rgb, opacity_gain: float):
+    """``(rgb, depth, opacity)``: the blended sums divided by their weight, the opacity from
+    the footprint sum, the colour premultiplied by it."""
+    opacity = np.empty(weight.shape[0], dtype=np.float32)
+    for k in range(weight.shape[0]):
         if weight[k] > 0:
             depth[k] /= weight[k]
             for c in range(3):
