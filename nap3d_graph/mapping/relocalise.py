@@ -230,7 +230,7 @@ class Relocaliser:
 
     def locate(self, frame: RGBDFrame) -> Relocalisation:
         """Where ``frame`` is in the map; never raises on data (``success`` False, ``reason``)."""
-        from nap3d_graph.nap3d.correct import correct_pose, real_features
+        from nap3d_graph.nap3d.correct import real_features
 
         started = time.perf_counter()
         s = self.settings
@@ -247,49 +247,64 @@ class Relocaliser:
             if k in tried_keys:
                 continue
             tried_keys.add(k)
-            T_start, started_wide = self._start_pose(query, k)
+            verified, refusal, started_wide = self._candidate(frame, query, k, feats_real)
             wide += started_wide
-            correction = correct_pose(frame, self.field, T_start, iterations=s.iterations, config=self.config,
-                                      render_intrinsics=self.render_intrinsics, feats_real=feats_real)
-            a = correction.alignment
-            if not correction.success:
-                reasons.append(correction.reason)
-                continue
-            cov = correction.covariance
-            sigma_m, sigma_deg = worst_sigmas(cov)
-            refusal = s.verification.refusal(a.num_inliers, sigma_m, sigma_deg)
-            if refusal:
+            if verified is None:
                 reasons.append(refusal)
                 continue
-            found.append((sigma_m, k, correction.T_world_cam_corrected, cov, a.num_inliers, sigma_deg))
+            found.append(verified)
             if len(self._agreeing(found)) > s.min_agreeing:
                 break
             if len(found) == 1:  # the first verified answer: its neighbours next, for a second view of it
-                queue = self._neighbours(correction.T_world_cam_corrected, tried_keys) + queue
+                queue = self._neighbours(verified[2], tried_keys) + queue
         tried = len(reasons) + len(found)
         found = self._agreeing(found)
         if len(found) <= s.min_agreeing:
             if found:
                 reasons.append(f"{len(found)} verified candidate(s) but fewer than {s.min_agreeing} other(s) agreeing")
             found = []
-        if found:  # one more round for the tightest, from where it landed (a nearer render)
-            found.sort(key=lambda f: f[0])
-            sigma_m, k, T, cov, inliers, sigma_deg = found[0]
-            again = correct_pose(frame, self.field, T, iterations=1, config=self.config,
-                                 render_intrinsics=self.render_intrinsics, feats_real=feats_real)
-            if again.success and again.alignment.num_inliers >= s.min_inliers:
-                s2, d2 = worst_sigmas(again.covariance)
-                if s2 <= s.max_sigma_m:
-                    found[0] = (s2, k, again.T_world_cam_corrected, again.covariance, again.alignment.num_inliers, d2)
-        seconds = time.perf_counter() - started
         if not found:
             why = "; ".join(sorted(set(reasons))[:3]) or "no candidate"
-            return Relocalisation(False, tried=tried, seconds=seconds, wide_baseline=wide,
+            return Relocalisation(False, tried=tried, seconds=time.perf_counter() - started, wide_baseline=wide,
                                   reason=f"none of the {tried} most similar keyframes verified ({why})")
-        sigma_m, k, T, cov, inliers, sigma_deg = found[0]
-        agreeing = len(found) - 1
-        return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, agreeing, tried, seconds,
-                              wide_baseline=wide)
+        sigma_m, k, T, cov, inliers, sigma_deg = self._tightest_again(frame, found, feats_real)
+        return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, len(found) - 1, tried,
+                              time.perf_counter() - started, wide_baseline=wide)
+
+    def _candidate(self, frame: RGBDFrame, query, k: int, feats_real) -> tuple[tuple | None, str, bool]:
+        """``(verified, refusal, wide)``: keyframe ``k`` as a candidate, its render started
+        where :meth:`_start_pose` puts it (``wide``: real-vs-real); ``verified``: ``(sigma_m,
+        k, T_map_cam, covariance, inliers, sigma_deg)`` when the correction passes the
+        verification, else None with ``refusal`` saying why."""
+        from nap3d_graph.nap3d.correct import correct_pose
+
+        s = self.settings
+        T_start, wide = self._start_pose(query, k)
+        correction = correct_pose(frame, self.field, T_start, iterations=s.iterations, config=self.config,
+                                  render_intrinsics=self.render_intrinsics, feats_real=feats_real)
+        if not correction.success:
+            return None, correction.reason, wide
+        cov, inliers = correction.covariance, correction.alignment.num_inliers
+        sigma_m, sigma_deg = worst_sigmas(cov)
+        refusal = s.verification.refusal(inliers, sigma_m, sigma_deg)
+        if refusal:
+            return None, refusal, wide
+        return (sigma_m, k, correction.T_world_cam_corrected, cov, inliers, sigma_deg), "", wide
+
+    def _tightest_again(self, frame: RGBDFrame, found: list, feats_real) -> tuple:
+        """The tightest of the agreeing candidates ``found`` after one more round from where it
+        landed (a nearer render), or as it was when that round is no tighter than the rule."""
+        from nap3d_graph.nap3d.correct import correct_pose
+
+        s = self.settings
+        sigma_m, k, T, cov, inliers, sigma_deg = min(found, key=lambda f: f[0])
+        again = correct_pose(frame, self.field, T, iterations=1, config=self.config,
+                             render_intrinsics=self.render_intrinsics, feats_real=feats_real)
+        if again.success and again.alignment.num_inliers >= s.min_inliers:
+            s2, d2 = worst_sigmas(again.covariance)
+            if s2 <= s.max_sigma_m:
+                return s2, k, again.T_world_cam_corrected, again.covariance, again.alignment.num_inliers, d2
+        return sigma_m, k, T, cov, inliers, sigma_deg
 
 
 def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
