@@ -322,8 +322,6 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
     ``ground_truth_at`` (poses at the frame stamps only) uses its poses for both. Returns
     ``(field, report)``.
     """
-    from nap3d_graph.progress import progress_bar
-
     config = config or SplatConfig()
     indices = np.asarray(indices, dtype=int)
     if indices.size == 0:
@@ -333,31 +331,12 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
         raise FieldError("building a splat field needs posed frames, but the sequence has no ground-truth poses")
     started = time.perf_counter()
     T_depth, T_colour = capture_poses(sequence, indices, depth_offset_s, colour_offset_s)
-    chunks, sharpness = [], np.ones(len(indices))
-    coverage = colour_coverage(sequence)
-    for k, i in enumerate(progress_bar(indices, desc="fuse frames", unit="frame", disable=not progress, leave=False)):
-        if not (np.all(np.isfinite(T_depth[k])) and np.all(np.isfinite(T_colour[k]))):
-            continue
-        frame = sequence[int(i)]
-        # Full resolution; the small offset keeps a featureless frame's weight above zero.
-        sharpness[k] = image_sharpness(frame.rgb, width=None) + 1e-6
-        points, colours, weights, has_colour = _frame_points(frame, T_depth[k], T_colour[k], depth_scale, config,
-                                                             coverage)
-        chunks.append((np.full(len(points), k, np.int64), points, colours, weights, has_colour))
-    if not chunks:
-        raise FieldError("no training frame has a usable depth pixel")
-    frame_of = np.concatenate([c[0] for c in chunks])
-    points = np.concatenate([c[1] for c in chunks])
-    colours = np.concatenate([c[2] for c in chunks])
-    weights = np.concatenate([c[3] for c in chunks]).astype(np.float64)
-    has_colour = np.concatenate([c[4] for c in chunks])
+    frame_of, points, colours, weights, has_colour, sharpness, n_frames = _frames_points(
+        sequence, indices, T_depth, T_colour, depth_scale, config, progress)
     colour_weights = weights * (sharpness / np.median(sharpness))[frame_of] ** 2 * has_colour
     voxel = config.voxel_size_m or _auto_voxel(sequence, config)
     config = replace(config, voxel_size_m=voxel)
-    cell = np.floor(points / voxel).astype(np.int64)
-    cell -= cell.min(axis=0)
-    span = cell.max(axis=0) + 1
-    keys = (cell[:, 2] * span[1] + cell[:, 1]) * span[0] + cell[:, 0]
+    keys = _voxel_keys(points, voxel)
     gains, offsets = np.ones((len(indices), 3)), np.zeros((len(indices), 3))
     inverse, n_voxels, views = _voxels(keys, frame_of)
     for _ in range(max(config.exposure_rounds, 0) + 1):
@@ -374,12 +353,43 @@ def build_splat_field(sequence, indices, config: SplatConfig | None = None, dept
     confidence = wsum[keep] / wsum[keep].mean()
     field = SplatField(mean_p[keep], np.clip(mean_c[keep], 0, 1), confidence, views[keep], voxel, config)
     report = {"splats": int(keep.sum()), "voxel_size_m": voxel, "voxels_seen_once_or_too_few_views": int((~keep).sum()),
-              "points_fused": int(len(points)), "frames": int(len(chunks)),
+              "points_fused": int(len(points)), "frames": n_frames,
               "exposure_gain_range": [float(gains.min()), float(gains.max())],
               "build_seconds": round(time.perf_counter() - started, 2)}
     log.info("splat field: %d splats from %d points of %d frames in %.1f s", report["splats"], len(points),
-             len(chunks), report["build_seconds"])
+             n_frames, report["build_seconds"])
     return field, report
+
+
+def _frames_points(sequence, indices, T_depth, T_colour, depth_scale: float, config: SplatConfig, progress: bool):
+    """Every posed frame's back-projected points, concatenated: ``(frame_of (P,) position in
+    ``indices``, points (P, 3) world metres, colours (P, 3), weights (P,) float64, has_colour
+    (P,), sharpness (len(indices),) of each frame, frames used)``."""
+    from nap3d_graph.progress import progress_bar
+
+    chunks, sharpness = [], np.ones(len(indices))
+    coverage = colour_coverage(sequence)
+    for k, i in enumerate(progress_bar(indices, desc="fuse frames", unit="frame", disable=not progress, leave=False)):
+        if not (np.all(np.isfinite(T_depth[k])) and np.all(np.isfinite(T_colour[k]))):
+            continue
+        frame = sequence[int(i)]
+        # Full resolution; the small offset keeps a featureless frame's weight above zero.
+        sharpness[k] = image_sharpness(frame.rgb, width=None) + 1e-6
+        points, colours, weights, has_colour = _frame_points(frame, T_depth[k], T_colour[k], depth_scale, config,
+                                                             coverage)
+        chunks.append((np.full(len(points), k, np.int64), points, colours, weights, has_colour))
+    if not chunks:
+        raise FieldError("no training frame has a usable depth pixel")
+    frame_of, points, colours, weights, has_colour = (np.concatenate([c[j] for c in chunks]) for j in range(5))
+    return frame_of, points, colours, weights.astype(np.float64), has_colour, sharpness, len(chunks)
+
+
+def _voxel_keys(points: np.ndarray, voxel: float) -> np.ndarray:
+    """(P,) int64: one key per voxel of edge ``voxel`` metres that ``points`` (P, 3) fall in."""
+    cell = np.floor(points / voxel).astype(np.int64)
+    cell -= cell.min(axis=0)
+    span = cell.max(axis=0) + 1
+    return (cell[:, 2] * span[1] + cell[:, 1]) * span[0] + cell[:, 0]
 
 
 def _auto_voxel(sequence, config: SplatConfig) -> float:
