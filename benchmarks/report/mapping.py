@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from report import RESULTS, Section, cm, yes
+from report import RESULTS, Section, cm, read, yes
 
 MAP_SURVEY_FILES = ("map_survey_fr1_desk.json", "map_survey_redkitchen.json")
 ORBSLAM3_FILES = ("orbslam3_fr1_desk.json", "orbslam3_fr1_desk_repeat.json")
@@ -252,11 +252,7 @@ def relocalise_rules_table() -> str:
     simulated rooms' traversals in maps of their mapping walks."""
     rows = ["| tuning set | rules | covered frames within 5 cm / 3 deg, all maps | per map | beyond 10 cm | refused | "
             "s per attempt: median, p90, max |", "|---|---|---|---|---|---|---|"]
-    for name in RULES_FILES:
-        path = RESULTS / name
-        if not path.is_file():
-            continue
-        r = json.loads(path.read_text())
+    for r in filter(None, map(read, RULES_FILES)):
         tuning = (f"simulated rooms {', '.join(str(k) for k in r['simulated_rooms'])} (every {r['every']} frames)"
                   if "simulated_rooms" in r else f"{Path(r['query']).name} in {Path(r['data']).name}")
         for variant, t in r["totals"].items():
@@ -274,10 +270,9 @@ TURN_FILE = "ground_truths_turn_redkitchen.json"
 def ground_truths_turn_table() -> str:
     """7-Scenes' two ground truths against each other, and each self-made map against both:
     translation RMSE and the orientation errors after the SE(3) alignment."""
-    path = RESULTS / TURN_FILE
-    if not path.is_file():
+    r = read(TURN_FILE)
+    if not r:
         return "(not measured)"
-    r = json.loads(path.read_text())
     rows = ["| trajectory | against | ATE cm | orientation deg: median, p90, max | one turn common to every camera, deg |",
             "|---|---|---|---|---|"]
 
