@@ -42,9 +42,10 @@ from nap3d_graph.conventions import inv_T
 
 #: The variants tried: a name and the settings changed from the relocaliser's defaults.
 VARIANTS = {
-    "retrieval order alone (neighbours 0)": {"neighbours": 0},
-    "a verified answer's neighbours next (neighbours 2)": {"neighbours": 2},
-    "neighbours 2, ten retrieval candidates (top_k 10)": {"neighbours": 2, "top_k": 10},
+    "retrieval order alone (neighbours 0)": {"neighbours": 0, "shortlist": 0},
+    "a verified answer's neighbours next (neighbours 2)": {"neighbours": 2, "shortlist": 0},
+    "neighbours 2, ten retrieval candidates (top_k 10)": {"neighbours": 2, "top_k": 10, "shortlist": 0},
+    "neighbours 2, descriptor's 20 re-ranked by shared matches (shortlist 20)": {"neighbours": 2, "shortlist": 20},
 }
 
 

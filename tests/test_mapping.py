@@ -195,7 +195,7 @@ def test_relocalisation_asks_a_verified_answers_neighbours_for_the_second_view(x
     for place, k in enumerate([first, *range(2, n), beside]):
         ranks[k] = n - place  # the retrieval's similarity: this order
     monkeypatch.setattr(relocalise, "similarities", lambda query, keys: ranks)
-    top = dataclasses.replace(relocaliser.settings, top_k=3)
+    top = dataclasses.replace(relocaliser.settings, top_k=3, shortlist=0)  # the ranking as set here
     T_map_gt = inv_T(np.asarray(json.loads((result.folder / "survey_ate.json").read_text())["T_gt_map"]))
     frame = 3  # between keyframes 1 and 2 (frames 2 and 4)
     relocaliser.settings = dataclasses.replace(top, neighbours=0)
@@ -205,6 +205,43 @@ def test_relocalisation_asks_a_verified_answers_neighbours_for_the_second_view(x
     found = relocaliser.locate(sequence[frame])
     assert found.success, found.reason
     assert found.agreeing == 1 and found.tried == 2  # the first candidate, then its neighbour
+    error = log_se3(inv_T(T_map_gt @ sequence.T_world_cam_gt[frame]) @ found.T_map_cam)
+    assert np.linalg.norm(error[3:]) < 0.03 and np.degrees(np.linalg.norm(error[:3])) < 2.0
+
+
+def test_relocalisation_re_ranks_the_descriptors_shortlist_by_shared_matches(xyz_map, monkeypatch):
+    """The global descriptor can rank the keyframes that see the frame below others of the same
+    texture elsewhere (here: ranked last, behind keyframes whose images show another place,
+    2 m away). Re-ranking its shortlist by the distinctive matches each keyframe's image
+    shares with the frame tries the right ones first; without it the frame is refused."""
+    import dataclasses
+
+    from nap3d_graph.camera import RGBDFrame
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping import relocalise
+    from nap3d_graph.nap3d.config import AlignConfig
+
+    sequence, result = xyz_map
+    relocaliser = relocalise.Relocaliser(result.folder, resolve_field(str(result.folder)), AlignConfig(matcher="sift"))
+    n = len(relocaliser.T_map_key)
+    assert n >= 4 and relocaliser.keyframe_frames is not None
+    rng = np.random.default_rng(3)
+    for k in range(2, n):  # another place: a random texture, 2 m away
+        kept = relocaliser.keyframe_frames[k]
+        relocaliser.keyframe_frames[k] = RGBDFrame(rng.integers(0, 255, kept.rgb.shape, dtype=np.uint8),
+                                                   kept.depth_m, kept.intrinsics)
+        relocaliser.T_map_key[k] = relocaliser.T_map_key[k] @ exp_se3(np.array([0, 0, 0, 2.0, 0, 0]))
+    ranks = np.arange(n, dtype=float)  # the descriptor's similarity: keyframes 0 and 1 last
+    monkeypatch.setattr(relocalise, "similarities", lambda query, keys: ranks)
+    T_map_gt = inv_T(np.asarray(json.loads((result.folder / "survey_ate.json").read_text())["T_gt_map"]))
+    frame = 3  # between keyframes 1 and 2 (frames 2 and 4)
+    relocaliser.settings = dataclasses.replace(relocaliser.settings, top_k=n - 2, shortlist=0)
+    alone = relocaliser.locate(sequence[frame])
+    assert not alone.success and alone.tried == n - 2
+    relocaliser.settings = dataclasses.replace(relocaliser.settings, shortlist=n)
+    found = relocaliser.locate(sequence[frame])
+    assert found.success, found.reason
+    assert found.tried == 2 and found.keyframe in (int(relocaliser.indices[0]), int(relocaliser.indices[1]))
     error = log_se3(inv_T(T_map_gt @ sequence.T_world_cam_gt[frame]) @ found.T_map_cam)
     assert np.linalg.norm(error[3:]) < 0.03 and np.degrees(np.linalg.norm(error[:3])) < 2.0
 

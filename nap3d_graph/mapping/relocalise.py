@@ -31,7 +31,7 @@ from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.nap3d.config import AlignConfig
 
 from .folder import MapFolder
-from .retrieval import Vocabulary, similarities, vlad
+from .retrieval import Vocabulary, shared_matches, similarities, vlad
 from .verification import Verification, worst_sigmas
 
 __all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames"]
@@ -84,9 +84,17 @@ class RelocaliseSettings:
     ``neighbour_m`` / ``neighbour_deg``, not yet tried) are tried next, at most this many:
     retrieval ranks by appearance, so its next candidates can lie elsewhere in the map, while
     a keyframe beside the answer sees what the frame sees from another viewpoint, the
-    independent second view the agreement asks for (0: retrieval order alone)."""
+    independent second view the agreement asks for (0: retrieval order alone).
+    ``shortlist``: the global descriptor's most similar keyframes, this many, are re-ranked by
+    how many distinctive local matches (ratio below ``distinct_ratio``) each shares with the
+    frame before the ``top_k`` are tried: the descriptor summarises a whole image, so a
+    keyframe that sees the frame's part of the place from 30 cm away can rank below others of
+    the same texture, while the matches count what the two views share (0: the descriptor's
+    order alone; needs the map's kept keyframe images)."""
 
     top_k: int = 6
+    shortlist: int = 20
+    distinct_ratio: float = 0.8
     neighbours: int = 2
     neighbour_m: float = 0.40
     neighbour_deg: float = 30.0
@@ -175,20 +183,37 @@ class Relocaliser:
         """``(T_map_cam, wide)``: where to render for candidate keyframe ``k``: the query
         aligned real-vs-real with the keyframe's own image (``wide`` True), else the keyframe's
         pose. ``query``: the query frame at the kept images' width with its features."""
-        from nap3d_graph.nap3d.matching import detect_features
-
         from .loops import Keyframe, verify_pair
 
         if self.keyframe_frames is None or query is None:
             return self.T_map_key[k], False
-        frame = self.keyframe_frames[k]
-        if k not in self._keyframe_features:
-            self._keyframe_features[k] = detect_features(frame.rgb, self.config.max_features, matcher=self.config.matcher)
-        survey = Keyframe(int(self.indices[k]), frame, self._keyframe_features[k])  # type: ignore[arg-type]
+        survey = Keyframe(int(self.indices[k]), self.keyframe_frames[k], self._features(k))
         T_query_key, _, alignment = verify_pair(query, survey, self.config)
         if not alignment.success or alignment.num_inliers < self.settings.min_inliers:
             return self.T_map_key[k], False
         return self.T_map_key[k] @ inv_T(T_query_key), True
+
+    def _features(self, k: int):
+        """Kept keyframe ``k``'s local features, detected once, when first asked for."""
+        from nap3d_graph.nap3d.matching import detect_features
+
+        if k not in self._keyframe_features:
+            rgb = self.keyframe_frames[k].rgb  # type: ignore[index]
+            self._keyframe_features[k] = detect_features(rgb, self.config.max_features, matcher=self.config.matcher)
+        return self._keyframe_features[k]
+
+    def _ranked(self, frame: RGBDFrame, query) -> list[int]:
+        """The ``top_k`` candidate keyframes (indices into the map's keyframes), most likely
+        first: the global descriptor's ``shortlist`` most similar, re-ranked by the distinctive
+        local matches each shares with ``query`` (ties: the descriptor's order)."""
+        s = self.settings
+        order = [int(k) for k in np.argsort(-similarities(self.descriptor(frame), self.descriptors), kind="stable")]
+        if s.shortlist <= 0 or query is None:
+            return order[: s.top_k]
+        short = order[: max(s.shortlist, s.top_k)]
+        shared = [shared_matches(query.features.descriptors, self._features(k).descriptors, s.distinct_ratio)
+                  for k in short]
+        return [short[i] for i in np.argsort(-np.asarray(shared), kind="stable")][: s.top_k]
 
     def _query(self, frame: RGBDFrame, detected=None):
         """The query at the kept images' width with its features (None without kept images);
@@ -234,14 +259,13 @@ class Relocaliser:
 
         started = time.perf_counter()
         s = self.settings
-        order = np.argsort(-similarities(self.descriptor(frame), self.descriptors))[: s.top_k]
         found, reasons, wide = [], [], 0
         # The frame's features at the render's size, detected once for every candidate's correction
-        # (and for the real-vs-real step too when the kept images are that size).
+        # (and for the real-vs-real step and the ranking too when the kept images are that size).
         render_intrinsics = self.render_intrinsics or frame.intrinsics
         feats_real, _ = real_features(frame, render_intrinsics, self.config)
         query = self._query(frame, (render_intrinsics.shape, feats_real))
-        queue, tried_keys = [int(k) for k in order], set()
+        queue, tried_keys = self._ranked(frame, query), set()
         while queue:
             k = queue.pop(0)
             if k in tried_keys:
