@@ -139,19 +139,15 @@ class SplatField:
                             opacity=opacity.clamp(0, 1).numpy().astype(np.float32), intrinsics=intrinsics)
 
     def _visible(self, T_world_cam: np.ndarray, K: Intrinsics):
-        """Splats in front of the camera and near the image: camera points, pixel coords."""
+        """Splats in front of the camera and near the image: ``(z_m, u_px, v_px, index)``
+        numpy arrays (:func:`~.splat_kernel.visible_splats`)."""
+        from .splat_kernel import visible_splats
+
         T_cam_world = inv_T(T_world_cam)
-        R = torch.as_tensor(T_cam_world[:3, :3], dtype=torch.float32)
-        t = torch.as_tensor(T_cam_world[:3, 3], dtype=torch.float32)
-        p = self.points @ R.T + t
-        z = p[:, 2]
-        keep = z > self.config.near_m
-        p, idx = p[keep], keep.nonzero()[:, 0]
-        u = K.fx * p[:, 0] / p[:, 2] + K.cx
-        v = K.fy * p[:, 1] / p[:, 2] + K.cy
         margin = int(np.ceil(self.config.max_footprint_px)) + 1
-        inside = (u > -margin) & (u < K.width + margin) & (v > -margin) & (v < K.height + margin)
-        return p[inside, 2], u[inside], v[inside], idx[inside]
+        return visible_splats(self.points.numpy(), T_cam_world[:3, :3].astype(np.float32),
+                              T_cam_world[:3, 3].astype(np.float32), K.fx, K.fy, K.cx, K.cy, K.width, K.height,
+                              float(self.config.near_m), margin)
 
     def _rasterise(self, T_world_cam: np.ndarray, K: Intrinsics):
         """The visible splats rasterised by :func:`~.splat_kernel.rasterise_splats`:
@@ -161,11 +157,12 @@ class SplatField:
         cfg = self.config
         h, w = K.height, K.width
         z, u, v, idx = self._visible(T_world_cam, K)
-        if z.numel() == 0:
+        if z.size == 0:
             return torch.zeros((h, w, 3)), torch.zeros((h, w)), torch.zeros((h, w))
-        radius_px = (0.5 * (K.fx + K.fy) * cfg.splat_radius_vox * self.voxel_size / z).clamp(0.5, cfg.max_footprint_px)
+        reach = np.float32(0.5 * (K.fx + K.fy) * cfg.splat_radius_vox * self.voxel_size)
+        radius_px = np.clip(reach / z, np.float32(0.5), np.float32(cfg.max_footprint_px))
         rgb, depth, opacity = rasterise_splats(
-            z.numpy(), u.numpy(), v.numpy(), radius_px.numpy(), self.colors[idx].numpy(), self.weights[idx].numpy(),
+            z, u, v, radius_px, self.colors.numpy()[idx], self.weights.numpy()[idx],
             w, h, cfg.blend_tolerance_rel, cfg.blend_tolerance_m, cfg.opacity_gain)
         return (torch.from_numpy(rgb).reshape(h, w, 3), torch.from_numpy(depth).reshape(h, w),
                 torch.from_numpy(opacity).reshape(h, w))

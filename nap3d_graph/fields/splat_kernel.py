@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
-__all__ = ["rasterise_splats"]
+__all__ = ["rasterise_splats", "visible_splats"]
 
 
 @njit(cache=True, nogil=True)
@@ -37,6 +37,36 @@ def rasterise_splats(z_m: np.ndarray, u_px: np.ndarray, v_px: np.ndarray, radius
     weight, footprint, depth, rgb = _blend(z_m, u_px, v_px, radius_px, colors, confidence, zbuf, width, height,
                                            blend_tolerance_rel, blend_tolerance_m)
     return _normalised(weight, footprint, depth, rgb, opacity_gain)
+
+
+@njit(cache=True, nogil=True)
+def visible_splats(points: np.ndarray, R_cam_world: np.ndarray, t_cam_world: np.ndarray, fx: float, fy: float,
+                   cx: float, cy: float, width: int, height: int, near_m: float, margin_px: int):
+    """``(z_m, u_px, v_px, index)``: the splats ``points`` (N, 3) float32 (world frame) in
+    front of the camera (camera z above ``near_m``) whose centres project within ``margin_px``
+    of the image; ``R_cam_world`` (3, 3) and ``t_cam_world`` (3,) float32 take world points
+    into the OpenCV camera. One pass over the splats in float32, where the torch version
+    multiplied every splat and gathered through boolean masks (a third of a render)."""
+    n = points.shape[0]
+    z_m = np.empty(n, dtype=np.float32)
+    u_px = np.empty(n, dtype=np.float32)
+    v_px = np.empty(n, dtype=np.float32)
+    index = np.empty(n, dtype=np.int64)
+    fx32, fy32, cx32, cy32 = np.float32(fx), np.float32(fy), np.float32(cx), np.float32(cy)
+    m = 0
+    for i in range(n):
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        zc = R_cam_world[2, 0] * x + R_cam_world[2, 1] * y + R_cam_world[2, 2] * z + t_cam_world[2]
+        if not zc > near_m:
+            continue
+        xc = R_cam_world[0, 0] * x + R_cam_world[0, 1] * y + R_cam_world[0, 2] * z + t_cam_world[0]
+        yc = R_cam_world[1, 0] * x + R_cam_world[1, 1] * y + R_cam_world[1, 2] * z + t_cam_world[1]
+        u = fx32 * xc / zc + cx32
+        v = fy32 * yc / zc + cy32
+        if u > -margin_px and u < width + margin_px and v > -margin_px and v < height + margin_px:
+            z_m[m], u_px[m], v_px[m], index[m] = zc, u, v, i
+            m += 1
+    return z_m[:m], u_px[:m], v_px[:m], index[:m]
 
 
 @njit(cache=True, nogil=True)
