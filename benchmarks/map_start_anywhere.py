@@ -29,7 +29,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-from map_survey import cli, errors_in, read_sfm_pseudo_gt, run_query, second_gt_for, second_reference, sfm_posed_run
+from map_survey import (
+    _seeded,
+    cli,
+    errors_in,
+    read_sfm_pseudo_gt,
+    run_query,
+    second_gt_for,
+    second_reference,
+    sfm_posed_run,
+)
 from provenance import write_result
 
 from nap3d_graph.conventions import inv_T, log_se3
@@ -109,18 +118,48 @@ def direction(args, survey_half: str) -> dict:
     for extra in args.extra_query:
         out[f"relocalisation_{Path(extra).name}"] = relocalisation(map_dir, open_sequence(extra), args.every,
                                                                    args.matcher, T_map_gt)
-    runs = _runs(args, survey_half, query_half, work, map_dir)
+    per_seed = [_seed_runs(args, survey_half, query_half, work, map_dir, survey, query, second, out, seed)
+                for seed in range(args.seeds)]
+    runs = _over_seeds(per_seed)
+    for ratio, (name, key) in {"ratio_self_to_gt_posed": ("gt_posed", "ate_m"),
+                               "ratio_self_to_gt_posed_second_gt": ("gt_posed", "ate_second_gt_m"),
+                               "ratio_self_to_sfm_posed_second_gt": ("sfm_posed", "ate_second_gt_m")}.items():
+        if name in runs and key in runs[name]:
+            out[ratio] = runs["self_posed"][key] / runs[name][key]
+            out[f"{ratio}_per_seed"] = [r["self_posed"][key] / r[name][key] for r in per_seed]
+    out["runs"] = runs
+    return out
+
+
+def _seed_runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path, survey, query, second,
+               out: dict, seed: int) -> dict:
+    """Every run kind with NAP3D's RANSAC seed ``seed``, scored (against the second ground
+    truth too, with one)."""
+    runs = _runs(args, survey_half, query_half, work, map_dir, seed)
     if second is not None and not args.no_gt_map:
-        runs["sfm_posed"] = _sfm_posed_run(args, work, survey, query, query_half, out)
-    if "gt_posed" in runs:
-        out["ratio_self_to_gt_posed"] = runs["self_posed"]["ate_m"] / runs["gt_posed"]["ate_m"]
+        runs["sfm_posed"] = _sfm_posed_run(args, work, survey, query, query_half, out, seed)
     if second is not None:
-        _score_second(args, runs, out, survey, query, second)
+        _score_second(args, runs, survey, query, second)
     for r in runs.values():
         for k in ("_stamps", "_T", "_T_online"):
             r.pop(k, None)
-    out["runs"] = runs
-    return out
+    return runs
+
+
+def _over_seeds(per_seed: list[dict]) -> dict:
+    """Each run kind's figures over the RANSAC seeds: the ATEs as their median with every
+    seed's value beside it (``*_per_seed``), the rest as the first seed's."""
+    runs = {}
+    for name, first in per_seed[0].items():
+        runs[name] = dict(first)
+        for key in ("ate_m", "ate_causal_m", "ate_second_gt_m", "ate_second_gt_causal_m"):
+            if key in first:
+                values = [r[name][key] for r in per_seed]
+                runs[name][key] = float(np.median(values))
+                runs[name][f"{key}_per_seed"] = values
+        if "placed_at_frame" in first:
+            runs[name]["placed_at_frame_per_seed"] = [r[name]["placed_at_frame"] for r in per_seed]
+    return runs
 
 
 def _map(args, survey_half: str, query_half: str, work: Path) -> tuple[Path, dict, dict]:
@@ -146,12 +185,14 @@ def _survey_poses(map_dir: Path, info: dict, survey) -> np.ndarray:
     return T_map_survey
 
 
-def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path) -> dict:
+def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path, seed: int = 0) -> dict:
     """The query run in the self-made map (with how it was placed) and, unless
-    ``--no-gt-map``, on a field trained at the survey's ground-truth poses."""
-    runs = {"self_posed": run_query(args.data, args.traj, HALVES[query_half], map_dir, work / "run_self",
-                                    ("--matcher", args.matcher))}
-    metrics = json.loads((work / "run_self" / "latest" / "metrics.json").read_text())
+    ``--no-gt-map``, on a field trained at the survey's ground-truth poses; ``seed``: NAP3D's
+    RANSAC seed in both."""
+    self_dir = work / f"run_self{_seeded(seed)}"
+    runs = {"self_posed": run_query(args.data, args.traj, HALVES[query_half], map_dir, self_dir,
+                                    ("--matcher", args.matcher), seed)}
+    metrics = json.loads((self_dir / "latest" / "metrics.json").read_text())
     placement = metrics["map"].get("placement") or {}
     runs["self_posed"]["placed"] = placement.get("placed")
     runs["self_posed"]["placed_at_frame"] = placement.get("placed_at_frame")
@@ -162,20 +203,20 @@ def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path) ->
         if not gt_field.is_file():
             cli("train-field", str(args.data), "--frames", HALVES[survey_half], "--out", str(gt_field), "--model",
                 args.model, "--matcher", args.matcher, "--quiet")
-        runs["gt_posed"] = run_query(args.data, args.traj, HALVES[query_half], gt_field, work / "run_gt",
-                                     ("--matcher", args.matcher))
+        runs["gt_posed"] = run_query(args.data, args.traj, HALVES[query_half], gt_field,
+                                     work / f"run_gt{_seeded(seed)}", ("--matcher", args.matcher), seed)
     return runs
 
 
-def _sfm_posed_run(args, work: Path, survey, query, query_half: str, out: dict) -> dict:
+def _sfm_posed_run(args, work: Path, survey, query, query_half: str, out: dict, seed: int = 0) -> dict:
     """The query on a field trained at the survey's second ground truth (7-Scenes' SfM
     poses), started at the query's first SfM pose: the map the issue's SfM figures compare with."""
     table = read_sfm_pseudo_gt(args.second_gt)
     poses = {"survey": second_gt_for(survey, table), "query": second_gt_for(query, table)}
-    return sfm_posed_run(args, work, survey, HALVES[query_half], poses, out)
+    return sfm_posed_run(args, work, survey, HALVES[query_half], poses, out, seed)
 
 
-def _score_second(args, runs: dict, out: dict, survey, query, second) -> None:
+def _score_second(args, runs: dict, survey, query, second) -> None:
     """Each run against the second ground truth, through its map's alignment to it (the
     ground-truth-posed map's frame is the first ground truth's)."""
     from nap3d_graph.datasets.association import interpolate_poses
@@ -193,11 +234,6 @@ def _score_second(args, runs: dict, out: dict, survey, query, second) -> None:
         frames["sfm_posed"] = np.eye(4)  # trained and started in the SfM frame itself
     for name, T_ref_frame in frames.items():
         runs[name]["ate_second_gt_m"] = errors_in(second_at, runs[name]["_stamps"], runs[name]["_T"], T_ref_frame)
-    if "gt_posed" in runs:
-        out["ratio_self_to_gt_posed_second_gt"] = runs["self_posed"]["ate_second_gt_m"] / runs["gt_posed"]["ate_second_gt_m"]
-    if "sfm_posed" in runs:
-        out["ratio_self_to_sfm_posed_second_gt"] = (runs["self_posed"]["ate_second_gt_m"]
-                                                    / runs["sfm_posed"]["ate_second_gt_m"])
 
 
 def main() -> None:
@@ -212,6 +248,9 @@ def main() -> None:
     parser.add_argument("--every", type=int, default=5)
     parser.add_argument("--work", type=Path, required=True, help="folder for the maps and runs (reused when there)")
     parser.add_argument("--no-gt-map", action="store_true", help="skip the ground-truth-posed comparison map")
+    parser.add_argument("--seeds", type=int, default=3,
+                        help="NAP3D RANSAC seeds each run is repeated with (0, 1, ...): ATEs are their median, every "
+                             "seed's beside it (a run's ATE moves by several percent with the seed alone)")
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     result = {"command": " ".join(sys.argv), "data": str(args.data), "model": args.model, "matcher": args.matcher,

@@ -68,8 +68,14 @@ def cli(*args: str) -> float:
 REUSE_RUNS = False  # --reuse-runs: a run folder already in --work is read, not run again
 
 
-def run_query(data, traj, frames, field, out: Path, extra=()) -> dict:
+def run_query(data, traj, frames, field, out: Path, extra=(), seed: int = 0) -> dict:
+    """One ``run`` of the query on ``field``; ``seed``: NAP3D's RANSAC seed (0: the default),
+    given through a ``--config`` file (the run's own ``--seed`` is its injected noise's)."""
     seconds = float("nan")
+    if seed:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "ransac_seed.yaml").write_text(f"settings:\n  alignment:\n    nap3d:\n      seed: {int(seed)}\n")
+        extra = (*extra, "--config", str(out / "ransac_seed.yaml"))
     if not (REUSE_RUNS and (out / "latest" / "metrics.json").is_file()):
         seconds = cli("run", "--traj", traj, "--data", str(data), "--frames", frames, "--field", str(field),
                       "--odom", "vo", "--out", str(out), *extra)
@@ -259,7 +265,7 @@ def gt_posed_field(args, work: Path, survey_frames: str, result: dict) -> Path:
     return gt_field
 
 
-def sfm_posed_run(args, work: Path, survey, query_frames: str, second: dict, result: dict) -> dict:
+def sfm_posed_run(args, work: Path, survey, query_frames: str, second: dict, result: dict, seed: int = 0) -> dict:
     """The query on the map pinned to the second ground truth, trained as train-field would.
     Its world is the SfM frame: it starts at the SfM pose of the first query frame and is
     scored against the SfM poses as they are (its "ate_m" against KinectFusion's means nothing)."""
@@ -275,8 +281,13 @@ def sfm_posed_run(args, work: Path, survey, query_frames: str, second: dict, res
         field_obj.save(sfm_field)
         result["sfm_field_seconds"] = round(time.perf_counter() - t0, 1)
     start = " ".join(f"{v:.9f}" for v in T_to_tum(second["query"][0]))  # tx ty tz qx qy qz qw
-    return run_query(args.data, args.traj, query_frames, sfm_field, work / "run_sfm_start",
-                     ("--matcher", args.matcher, "--initial-pose", start))
+    return run_query(args.data, args.traj, query_frames, sfm_field, work / f"run_sfm_start{_seeded(seed)}",
+                     ("--matcher", args.matcher, "--initial-pose", start), seed)
+
+
+def _seeded(seed: int) -> str:
+    """A run folder's suffix for RANSAC seed ``seed`` (none for the default 0)."""
+    return f"_seed{seed}" if seed else ""
 
 
 def score_against_second(runs: dict, survey, query, second: dict) -> None:

@@ -212,8 +212,9 @@ def start_anywhere_table() -> str:
     SfM poses of 7-Scenes) where the file has one."""
     rows = ["| recording: survey -> query | survey ATE cm | relocalised: covered frames within 5 cm / 3 deg [SfM]; "
             "beyond 10 cm [SfM]; accepted where uncovered; s per attempt (median, p90, max) | fr1/xyz frames in the "
-            "same map | run from its own first frame: placed at frame; ATE cm (causal) [SfM] | GT-posed map: ATE cm "
-            "[SfM] | ratio [SfM] | SfM-posed map: ATE cm against SfM; ratio |", "|---|---|---|---|---|---|---|---|"]
+            "same map | run from its own first frame (ATEs: median over NAP3D's RANSAC seeds where several): placed at "
+            "frame; ATE cm (causal) [SfM] | GT-posed map: ATE cm [SfM] | ratio [SfM] | SfM-posed map: ATE cm against "
+            "SfM; ratio |", "|---|---|---|---|---|---|---|---|"]
     for name in START_ANYWHERE_FILES:
         path = RESULTS / name
         if not path.is_file():
@@ -231,7 +232,7 @@ def start_anywhere_table() -> str:
             def sfm(value, fmt=str):
                 return f" [{fmt(value)}]" if second and value is not None else ""
 
-            ratio = f"{d['ratio_self_to_gt_posed']:.2f}" if gt else "n/a"
+            ratio = _ratio(d, "ratio_self_to_gt_posed") if gt else "n/a"
             rows.append(
                 f"| {recording}: {d['survey']} -> {d['query']} | {cm(d['survey_ate_m'])} "
                 f"| {rl['covered_found_within_5cm_3deg']}{sfm(rl.get('covered_found_within_5cm_3deg_second_gt'))}"
@@ -242,7 +243,7 @@ def start_anywhere_table() -> str:
                 f"| {run['placed_at_frame'] if run['placed'] else 'never'}; {cm(run['ate_m'])} ({cm(run['ate_causal_m'])})"
                 f"{sfm(run.get('ate_second_gt_m'), cm)} "
                 f"| {cm(gt['ate_m']) if gt else 'n/a'}{sfm(gt.get('ate_second_gt_m') if gt else None, cm)} "
-                f"| {ratio}{sfm(d.get('ratio_self_to_gt_posed_second_gt'), lambda v: f'{v:.2f}')} "
+                f"| {ratio}{sfm(d.get('ratio_self_to_gt_posed_second_gt') and _ratio(d, 'ratio_self_to_gt_posed_second_gt'))} "
                 f"| {_sfm_posed(d)} |")
     return "\n".join(rows)
 
@@ -296,7 +297,15 @@ def _sfm_posed(direction: dict) -> str:
     run = direction["runs"].get("sfm_posed")
     if run is None or run.get("ate_second_gt_m") is None:
         return "n/a"
-    return f"{cm(run['ate_second_gt_m'])}; {direction['ratio_self_to_sfm_posed_second_gt']:.2f}"
+    return f"{cm(run['ate_second_gt_m'])}; {_ratio(direction, 'ratio_self_to_sfm_posed_second_gt')}"
+
+
+def _ratio(direction: dict, key: str) -> str:
+    """A ratio of run ATEs (of their medians over the RANSAC seeds), with its range over the
+    seeds where the file has several."""
+    seeds = direction.get(f"{key}_per_seed") or []
+    spread = f" ({min(seeds):.2f}-{max(seeds):.2f} over {len(seeds)} seeds)" if len(seeds) > 1 else ""
+    return f"{direction[key]:.2f}{spread}"
 
 
 def sevenscenes_registration_table() -> str:
