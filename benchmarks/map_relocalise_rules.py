@@ -46,6 +46,8 @@ VARIANTS = {
     "a verified answer's neighbours next (neighbours 2)": {"neighbours": 2, "shortlist": 0},
     "neighbours 2, ten retrieval candidates (top_k 10)": {"neighbours": 2, "top_k": 10, "shortlist": 0},
     "neighbours 2, descriptor's 20 re-ranked by shared matches (shortlist 20)": {"neighbours": 2, "shortlist": 20},
+    "shortlist 20, a real-vs-real start from 12 inliers (start_min_inliers 12)": {"neighbours": 2, "shortlist": 20,
+                                                                                 "start_min_inliers": 12},
 }
 
 
