@@ -30,13 +30,13 @@ from pathlib import Path
 
 import numpy as np
 from map_survey import (
-    _seeded,
     cli,
     errors_in,
     read_sfm_pseudo_gt,
     run_query,
     second_gt_for,
     second_reference,
+    seed_suffix,
     sfm_posed_run,
 )
 from provenance import write_result
@@ -189,7 +189,7 @@ def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path, se
     """The query run in the self-made map (with how it was placed) and, unless
     ``--no-gt-map``, on a field trained at the survey's ground-truth poses; ``seed``: NAP3D's
     RANSAC seed in both."""
-    self_dir = work / f"run_self{_seeded(seed)}"
+    self_dir = work / f"run_self{seed_suffix(seed)}"
     runs = {"self_posed": run_query(args.data, args.traj, HALVES[query_half], map_dir, self_dir,
                                     ("--matcher", args.matcher), seed)}
     metrics = json.loads((self_dir / "latest" / "metrics.json").read_text())
@@ -204,7 +204,7 @@ def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path, se
             cli("train-field", str(args.data), "--frames", HALVES[survey_half], "--out", str(gt_field), "--model",
                 args.model, "--matcher", args.matcher, "--quiet")
         runs["gt_posed"] = run_query(args.data, args.traj, HALVES[query_half], gt_field,
-                                     work / f"run_gt{_seeded(seed)}", ("--matcher", args.matcher), seed)
+                                     work / f"run_gt{seed_suffix(seed)}", ("--matcher", args.matcher), seed)
     return runs
 
 

@@ -281,11 +281,11 @@ def sfm_posed_run(args, work: Path, survey, query_frames: str, second: dict, res
         field_obj.save(sfm_field)
         result["sfm_field_seconds"] = round(time.perf_counter() - t0, 1)
     start = " ".join(f"{v:.9f}" for v in T_to_tum(second["query"][0]))  # tx ty tz qx qy qz qw
-    return run_query(args.data, args.traj, query_frames, sfm_field, work / f"run_sfm_start{_seeded(seed)}",
+    return run_query(args.data, args.traj, query_frames, sfm_field, work / f"run_sfm_start{seed_suffix(seed)}",
                      ("--matcher", args.matcher, "--initial-pose", start), seed)
 
 
-def _seeded(seed: int) -> str:
+def seed_suffix(seed: int) -> str:
     """A run folder's suffix for RANSAC seed ``seed`` (none for the default 0)."""
     return f"_seed{seed}" if seed else ""
 

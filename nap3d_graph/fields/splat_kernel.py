@@ -103,7 +103,9 @@ def _front_surface(z_m, u_px, v_px, radius_px, width: int, height: int) -> np.nd
 def _blend(z_m, u_px, v_px, radius_px, colors, confidence, zbuf, width: int, height: int,
            blend_tolerance_rel: float, blend_tolerance_m: float):
     """Pass 2: the sums of weight, footprint, weighted depth and weighted colour of the splats
-    on the front surface at each pixel."""
+    on the front surface at each pixel. The footprint walk is pass 1's, written out again: one
+    shared walk filling a pixel list per splat rendered byte-identically but 5-10% slower on
+    fr1/desk's half maps."""
     n_pixels = width * height
     weight = np.zeros(n_pixels, dtype=np.float32)
     footprint = np.zeros(n_pixels, dtype=np.float32)
