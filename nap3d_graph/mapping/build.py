@@ -31,7 +31,7 @@ import numpy as np
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
 from nap3d_graph.textfiles import write_json_atomic
 
-from .bundle import BundleSettings, PairMatches, bundle_adjust
+from .bundle import BundleSettings, PairMatches, bundle_adjust, keyframe_twists
 from .folder import MapFolder
 from .loops import (
     Keyframe,
@@ -240,7 +240,8 @@ def _graph_stage(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list
     write_loops_csv(folder.loops_table, loops)
     T_map_key = graph.T_map_key
     if settings.bundle:
-        T_map_key = _bundle_stage(sequence, graph, chain_matches, verified, folder, settings, say)
+        T_map_key = _bundle_stage(sequence, graph, keyframe_twists(survey.T_odom_cam, _stamps(sequence), keys),
+                                  chain_matches, verified, folder, settings, say)
     accepted = int(graph.loop_kept.sum())
     folder.done("graph", time.perf_counter() - t0, keyframes=len(keys), loops_verified=len(verified),
                 loops_accepted=accepted, loops_rejected=len(verified) - accepted)
@@ -249,20 +250,27 @@ def _graph_stage(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list
     return graph, T_map_key, verified
 
 
-def _bundle_stage(sequence, graph: GraphResult, chain_matches: list[PairMatches], verified: list[Loop],
-                  folder: MapFolder, settings: MapSettings, say) -> np.ndarray:
-    """The bundle adjustment of the graph's keyframes over every kept match; ``T_map_key``
-    (K, 4, 4), its report in ``map.json``."""
+def _stamps(sequence) -> np.ndarray:
+    """The frames' colour stamps (N,) seconds."""
+    return np.asarray(sequence.timestamps, dtype=float)
+
+
+def _bundle_stage(sequence, graph: GraphResult, twists: np.ndarray, chain_matches: list[PairMatches],
+                  verified: list[Loop], folder: MapFolder, settings: MapSettings, say) -> np.ndarray:
+    """The bundle adjustment of the graph's keyframes over every kept match, each keyframe's
+    observations moved to its middle row along its ``twists`` (K, 6) (the readout estimated
+    unless set); ``T_map_key`` (K, 4, 4), its report in ``map.json``."""
     pair_matches = chain_matches + [lp.matches_kept for lp in verified if lp.status == "accepted"
                                     and lp.matches_kept is not None]
     bundle_settings = _bundle_settings(sequence, settings)
     T_map_key, report = bundle_adjust(graph.T_map_key, pair_matches, _working_intrinsics(sequence, settings),
-                                      bundle_settings)
+                                      bundle_settings, twists)
     report["baseline_from"] = ("the recording's calibration" if bundle_settings is not settings.bundle_settings
                                else "the settings")
     folder.info["bundle"] = report
     _say(say, f"bundle adjustment: {report.get('landmarks', 0)} landmarks, {report.get('observations', 0)} "
-              f"observations; keyframes moved {report.get('median_keyframe_move_mm', 0):.1f} mm (median)")
+              f"observations, colour rows read in {report.get('readout_s', 0) * 1000:.0f} ms; keyframes moved "
+              f"{report.get('median_keyframe_move_mm', 0):.1f} mm (median)")
     return T_map_key
 
 

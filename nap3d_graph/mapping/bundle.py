@@ -10,6 +10,13 @@ and dropped. Every track becomes a 3D landmark, every observation a GTSAM
 multi-view geometry and the disparity carries the depth (the metric scale) with the sensor's
 noise that ORB-SLAM2 gives it (:class:`BundleSettings`). Huber-robust; the gauge is the
 first keyframe, held by a prior.
+
+A rolling-shutter colour camera (the Kinect's, a D435's) read each keyframe's rows one after
+another while it moved: a keypoint on a lower row was seen later, from elsewhere, than the
+keyframe's pose says. Given each keyframe's body twist, every observation is moved to its
+keyframe's middle row (:mod:`nap3d_graph.nap3d.rolling_shutter`) before the adjustment. The
+readout time is the recording's own: solved at each readout of a grid and kept where the
+pixels agree best (no ground truth; a global-shutter camera's is 0).
 """
 
 from __future__ import annotations
@@ -20,9 +27,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics
-from nap3d_graph.conventions import T_to_pose3, pose3_to_T
+from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T
+from nap3d_graph.nap3d.rolling_shutter import exp_apply
 
-__all__ = ["PairMatches", "BundleSettings", "tracks_of", "bundle_adjust"]
+__all__ = ["PairMatches", "BundleSettings", "tracks_of", "bundle_adjust", "keyframe_twists"]
 
 log = logging.getLogger(__name__)
 
@@ -57,7 +65,11 @@ class BundleSettings:
     Default 10: the depth sets the scale and little else (26 cm at 1 m);
     huber_k: the robust kernel's threshold (whitened);
     min_track: keyframes a landmark must be seen in; iterations: LM's limit; vce_rounds:
-    rounds of estimating the pixels' noise from the residuals (:func:`bundle_adjust`)."""
+    rounds of estimating the pixels' noise from the residuals (:func:`bundle_adjust`);
+    readout_s: the colour camera's rolling shutter, seconds from its first row to its last (0:
+    a global shutter; None: estimated, the adjustment solved at each of ``readout_grid_s``
+    and at the parabola's vertex through the best three, and the readout whose pixels agree
+    best kept; ``docs/mapping.md``, "The rolling shutter")."""
 
     pixel_sigma: float = 1.0
     baseline_m: float = 0.075
@@ -66,6 +78,8 @@ class BundleSettings:
     min_track: int = 2
     iterations: int = 50
     vce_rounds: int = 1
+    readout_s: float | None = None
+    readout_grid_s: tuple[float, ...] = (0.0, 0.01, 0.02, 0.03, 0.04)
 
 
 def tracks_of(pairs: list[PairMatches]) -> list[list[tuple[int, float, float, float]]]:
@@ -122,12 +136,53 @@ def _robust_sigma(residuals: np.ndarray) -> float:
     return float(1.4826 * np.median(np.abs(residuals)))
 
 
+def keyframe_twists(T_odom_cam: np.ndarray, stamps_s: np.ndarray, keys: np.ndarray) -> np.ndarray:
+    """Each keyframe's body twist per second (K, 6) (GTSAM order ``[omega, v]``, camera frame)
+    from the survey's odometry (N, 4, 4) over its neighbours (frames ``key - 1`` and
+    ``key + 1``, one side at either end) and the frames' stamps (N,) seconds. Only relative
+    motion is used, so the odometry's drift does not enter. Zero where it cannot be told."""
+    import gtsam
+
+    n = len(T_odom_cam)
+    twists = np.zeros((len(keys), 6))
+    for row, key in enumerate(np.asarray(keys, dtype=int)):
+        a, b = max(key - 1, 0), min(key + 1, n - 1)
+        dt = float(stamps_s[b] - stamps_s[a])
+        if b == a or not dt > 0 or not (np.all(np.isfinite(T_odom_cam[a])) and np.all(np.isfinite(T_odom_cam[b]))):
+            continue
+        twists[row] = gtsam.Pose3.Logmap(T_to_pose3(inv_T(T_odom_cam[a]) @ T_odom_cam[b])) / dt
+    return twists
+
+
+def _at_mid_readout(measured: list, twists: np.ndarray, readout_s: float, intrinsics: Intrinsics,
+                    baseline_m: float) -> list:
+    """The stereo observations ``(k, t, uL, uR, v)`` moved from their rows' instants to their
+    keyframes' middle row (``twists`` (K, 6) per second, ``readout_s`` first row to last)."""
+    if readout_s == 0.0 or not measured:
+        return measured
+    K = intrinsics
+    fb = K.fx * baseline_m
+    obs = np.asarray([m[2:] for m in measured], dtype=float)  # (M, 3): uL, uR, v
+    k = np.asarray([m[0] for m in measured], dtype=int)
+    z = fb / (obs[:, 0] - obs[:, 1])
+    p = np.stack([(obs[:, 0] - K.cx) * z / K.fx, (obs[:, 2] - K.cy) * z / K.fy, z], axis=1)
+    dt = (obs[:, 2] / float(K.height) - 0.5) * readout_s
+    q = exp_apply(twists[k] * dt[:, None], p)
+    u = K.fx * q[:, 0] / q[:, 2] + K.cx
+    v = K.fy * q[:, 1] / q[:, 2] + K.cy
+    return [(m[0], m[1], float(ui), float(ui - fb / zi), float(vi))
+            for m, ui, vi, zi in zip(measured, u, v, q[:, 2])]
+
+
 def bundle_adjust(T_map_key: np.ndarray, pairs: list[PairMatches], intrinsics: Intrinsics,
-                  settings: BundleSettings | None = None) -> tuple[np.ndarray, dict]:
+                  settings: BundleSettings | None = None, twists: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, dict]:
     """Refined keyframe poses (K, 4, 4) and a report (landmarks, observations, the pixel noise
-    estimated from the residuals and the disparity's beside it, pose changes). Solved with the
-    starting sigma, then again ``vce_rounds`` times with the pixels' robust residual spread as
-    their sigma (the disparity's following it)."""
+    estimated from the residuals and the disparity's beside it, the rolling shutter's readout
+    and its search, pose changes). Solved with the starting sigma, then again ``vce_rounds``
+    times with the pixels' robust residual spread as their sigma (the disparity's following
+    it). ``twists`` (K, 6): each keyframe's body twist per second
+    (:func:`keyframe_twists`); without them the camera is taken as a global shutter."""
     import gtsam
     from gtsam.symbol_shorthand import L, X
 
@@ -138,19 +193,83 @@ def bundle_adjust(T_map_key: np.ndarray, pairs: list[PairMatches], intrinsics: I
     K = intrinsics
     calibration = gtsam.Cal3_S2Stereo(K.fx, K.fy, 0.0, K.cx, K.cy, settings.baseline_m)
     fb = K.fx * settings.baseline_m
-    sigma_px = settings.pixel_sigma
-    sigma_d = sigma_px * settings.disparity_to_pixel
-    measured = []
     values = gtsam.Values()
-    for k, T in enumerate(T_map_key):
-        values.insert(X(k), T_to_pose3(T))
     for t, track in enumerate(tracks):
         k0, u0, v0, z0 = track[0]
         p_cam = np.array([(u0 - K.cx) * z0 / K.fx, (v0 - K.cy) * z0 / K.fy, z0])
         values.insert(L(t), T_map_key[k0][:3, :3] @ p_cam + T_map_key[k0][:3, 3])
-        measured.extend((k, t, u, u - fb / z, v) for k, u, v, z in track)
+    measured = [(k, t, u, u - fb / z, v) for t, track in enumerate(tracks) for k, u, v, z in track]
+
+    def solve(readout_s: float):
+        return _solve(T_map_key, values, _at_mid_readout(measured, twists, readout_s, K, settings.baseline_m)
+                      if twists is not None else measured, calibration, settings)
+
+    search: list = []
+    if twists is None or settings.readout_s == 0.0:
+        readout, (result, history) = 0.0, solve(0.0)
+    elif settings.readout_s is not None:
+        readout, (result, history) = float(settings.readout_s), solve(float(settings.readout_s))
+    else:
+        readout, result, history, search = _readout_search(solve, settings.readout_grid_s)
+    if result is None:
+        return T_map_key.copy(), {"landmarks": len(tracks), "observations": len(measured), "reason": history}
+    T_out = np.stack([pose3_to_T(result.atPose3(X(k))) for k in range(len(T_map_key))])
+    moved = np.linalg.norm(T_out[:, :3, 3] - T_map_key[:, :3, 3], axis=1)
+    report = {"landmarks": len(tracks), "observations": len(measured), "noise_rounds": history,
+              "readout_s": readout, "readout_search": search,
+              "depth_sigma_at_1m_mm": history[-1]["sigma_disparity_px"] / fb * 1000,
+              "sensor_model_depth_sigma_at_1m_mm": DEPTH_SIGMA_Z2_PER_M * 1000,
+              "median_keyframe_move_mm": float(np.median(moved) * 1000),
+              "max_keyframe_move_mm": float(moved.max() * 1000), "settings": settings.__dict__}
+    return T_out, report
+
+
+def _readout_search(solve, grid_s: tuple[float, ...]):
+    """``(readout, result, history, search)``: the adjustment solved at each readout of
+    ``grid_s`` and at the vertex of the parabola through the best and its two neighbours;
+    the one whose pixels agree best (the last round's robust residual) kept. ``search``:
+    ``[[readout_s, residual_px], ...]``."""
+    solved = {}
+    for readout in grid_s:
+        solved[float(readout)] = solve(float(readout))
+    failed = [r for r, (result, _) in solved.items() if result is None]
+    if len(failed) == len(solved):
+        return 0.0, None, solved[float(grid_s[0])][1], []
+    residual = {r: h[-1]["residual_px"] for r, (result, h) in solved.items() if result is not None}
+    grid = sorted(residual)
+    best = min(grid, key=residual.get)
+    i = grid.index(best)
+    if 0 < i < len(grid) - 1:
+        x = np.array(grid[i - 1:i + 2])
+        a, b, _ = np.polyfit(x, [residual[r] for r in x], 2)
+        if a > 0:
+            vertex = float(np.clip(-b / (2 * a), x[0], x[2]))
+            if all(abs(vertex - r) > 1e-4 for r in grid):
+                result, history = solve(vertex)
+                if result is not None:
+                    solved[vertex] = (result, history)
+                    residual[vertex] = history[-1]["residual_px"]
+    best = min(residual, key=residual.get)
+    search = [[round(r, 4), round(residual[r], 4)] for r in sorted(residual)]
+    log.info("rolling shutter: readout %.0f ms (pixel residual %.3f px; global shutter %.3f px)", best * 1000,
+             residual[best], residual.get(0.0, float("nan")))
+    return best, solved[best][0], solved[best][1], search
+
+
+def _solve(T_map_key: np.ndarray, landmarks, measured: list, calibration, settings: BundleSettings):
+    """``(values, history)`` of the adjustment over ``measured`` from the keyframes' poses and
+    ``landmarks``; ``(None, reason)`` when GTSAM fails (a cheirality failure or an
+    indeterminate system)."""
+    import gtsam
+    from gtsam.symbol_shorthand import L, X
+
+    values = gtsam.Values(landmarks)
+    for k, T in enumerate(T_map_key):
+        values.insert(X(k), T_to_pose3(T))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(settings.iterations)
+    sigma_px = settings.pixel_sigma
+    sigma_d = sigma_px * settings.disparity_to_pixel
     history = []
     result = values
     for _ in range(settings.vce_rounds + 1):
@@ -161,22 +280,15 @@ def bundle_adjust(T_map_key: np.ndarray, pairs: list[PairMatches], intrinsics: I
             graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, ur, v), noise, X(k), L(t), calibration))
         try:
             result = gtsam.LevenbergMarquardtOptimizer(graph, result, params).optimize()
-        except RuntimeError as exc:  # a cheirality failure or an indeterminate system: keep the graph's poses
+        except RuntimeError as exc:
             log.warning("bundle adjustment failed (%s): the pose graph's poses are kept", exc)
-            return T_map_key.copy(), {"landmarks": len(tracks), "observations": len(measured), "reason": str(exc)}
+            return None, str(exc)
         pixel, disparity = _residuals(result, measured, calibration)
         history.append({"sigma_px": sigma_px, "sigma_disparity_px": sigma_d,
                         "residual_px": _robust_sigma(pixel), "residual_disparity_px": _robust_sigma(disparity)})
         sigma_px = max(_robust_sigma(pixel), 0.05)
         sigma_d = sigma_px * settings.disparity_to_pixel
-    T_out = np.stack([pose3_to_T(result.atPose3(X(k))) for k in range(len(T_map_key))])
-    moved = np.linalg.norm(T_out[:, :3, 3] - T_map_key[:, :3, 3], axis=1)
-    report = {"landmarks": len(tracks), "observations": len(measured), "noise_rounds": history,
-              "depth_sigma_at_1m_mm": history[-1]["sigma_disparity_px"] / fb * 1000,
-              "sensor_model_depth_sigma_at_1m_mm": DEPTH_SIGMA_Z2_PER_M * 1000,
-              "median_keyframe_move_mm": float(np.median(moved) * 1000),
-              "max_keyframe_move_mm": float(moved.max() * 1000), "settings": settings.__dict__}
-    return T_out, report
+    return result, history
 
 
 def _residuals(values, measured, calibration) -> tuple[np.ndarray, np.ndarray]:

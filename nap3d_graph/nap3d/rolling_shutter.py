@@ -22,7 +22,7 @@ import numpy as np
 from ..camera import Intrinsics, project
 from .correspondences import Correspondences
 
-__all__ = ["RowMotion", "to_mid_readout"]
+__all__ = ["RowMotion", "to_mid_readout", "exp_apply"]
 
 
 @dataclass(frozen=True)
@@ -52,12 +52,12 @@ def to_mid_readout(corr: Correspondences, motion: RowMotion, intrinsics: Intrins
     if motion.readout_s == 0.0 or len(corr) == 0 or corr.reason:
         return corr
     dt = (corr.uv_real[:, 1] / float(intrinsics.height) - 0.5) * motion.readout_s  # (N,) s
-    y = _exp_apply(motion.twist[None, :] * dt[:, None], corr.y)
+    y = exp_apply(motion.twist[None, :] * dt[:, None], corr.y)
     uv, _ = project(y, intrinsics)
     return replace(corr, y=y, uv_real=uv)
 
 
-def _exp_apply(xi: np.ndarray, p: np.ndarray) -> np.ndarray:
+def exp_apply(xi: np.ndarray, p: np.ndarray) -> np.ndarray:
     """``Exp(xi_i) @ p_i`` for N twists (N, 6) ([omega, v], GTSAM's Pose3 exponential) and
     points (N, 3): ``R p + V v`` with Rodrigues' R and its left Jacobian V."""
     w, v = xi[:, :3], xi[:, 3:]
