@@ -237,7 +237,7 @@ def _readout_search(solve, grid_s: tuple[float, ...]):
         return 0.0, None, solved[float(grid_s[0])][1], []
     residual = {r: h[-1]["residual_px"] for r, (result, h) in solved.items() if result is not None}
     grid = sorted(residual)
-    best = min(grid, key=residual.get)
+    best = min(grid, key=lambda r: residual[r])
     i = grid.index(best)
     if 0 < i < len(grid) - 1:
         x = np.array(grid[i - 1:i + 2])
@@ -249,7 +249,7 @@ def _readout_search(solve, grid_s: tuple[float, ...]):
                 if result is not None:
                     solved[vertex] = (result, history)
                     residual[vertex] = history[-1]["residual_px"]
-    best = min(residual, key=residual.get)
+    best = min(residual, key=lambda r: residual[r])
     search = [[round(r, 4), round(residual[r], 4)] for r in sorted(residual)]
     log.info("rolling shutter: readout %.0f ms (pixel residual %.3f px; global shutter %.3f px)", best * 1000,
              residual[best], residual.get(0.0, float("nan")))
