@@ -114,6 +114,8 @@ def direction(args, survey_half: str) -> dict:
                                                                                          frames=HALVES[query_half])
     second = None if args.second_gt is None else second_reference(args, survey, query, _survey_poses(map_dir, info,
                                                                                                      survey))
+    if args.second_gt is not None:
+        out["survey_ate_second_gt_m"] = _survey_ate_second(args, survey, _survey_poses(map_dir, info, survey))
     out["relocalisation"] = relocalisation(map_dir, query, args.every, args.matcher, T_map_gt, second)
     for extra in args.extra_query:
         out[f"relocalisation_{Path(extra).name}"] = relocalisation(map_dir, open_sequence(extra), args.every,
@@ -171,7 +173,8 @@ def _map(args, survey_half: str, query_half: str, work: Path) -> tuple[Path, dic
         "--matcher", args.matcher, "--quiet")
     info = json.loads((map_dir / "map.json").read_text())
     out = {"survey": survey_half, "query": query_half, "map_seconds_this_call": round(time.perf_counter() - t0, 1),
-           "survey_ate_m": info["survey_ate"]["map"]["rmse_m"], "keyframes": info["keyframes"], "loops": info["loops"]}
+           "survey_ate_m": info["survey_ate"]["map"]["rmse_m"], "keyframes": info["keyframes"], "loops": info["loops"],
+           "readout_s": info.get("bundle", {}).get("readout_s")}
     return map_dir, info, out
 
 
@@ -206,6 +209,16 @@ def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path, se
         runs["gt_posed"] = run_query(args.data, args.traj, HALVES[query_half], gt_field,
                                      work / f"run_gt{seed_suffix(seed)}", ("--matcher", args.matcher), seed)
     return runs
+
+
+def _survey_ate_second(args, survey, T_map_survey: np.ndarray) -> float:
+    """The survey's ATE (m, RMSE, SE(3)-aligned) against the second ground truth."""
+    from nap3d_graph.evaluation.alignment import aligned_errors
+
+    posed = np.all(np.isfinite(T_map_survey), axis=(1, 2))
+    reference = second_gt_for(survey, read_sfm_pseudo_gt(args.second_gt))
+    return float(aligned_errors(np.asarray(survey.timestamps)[posed], reference[posed],
+                                T_map_survey[posed]).summary()["rmse_m"])
 
 
 def _sfm_posed_run(args, work: Path, survey, query, query_half: str, out: dict, seed: int = 0) -> dict:

@@ -213,7 +213,7 @@ def start_anywhere_table() -> str:
     """Each direction of each recording's split: relocalisation of every n-th query frame and
     the query run from its own first frame; in brackets against a second ground truth (the
     SfM poses of 7-Scenes) where the file has one."""
-    rows = ["| recording: survey -> query | survey ATE cm | relocalised: covered frames within 5 cm / 3 deg [SfM]; "
+    rows = ["| recording: survey -> query | survey ATE cm [SfM]; rolling shutter ms | relocalised: covered frames within 5 cm / 3 deg [SfM]; "
             "beyond 10 cm [SfM]; accepted where uncovered; s per attempt (median, p90, max) | fr1/xyz frames in the "
             "same map | run from its own first frame (ATEs: median over NAP3D's RANSAC seeds where several): placed at "
             "frame; ATE cm (causal) [SfM] | GT-posed map: ATE cm [SfM] | ratio [SfM] | SfM-posed map: ATE cm against "
@@ -237,7 +237,8 @@ def start_anywhere_table() -> str:
 
             ratio = _ratio(d, "ratio_self_to_gt_posed") if gt else "n/a"
             rows.append(
-                f"| {recording}: {d['survey']} -> {d['query']} | {cm(d['survey_ate_m'])} "
+                f"| {recording}: {d['survey']} -> {d['query']} | {cm(d['survey_ate_m'])}"
+                f"{sfm(d.get('survey_ate_second_gt_m'), cm)}; {_ms(d.get('readout_s'))} "
                 f"| {rl['covered_found_within_5cm_3deg']}{sfm(rl.get('covered_found_within_5cm_3deg_second_gt'))}"
                 f"/{rl['covered']}; {rl['accepted_farther_than_10cm']}"
                 f"{sfm(rl.get('accepted_farther_than_10cm_second_gt'))}; "
@@ -249,6 +250,11 @@ def start_anywhere_table() -> str:
                 f"| {ratio}{sfm(d.get('ratio_self_to_gt_posed_second_gt') and _ratio(d, 'ratio_self_to_gt_posed_second_gt'))} "
                 f"| {_sfm_posed(d)} |")
     return "\n".join(rows)
+
+
+def _ms(seconds) -> str:
+    """A readout time in whole milliseconds; 'n/a' when the file predates it."""
+    return "n/a" if seconds is None else f"{1000 * seconds:.0f}"
 
 
 RULES_FILES = ("map_relocalise_rules_fr1_xyz.json", "map_relocalise_rules_sim.json")
