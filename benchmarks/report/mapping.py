@@ -148,6 +148,11 @@ MAP_DEFAULT_TUNING = (
      "map_bundle sweeps on fr1/desk's first half and redkitchen against all three references "
      "(map_bundle_*.json; reported on them)"),
     ("mapping.bundle.BundleSettings", "baseline_m", "Kinect v1's specification (a .bag's own baseline replaces it)"),
+    ("mapping.bundle.BundleSettings", "readout_s",
+     "not tuned: None estimates each survey's readout from its own pixels, no ground truth read; the mechanism was "
+     "found on fr1/desk's half maps (reported on them)"),
+    ("mapping.bundle.BundleSettings", "readout_grid_s",
+     "a search range, not tuned: no readout beyond a 30 Hz camera's frame period, with a step to spare"),
     ("mapping.relocalise.RelocaliseSettings", "min_agreeing",
      "fr1/desk's second half in its first half's map, where lone answers landed wrong (reported on it)"),
     ("mapping.relocalise.RelocaliseSettings", "top_k",
