@@ -1,8 +1,10 @@
 """How much should the survey's bundle adjustment trust the depth? A sweep over the
 disparity's noise (in units of the pixels', :class:`~nap3d_graph.mapping.bundle.BundleSettings`)
 on a map folder's own verified matches, scored against every ground truth the recording has,
-each weight with the colour camera's rolling shutter taken as a global shutter (readout 0) and
-undone with the readout the survey's pixels choose (``map``'s default).
+each weight three ways: the colour camera taken as a global shutter over the loops the pose
+graph kept (how ``map`` adjusted before), its rolling shutter undone with the readout the
+survey's pixels choose, and that with the loops the graph turned away but whose matches agree
+admitted (``map``'s default, :func:`~nap3d_graph.mapping.build.adjust_keyframes`).
 
 The pose graph's poses and the odometry's are scored beside it. Reads the map folder that
 ``nap3d-graph map`` (or ``map_survey.py --work``) left; writes JSON.
@@ -28,8 +30,8 @@ from provenance import write_result
 def main() -> None:
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, _working_intrinsics, place_frames
-    from nap3d_graph.mapping.bundle import BundleSettings, bundle_adjust, keyframe_twists
+    from nap3d_graph.mapping.build import MapSettings, _working_intrinsics, adjust_keyframes, place_frames
+    from nap3d_graph.mapping.bundle import BundleSettings, keyframe_twists
     from nap3d_graph.mapping.loops import load_edges
     from nap3d_graph.mapping.pose_graph import Edge, floor_covariance, solve
     from nap3d_graph.mapping.survey import SurveyOdometry
@@ -70,21 +72,24 @@ def main() -> None:
     if len(references) > 1:
         result["ground_truths_against_each_other"] = aligned_errors(sequence.timestamps, references["second ground truth"],
                                                                     references["ground truth"]).summary()
-    pairs = chain_matches + [lp.matches_kept for lp, kept in zip(verified, graph.loop_kept)
-                             if kept and lp.matches_kept is not None]
     K = _working_intrinsics(sequence, MapSettings(width=settings["width"]))
     twists = keyframe_twists(survey.T_odom_cam, np.asarray(sequence.timestamps, dtype=float), keys)
+    variants = {"global shutter": {"readout_s": 0.0, "admit_factor": 0.0},
+                "rolling shutter": {"admit_factor": 0.0},
+                "rolling shutter, turned-away loops that agree admitted": {}}
     for ratio in args.ratios:
-        for readout in (0.0, None):
-            T_key, report = bundle_adjust(graph.T_map_key, pairs, K,
-                                          BundleSettings(disparity_to_pixel=ratio, readout_s=readout), twists)
-            row = {"disparity_to_pixel": ratio, "readout_s": report.get("readout_s"),
-                   "readout": "estimated" if readout is None else "global shutter",
+        for variant, overrides in variants.items():
+            for lp, kept in zip(verified, graph.loop_kept):
+                lp.status = "accepted" if kept else "rejected"
+            T_key, report = adjust_keyframes(graph.T_map_key, chain_matches, verified, K,
+                                             BundleSettings(disparity_to_pixel=ratio, **overrides), twists)
+            row = {"disparity_to_pixel": ratio, "readout": variant, "readout_s": report.get("readout_s"),
+                   "loops_admitted": report.get("loops_admitted", 0),
                    "depth_sigma_at_1m_mm": report.get("depth_sigma_at_1m_mm"),
                    "residual_px": report["noise_rounds"][-1]["residual_px"],
                    "residual_disparity_px": report["noise_rounds"][-1]["residual_disparity_px"], **score(T_key)}
             result["bundle"].append(row)
-            print(ratio, row["readout"], {k: round(v["rmse_m"] * 100, 2) for k, v in row.items() if isinstance(v, dict)})
+            print(ratio, variant, {k: round(v["rmse_m"] * 100, 2) for k, v in row.items() if isinstance(v, dict)})
     write_result(args.out, result, args)
 
 

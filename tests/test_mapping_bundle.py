@@ -106,3 +106,35 @@ def test_keyframe_twists_are_the_odometrys_relative_motion_per_second():
     np.testing.assert_allclose(twists, np.tile(xi, (3, 1)), atol=1e-9)
     T_odom[8] = np.nan  # a frame the odometry never placed gives no twist rather than a wrong one
     assert np.all(keyframe_twists(T_odom, stamps, np.array([7]))[0] == 0.0)
+
+
+def test_loops_the_graph_turned_away_are_admitted_when_their_matches_agree_and_a_false_one_never(rolling):
+    from nap3d_graph.mapping.build import adjust_keyframes
+    from nap3d_graph.mapping.loops import Loop
+
+    T_true, twists, pairs, T_start = rolling
+    by_pair = {(p.a, p.b): p for p in pairs}
+    chain = [by_pair[(a, a + 1)] for a in range(len(T_true) - 1)]
+
+    def loop(a, b, matches, status):
+        return Loop(a, b, a, b, "appearance", status=status, matches_kept=matches)
+
+    kept = [loop(a, a + 2, by_pair[(a, a + 2)], "accepted") for a in range(len(T_true) - 2)]
+    turned_away = [loop(a, a + 3, by_pair[(a, a + 3)], "rejected") for a in range(0, len(T_true) - 3, 2)]
+    # A false loop: keyframes 0 and 3's matches, claimed between keyframes 0 and 8.
+    wrong = by_pair[(0, 3)]
+    false = loop(0, 8, PairMatches(0, 8, wrong.uv_a, wrong.uv_b, wrong.z_a, wrong.z_b), "rejected")
+    T_key, report = adjust_keyframes(T_start, chain, kept + turned_away + [false], K, BundleSettings(), twists)
+    assert [lp.status for lp in turned_away] == ["admitted"] * len(turned_away)
+    assert all("admitted by the bundle adjustment" in lp.reason for lp in turned_away)
+    assert false.status == "rejected"
+    assert report["loops_admitted"] == len(turned_away)
+    gate = report["admission"]["gate_px"]
+    assert report["admission"]["turned_away_px"][-1] > 10 * gate  # the false loop is far outside, not near the gate
+    assert report["readout_s"] == pytest.approx(0.025, abs=0.004)
+    assert _position_error_m(T_key, T_true) < 0.004
+    # Without admission (factor 0) nothing changes status.
+    for lp in turned_away:
+        lp.status = "rejected"
+    adjust_keyframes(T_start, chain, kept + turned_away + [false], K, BundleSettings(admit_factor=0.0), twists)
+    assert {lp.status for lp in turned_away + [false]} == {"rejected"}

@@ -31,7 +31,7 @@ import numpy as np
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
 from nap3d_graph.textfiles import write_json_atomic
 
-from .bundle import BundleSettings, PairMatches, bundle_adjust, keyframe_twists
+from .bundle import BundleSettings, PairMatches, agreeing_pairs, bundle_adjust, keyframe_twists
 from .folder import MapFolder
 from .loops import (
     Keyframe,
@@ -242,9 +242,11 @@ def _graph_stage(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list
     if settings.bundle:
         T_map_key = _bundle_stage(sequence, graph, keyframe_twists(survey.T_odom_cam, _stamps(sequence), keys),
                                   chain_matches, verified, folder, settings, say)
+        write_loops_csv(folder.loops_table, loops)  # with the loops the bundle admitted
     accepted = int(graph.loop_kept.sum())
+    admitted = sum(lp.status == "admitted" for lp in verified)
     folder.done("graph", time.perf_counter() - t0, keyframes=len(keys), loops_verified=len(verified),
-                loops_accepted=accepted, loops_rejected=len(verified) - accepted)
+                loops_accepted=accepted, loops_admitted=admitted, loops_rejected=len(verified) - accepted - admitted)
     if accepted == 0:
         _say(say, "no loop closure found: the map's poses are the odometry's alone (they drift as it does)")
     return graph, T_map_key, verified
@@ -257,21 +259,64 @@ def _stamps(sequence) -> np.ndarray:
 
 def _bundle_stage(sequence, graph: GraphResult, twists: np.ndarray, chain_matches: list[PairMatches],
                   verified: list[Loop], folder: MapFolder, settings: MapSettings, say) -> np.ndarray:
-    """The bundle adjustment of the graph's keyframes over every kept match, each keyframe's
-    observations moved to its middle row along its ``twists`` (K, 6) (the readout estimated
-    unless set); ``T_map_key`` (K, 4, 4), its report in ``map.json``."""
-    pair_matches = chain_matches + [lp.matches_kept for lp in verified if lp.status == "accepted"
-                                    and lp.matches_kept is not None]
+    """The bundle adjustment of the graph's keyframes (:func:`adjust_keyframes`); ``T_map_key``
+    (K, 4, 4), its report in ``map.json``."""
     bundle_settings = _bundle_settings(sequence, settings)
-    T_map_key, report = bundle_adjust(graph.T_map_key, pair_matches, _working_intrinsics(sequence, settings),
-                                      bundle_settings, twists)
+    T_map_key, report = adjust_keyframes(graph.T_map_key, chain_matches, verified,
+                                         _working_intrinsics(sequence, settings), bundle_settings, twists)
     report["baseline_from"] = ("the recording's calibration" if bundle_settings is not settings.bundle_settings
                                else "the settings")
     folder.info["bundle"] = report
     _say(say, f"bundle adjustment: {report.get('landmarks', 0)} landmarks, {report.get('observations', 0)} "
-              f"observations, colour rows read in {report.get('readout_s', 0) * 1000:.0f} ms; keyframes moved "
+              f"observations, colour rows read in {report.get('readout_s', 0) * 1000:.0f} ms, "
+              f"{report.get('loops_admitted', 0)} loop(s) the graph turned away admitted; keyframes moved "
               f"{report.get('median_keyframe_move_mm', 0):.1f} mm (median)")
     return T_map_key
+
+
+def adjust_keyframes(T_graph_key: np.ndarray, chain_matches: list[PairMatches], verified: list[Loop],
+                     intrinsics, bundle_settings: BundleSettings, twists: np.ndarray | None
+                     ) -> tuple[np.ndarray, dict]:
+    """The graph's keyframes (K, 4, 4) adjusted over the chain's matches and every kept loop's,
+    each keyframe's observations moved to its middle row along ``twists`` (K, 6); then the
+    loops the graph turned away (status 'rejected') whose matches agree with the adjusted
+    poses as well as the kept loops' (:func:`~.bundle.agreeing_pairs`) are admitted (status
+    'admitted', the reason saying by how much) and the adjustment solved again with them.
+
+    Why: the graph judged each loop by its relative pose, measured as if the colour camera
+    had a global shutter; where the survey turned fast that pose is off by more than its
+    covariance says, and the graph turns true loops away. Their matches, once the rolling
+    shutter is undone, land where the kept loops' do; a loop between places that are not the
+    same lands tens of pixels off or more and stays out."""
+    kept = [lp for lp in verified if lp.status == "accepted" and lp.matches_kept is not None]
+    pairs = chain_matches + [lp.matches_kept for lp in kept]
+    T_map_key, report = bundle_adjust(T_graph_key, pairs, intrinsics, bundle_settings, twists)
+    report["loops_admitted"] = 0
+    turned_away = [lp for lp in verified if lp.status == "rejected" and lp.matches_kept is not None]
+    if "reason" in report or not turned_away:
+        return T_map_key, report
+    agree, px, gate = agreeing_pairs([lp.matches_kept for lp in turned_away], [lp.matches_kept for lp in kept],
+                                     T_map_key, intrinsics, bundle_settings.admit_factor, twists, report["readout_s"])
+    report["admission"] = {"gate_px": gate, "turned_away_px": [round(float(v), 2) for v in px]}
+    admitted = [lp for lp, ok in zip(turned_away, agree) if ok]
+    if not admitted:
+        return T_map_key, report
+    for lp, value in zip(turned_away, px):
+        if value <= gate:
+            lp.status = "admitted"
+            lp.reason += (f"; admitted by the bundle adjustment: its matches land {value:.1f} px from theirs "
+                          f"(gate {gate:.1f} px)")
+    T_admitted, second = bundle_adjust(T_map_key, pairs + [lp.matches_kept for lp in admitted], intrinsics,
+                                       bundle_settings, twists)
+    if "reason" in second:  # the second solve failed: the first one's poses stand, nothing admitted
+        for lp in admitted:
+            lp.status = "rejected"
+        return T_map_key, report
+    second["loops_admitted"] = len(admitted)
+    second["admission"] = report["admission"]
+    second["before_admission"] = {"readout_s": report["readout_s"], "readout_search": report["readout_search"],
+                                  "noise_rounds": report["noise_rounds"]}
+    return T_admitted, second
 
 
 def _write_poses(sequence, survey: SurveyOdometry, T_map_cam: np.ndarray, T_map_key: np.ndarray, start: int,

@@ -30,7 +30,7 @@ from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics
 from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T
 from nap3d_graph.nap3d.rolling_shutter import exp_apply
 
-__all__ = ["PairMatches", "BundleSettings", "tracks_of", "bundle_adjust", "keyframe_twists"]
+__all__ = ["PairMatches", "BundleSettings", "tracks_of", "bundle_adjust", "keyframe_twists", "pair_reprojection_px"]
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +66,9 @@ class BundleSettings:
     huber_k: the robust kernel's threshold (whitened);
     min_track: keyframes a landmark must be seen in; iterations: LM's limit; vce_rounds:
     rounds of estimating the pixels' noise from the residuals (:func:`bundle_adjust`);
+    admit_factor: a loop the pose graph turned away is let into the adjustment when its own
+    matches agree with the adjusted poses (:func:`pair_reprojection_px`) within this many
+    times the kept loops' median (0: never);
     readout_s: the colour camera's rolling shutter, seconds from its first row to its last (0:
     a global shutter; None: estimated, the adjustment solved at each of ``readout_grid_s``
     and at the parabola's vertex through the best three, and the readout whose pixels agree
@@ -78,6 +81,7 @@ class BundleSettings:
     min_track: int = 2
     iterations: int = 50
     vce_rounds: int = 1
+    admit_factor: float = 3.0
     readout_s: float | None = None
     readout_grid_s: tuple[float, ...] = (0.0, 0.01, 0.02, 0.03, 0.04)
 
@@ -172,6 +176,51 @@ def _at_mid_readout(measured: list, twists: np.ndarray, readout_s: float, intrin
     v = K.fy * q[:, 1] / q[:, 2] + K.cy
     return [(m[0], m[1], float(ui), float(ui - fb / zi), float(vi))
             for m, ui, vi, zi in zip(measured, u, v, q[:, 2])]
+
+
+def pair_reprojection_px(pair: PairMatches, T_map_key: np.ndarray, intrinsics: Intrinsics,
+                         twists: np.ndarray | None = None, readout_s: float = 0.0) -> float:
+    """How well a pair's matches agree with keyframe poses ``T_map_key`` (K, 4, 4): the median
+    distance (px) from each match in keyframe b to where its keypoint in keyframe a, placed by
+    its depth, lands in b (both moved to their middle rows along ``twists`` over
+    ``readout_s``). The depth's noise is in it, so kept loops show a few pixels, and a loop
+    between places that are not the same tens to hundreds. NaN without matches."""
+    if len(pair.z_a) == 0:
+        return float("nan")
+    K = intrinsics
+    fb = K.fx * 0.075  # any baseline: the virtual right pixel is only carried through
+    rows = []
+    for k, uv, z in ((pair.a, pair.uv_a, pair.z_a), (pair.b, pair.uv_b, pair.z_b)):
+        measured = [(k, 0, float(u), float(u) - fb / float(d), float(v)) for (u, v), d in zip(uv, z)]
+        if twists is not None:
+            measured = _at_mid_readout(measured, twists, readout_s, K, 0.075)
+        rows.append(np.asarray([m[2:] for m in measured], dtype=float))
+    a, b = rows
+    z_a = fb / (a[:, 0] - a[:, 1])
+    p_a = np.stack([(a[:, 0] - K.cx) * z_a / K.fx, (a[:, 2] - K.cy) * z_a / K.fy, z_a], axis=1)
+    T_b_a = inv_T(T_map_key[pair.b]) @ T_map_key[pair.a]
+    p_b = p_a @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv_b = np.stack([K.fx * p_b[:, 0] / p_b[:, 2] + K.cx, K.fy * p_b[:, 1] / p_b[:, 2] + K.cy], axis=1)
+    distance = np.linalg.norm(uv_b - b[:, [0, 2]], axis=1)
+    distance[~(p_b[:, 2] > 0)] = np.inf  # behind keyframe b: as far off as it gets
+    return float(np.median(distance))
+
+
+def agreeing_pairs(candidates: list[PairMatches], kept: list[PairMatches], T_map_key: np.ndarray,
+                   intrinsics: Intrinsics, factor: float, twists: np.ndarray | None = None,
+                   readout_s: float = 0.0) -> tuple[np.ndarray, np.ndarray, float]:
+    """Which ``candidates`` agree with the poses ``T_map_key`` as well as the ``kept`` pairs
+    do: ``(agree (C,) bool, their reprojection px (C,), the gate px)``, the gate ``factor``
+    times the kept pairs' median :func:`pair_reprojection_px` (nothing agrees without kept
+    pairs or with ``factor`` 0)."""
+    px = np.array([pair_reprojection_px(c, T_map_key, intrinsics, twists, readout_s) for c in candidates])
+    kept_px = [pair_reprojection_px(k, T_map_key, intrinsics, twists, readout_s) for k in kept]
+    kept_px = [v for v in kept_px if np.isfinite(v)]
+    if not kept_px or factor <= 0 or not len(candidates):
+        return np.zeros(len(candidates), dtype=bool), px, float("nan")
+    gate = factor * float(np.median(kept_px))
+    return np.isfinite(px) & (px <= gate), px, gate
 
 
 def bundle_adjust(T_map_key: np.ndarray, pairs: list[PairMatches], intrinsics: Intrinsics,

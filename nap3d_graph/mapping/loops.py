@@ -78,7 +78,8 @@ class Loop:
     their frame indices) and what its verification gave. ``T_a_b`` (4, 4): keyframe b's
     camera in keyframe a's; ``covariance`` (6, 6) of ``T_a_b`` (right perturbation, GTSAM
     order). ``status``: 'verified', 'refused' (the aligner's reason in ``reason``) and after
-    the graph 'accepted' or 'rejected'."""
+    the graph 'accepted' or 'rejected'; a rejected loop the bundle adjustment let in after all
+    is 'admitted' (:func:`~nap3d_graph.mapping.build.adjust_keyframes`)."""
 
     a: int
     b: int
@@ -269,7 +270,7 @@ def load_edges(path: Path) -> tuple[list[Edge], list[Loop], list[PairMatches]]:
         loops = []
         for (a, b, i, j, m, n), T, c, (rmse, sm, sd), (source, status, reason) in zip(
                 d["loop_abij"], d["loop_T"], d["loop_cov"], d["loop_stats"], d["loop_text"]):
-            status = "verified" if status in ("accepted", "rejected") else str(status)
+            status = "verified" if status in ("accepted", "rejected", "admitted") else str(status)
             loops.append(Loop(int(a), int(b), int(i), int(j), str(source), int(m), int(n), float(rmse), float(sm),
                               float(sd), T, c, status, str(reason)))
     for owner, pair in zip(owners, pairs):

@@ -93,8 +93,9 @@ def _loops(report: MapReport, info: dict, folder: Path) -> None:
     loops = info.get("loops", {})
     kept = int(loops.get("accepted", 0))
     report.values["loops"] = loops
-    report.add("loops: candidates, verified, kept by the robust graph",
-               f"{loops.get('candidates', 0)}, {loops.get('verified', 0)}, {kept}", "some kept", kept > 0)
+    report.add("loops: candidates, verified, kept by the robust graph (and admitted by the bundle adjustment)",
+               f"{loops.get('candidates', 0)}, {loops.get('verified', 0)}, {kept} ({loops.get('admitted', 0)})",
+               "some kept", kept > 0)
     residuals = loop_residuals(folder)
     if len(residuals):
         median_m, median_deg = (float(v) for v in np.median(residuals, axis=0))
@@ -204,8 +205,9 @@ def write_outputs(folder: MapFolder, sequence, survey, segment: tuple[int, int],
     info = folder.info
     info["survey_ate"] = _survey_ate(folder, sequence, T_map_cam, survey, start, stop, T_graph_cam)
     accepted = sum(lp.status == "accepted" for lp in verified)
+    admitted = sum(lp.status == "admitted" for lp in verified)
     info["loops"] = {"candidates": len(loops), "verified": len(verified), "accepted": accepted,
-                     "rejected": len(verified) - accepted}
+                     "admitted": admitted, "rejected": len(verified) - accepted - admitted}
     info["keyframes"] = int(len(T_map_key))
     folder.save()
     _plot(folder.plot, T_map_cam, T_map_key, verified, sequence, info.get("survey_ate"))
@@ -261,7 +263,8 @@ def _plot(path: Path, T_map_cam: np.ndarray, T_map_key: np.ndarray, loops: list,
         ax.plot(T_gt_in_map[ok, 0, 3], T_gt_in_map[ok, 2, 3], color="0.6", lw=2, label="ground truth (aligned)")
     ax.plot(T_map_cam[posed, 0, 3], T_map_cam[posed, 2, 3], "b-", lw=1, label="map poses")
     ax.plot(T_map_key[:, 0, 3], T_map_key[:, 2, 3], "b.", ms=4)
-    for label, status, colour in (("accepted loops", "accepted", "g"), ("rejected loops", "rejected", "r")):
+    for label, status, colour in (("accepted loops", "accepted", "g"), ("admitted by the bundle", "admitted", "c"),
+                                  ("rejected loops", "rejected", "r")):
         first = True
         for lp in loops:
             if lp.status != status:
