@@ -301,8 +301,8 @@ def adjust_keyframes(T_graph_key: np.ndarray, chain_matches: list[PairMatches], 
     admitted = [lp for lp, ok in zip(turned_away, agree) if ok]
     if not admitted:
         return T_map_key, report
-    for lp, value in zip(turned_away, px):
-        if value <= gate:
+    for lp, ok, value in zip(turned_away, agree, px):
+        if ok:
             lp.status = "admitted"
             lp.reason += (f"; admitted by the bundle adjustment: its matches land {value:.1f} px from theirs "
                           f"(gate {gate:.1f} px)")
