@@ -151,6 +151,9 @@ MAP_DEFAULT_TUNING = (
     ("mapping.bundle.BundleSettings", "readout_s",
      "not tuned: None estimates each survey's readout from its own pixels, no ground truth read; the mechanism was "
      "found on fr1/desk's half maps (reported on them)"),
+    ("mapping.bundle.BundleSettings", "admit_factor",
+     "not tuned on a score: a margin over the kept loops' own reprojection spread (false loops land tens to hundreds "
+     "of pixels off); the mechanism was found on fr1/desk's second half map (reported on it)"),
     ("mapping.bundle.BundleSettings", "readout_grid_s",
      "a search range, not tuned: no readout beyond a 30 Hz camera's frame period, with a step to spare"),
     ("mapping.relocalise.RelocaliseSettings", "min_agreeing",
