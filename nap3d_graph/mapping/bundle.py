@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics
+from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics, backproject, project
 from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T
 from nap3d_graph.nap3d.rolling_shutter import exp_apply
 
@@ -158,24 +158,30 @@ def keyframe_twists(T_odom_cam: np.ndarray, stamps_s: np.ndarray, keys: np.ndarr
     return twists
 
 
+def _mid_readout_points(k: np.ndarray, uv: np.ndarray, z: np.ndarray, twists: np.ndarray | None,
+                        readout_s: float, intrinsics: Intrinsics) -> np.ndarray:
+    """Keypoints ``uv`` (N, 2) with depths ``z`` (N,) of keyframes ``k`` (N,) as camera points
+    (N, 3) at their keyframe's middle row, moved along ``twists`` (K, 6) per second over
+    ``readout_s`` (first row to last); as read without twists or with a global shutter."""
+    points = backproject(uv, z, intrinsics)
+    if twists is None or readout_s == 0.0 or len(points) == 0:
+        return points
+    dt = (np.asarray(uv, dtype=float)[:, 1] / float(intrinsics.height) - 0.5) * readout_s
+    return exp_apply(twists[k] * dt[:, None], points)
+
+
 def _at_mid_readout(measured: list, twists: np.ndarray, readout_s: float, intrinsics: Intrinsics,
                     baseline_m: float) -> list:
     """The stereo observations ``(k, t, uL, uR, v)`` moved from their rows' instants to their
     keyframes' middle row (``twists`` (K, 6) per second, ``readout_s`` first row to last)."""
     if readout_s == 0.0 or not measured:
         return measured
-    K = intrinsics
-    fb = K.fx * baseline_m
+    fb = intrinsics.fx * baseline_m
     obs = np.asarray([m[2:] for m in measured], dtype=float)  # (M, 3): uL, uR, v
     k = np.asarray([m[0] for m in measured], dtype=int)
-    z = fb / (obs[:, 0] - obs[:, 1])
-    p = np.stack([(obs[:, 0] - K.cx) * z / K.fx, (obs[:, 2] - K.cy) * z / K.fy, z], axis=1)
-    dt = (obs[:, 2] / float(K.height) - 0.5) * readout_s
-    q = exp_apply(twists[k] * dt[:, None], p)
-    u = K.fx * q[:, 0] / q[:, 2] + K.cx
-    v = K.fy * q[:, 1] / q[:, 2] + K.cy
-    return [(m[0], m[1], float(ui), float(ui - fb / zi), float(vi))
-            for m, ui, vi, zi in zip(measured, u, v, q[:, 2])]
+    points = _mid_readout_points(k, obs[:, [0, 2]], fb / (obs[:, 0] - obs[:, 1]), twists, readout_s, intrinsics)
+    uv, z = project(points, intrinsics)
+    return [(m[0], m[1], float(ui), float(ui - fb / zi), float(vi)) for m, (ui, vi), zi in zip(measured, uv, z)]
 
 
 def pair_reprojection_px(pair: PairMatches, T_map_key: np.ndarray, intrinsics: Intrinsics,
@@ -187,23 +193,14 @@ def pair_reprojection_px(pair: PairMatches, T_map_key: np.ndarray, intrinsics: I
     between places that are not the same tens to hundreds. NaN without matches."""
     if len(pair.z_a) == 0:
         return float("nan")
-    K = intrinsics
-    fb = K.fx * 0.075  # any baseline: the virtual right pixel is only carried through
-    rows = []
-    for k, uv, z in ((pair.a, pair.uv_a, pair.z_a), (pair.b, pair.uv_b, pair.z_b)):
-        measured = [(k, 0, float(u), float(u) - fb / float(d), float(v)) for (u, v), d in zip(uv, z)]
-        if twists is not None:
-            measured = _at_mid_readout(measured, twists, readout_s, K, 0.075)
-        rows.append(np.asarray([m[2:] for m in measured], dtype=float))
-    a, b = rows
-    z_a = fb / (a[:, 0] - a[:, 1])
-    p_a = np.stack([(a[:, 0] - K.cx) * z_a / K.fx, (a[:, 2] - K.cy) * z_a / K.fy, z_a], axis=1)
+    n = len(pair.z_a)
+    p_a = _mid_readout_points(np.full(n, pair.a), pair.uv_a, pair.z_a, twists, readout_s, intrinsics)
+    p_b = _mid_readout_points(np.full(n, pair.b), pair.uv_b, pair.z_b, twists, readout_s, intrinsics)
     T_b_a = inv_T(T_map_key[pair.b]) @ T_map_key[pair.a]
-    p_b = p_a @ T_b_a[:3, :3].T + T_b_a[:3, 3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv_b = np.stack([K.fx * p_b[:, 0] / p_b[:, 2] + K.cx, K.fy * p_b[:, 1] / p_b[:, 2] + K.cy], axis=1)
-    distance = np.linalg.norm(uv_b - b[:, [0, 2]], axis=1)
-    distance[~(p_b[:, 2] > 0)] = np.inf  # behind keyframe b: as far off as it gets
+    uv_in_b, z_in_b = project(p_a @ T_b_a[:3, :3].T + T_b_a[:3, 3], intrinsics)
+    uv_b, _ = project(p_b, intrinsics)
+    distance = np.linalg.norm(uv_in_b - uv_b, axis=1)
+    distance[~(z_in_b > 0)] = np.inf  # behind keyframe b: as far off as it gets
     return float(np.median(distance))
 
 
@@ -278,13 +275,10 @@ def _readout_search(solve, grid_s: tuple[float, ...]):
     ``grid_s`` and at the vertex of the parabola through the best and its two neighbours;
     the one whose pixels agree best (the last round's robust residual) kept. ``search``:
     ``[[readout_s, residual_px], ...]``."""
-    solved = {}
-    for readout in grid_s:
-        solved[float(readout)] = solve(float(readout))
-    failed = [r for r, (result, _) in solved.items() if result is None]
-    if len(failed) == len(solved):
-        return 0.0, None, solved[float(grid_s[0])][1], []
+    solved = {float(readout): solve(float(readout)) for readout in grid_s}
     residual = {r: h[-1]["residual_px"] for r, (result, h) in solved.items() if result is not None}
+    if not residual:  # every solve failed: the first one's reason
+        return 0.0, None, solved[float(grid_s[0])][1], []
     grid = sorted(residual)
     best = min(grid, key=lambda r: residual[r])
     i = grid.index(best)
