@@ -26,16 +26,13 @@ import numpy as np
 from map_survey import read_sfm_pseudo_gt, second_gt_for  # noqa: E402  (beside this file)
 from provenance import write_result
 
+#: The adjustments compared at each depth weight (overrides of BundleSettings).
+VARIANTS = {"global shutter": {"readout_s": 0.0, "admit_factor": 0.0},
+            "rolling shutter": {"admit_factor": 0.0},
+            "rolling shutter, turned-away loops that agree admitted": {}}
 
-def main() -> None:
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, _working_intrinsics, adjust_keyframes, place_frames
-    from nap3d_graph.mapping.bundle import BundleSettings, keyframe_twists
-    from nap3d_graph.mapping.loops import load_edges
-    from nap3d_graph.mapping.pose_graph import Edge, floor_covariance, solve
-    from nap3d_graph.mapping.survey import SurveyOdometry
 
+def _arguments() -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--map", type=Path, required=True)
     parser.add_argument("--data", type=Path, required=True)
@@ -43,13 +40,48 @@ def main() -> None:
     parser.add_argument("--second-gt", type=Path, default=None)
     parser.add_argument("--ratios", type=float, nargs="+", default=[0.1, 0.3, 1.0, 3.0, 10.0, 30.0])
     parser.add_argument("--out", type=Path, required=True)
-    args = parser.parse_args()
+    return parser.parse_args()
+
+
+def _references(sequence, second_gt: Path | None) -> dict:
+    """Every ground truth of the sequence's frames (N, 4, 4) by name."""
+    references = {"ground truth": np.asarray(sequence.T_world_cam_gt)}
+    if second_gt is not None:
+        references["second ground truth"] = second_gt_for(sequence, read_sfm_pseudo_gt(second_gt))
+    return references
+
+
+def _graph(survey, keys, chain, loops, settings: dict):
+    """The map's pose graph solved again from its edges: ``(graph, verified loops)``."""
+    from nap3d_graph.mapping.pose_graph import Edge, floor_covariance, solve
+
+    verified = [lp for lp in loops if lp.status == "verified"]
+    loop_edges = [Edge(lp.a, lp.b, lp.T_a_b, floor_covariance(lp.covariance, settings["edge_floor_rad"],
+                                                              settings["edge_floor_m"]), "loop") for lp in verified]
+    return solve(survey.T_odom_cam[keys], chain, loop_edges, settings["gate_p"]), verified
+
+
+def _row(ratio: float, variant: str, report: dict, scores: dict) -> dict:
+    return {"disparity_to_pixel": ratio, "readout": variant, "readout_s": report.get("readout_s"),
+            "loops_admitted": report.get("loops_admitted", 0),
+            "depth_sigma_at_1m_mm": report.get("depth_sigma_at_1m_mm"),
+            "residual_px": report["noise_rounds"][-1]["residual_px"],
+            "residual_disparity_px": report["noise_rounds"][-1]["residual_disparity_px"], **scores}
+
+
+def main() -> None:
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.evaluation.alignment import aligned_errors
+    from nap3d_graph.mapping.build import MapSettings, _working_intrinsics, adjust_keyframes, place_frames
+    from nap3d_graph.mapping.bundle import BundleSettings, keyframe_twists
+    from nap3d_graph.mapping.loops import load_edges
+    from nap3d_graph.mapping.survey import SurveyOdometry
+
+    args = _arguments()
     sequence = open_sequence(args.data, frames=args.frames)
     info = json.loads((args.map / "map.json").read_text())
     settings = info["settings"]
-    references = {"ground truth": np.asarray(sequence.T_world_cam_gt)}
-    if args.second_gt is not None:
-        references["second ground truth"] = second_gt_for(sequence, read_sfm_pseudo_gt(args.second_gt))
+    references = _references(sequence, args.second_gt)
     chain, loops, chain_matches = load_edges(args.map / "edges.npz")
     keys = np.load(args.map / "keyframes.npz")["indices"]
     survey = SurveyOdometry.load(args.map / "odometry.npz")
@@ -59,10 +91,7 @@ def main() -> None:
         T = place_frames(survey.T_odom_cam, keys, T_key, start, stop)
         return {name: aligned_errors(sequence.timestamps, ref, T).summary() for name, ref in references.items()}
 
-    verified = [lp for lp in loops if lp.status == "verified"]
-    loop_edges = [Edge(lp.a, lp.b, lp.T_a_b, floor_covariance(lp.covariance, settings["edge_floor_rad"],
-                                                              settings["edge_floor_m"]), "loop") for lp in verified]
-    graph = solve(survey.T_odom_cam[keys], chain, loop_edges, settings["gate_p"])
+    graph, verified = _graph(survey, keys, chain, loops, settings)
     T_odom = np.full((len(sequence), 4, 4), np.nan)
     T_odom[start:stop] = survey.T_odom_cam[start:stop]
     result = {"command": " ".join(sys.argv), "map": str(args.map), "data": str(args.data), "frames": args.frames,
@@ -74,20 +103,13 @@ def main() -> None:
                                                                     references["ground truth"]).summary()
     K = _working_intrinsics(sequence, MapSettings(width=settings["width"]))
     twists = keyframe_twists(survey.T_odom_cam, np.asarray(sequence.timestamps, dtype=float), keys)
-    variants = {"global shutter": {"readout_s": 0.0, "admit_factor": 0.0},
-                "rolling shutter": {"admit_factor": 0.0},
-                "rolling shutter, turned-away loops that agree admitted": {}}
     for ratio in args.ratios:
-        for variant, overrides in variants.items():
-            for lp, kept in zip(verified, graph.loop_kept):
+        for variant, overrides in VARIANTS.items():
+            for lp, kept in zip(verified, graph.loop_kept):  # each variant starts from the graph's choice
                 lp.status = "accepted" if kept else "rejected"
             T_key, report = adjust_keyframes(graph.T_map_key, chain_matches, verified, K,
                                              BundleSettings(disparity_to_pixel=ratio, **overrides), twists)
-            row = {"disparity_to_pixel": ratio, "readout": variant, "readout_s": report.get("readout_s"),
-                   "loops_admitted": report.get("loops_admitted", 0),
-                   "depth_sigma_at_1m_mm": report.get("depth_sigma_at_1m_mm"),
-                   "residual_px": report["noise_rounds"][-1]["residual_px"],
-                   "residual_disparity_px": report["noise_rounds"][-1]["residual_disparity_px"], **score(T_key)}
+            row = _row(ratio, variant, report, score(T_key))
             result["bundle"].append(row)
             print(ratio, variant, {k: round(v["rmse_m"] * 100, 2) for k, v in row.items() if isinstance(v, dict)})
     write_result(args.out, result, args)
