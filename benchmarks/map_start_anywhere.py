@@ -34,6 +34,7 @@ from map_survey import (
     errors_in,
     read_sfm_pseudo_gt,
     run_query,
+    second_alignment,
     second_gt_for,
     second_reference,
     seed_suffix,
@@ -112,10 +113,10 @@ def direction(args, survey_half: str) -> dict:
     T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
     survey, query = open_sequence(args.data, frames=HALVES[survey_half]), open_sequence(args.data,
                                                                                          frames=HALVES[query_half])
-    second = None if args.second_gt is None else second_reference(args, survey, query, _survey_poses(map_dir, info,
-                                                                                                     survey))
-    if args.second_gt is not None:
-        out["survey_ate_second_gt_m"] = _survey_ate_second(args, survey, _survey_poses(map_dir, info, survey))
+    T_map_survey = _survey_poses(map_dir, info, survey)
+    second = second_reference(args, survey, query, T_map_survey)
+    if second is not None:
+        out["survey_ate_second_gt_m"] = float(second_alignment(args, survey, T_map_survey).summary()["rmse_m"])
     out["relocalisation"] = relocalisation(map_dir, query, args.every, args.matcher, T_map_gt, second)
     for extra in args.extra_query:
         out[f"relocalisation_{Path(extra).name}"] = relocalisation(map_dir, open_sequence(extra), args.every,
@@ -209,16 +210,6 @@ def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path, se
         runs["gt_posed"] = run_query(args.data, args.traj, HALVES[query_half], gt_field,
                                      work / f"run_gt{seed_suffix(seed)}", ("--matcher", args.matcher), seed)
     return runs
-
-
-def _survey_ate_second(args, survey, T_map_survey: np.ndarray) -> float:
-    """The survey's ATE (m, RMSE, SE(3)-aligned) against the second ground truth."""
-    from nap3d_graph.evaluation.alignment import aligned_errors
-
-    posed = np.all(np.isfinite(T_map_survey), axis=(1, 2))
-    reference = second_gt_for(survey, read_sfm_pseudo_gt(args.second_gt))
-    return float(aligned_errors(np.asarray(survey.timestamps)[posed], reference[posed],
-                                T_map_survey[posed]).summary()["rmse_m"])
 
 
 def _sfm_posed_run(args, work: Path, survey, query, query_half: str, out: dict, seed: int = 0) -> dict:

@@ -113,15 +113,20 @@ def errors_in(T_ref_of_stamp, stamps, T_est, T_ref_est) -> float:
     return float(np.sqrt(np.mean(np.sum((p[ok] - T_ref[ok, :3, 3]) ** 2, axis=1))))
 
 
+def second_alignment(args, survey, T_map_survey):
+    """The survey's poses (N, 4, 4; NaN where unposed) SE(3)-aligned to the second ground truth
+    (:func:`~nap3d_graph.evaluation.alignment.aligned_errors`: its fit and its errors)."""
+    from nap3d_graph.evaluation.alignment import aligned_errors
+
+    return aligned_errors(survey.timestamps, second_gt_for(survey, read_sfm_pseudo_gt(args.second_gt)), T_map_survey)
+
+
 def second_reference(args, survey, query, T_map_survey):
     """``(T_ref_cam of the query (N, 4, 4), T_ref_map)`` for the second ground truth, or None."""
     if args.second_gt is None:
         return None
-    from nap3d_graph.evaluation.alignment import aligned_errors
-
-    table = read_sfm_pseudo_gt(args.second_gt)
-    T_ref_map = aligned_errors(survey.timestamps, second_gt_for(survey, table), T_map_survey).T_ref_est
-    return second_gt_for(query, table), T_ref_map
+    return (second_gt_for(query, read_sfm_pseudo_gt(args.second_gt)),
+            second_alignment(args, survey, T_map_survey).T_ref_est)
 
 
 def relocalisation(map_dir: Path, info: dict, query, args, second=None) -> dict:

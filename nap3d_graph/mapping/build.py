@@ -240,8 +240,8 @@ def _graph_stage(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list
     write_loops_csv(folder.loops_table, loops)
     T_map_key = graph.T_map_key
     if settings.bundle:
-        T_map_key = _bundle_stage(sequence, graph, keyframe_twists(survey.T_odom_cam, _stamps(sequence), keys),
-                                  chain_matches, verified, folder, settings, say)
+        twists = keyframe_twists(survey.T_odom_cam, np.asarray(sequence.timestamps, dtype=float), keys)
+        T_map_key = _bundle_stage(sequence, graph, twists, chain_matches, verified, folder, settings, say)
         write_loops_csv(folder.loops_table, loops)  # with the loops the bundle admitted
     accepted = int(graph.loop_kept.sum())
     admitted = sum(lp.status == "admitted" for lp in verified)
@@ -250,11 +250,6 @@ def _graph_stage(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list
     if accepted == 0:
         _say(say, "no loop closure found: the map's poses are the odometry's alone (they drift as it does)")
     return graph, T_map_key, verified
-
-
-def _stamps(sequence) -> np.ndarray:
-    """The frames' colour stamps (N,) seconds."""
-    return np.asarray(sequence.timestamps, dtype=float)
 
 
 def _bundle_stage(sequence, graph: GraphResult, twists: np.ndarray, chain_matches: list[PairMatches],
