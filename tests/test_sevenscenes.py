@@ -128,6 +128,35 @@ def unregistered(tmp_path_factory):
     return _simulated_kinect(tmp_path_factory.mktemp("sevenscenes") / "seq-01", 0.0)
 
 
+def test_the_default_colour_camera_is_the_nominal_kinect_and_reads_nothing(unregistered, tmp_path, monkeypatch):
+    """registration='nominal' (the default): 525 px at the image's centre, scaled to the
+    images; no pose file read, nothing estimated or cached; the depth warped into it."""
+    from nap3d_graph.datasets import sevenscenes
+
+    folder, _, _ = unregistered
+    monkeypatch.setattr(sevenscenes.SevenScenesSequence, "_read_pose", lambda self, k: np.full((4, 4), np.nan))
+    seq = open_sequence(folder, cache_dir=tmp_path)
+    assert seq.intrinsics == NOMINAL_COLOUR_CAMERA.scaled(320, 240)
+    assert np.allclose(seq.registration.T_colour_depth, np.eye(4))
+    assert not (tmp_path / "registration").exists()
+    stored = SevenScenesSequence(folder, registration="none")[10].depth_m
+    warped = seq[10].depth_m
+    # The depth camera's f = 292.5 against the colour's 262.5: the warp shrinks the image about
+    # the centre, so the stored frame's middle pixel keeps its depth and its border does not.
+    assert abs(warped[120, 160] - stored[120, 160]) < 0.02
+    assert np.mean(warped > 0) < np.mean(stored > 0)
+
+
+def test_a_map_folder_refuses_a_survey_read_through_another_colour_camera(unregistered, tmp_path):
+    from nap3d_graph.mapping.build import MapSettings, _open_folder
+
+    folder, _, _ = unregistered
+    _open_folder(open_sequence(folder, frames="0:10"), tmp_path / "map", MapSettings())
+    _open_folder(open_sequence(folder, frames="0:10"), tmp_path / "map", MapSettings())  # the same: resumed
+    with pytest.raises(FileExistsError, match="other data or settings"):
+        _open_folder(open_sequence(folder, frames="0:10", registration="none"), tmp_path / "map", MapSettings())
+
+
 @pytest.mark.slow
 def test_colour_camera_is_recovered_from_the_data(unregistered, tmp_path):
     """The fit, with each pair's motion from the (exact, simulated) pose files."""
@@ -150,14 +179,14 @@ def test_colour_camera_is_recovered_from_the_data(unregistered, tmp_path):
 
 
 def test_colour_camera_is_recovered_from_the_images_alone(unregistered, tmp_path, monkeypatch):
-    """The default: each pair's motion by depth-only ICP; no pose file is read. The simulated
+    """registration='images': each pair's motion by depth-only ICP; no pose file is read. The simulated
     traversal is fast (metres in 2.6 s), so ICP poses only the slowest pairs; the fit still
     finds the focal length and the centre to a pixel."""
     from nap3d_graph.datasets import sevenscenes
 
     folder, colour, _ = unregistered
     monkeypatch.setattr(sevenscenes.SevenScenesSequence, "_read_pose", lambda self, k: np.full((4, 4), np.nan))
-    seq = open_sequence(folder, cache_dir=tmp_path)  # no pose: a pose file read would show as no ground truth
+    seq = open_sequence(folder, cache_dir=tmp_path, registration="images")  # a pose file read would show as no GT
     reg = seq.registration
     assert not seq.has_gt.any()
     assert abs(reg.colour.fx / colour.fx - 1) < 0.003

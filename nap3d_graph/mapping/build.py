@@ -148,7 +148,10 @@ def _open_folder(sequence, out: Path, settings: MapSettings) -> MapFolder:
               "recording_id": getattr(sequence, "recording_id", None), "settings": pose_settings}
     if getattr(sequence, "depth_scale_source", "") in ("argument", "intrinsics.json"):
         wanted["depth_units_per_m"] = float(sequence.depth_units_per_m)  # a declared unit: another survey
-    return MapFolder.open(out, wanted, (*wanted, "depth_units_per_m"))
+    if hasattr(sequence, "registration"):  # 7-Scenes: another colour camera is another survey
+        wanted["registration"] = {k: v for k, v in sequence.registration.to_dict().items()
+                                  if k in ("colour", "T_colour_depth")}  # not its fit's figures (NaN when given)
+    return MapFolder.open(out, wanted, (*wanted, "depth_units_per_m", "registration"))
 
 
 def _odometry_stage(sequence, folder: MapFolder, settings: MapSettings, progress: bool, say
