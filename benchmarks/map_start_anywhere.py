@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 from map_survey import (
+    QueryTwist,
     cli,
     errors_in,
     read_sfm_pseudo_gt,
@@ -58,10 +59,11 @@ def covered(T_map_cam: np.ndarray, T_map_key: np.ndarray, metres: float = 0.40, 
 
 
 def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.ndarray, second=None,
-                   settings=None, field_obj=None) -> dict:
+                   settings=None, field_obj=None, twist: bool = True) -> dict:
     """``second``: ``(T_ref_cam (N, 4, 4) of the query, T_ref_map)``, a second ground truth and
     the survey's alignment to it: each answer scored against it too. ``settings``: the
-    relocaliser's rules (default: its own); ``field_obj``: the map's field already loaded."""
+    relocaliser's rules (default: its own); ``field_obj``: the map's field already loaded; ``twist``: each frame
+    relocalised with its twist by the run's odometry (:class:`map_survey.QueryTwist`), as a run does."""
     import torch
 
     torch.set_num_threads(1)
@@ -71,13 +73,14 @@ def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.
     if settings is not None:
         relocaliser.settings = settings
     T_map_key = relocaliser.T_map_key
+    twist_of = QueryTwist(query, matcher, off=not twist)
     rows = []
     for i in range(0, len(query), every):
         T_gt = np.asarray(query.T_world_cam_gt[i])
         if not np.all(np.isfinite(T_gt)):
             continue
         T_true = T_map_gt @ T_gt
-        found = relocaliser.locate(query[i])
+        found = relocaliser.locate(query[i], twist_of(i))
         row = {"frame": i, "covered": covered(T_true, T_map_key), "success": found.success,
                "seconds": round(found.seconds, 3), "wide_baseline": found.wide_baseline}
         if found.success:
@@ -94,7 +97,7 @@ def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.
     extra = {} if second is None else {"covered_found_within_5cm_3deg_second_gt": sum(
         r["success"] and r.get("error_second_gt_m", 1) <= 0.05 and r.get("error_second_gt_deg", 9) <= 3.0 for r in cov),
         "accepted_farther_than_10cm_second_gt": sum(r["success"] and r.get("error_second_gt_m", 0) > 0.10 for r in rows)}
-    return {**extra, "attempts": len(rows), "covered": len(cov), "covered_found_within_5cm_3deg": len(good),
+    return {**extra, "with_twist": twist, "attempts": len(rows), "covered": len(cov), "covered_found_within_5cm_3deg": len(good),
             "share_of_covered": len(good) / max(len(cov), 1),
             "accepted_farther_than_10cm": sum(r["success"] and r["error_m"] > 0.10 for r in rows),
             "accepted_uncovered": sum(r["success"] and not r["covered"] for r in rows),

@@ -129,6 +129,28 @@ def second_reference(args, survey, query, T_map_survey):
             second_alignment(args, survey, T_map_survey).T_ref_est)
 
 
+class QueryTwist:
+    """A query frame's body twist per second (GTSAM order) as a run in the map knows it when it
+    relocalises that frame: its visual odometry's step from the frame before (the run's own
+    ``--odom vo``, ``matcher``). None for the first frame, a failed step, or when ``off``."""
+
+    def __init__(self, query, matcher: str, off: bool = False):
+        from nap3d_graph.motion.odometry import make_odometry
+
+        self.query, self.off = query, off
+        self.odometry = None if off else make_odometry("vo", query, initial_pose=np.eye(4), matcher=matcher)
+
+    def __call__(self, i: int) -> np.ndarray | None:
+        from nap3d_graph.conventions import log_se3
+
+        if self.odometry is None or i < 1:
+            return None
+        dt = float(self.query.timestamps[i] - self.query.timestamps[i - 1])
+        self.odometry.prime(self.query[i - 1])
+        step = self.odometry.increment(i, self.query[i])
+        return log_se3(step.T_prev_cur) / dt if step.ok and dt > 0 else None
+
+
 def relocalisation(map_dir: Path, info: dict, query, args, second=None) -> dict:
     """``args.relocalise`` random query frames (seeded) found in the map, on one thread;
     ``second``: ``(T_ref_cam (N, 4, 4), T_ref_map)``, a second ground truth of the query
@@ -146,9 +168,10 @@ def relocalisation(map_dir: Path, info: dict, query, args, second=None) -> dict:
     T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
     rng = np.random.default_rng(args.seed)
     picks = rng.choice(len(query), size=min(args.relocalise, len(query)), replace=False)
+    twist = QueryTwist(query, args.matcher, off=args.no_twist)
     attempts = []
     for i in sorted(picks):
-        found = relocaliser.locate(query[int(i)])
+        found = relocaliser.locate(query[int(i)], twist(int(i)))
         row = {"frame": int(i), "success": found.success, "seconds": found.seconds, "reason": found.reason}
         if found.success and np.all(np.isfinite(query.T_world_cam_gt[i])):
             e = log_se3(inv_T(T_map_gt @ query.T_world_cam_gt[i]) @ found.T_map_cam)
@@ -169,7 +192,7 @@ def relocalisation(map_dir: Path, info: dict, query, args, second=None) -> dict:
         extra = {"within_5cm_3deg_second_gt": len(good2),
                  "accepted_farther_than_10cm_second_gt": sum(a["success"] and a.get("error_second_gt_m", 0) > 0.10
                                                              for a in attempts)}
-    return {**extra, "attempts": len(attempts), "within_5cm_3deg": len(good),
+    return {**extra, "with_twist": not args.no_twist, "attempts": len(attempts), "within_5cm_3deg": len(good),
             "share_within": len(good) / max(len(attempts), 1),
             "accepted_farther_than_10cm": len(far), "refused": sum(not a["success"] for a in attempts),
             "seconds_median": float(np.median(seconds)), "seconds_p90": float(np.percentile(seconds, 90)),
@@ -186,6 +209,8 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--matcher", default="xfeat")
     parser.add_argument("--second-gt", type=Path, default=None)
     parser.add_argument("--relocalise", type=int, default=40)
+    parser.add_argument("--no-twist", action="store_true",
+                        help="relocalise each frame as one instant (default: with its twist by the run's odometry)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work", type=Path, default=None, help="folder for the maps and runs (default: temporary)")
     parser.add_argument("--out", type=Path, required=True)

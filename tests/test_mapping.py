@@ -419,12 +419,12 @@ class _BlindUntil:
     def __init__(self, inner, sequence, frame: int, wrong: np.ndarray | None = None):
         self.inner, self.stamps, self.frame, self.wrong = inner, list(sequence.timestamps), frame, wrong
 
-    def locate(self, query):
+    def locate(self, query, twist=None):
         from nap3d_graph.mapping.relocalise import Relocalisation
 
         if self.stamps.index(query.timestamp) < self.frame:
             return Relocalisation(False, tried=6, reason="none of the 6 most similar keyframes verified (blind)")
-        found = self.inner.locate(query)
+        found = self.inner.locate(query, twist)
         if self.wrong is not None and found.success:
             found.T_map_cam, self.wrong = found.T_map_cam @ self.wrong, None
         return found

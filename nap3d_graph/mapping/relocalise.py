@@ -14,6 +14,13 @@ where it landed are tried next (a second view of the same answer), then the retr
 remaining candidates. Among the verified ones the tightest wins, and how many others land
 within ``agree_m`` of it says how sure the answer is. No verified candidate: a clear refusal,
 never a guess.
+
+A frame caught while the camera turns is not one pose: its colour rows were read one after
+another, and its depth at another instant. Given the camera's twist (a run knows it from its
+odometry), each alignment undoes both as a run's keyframe correction does, with the capture
+timing the map's field recorded: the depth moved to the colour's instant, the colour's rows to
+the middle row's (:mod:`~nap3d_graph.nap3d.rolling_shutter`), the answer moved to the frame's
+stamp. Without a twist the frame is taken as one instant.
 """
 
 from __future__ import annotations
@@ -268,12 +275,15 @@ class Relocaliser:
                 best = group
         return best
 
-    def locate(self, frame: RGBDFrame) -> Relocalisation:
-        """Where ``frame`` is in the map; never raises on data (``success`` False, ``reason``)."""
+    def locate(self, frame: RGBDFrame, twist: np.ndarray | None = None) -> Relocalisation:
+        """Where ``frame`` is in the map; never raises on data (``success`` False, ``reason``).
+        ``twist``: (6,) the camera's body twist per second (GTSAM order) while it took the frame,
+        or None (see the module's text)."""
         from nap3d_graph.nap3d.correct import real_features
 
         started = time.perf_counter()
         s = self.settings
+        frame, motion, shift = self._at_one_instant(frame, twist)
         found, reasons, wide = [], [], 0
         # The frame's features at the render's size, detected once for every candidate's correction
         # (and for the real-vs-real step and the ranking too when the kept images are that size).
@@ -286,7 +296,7 @@ class Relocaliser:
             if k in tried_keys:
                 continue
             tried_keys.add(k)
-            verified, refusal, started_wide = self._candidate(frame, query, k, feats_real)
+            verified, refusal, started_wide = self._candidate(frame, query, k, feats_real, motion)
             wide += started_wide
             if verified is None:
                 reasons.append(refusal)
@@ -306,11 +316,32 @@ class Relocaliser:
             why = "; ".join(sorted(set(reasons))[:3]) or "no candidate"
             return Relocalisation(False, tried=tried, seconds=time.perf_counter() - started, wide_baseline=wide,
                                   reason=f"none of the {tried} most similar keyframes verified ({why})")
-        sigma_m, k, T, cov, inliers, sigma_deg = self._tightest_again(frame, found, feats_real)
-        return Relocalisation(True, T, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, len(found) - 1, tried,
+        sigma_m, k, T, cov, inliers, sigma_deg = self._tightest_again(frame, found, feats_real, motion)
+        return Relocalisation(True, T @ shift, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, len(found) - 1, tried,
                               time.perf_counter() - started, wide_baseline=wide)
 
-    def _candidate(self, frame: RGBDFrame, query, k: int, feats_real) -> tuple[tuple | None, str, bool]:
+    def _at_one_instant(self, frame: RGBDFrame, twist: np.ndarray | None) -> tuple[RGBDFrame, object, np.ndarray]:
+        """``(frame, motion, shift)``: the frame with its depth moved to its colour's instant,
+        the :class:`~nap3d_graph.nap3d.rolling_shutter.RowMotion` its alignments undo (None: a
+        global shutter or no twist) and the (4, 4) that moves an answer at the colour's instant
+        to the frame's stamp; the frame as it is, None and the identity without a twist or a
+        capture timing in the field."""
+        from nap3d_graph.conventions import exp_se3
+        from nap3d_graph.datasets.depth_timing import resolve_capture_timing
+        from nap3d_graph.nap3d.rolling_shutter import RowMotion
+        from nap3d_graph.run.keyframe import at_colour_time
+
+        if twist is None or not np.all(np.isfinite(twist)):
+            return frame, None, np.eye(4)
+        timing, _ = resolve_capture_timing(self.field)
+        if timing is None:
+            return frame, None, np.eye(4)
+        frame, used = at_colour_time(frame, timing, np.asarray(twist, dtype=float), 1.0)
+        motion = RowMotion(np.asarray(twist, dtype=float), float(timing.readout_s)) if timing.readout_s > 0 else None
+        shift = exp_se3(-np.asarray(twist, dtype=float) * timing.colour_offset_s) if used is not None else np.eye(4)
+        return frame, motion, shift
+
+    def _candidate(self, frame: RGBDFrame, query, k: int, feats_real, motion=None) -> tuple[tuple | None, str, bool]:
         """``(verified, refusal, wide)``: keyframe ``k`` as a candidate, its render started
         where :meth:`_start_pose` puts it (``wide``: real-vs-real); ``verified``: ``(sigma_m,
         k, T_map_cam, covariance, inliers, sigma_deg)`` when the correction passes the
@@ -320,7 +351,7 @@ class Relocaliser:
         s = self.settings
         T_start, wide = self._start_pose(query, k)
         correction = correct_pose(frame, self.field, T_start, iterations=s.iterations, config=self.config,
-                                  render_intrinsics=self.render_intrinsics, feats_real=feats_real)
+                                  render_intrinsics=self.render_intrinsics, feats_real=feats_real, motion=motion)
         if not correction.success:
             return None, correction.reason, wide
         cov, inliers = correction.covariance, correction.alignment.num_inliers
@@ -330,7 +361,7 @@ class Relocaliser:
             return None, refusal, wide
         return (sigma_m, k, correction.T_world_cam_corrected, cov, inliers, sigma_deg), "", wide
 
-    def _tightest_again(self, frame: RGBDFrame, found: list, feats_real) -> tuple:
+    def _tightest_again(self, frame: RGBDFrame, found: list, feats_real, motion=None) -> tuple:
         """The tightest of the agreeing candidates ``found`` after one more round from where it
         landed (a nearer render), or as it was when that round is no tighter than the rule."""
         from nap3d_graph.nap3d.correct import correct_pose
@@ -338,7 +369,7 @@ class Relocaliser:
         s = self.settings
         sigma_m, k, T, cov, inliers, sigma_deg = min(found, key=lambda f: f[0])
         again = correct_pose(frame, self.field, T, iterations=1, config=self.config,
-                             render_intrinsics=self.render_intrinsics, feats_real=feats_real)
+                             render_intrinsics=self.render_intrinsics, feats_real=feats_real, motion=motion)
         if again.success and again.alignment.num_inliers >= s.min_inliers:
             s2, d2 = worst_sigmas(again.covariance)
             if s2 <= s.max_sigma_m:

@@ -80,10 +80,12 @@ class MapPlacement:
 
     # --- the steps -------------------------------------------------------------------------
 
-    def propose(self, i: int, key: int, frame, T_run_cam: np.ndarray) -> Candidate | None:
+    def propose(self, i: int, key: int, frame, T_run_cam: np.ndarray, twist: np.ndarray | None = None
+                ) -> Candidate | None:
         """Relocalise keyframe ``i`` (graph key ``key``, ``frame`` an RGBDFrame, at
-        ``T_run_cam`` (4, 4) in the run's frame); a verified one becomes the candidate."""
-        found = self.relocaliser.locate(frame)
+        ``T_run_cam`` (4, 4) in the run's frame, ``twist`` (6,) the camera's body twist per
+        second by the run's odometry, or None); a verified one becomes the candidate."""
+        found = self.relocaliser.locate(frame, twist)
         event = {"frame": int(i), "step": "relocalise", "success": bool(found.success),
                  "seconds": round(float(found.seconds), 3)}
         self.candidate = None

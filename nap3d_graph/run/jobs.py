@@ -57,11 +57,11 @@ class KeyframeJobs:
             if run.anchored:
                 T_field_cam_render = inv_T(run.graph.anchor()) @ T_field_cam_render  # the field's frame
         render_intrinsics = self.render_intrinsics(frame.intrinsics)
-        return KeyframeJob(i, frame, T_field_cam_render, self._velocity(i), self.timing(), run.depth_scale.scale,
+        return KeyframeJob(i, frame, T_field_cam_render, self.velocity(i), self.timing(), run.depth_scale.scale,
                            render_intrinsics, feats_real=self._odometry_features(i, render_intrinsics),
                            fit_intrinsics=run.intrinsics_model.fits_both(i))
 
-    def _velocity(self, i: int) -> np.ndarray | None:
+    def velocity(self, i: int) -> np.ndarray | None:
         """Body twist per second (GTSAM order) of the camera at frame i, by the motion model."""
         stamps = self.run.sequence.timestamps
         t = float(stamps[i])

@@ -52,7 +52,7 @@ class MapRecovery:
         if (placement is None or frame is None or not after or self.refused_in_a_row < after
                 or self.run.anchored):
             return
-        found = placement.propose(i, record.key, frame, self.run.T_world_kf_pred)
+        found = placement.propose(i, record.key, frame, self.run.T_world_kf_pred, self.run.jobs.velocity(i))
         entry = {"frame": int(i), "step": "relocalise", "refused_in_a_row": self.refused_in_a_row,
                  "found": found is not None, "seconds": placement.events[-1]["seconds"]}
         if found is None:  # tried again at the next keyframe
@@ -74,7 +74,7 @@ class MapRecovery:
             return
         if placement.candidate is not None and self._confirm(record, i, frame, lost=placement.placed):
             return
-        found = placement.propose(i, record.key, frame, run.T_world_kf_pred)
+        found = placement.propose(i, record.key, frame, run.T_world_kf_pred, run.jobs.velocity(i))
         if found is not None and placement.settings.confirmations == 0:
             self._place(record, i)
             return
