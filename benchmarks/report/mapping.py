@@ -77,7 +77,8 @@ def map_checks_table() -> str:
     if path.is_file():
         r = json.loads(path.read_text())["relocalisation"]
         rows.append(
-            f"| relocalisation in fr1/desk's map with its {r['field']} field, 40 random second-half frames, one thread "
+            f"| relocalisation in fr1/desk's map with its {r['field']} field, 40 random second-half frames, one thread"
+            f"{', each with its twist by the visual odometry (as a run has it)' if r.get('with_twist') else ''} "
             f"(`map_relocalise_fr1_desk_grid.json`) | {r['within_5cm_3deg']}/{r['attempts']} within 5 cm / 3 deg, "
             f"{r['accepted_farther_than_10cm']} accepted beyond 10 cm, {r['refused']} refused; "
             f"{r['seconds_median']:.2f} s per attempt (p90 {r['seconds_p90']:.2f}, max {r['seconds_max']:.2f}) |")
@@ -500,7 +501,10 @@ SECTIONS = [
             "(--odom vo, XFeat, splat fields); the placement rule was chosen on fr1/xyz and the simulator",
             START_ANYWHERE_FILES,
             "python benchmarks/map_start_anywhere.py --data D [--extra-query X] [--traj 7scenes --second-gt SFM] "
-            "--work W --out ...", start_anywhere_table),
+            "--work W --out ...", start_anywhere_table,
+            note="Each relocalised frame is given the camera's twist by the visual odometry's step into it, as a run "
+                 "in the map has it at a keyframe, so its rolling shutter and depth instant are undone (the "
+                 "relocaliser's `twist`)."),
     Section("7-Scenes' two ground truths turn the cameras apart: the SfM poses against KinectFusion's, and the "
             "kitchen's self-made maps (the start-anywhere benchmark's halves) against both",
             (TURN_FILE,), "python benchmarks/ground_truths_turn.py --data D --second-gt SFM --map FRAMES=MAP ... --out ...",
