@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from map_survey import read_sfm_pseudo_gt, second_gt_for  # noqa: E402  (beside this file)
+from map_survey import map_trajectory, read_sfm_pseudo_gt, second_gt_for  # noqa: E402  (beside this file)
 from provenance import write_result
 
 REGISTRATIONS = ("nominal", "images", "poses")
@@ -38,16 +38,6 @@ def _arguments() -> argparse.Namespace:
     parser.add_argument("--registrations", nargs="+", default=list(REGISTRATIONS), choices=REGISTRATIONS)
     parser.add_argument("--out", type=Path, required=True)
     return parser.parse_args()
-
-
-def _trajectory(folder: Path, name: str, sequence) -> np.ndarray:
-    """A map's TUM file as (N, 4, 4) over the sequence's frames, NaN where it has no pose."""
-    from nap3d_graph.trajectory import read_tum_trajectory
-
-    stamps, T = read_tum_trajectory(folder / name)
-    out = np.full((len(sequence), 4, 4), np.nan)
-    out[np.searchsorted(np.asarray(sequence.timestamps), stamps - 1e-6)] = T
-    return out
 
 
 def _self_figures(info: dict, f_px: float) -> dict:
@@ -76,7 +66,7 @@ def _one(args, registration: str, frames: str, references) -> dict:
            "seconds": round(time.perf_counter() - t0, 1),
            **_self_figures(json.loads((folder / "map.json").read_text()), sequence.intrinsics.fx)}
     for stage, name in (("odometry", "odometry.txt"), ("survey", "poses.txt")):
-        T = _trajectory(folder, name, sequence)
+        T = map_trajectory(folder, name, sequence)
         row[stage] = {ref: aligned_errors(sequence.timestamps, R, T).summary() for ref, R in refs.items()}
     print(registration, frames, f"f {sequence.intrinsics.fx:.1f}",
           {k: row[k] for k in ("loops_kept", "loops_turned_away", "residual_mrad", "residual_disparity_mrad")},

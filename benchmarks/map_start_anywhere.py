@@ -33,6 +33,7 @@ from map_survey import (
     QueryTwist,
     cli,
     errors_in,
+    map_trajectory,
     read_sfm_pseudo_gt,
     run_query,
     second_alignment,
@@ -80,7 +81,8 @@ def relocalisation(map_dir: Path, query, every: int, matcher: str, T_map_gt: np.
         if not np.all(np.isfinite(T_gt)):
             continue
         T_true = T_map_gt @ T_gt
-        found = relocaliser.locate(query[i], twist_of(i))
+        frame = query[i]
+        found = relocaliser.locate(frame, twist_of(i, frame))
         row = {"frame": i, "covered": covered(T_true, T_map_key), "success": found.success,
                "seconds": round(found.seconds, 3), "wide_baseline": found.wide_baseline}
         if found.success:
@@ -116,7 +118,7 @@ def direction(args, survey_half: str) -> dict:
     T_map_gt = inv_T(np.asarray(info["survey_ate"]["T_gt_map"]))
     survey, query = open_sequence(args.data, frames=HALVES[survey_half]), open_sequence(args.data,
                                                                                          frames=HALVES[query_half])
-    T_map_survey = _survey_poses(map_dir, info, survey)
+    T_map_survey = map_trajectory(map_dir, "poses.txt", survey)
     second = second_reference(args, survey, query, T_map_survey)
     if second is not None:
         out["survey_ate_second_gt_m"] = float(second_alignment(args, survey, T_map_survey).summary()["rmse_m"])
@@ -180,16 +182,6 @@ def _map(args, survey_half: str, query_half: str, work: Path) -> tuple[Path, dic
            "survey_ate_m": info["survey_ate"]["map"]["rmse_m"], "keyframes": info["keyframes"], "loops": info["loops"],
            "readout_s": info.get("bundle", {}).get("readout_s")}
     return map_dir, info, out
-
-
-def _survey_poses(map_dir: Path, info: dict, survey) -> np.ndarray:
-    """The map's pose of every survey frame (N, 4, 4; NaN outside the kept segment)."""
-    from nap3d_graph.trajectory import read_tum_trajectory
-
-    _, T_poses = read_tum_trajectory(map_dir / "poses.txt")  # every frame of the kept segment
-    T_map_survey = np.full((len(survey), 4, 4), np.nan)
-    T_map_survey[info["segment"]["start"]:info["segment"]["stop"]] = T_poses
-    return T_map_survey
 
 
 def _runs(args, survey_half: str, query_half: str, work: Path, map_dir: Path, seed: int = 0) -> dict:

@@ -129,6 +129,17 @@ def second_reference(args, survey, query, T_map_survey):
             second_alignment(args, survey, T_map_survey).T_ref_est)
 
 
+def map_trajectory(map_dir: Path, name: str, sequence) -> np.ndarray:
+    """A map folder's TUM file (``poses.txt``, ``odometry.txt``) as (N, 4, 4) over the
+    sequence's frames, NaN where it has no pose."""
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    stamps, T = read_tum_trajectory(map_dir / name)
+    out = np.full((len(sequence), 4, 4), np.nan)
+    out[np.searchsorted(np.asarray(sequence.timestamps), stamps - 1e-6)] = T
+    return out
+
+
 class QueryTwist:
     """A query frame's body twist per second (GTSAM order) as a run in the map knows it when it
     relocalises that frame: its visual odometry's step from the frame before (the run's own
@@ -140,14 +151,15 @@ class QueryTwist:
         self.query, self.off = query, off
         self.odometry = None if off else make_odometry("vo", query, initial_pose=np.eye(4), matcher=matcher)
 
-    def __call__(self, i: int) -> np.ndarray | None:
+    def __call__(self, i: int, frame) -> np.ndarray | None:
+        """The twist at frame ``i``, ``frame`` being that frame already read."""
         from nap3d_graph.conventions import log_se3
 
         if self.odometry is None or i < 1:
             return None
         dt = float(self.query.timestamps[i] - self.query.timestamps[i - 1])
         self.odometry.prime(self.query[i - 1])
-        step = self.odometry.increment(i, self.query[i])
+        step = self.odometry.increment(i, frame)
         return log_se3(step.T_prev_cur) / dt if step.ok and dt > 0 else None
 
 
@@ -171,7 +183,8 @@ def relocalisation(map_dir: Path, info: dict, query, args, second=None) -> dict:
     twist = QueryTwist(query, args.matcher, off=args.no_twist)
     attempts = []
     for i in sorted(picks):
-        found = relocaliser.locate(query[int(i)], twist(int(i)))
+        frame = query[int(i)]
+        found = relocaliser.locate(frame, twist(int(i), frame))
         row = {"frame": int(i), "success": found.success, "seconds": found.seconds, "reason": found.reason}
         if found.success and np.all(np.isfinite(query.T_world_cam_gt[i])):
             e = log_se3(inv_T(T_map_gt @ query.T_world_cam_gt[i]) @ found.T_map_cam)

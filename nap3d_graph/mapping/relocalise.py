@@ -35,6 +35,7 @@ import numpy as np
 
 from nap3d_graph.camera import Intrinsics, RGBDFrame
 from nap3d_graph.conventions import inv_T, log_se3
+from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 from nap3d_graph.nap3d.config import AlignConfig
 
 from .folder import MapFolder
@@ -177,6 +178,8 @@ class Relocaliser:
             self.width = None if width < 0 else width
         self.T_map_key = np.load(folder.keyframe_poses)
         self.field = field_obj
+        # The capture timing the map's field recorded: what a frame given its twist is aligned with.
+        self.timing, _ = resolve_capture_timing(field_obj)
         # No depth-scale estimate: nothing here reads it, and its RANSAC is a tenth of an attempt.
         self.config = dataclasses.replace(config or AlignConfig(matcher=self.matcher), estimate_scale=False)
         self.render_intrinsics = render_intrinsics
@@ -321,25 +324,14 @@ class Relocaliser:
                               time.perf_counter() - started, wide_baseline=wide)
 
     def _at_one_instant(self, frame: RGBDFrame, twist: np.ndarray | None) -> tuple[RGBDFrame, object, np.ndarray]:
-        """``(frame, motion, shift)``: the frame with its depth moved to its colour's instant,
-        the :class:`~nap3d_graph.nap3d.rolling_shutter.RowMotion` its alignments undo (None: a
-        global shutter or no twist) and the (4, 4) that moves an answer at the colour's instant
-        to the frame's stamp; the frame as it is, None and the identity without a twist or a
-        capture timing in the field."""
-        from nap3d_graph.conventions import exp_se3
-        from nap3d_graph.datasets.depth_timing import resolve_capture_timing
-        from nap3d_graph.nap3d.rolling_shutter import RowMotion
-        from nap3d_graph.run.keyframe import at_colour_time
+        """``(frame, motion, shift)`` of :func:`~nap3d_graph.run.keyframe.at_one_instant` with
+        the field's capture timing; the frame as it is, None and the identity without a twist
+        or a capture timing."""
+        from nap3d_graph.run.keyframe import at_one_instant
 
-        if twist is None or not np.all(np.isfinite(twist)):
+        if twist is None or not np.all(np.isfinite(twist)) or self.timing is None:
             return frame, None, np.eye(4)
-        timing, _ = resolve_capture_timing(self.field)
-        if timing is None:
-            return frame, None, np.eye(4)
-        frame, used = at_colour_time(frame, timing, np.asarray(twist, dtype=float), 1.0)
-        motion = RowMotion(np.asarray(twist, dtype=float), float(timing.readout_s)) if timing.readout_s > 0 else None
-        shift = exp_se3(-np.asarray(twist, dtype=float) * timing.colour_offset_s) if used is not None else np.eye(4)
-        return frame, motion, shift
+        return at_one_instant(frame, self.timing, np.asarray(twist, dtype=float), float(self.timing.readout_s), 1.0)
 
     def _candidate(self, frame: RGBDFrame, query, k: int, feats_real, motion=None) -> tuple[tuple | None, str, bool]:
         """``(verified, refusal, wide)``: keyframe ``k`` as a candidate, its render started

@@ -28,7 +28,8 @@ from nap3d_graph.results import Correction
 
 log = logging.getLogger(__name__)
 
-__all__ = ["KeyframeJob", "measure_keyframe", "at_colour_time", "CorrectionWorker", "DepthScaleTracker"]
+__all__ = ["KeyframeJob", "measure_keyframe", "at_colour_time", "at_one_instant", "CorrectionWorker",
+           "DepthScaleTracker"]
 
 
 @dataclass(frozen=True)
@@ -71,6 +72,19 @@ def at_colour_time(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.nda
     return frame.with_depth(depth), twist
 
 
+def at_one_instant(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, readout_s: float,
+                   depth_scale: float) -> tuple[RGBDFrame, RowMotion | None, np.ndarray]:
+    """What aligning a moving camera's frame as one instant needs: ``(frame, motion, shift)``,
+    the frame with its depth at its colour's instant (:func:`at_colour_time`), the
+    :class:`RowMotion` its alignment undoes (None: a global shutter or no twist) and the (4, 4)
+    that moves a pose measured at the colour's instant to the frame's stamp (the identity when
+    the depth was not moved)."""
+    frame, used = at_colour_time(frame, timing, twist, depth_scale)
+    motion = RowMotion(twist, readout_s) if readout_s > 0 and twist is not None else None
+    shift = exp_se3(-used * timing.colour_offset_s) if used is not None and timing is not None else np.eye(4)
+    return frame, motion, shift
+
+
 def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
     """The correction of one keyframe (``config``: the run's :class:`PipelineConfig`): depth to
     the colour instant, ``correct_pose``, the result moved back to the frame's stamp and the
@@ -99,10 +113,9 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         # The real frame's features are known: its render (and the render's features) need not
         # wait for the depth to be moved to the colour instant; the side thread makes it now.
         rendering = prepare_view_beside(field, job.T_field_cam_render, job.render_intrinsics, align)
-    frame, twist = at_colour_time(job.frame, job.timing, job.twist, job.depth_scale)
+    frame, motion, shift = at_one_instant(job.frame, job.timing, job.twist, readout_of(config, job.timing),
+                                          job.depth_scale)
     beside = _resolved(rendering, None, "the render") if rendering is not None else None
-    readout_s = readout_of(config, job.timing)
-    motion = RowMotion(job.twist, readout_s) if readout_s > 0 and job.twist is not None else None
     correction = correct_pose(frame, field, job.T_field_cam_render, iterations=config.correction_iterations,
                               config=align, render_intrinsics=job.render_intrinsics, prepared=prepared or beside,
                               feats_real=feats_real, motion=motion)
@@ -111,9 +124,7 @@ def measure_keyframe(job: KeyframeJob, field, config) -> Correction:
         correction.timings_s["render_beside"] = correction.timings_s.pop("render_ahead", 0.0)
     if feats_real is not None:
         correction.timings_s["detect_ahead"] = detect_s
-    if twist is not None and job.timing is not None and correction.success:
-        # Measured at the colour's instant: move it to the frame's stamp.
-        shift = exp_se3(-twist * job.timing.colour_offset_s)
+    if correction.success:  # measured at the colour's instant: moved to the frame's stamp
         correction = dataclasses.replace(correction, T_world_cam_corrected=correction.T_world_cam_corrected @ shift)
     field_cov = config.field_covariance(field, job.T_field_cam_render)
     if correction.success and field_cov is not None:
