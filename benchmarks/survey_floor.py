@@ -14,6 +14,10 @@ out a wrong metre and a clock offset).
 - **The focal length**, scaled by each ``--focal-scales``, the bundle solved again at the
   readout the map's own solve chose. The pixel and disparity residuals say whether the survey
   itself could choose it.
+- **Where the rest is.** The as-mapped error (positions, SE(3)-aligned) split into its slow
+  part (a 1 s moving average: bends and drift) and the fast rest (keyframe to keyframe), and
+  its RMSE over the quarter of frames where the reference turns fastest against the slowest
+  quarter.
 - **The reference's camera offset.** A motion-capture or SfM camera sits a lever arm away
   from the one the estimate poses if its calibration is off. Fitted to each reference (a
   translation in the camera, with the alignment): how much of the ATE such an offset could
@@ -134,6 +138,34 @@ def camera_offset_fit(T_est: np.ndarray, T_ref: np.ndarray, rounds: int = 50) ->
     return offset, float(np.sqrt(np.mean(np.sum((p_est @ R.T + t - p_ref) ** 2, axis=1))))
 
 
+def error_structure(stamps_s: np.ndarray, T_est: np.ndarray, T_ref: np.ndarray, window_s: float = 1.0) -> dict:
+    """The estimate's position error (frames both pose, SE(3)-aligned on positions) as its RMSE,
+    that of its slow part (moving average over ``window_s``) and of the rest, and the RMSE over
+    the quarter of frames where the reference turns fastest and over the slowest quarter (with
+    those quarters' median turn rates, deg/s), all in cm."""
+    from evo.core.geometry import umeyama_alignment
+    from scipy.ndimage import uniform_filter1d
+    from scipy.spatial.transform import Rotation
+
+    both = np.all(np.isfinite(T_est), axis=(1, 2)) & np.all(np.isfinite(T_ref), axis=(1, 2))
+    est, ref, t = T_est[both], T_ref[both], np.asarray(stamps_s, dtype=float)[both]
+    R, shift, _ = umeyama_alignment(est[:, :3, 3].T, ref[:, :3, 3].T, False)
+    error = est[:, :3, 3] @ R.T + shift - ref[:, :3, 3]
+    width = max(3, int(round(window_s / float(np.median(np.diff(t))))))
+    slow = uniform_filter1d(error, width, axis=0, mode="nearest")
+    turn = Rotation.from_matrix(np.einsum("nji,njk->nik", ref[:-1, :3, :3], ref[1:, :3, :3])).magnitude()
+    rate = np.degrees(turn / np.diff(t))
+    rate = np.r_[rate[0], 0.5 * (rate[:-1] + rate[1:]), rate[-1]]  # at each frame: the steps either side
+    fast_q, slow_q = rate >= np.quantile(rate, 0.75), rate <= np.quantile(rate, 0.25)
+
+    def rms(x) -> float:
+        return float(100 * np.sqrt(np.mean(np.sum(np.atleast_2d(x) ** 2, axis=1))))
+
+    return {"rmse_cm": rms(error), "slow_cm": rms(slow), "fast_cm": rms(error - slow), "window_s": window_s,
+            "fastest_quarter_cm": rms(error[fast_q]), "fastest_quarter_deg_s": float(np.median(rate[fast_q])),
+            "slowest_quarter_cm": rms(error[slow_q]), "slowest_quarter_deg_s": float(np.median(rate[slow_q]))}
+
+
 def _residuals(report: dict) -> dict:
     last = report["noise_rounds"][-1]
     return {"residual_px": last["residual_px"], "residual_disparity_px": last["residual_disparity_px"],
@@ -198,7 +230,7 @@ def survey_floor(map_dir: Path, data: Path, second_gt: Path | None, focal_scales
         out["focal"].append({"scale": scale, "ate_cm": score(T_focal), **_residuals(report)})
         print(map_dir, "focal", out["focal"][-1], flush=True)
 
-    out["camera_offset"] = {}
+    out["camera_offset"], out["error_structure"] = {}, {}
     T_frames = frames(T_base)
     for name, ref in references.items():
         both = np.all(np.isfinite(T_frames), axis=(1, 2)) & np.all(np.isfinite(ref), axis=(1, 2))
@@ -206,7 +238,8 @@ def survey_floor(map_dir: Path, data: Path, second_gt: Path | None, focal_scales
         plain = aligned_errors(sequence.timestamps, ref, T_frames).summary()["rmse_position_only_alignment_m"]
         out["camera_offset"][name] = {"ate_position_cm": plain * 100, "ate_with_offset_cm": ate * 100,
                                       "offset_cm": [round(float(v) * 100, 2) for v in offset]}
-    print(map_dir, "camera offset", out["camera_offset"], flush=True)
+        out["error_structure"][name] = error_structure(sequence.timestamps, T_frames, np.asarray(ref))
+    print(map_dir, "camera offset", out["camera_offset"], "error structure", out["error_structure"], flush=True)
     return out
 
 

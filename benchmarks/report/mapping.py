@@ -331,8 +331,9 @@ def survey_floor_table() -> str:
     other focal lengths, and against references given a camera offset."""
     rows = ["| file | half | as mapped: ATE cm; pixel / disparity residual px | depth / images at the nearest and "
             "farthest bins (median depth) | depth corrected: ATE cm; residuals px | focal scale: ATE cm; residuals px "
-            "| reference camera offset: position ATE cm before → after; offset cm (x, y, z in the camera) |",
-            "|---|---|---|---|---|---|---|"]
+            "| reference camera offset: position ATE cm before → after; offset cm (x, y, z in the camera) "
+            "| error cm: slow part (1 s) / fast rest; fastest-turning quarter / slowest (median deg/s) |",
+            "|---|---|---|---|---|---|---|---|"]
     for name in FLOOR_FILES:
         r = read(name)
         for half, m in r.get("maps", {}).items():
@@ -343,10 +344,14 @@ def survey_floor_table() -> str:
             offset = "; ".join(f"{o['ate_position_cm']:.2f} → {o['ate_with_offset_cm']:.2f}, "
                                f"({', '.join(f'{v:+.1f}' for v in o['offset_cm'])})"
                                for o in m["camera_offset"].values())
+            structure = "; ".join(f"{e['slow_cm']:.2f} / {e['fast_cm']:.2f}; {e['fastest_quarter_cm']:.2f} "
+                                  f"({e['fastest_quarter_deg_s']:.0f}) / {e['slowest_quarter_cm']:.2f} "
+                                  f"({e['slowest_quarter_deg_s']:.0f})" for e in m.get("error_structure", {}).values())
             rows.append(f"| `{name}` | {half} | {_each_reference(base['ate_cm'])}; {base['residual_px']:.3f} / "
                         f"{base['residual_disparity_px']:.3f} | {near[1]:.3f} at {near[0]:.2f} m, {far[1]:.3f} at "
                         f"{far[0]:.2f} m ({fit['median_depth_m']:.2f} m) | {_each_reference(depth['ate_cm'])}; "
-                        f"{depth['residual_px']:.3f} / {depth['residual_disparity_px']:.3f} | {focal} | {offset} |")
+                        f"{depth['residual_px']:.3f} / {depth['residual_disparity_px']:.3f} | {focal} | {offset} "
+                        f"| {structure or 'n/a'} |")
     return "\n".join(rows) if len(rows) > 2 else "(not measured)"
 
 
@@ -567,7 +572,8 @@ SECTIONS = [
                  "camera's rolling shutter (the bundle adjustment's table below)."),
     Section("What else could hold the survey above 1 cm? Each self-made map (the start-anywhere benchmark's halves) "
             "with the depth's disparity offset fitted from the survey's own triangulation and undone, with its focal "
-            "length scaled, and against references given a camera offset; in brackets against 7-Scenes' SfM poses",
+            "length scaled, against references given a camera offset, and where the rest of its error is; in brackets "
+            "and after a semicolon: against 7-Scenes' SfM poses",
             FLOOR_FILES, "python benchmarks/survey_floor.py --data D [--second-gt SFM] --map NAME=MAP ... --out ...",
             survey_floor_table,
             note="The depth fit needs no ground truth: matches seen 8 degrees apart or more are triangulated from "
