@@ -47,8 +47,7 @@ import numpy as np
 from map_bundle import _graph, _references  # noqa: E402  (beside this file)
 from provenance import write_result
 
-#: Matches triangulated for the depth fit: the two rays at least this far apart (degrees).
-MIN_PARALLAX_DEG = 8.0
+from nap3d_graph.mapping.depth_check import triangulated_depths
 
 
 def _arguments() -> argparse.Namespace:
@@ -59,30 +58,6 @@ def _arguments() -> argparse.Namespace:
     parser.add_argument("--focal-scales", type=float, nargs="+", default=[0.98, 1.02])
     parser.add_argument("--out", type=Path, required=True)
     return parser.parse_args()
-
-
-def triangulated_depths(pairs: list, T_map_key: np.ndarray, K) -> tuple[np.ndarray, np.ndarray]:
-    """``(z_depth, z_images)`` (M,) metres: each match's measured depth and its depth
-    triangulated from its two pixels and the keyframes' poses (K, 4, 4), both observations of
-    every match whose rays are ``MIN_PARALLAX_DEG`` apart and in front of both cameras."""
-
-    def rays(uv: np.ndarray) -> np.ndarray:  # camera rays with z = 1, so a ray's scale is its depth
-        return np.c_[(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(uv))]
-
-    measured, images = [], []
-    for p in pairs:
-        Ta, Tb = T_map_key[p.a], T_map_key[p.b]
-        ra, rb = rays(p.uv_a) @ Ta[:3, :3].T, rays(p.uv_b) @ Tb[:3, :3].T
-        # depths s, t with Ta's centre + s ra closest to Tb's centre + t rb (least squares)
-        A = np.stack([ra, -rb], axis=2)
-        rhs = np.broadcast_to(Tb[:3, 3] - Ta[:3, 3], ra.shape)
-        st = np.linalg.solve(np.einsum("mij,mik->mjk", A, A), np.einsum("mij,mi->mj", A, rhs)[..., None])[..., 0]
-        cos = np.einsum("mi,mi->m", ra, rb) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
-        keep = ((np.degrees(np.arccos(np.clip(cos, -1, 1))) >= MIN_PARALLAX_DEG) & (st[:, 0] > 0.2) & (st[:, 1] > 0.2)
-                & (p.z_a > 0) & (p.z_b > 0))
-        measured += [p.z_a[keep], p.z_b[keep]]
-        images += [st[keep, 0], st[keep, 1]]
-    return np.concatenate(measured), np.concatenate(images)
 
 
 def fit_disparity_offset(z_depth: np.ndarray, z_images: np.ndarray) -> dict:

@@ -526,6 +526,9 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     info = json.loads((map_folder / "map.json").read_text())
     assert info["report"]["past_bad_line"] == [], (map_folder / "report.md").read_text()
     assert "survey ATE against the ground truth" in (map_folder / "report.md").read_text()
+    # The depth against the images: measured on the real frames and within its line, or why not.
+    depth = info["bundle"]["depth_against_images"]
+    assert ("reason" in depth) or (depth["worst"] < 0.05 and depth["observations"] >= 150), depth
     residuals = loop_residuals(map_folder)
     assert len(residuals) == info["loops"]["accepted"] and np.median(residuals[:, 0]) < 0.01
     # A map bent away from its own loops (what a false loop forced into the graph does): the
@@ -544,6 +547,15 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     info["loops"]["accepted"] = 0
     (alone / "map.json").write_text(json.dumps(info))
     assert any(figure.startswith("loops:") for figure in map_report(alone).bad)
+    # A depth camera whose far depth reads long against the images (measured: tests/test_depth_check.py).
+    far = tmp_path / "far"
+    shutil.copytree(map_folder, far)
+    far_info = json.loads((far / "map.json").read_text())
+    far_info["bundle"]["depth_against_images"] = {"observations": 4000, "slope": 1.0, "intercept_per_m": 0.05,
+                                                  "bins": [[0.9, 0.97], [1.5, 1.0], [2.8, 1.08]], "worst": 0.08,
+                                                  "bad": True}
+    (far / "map.json").write_text(json.dumps(far_info))
+    assert any(figure.startswith("depth against the images") for figure in map_report(far).bad)
     # A field that covers none of its held-out frames has no depth error to give: told, not a crash.
     blind = tmp_path / "blind"
     shutil.copytree(map_folder, blind)

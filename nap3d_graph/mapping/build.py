@@ -32,6 +32,7 @@ from nap3d_graph.conventions import exp_se3, inv_T, log_se3
 from nap3d_graph.textfiles import write_json_atomic
 
 from .bundle import BundleSettings, PairMatches, agreeing_pairs, bundle_adjust, keyframe_twists
+from .depth_check import depth_against_images
 from .folder import MapFolder
 from .loops import (
     Keyframe,
@@ -264,6 +265,10 @@ def _bundle_stage(sequence, graph: GraphResult, twists: np.ndarray, chain_matche
                                          _working_intrinsics(sequence, settings), bundle_settings, twists)
     report["baseline_from"] = ("the recording's calibration" if bundle_settings is not settings.bundle_settings
                                else "the settings")
+    # The depth against the images, at the final poses over every pair the adjustment used.
+    used = chain_matches + [lp.matches_kept for lp in verified
+                            if lp.status in ("accepted", "admitted") and lp.matches_kept is not None]
+    report["depth_against_images"] = depth_against_images(used, T_map_key, _working_intrinsics(sequence, settings))
     folder.info["bundle"] = report
     _say(say, f"bundle adjustment: {report.get('landmarks', 0)} landmarks, {report.get('observations', 0)} "
               f"observations, colour rows read in {report.get('readout_s', 0) * 1000:.0f} ms, "

@@ -13,6 +13,10 @@ The figures and the lines past which they say something went wrong:
 - **bundle reprojection residual**: the bundle adjustment's median reprojection error at
   its final noise; beyond 1.5 px the poses and the landmarks disagree (a wrong camera, a
   wrong depth unit, a bent map).
+- **depth against the images**: the depth the sensor measured at the survey's matches against
+  their depth triangulated from the images and the final poses, in bins from near to far
+  (:mod:`.depth_check`); a bin more than 5% off the median bin's ratio: the depth's shape and
+  the images disagree (a depth camera's calibration, a wrong focal length or registration).
 - **field on held-out survey frames**: the field rendered at survey frames it was not
   trained on, against those frames: PSNR (after a per-frame affine colour fit), median depth
   error and the share of the frame it covers, and NAP3D of those frames against the field
@@ -35,6 +39,7 @@ from nap3d_graph.conventions import inv_T
 from nap3d_graph.run.report import FigureReport
 from nap3d_graph.textfiles import write_json_atomic
 
+from .depth_check import DEPTH_SHAPE_BAD
 from .folder import MapFolder
 
 __all__ = ["MapReport", "map_report", "write_map_report", "write_outputs", "LOOP_RESIDUAL_BAD", "REPROJECTION_BAD_PX",
@@ -124,6 +129,21 @@ def _bundle(report: MapReport, info: dict) -> None:
                None)
 
 
+def _depth_check(report: MapReport, info: dict) -> None:
+    check = (info.get("bundle") or {}).get("depth_against_images")
+    if not check:
+        return
+    if "reason" in check:
+        report.add("depth against the images' triangulation", f"not measured: {check['reason']}", "measured", None)
+        return
+    (near_m, near), (far_m, far) = check["bins"][0], check["bins"][-1]
+    report.values["depth_against_images"] = {"worst": check["worst"], "near": [near_m, near], "far": [far_m, far]}
+    report.add("depth against the images' triangulation (depth / images, the median bin as the metre)",
+               f"{near:.3f} at {near_m:.2f} m, {far:.3f} at {far_m:.2f} m; worst bin {check['worst']:.1%} off "
+               f"({check['observations']} observations)", f"within {DEPTH_SHAPE_BAD:.0%} in every bin",
+               not check["bad"])
+
+
 def _number(value) -> float:
     """A figure read from a report, NaN where it is missing (None)."""
     return float("nan") if value is None else float(value)
@@ -171,6 +191,7 @@ def map_report(folder) -> MapReport:
     report = MapReport()
     _loops(report, info, folder)
     _bundle(report, info)
+    _depth_check(report, info)
     _field(report, folder)
     ate = (info.get("survey_ate") or {}).get("map")
     if ate:

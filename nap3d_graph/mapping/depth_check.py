@@ -1,0 +1,100 @@
+"""Does the depth sensor agree with the images? A figure the survey gives without ground truth.
+
+Every verified match the survey's keyframes saw from two viewpoints far enough apart is
+triangulated from its two pixels and the adjusted keyframe poses, and the depth the sensor
+measured at each pixel is compared with it. A structured-light or stereo depth camera is
+``f b / (d + offset)``: a wrong disparity offset reads far depth long and near depth short, a
+wrong baseline scales it all, a wrong focal length or registration bends it. The comparison
+is binned by the measured depth, and a line ``1/z_images = slope / z_depth + intercept`` is
+fitted through the bins' medians (the measured depth is the precise axis, so the
+triangulation's noise does not flatten the line).
+
+The survey's metre is the depth's (the images alone have no scale), so a depth that is only
+scaled shows as a slope the bundle adjustment has absorbed: what the figure can tell is the
+depth's *shape* against the images, bin by bin. ``benchmarks/survey_floor.py`` undoes the
+fitted line on real maps and measures what it does to the survey (little: see
+``docs/mapping.md``), so ``map`` reports it and does not apply it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nap3d_graph.camera import Intrinsics
+
+__all__ = ["triangulated_depths", "depth_against_images", "MIN_PARALLAX_DEG", "MIN_PER_BIN", "DEPTH_SHAPE_BAD"]
+
+#: Matches triangulated: the two rays at least this far apart (degrees); narrower ones
+#: triangulate too loosely to compare a depth with.
+MIN_PARALLAX_DEG = 8.0
+#: Observations per depth bin at least (and at least three bins).
+MIN_PER_BIN = 50
+#: A bin whose measured depth differs from the images' by more than this share (after the
+#: median bin is taken as the metre): more than twice the depth error Kinect v1 and
+#: RealSense D400 cameras are specified to (about 2% at 2 m).
+DEPTH_SHAPE_BAD = 0.05
+
+
+def triangulated_depths(pairs: list, T_map_key: np.ndarray, intrinsics: Intrinsics,
+                        min_parallax_deg: float = MIN_PARALLAX_DEG) -> tuple[np.ndarray, np.ndarray]:
+    """``(z_depth, z_images)`` (M,) metres: the measured depth of both observations of every
+    match in ``pairs`` (:class:`~.bundle.PairMatches`, pixels in ``intrinsics``) whose rays
+    from keyframes ``T_map_key`` (K, 4, 4, map <- camera) are ``min_parallax_deg`` apart,
+    and its depth triangulated from the two pixels (the two rays' closest points)."""
+    K = intrinsics
+
+    def rays(uv: np.ndarray) -> np.ndarray:  # camera rays with z = 1: a ray's length factor is its depth
+        uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+        return np.c_[(uv[:, 0] - K.cx) / K.fx, (uv[:, 1] - K.cy) / K.fy, np.ones(len(uv))]
+
+    measured, images = [np.empty(0)], [np.empty(0)]
+    for p in pairs:
+        if len(p.uv_a) == 0:
+            continue
+        Ta, Tb = T_map_key[p.a], T_map_key[p.b]
+        ra, rb = rays(p.uv_a) @ Ta[:3, :3].T, rays(p.uv_b) @ Tb[:3, :3].T
+        # depths s, t with a's centre + s ra closest to b's centre + t rb (least squares)
+        A = np.stack([ra, -rb], axis=2)
+        normal = np.einsum("mij,mik->mjk", A, A)
+        if not np.all(np.isfinite(normal)) or np.any(np.abs(np.linalg.det(normal)) < 1e-12):
+            continue  # parallel rays: nothing to triangulate
+        rhs = np.broadcast_to(Tb[:3, 3] - Ta[:3, 3], ra.shape)
+        st = np.linalg.solve(normal, np.einsum("mij,mi->mj", A, rhs)[..., None])[..., 0]
+        cos = np.einsum("mi,mi->m", ra, rb) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
+        z_a, z_b = np.asarray(p.z_a, dtype=float), np.asarray(p.z_b, dtype=float)
+        keep = ((np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= min_parallax_deg) & (st[:, 0] > 0.2)
+                & (st[:, 1] > 0.2) & (z_a > 0) & (z_b > 0) & np.isfinite(z_a) & np.isfinite(z_b))
+        measured += [z_a[keep], z_b[keep]]
+        images += [st[keep, 0], st[keep, 1]]
+    return np.concatenate(measured), np.concatenate(images)
+
+
+def depth_against_images(pairs: list, T_map_key: np.ndarray, intrinsics: Intrinsics) -> dict:
+    """The measured depth against the images' triangulation (module docstring):
+    ``observations``; ``bins`` ``[[median z_depth m, z_depth / z_images], ...]`` nearest
+    first, each ratio divided by the median bin's (the depth's metre kept); ``worst`` the
+    largest ``|ratio - 1|`` of them; the fitted ``slope`` and ``intercept_per_m``; ``bad``
+    when ``worst`` is beyond :data:`DEPTH_SHAPE_BAD`. ``reason`` instead when too few matches
+    were seen from far enough apart."""
+    z_depth, z_images = triangulated_depths(pairs, T_map_key, intrinsics)
+    keep = np.isfinite(z_depth) & np.isfinite(z_images)
+    z_depth, z_images = z_depth[keep], z_images[keep]
+    n_bins = min(10, len(z_depth) // MIN_PER_BIN)
+    if n_bins < 3:
+        return {"observations": int(len(z_depth)),
+                "reason": f"{len(z_depth)} observations of matches seen {MIN_PARALLAX_DEG:g} deg apart or more "
+                          f"(at least {3 * MIN_PER_BIN} needed)"}
+    inv_depth, inv_images = 1.0 / z_depth, 1.0 / z_images
+    order = np.argsort(-inv_depth)  # nearest first (the largest inverse depth)
+    x, y = [], []
+    for chunk in np.array_split(order, n_bins):
+        x.append(float(np.median(inv_depth[chunk])))
+        y.append(float(np.median(inv_images[chunk])))
+    x_arr, y_arr = np.asarray(x), np.asarray(y)
+    slope, intercept = np.polyfit(x_arr, y_arr, 1)
+    ratio = y_arr / x_arr  # z_depth / z_images per bin
+    ratio = ratio / np.median(ratio)
+    worst = float(np.max(np.abs(ratio - 1.0)))
+    return {"observations": int(len(z_depth)), "slope": float(slope), "intercept_per_m": float(intercept),
+            "bins": [[round(float(1.0 / a), 3), round(float(r), 4)] for a, r in zip(x_arr, ratio)],
+            "worst": worst, "bad": bool(worst > DEPTH_SHAPE_BAD)}
