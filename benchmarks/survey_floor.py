@@ -18,6 +18,9 @@ out a wrong metre and a clock offset).
   part (a 1 s moving average: bends and drift) and the fast rest (keyframe to keyframe), and
   its RMSE over the quarter of frames where the reference turns fastest against the slowest
   quarter.
+- **The map's depth check** (``map.json``'s ``bundle.depth_against_images``, the report's line)
+  on the same real matches as measured and with a disparity offset added to every depth: the
+  offset it finds and whether it tells it.
 - **The reference's camera offset.** A motion-capture or SfM camera sits a lever arm away
   from the one the estimate poses if its calibration is off. Fitted to each reference (a
   translation in the camera, with the alignment): how much of the ATE such an offset could
@@ -47,7 +50,10 @@ import numpy as np
 from map_bundle import _graph, _references  # noqa: E402  (beside this file)
 from provenance import write_result
 
-from nap3d_graph.mapping.depth_check import triangulated_depths
+from nap3d_graph.mapping.depth_check import depth_against_images, triangulated_depths
+
+#: Disparity offsets (1/m) added to the real matches' depths to see the map's check tell them.
+CHECK_OFFSETS_PER_M = (0.0, 0.02, 0.05)
 
 
 def _arguments() -> argparse.Namespace:
@@ -94,6 +100,17 @@ def corrected_pairs(pairs: list, fit: dict) -> list:
         return out
 
     return [dataclasses.replace(p, z_a=correct(p.z_a), z_b=correct(p.z_b)) for p in pairs]
+
+
+def _through_offset(z: np.ndarray, offset_per_m: float) -> np.ndarray:
+    """Depths read through a disparity offset: ``1 / z_read = 1 / z - offset_per_m`` (far reads
+    long for a positive offset)."""
+    z = np.asarray(z, dtype=float)
+    out = z.copy()
+    valid = z > 0
+    inverse = 1.0 / z[valid] - offset_per_m
+    out[valid] = np.where(inverse > 0, 1.0 / np.maximum(inverse, 1e-9), np.nan)  # beyond infinity: no depth
+    return out
 
 
 def camera_offset_fit(T_est: np.ndarray, T_ref: np.ndarray, rounds: int = 50) -> tuple[np.ndarray, float]:
@@ -197,6 +214,15 @@ def survey_floor(map_dir: Path, data: Path, second_gt: Path | None, focal_scales
     (T_depth, depth_report), _ = adjust(K0, BundleSettings(), fit)
     out["depth_offset"] = {"fit": fit, "ate_cm": score(T_depth), **_residuals(depth_report)}
     print(map_dir, "depth corrected", out["depth_offset"], flush=True)
+    # The map's report check on the same real matches, as measured and with the depth read
+    # through a disparity offset added on purpose: does it tell one?
+    out["depth_check"] = {}
+    for added in CHECK_OFFSETS_PER_M:
+        read = [dataclasses.replace(p, z_a=_through_offset(p.z_a, added), z_b=_through_offset(p.z_b, added))
+                for p in pairs]
+        check = depth_against_images(read, T_base, K0)
+        out["depth_check"][f"{added:g}"] = {k: check.get(k) for k in ("observations", "intercept_per_m", "worst", "bad")}
+    print(map_dir, "depth check", out["depth_check"], flush=True)
 
     out["focal"] = []
     for scale in focal_scales:

@@ -332,8 +332,9 @@ def survey_floor_table() -> str:
     rows = ["| file | half | as mapped: ATE cm; pixel / disparity residual px | depth / images at the nearest and "
             "farthest bins (median depth) | depth corrected: ATE cm; residuals px | focal scale: ATE cm; residuals px "
             "| reference camera offset: position ATE cm before → after; offset cm (x, y, z in the camera) "
-            "| error cm: slow part (1 s) / fast rest; fastest-turning quarter / slowest (median deg/s) |",
-            "|---|---|---|---|---|---|---|---|"]
+            "| error cm: slow part (1 s) / fast rest; fastest-turning quarter / slowest (median deg/s) "
+            "| the map's depth check: worst bin off, offset found (1/m), told; the same with an offset added |",
+            "|---|---|---|---|---|---|---|---|---|"]
     for name in FLOOR_FILES:
         r = read(name)
         for half, m in r.get("maps", {}).items():
@@ -347,11 +348,14 @@ def survey_floor_table() -> str:
             structure = "; ".join(f"{e['slow_cm']:.2f} / {e['fast_cm']:.2f}; {e['fastest_quarter_cm']:.2f} "
                                   f"({e['fastest_quarter_deg_s']:.0f}) / {e['slowest_quarter_cm']:.2f} "
                                   f"({e['slowest_quarter_deg_s']:.0f})" for e in m.get("error_structure", {}).values())
+            checks = "; ".join(f"{'as measured' if float(added) == 0 else f'+{added}'}: {c['worst']:.1%}, "
+                               f"{c['intercept_per_m']:+.3f}, {'told' if c['bad'] else 'not told'}"
+                               for added, c in m.get("depth_check", {}).items() if c.get("worst") is not None)
             rows.append(f"| `{name}` | {half} | {_each_reference(base['ate_cm'])}; {base['residual_px']:.3f} / "
                         f"{base['residual_disparity_px']:.3f} | {near[1]:.3f} at {near[0]:.2f} m, {far[1]:.3f} at "
                         f"{far[0]:.2f} m ({fit['median_depth_m']:.2f} m) | {_each_reference(depth['ate_cm'])}; "
                         f"{depth['residual_px']:.3f} / {depth['residual_disparity_px']:.3f} | {focal} | {offset} "
-                        f"| {structure or 'n/a'} |")
+                        f"| {structure or 'n/a'} | {checks or 'n/a'} |")
     return "\n".join(rows) if len(rows) > 2 else "(not measured)"
 
 
