@@ -8,7 +8,7 @@ import numpy as np
 
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.mapping.bundle import PairMatches
-from nap3d_graph.mapping.depth_check import DEPTH_SHAPE_BAD, depth_against_images
+from nap3d_graph.mapping.depth_check import DEPTH_OFFSET_BAD_PER_M, DEPTH_SHAPE_BAD, depth_against_images
 
 K = Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480)
 
@@ -24,13 +24,14 @@ def _looking_at(centre: np.ndarray, eye: np.ndarray) -> np.ndarray:
     return T
 
 
-def _survey(offset_per_m: float, spread_deg: float, seed: int = 0):
-    """Keyframes on an arc 2 m from a cloud of points 0.8-3.2 m away, ``spread_deg`` between
-    neighbours, every pair's matches with pixels (0.3 px noise) and depths read through a
-    disparity offset: ``1 / z_depth = 1 / z - offset_per_m`` (and 0.3% noise)."""
+def _survey(offset_per_m: float, spread_deg: float, seed: int = 0, depth_span_m: float = 1.2):
+    """Keyframes on an arc 2 m from a cloud of points 2 m +- ``depth_span_m`` away,
+    ``spread_deg`` between neighbours, every pair's matches with pixels (0.3 px noise) and
+    depths read through a disparity offset: ``1 / z_depth = 1 / z - offset_per_m`` (and 0.3%
+    noise)."""
     rng = np.random.default_rng(seed)
     centre = np.array([0.0, 0.0, 2.0])
-    points = centre + rng.uniform(-1.0, 1.0, (2000, 3)) * [1.0, 0.7, 1.2]
+    points = centre + rng.uniform(-1.0, 1.0, (2000, 3)) * [1.0, 0.7, depth_span_m]
     angles = np.radians(spread_deg * (np.arange(6) - 2.5))
     T = np.stack([_looking_at(centre, centre + 2.0 * np.array([np.sin(a), 0.0, -np.cos(a)])) for a in angles])
     seen = []
@@ -66,8 +67,13 @@ def test_a_wrong_disparity_offset_is_measured_and_told():
     ratios = [r for _, r in check["bins"]]
     assert ratios[-1] > 1.02 > 0.98 > ratios[0]  # far reads long against the median bin, near short
     assert check["worst"] > DEPTH_SHAPE_BAD and check["bad"]
-    milder = depth_against_images(*_survey(0.01, spread_deg=8.0), K)  # 3 m as 3.1 m: within the line
+    milder = depth_against_images(*_survey(0.01, spread_deg=8.0), K)  # 3 m as 3.1 m: within the lines
     assert abs(milder["intercept_per_m"] - 0.01) < 0.005 and not milder["bad"]
+    # A survey that saw depths within 30 cm of each other: its bins cannot show the offset, the line does.
+    narrow = depth_against_images(*_survey(0.05, spread_deg=8.0, depth_span_m=0.3), K)
+    assert narrow["worst"] < DEPTH_SHAPE_BAD
+    assert abs(narrow["intercept_per_m"] - 0.05) < 0.01 and narrow["intercept_per_m"] > DEPTH_OFFSET_BAD_PER_M
+    assert narrow["bad"]
 
 
 def test_a_survey_without_wide_baselines_says_why_it_has_no_figure():

@@ -528,7 +528,7 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     assert "survey ATE against the ground truth" in (map_folder / "report.md").read_text()
     # The depth against the images: measured on the real frames and within its line, or why not.
     depth = info["bundle"]["depth_against_images"]
-    assert ("reason" in depth) or (depth["worst"] < 0.05 and depth["observations"] >= 150), depth
+    assert ("reason" in depth) or (not depth["bad"] and depth["observations"] >= 150), depth
     residuals = loop_residuals(map_folder)
     assert len(residuals) == info["loops"]["accepted"] and np.median(residuals[:, 0]) < 0.01
     # A map bent away from its own loops (what a false loop forced into the graph does): the

@@ -22,7 +22,8 @@ import numpy as np
 
 from nap3d_graph.camera import Intrinsics
 
-__all__ = ["triangulated_depths", "depth_against_images", "MIN_PARALLAX_DEG", "MIN_PER_BIN", "DEPTH_SHAPE_BAD"]
+__all__ = ["triangulated_depths", "depth_against_images", "MIN_PARALLAX_DEG", "MIN_PER_BIN", "DEPTH_SHAPE_BAD",
+           "DEPTH_OFFSET_BAD_PER_M"]
 
 #: Matches triangulated: the two rays at least this far apart (degrees); narrower ones
 #: triangulate too loosely to compare a depth with.
@@ -33,6 +34,10 @@ MIN_PER_BIN = 50
 #: median bin is taken as the metre): more than twice the depth error Kinect v1 and
 #: RealSense D400 cameras are specified to (about 2% at 2 m).
 DEPTH_SHAPE_BAD = 0.05
+#: A fitted disparity offset beyond this (1/m): the depth off by this share per metre of
+#: depth, three times those cameras' specified error at 2 m. A survey that saw a narrow range
+#: of depths has bins too close together to show an offset, while the line still measures it.
+DEPTH_OFFSET_BAD_PER_M = 0.03
 
 
 def triangulated_depths(pairs: list, T_map_key: np.ndarray, intrinsics: Intrinsics,
@@ -73,8 +78,10 @@ def depth_against_images(pairs: list, T_map_key: np.ndarray, intrinsics: Intrins
     """The measured depth against the images' triangulation (module docstring):
     ``observations``; ``bins`` ``[[median z_depth m, z_depth / z_images], ...]`` nearest
     first, each ratio divided by the median bin's (the depth's metre kept); ``worst`` the
-    largest ``|ratio - 1|`` of them; the fitted ``slope`` and ``intercept_per_m``; ``bad``
-    when ``worst`` is beyond :data:`DEPTH_SHAPE_BAD`. ``reason`` instead when too few matches
+    largest ``|ratio - 1|`` of them; the fitted ``slope`` and ``intercept_per_m`` (the
+    disparity offset: the depth reads ``intercept_per_m`` x its depth too long); ``bad``
+    when ``worst`` is beyond :data:`DEPTH_SHAPE_BAD` or the offset beyond
+    :data:`DEPTH_OFFSET_BAD_PER_M`. ``reason`` instead when too few matches
     were seen from far enough apart."""
     z_depth, z_images = triangulated_depths(pairs, T_map_key, intrinsics)
     keep = np.isfinite(z_depth) & np.isfinite(z_images)
@@ -97,4 +104,4 @@ def depth_against_images(pairs: list, T_map_key: np.ndarray, intrinsics: Intrins
     worst = float(np.max(np.abs(ratio - 1.0)))
     return {"observations": int(len(z_depth)), "slope": float(slope), "intercept_per_m": float(intercept),
             "bins": [[round(float(1.0 / a), 3), round(float(r), 4)] for a, r in zip(x_arr, ratio)],
-            "worst": worst, "bad": bool(worst > DEPTH_SHAPE_BAD)}
+            "worst": worst, "bad": bool(worst > DEPTH_SHAPE_BAD or abs(intercept) > DEPTH_OFFSET_BAD_PER_M)}

@@ -15,8 +15,9 @@ The figures and the lines past which they say something went wrong:
   wrong depth unit, a bent map).
 - **depth against the images**: the depth the sensor measured at the survey's matches against
   their depth triangulated from the images and the final poses, in bins from near to far
-  (:mod:`.depth_check`); a bin more than 5% off the median bin's ratio: the depth's shape and
-  the images disagree (a depth camera's calibration, a wrong focal length or registration).
+  (:mod:`.depth_check`); a bin more than 5% off the median bin's ratio, or a fitted disparity
+  offset beyond 0.03 per metre (3% of the depth per metre of it): the depth's shape and the
+  images disagree (a depth camera's calibration, a wrong focal length or registration).
 - **field on held-out survey frames**: the field rendered at survey frames it was not
   trained on, against those frames: PSNR (after a per-frame affine colour fit), median depth
   error and the share of the frame it covers, and NAP3D of those frames against the field
@@ -39,7 +40,7 @@ from nap3d_graph.conventions import inv_T
 from nap3d_graph.run.report import FigureReport
 from nap3d_graph.textfiles import write_json_atomic
 
-from .depth_check import DEPTH_SHAPE_BAD
+from .depth_check import DEPTH_OFFSET_BAD_PER_M, DEPTH_SHAPE_BAD
 from .folder import MapFolder
 
 __all__ = ["MapReport", "map_report", "write_map_report", "write_outputs", "LOOP_RESIDUAL_BAD", "REPROJECTION_BAD_PX",
@@ -138,9 +139,11 @@ def _depth_check(report: MapReport, info: dict) -> None:
         return
     (near_m, near), (far_m, far) = check["bins"][0], check["bins"][-1]
     report.values["depth_against_images"] = {"worst": check["worst"], "near": [near_m, near], "far": [far_m, far]}
-    report.add("depth against the images' triangulation (depth / images, the median bin as the metre)",
-               f"{near:.3f} at {near_m:.2f} m, {far:.3f} at {far_m:.2f} m; worst bin {check['worst']:.1%} off "
-               f"({check['observations']} observations)", f"within {DEPTH_SHAPE_BAD:.0%} in every bin",
+    report.add("depth against the images' triangulation (depth / images, the median bin as the metre; the "
+               "disparity offset fitted)",
+               f"{near:.3f} at {near_m:.2f} m, {far:.3f} at {far_m:.2f} m; worst bin {check['worst']:.1%} off; "
+               f"offset {check['intercept_per_m']:+.3f} /m ({check['observations']} observations)",
+               f"every bin within {DEPTH_SHAPE_BAD:.0%}, the offset within {DEPTH_OFFSET_BAD_PER_M:.2f} /m",
                not check["bad"])
 
 
