@@ -59,16 +59,16 @@ def triangulated_depths(pairs: list, T_map_key: np.ndarray, intrinsics: Intrinsi
         Ta, Tb = T_map_key[p.a], T_map_key[p.b]
         ra, rb = rays(p.uv_a) @ Ta[:3, :3].T, rays(p.uv_b) @ Tb[:3, :3].T
         # depths s, t with a's centre + s ra closest to b's centre + t rb (least squares)
-        A = np.stack([ra, -rb], axis=2)
-        normal = np.einsum("mij,mik->mjk", A, A)
-        if not np.all(np.isfinite(normal)) or np.any(np.abs(np.linalg.det(normal)) < 1e-12):
-            continue  # parallel rays: nothing to triangulate
-        rhs = np.broadcast_to(Tb[:3, 3] - Ta[:3, 3], ra.shape)
-        st = np.linalg.solve(normal, np.einsum("mij,mi->mj", A, rhs)[..., None])[..., 0]
         cos = np.einsum("mi,mi->m", ra, rb) / (np.linalg.norm(ra, axis=1) * np.linalg.norm(rb, axis=1))
+        wide = np.degrees(np.arccos(np.clip(np.nan_to_num(cos, nan=1.0), -1.0, 1.0))) >= min_parallax_deg
+        A = np.stack([ra[wide], -rb[wide]], axis=2)  # (W, 3, 2); wide rays are never parallel
+        st = np.full((len(ra), 2), np.nan)
+        rhs = np.broadcast_to(Tb[:3, 3] - Ta[:3, 3], (int(wide.sum()), 3))
+        st[wide] = np.linalg.solve(np.einsum("mij,mik->mjk", A, A), np.einsum("mij,mi->mj", A, rhs)[..., None])[..., 0]
         z_a, z_b = np.asarray(p.z_a, dtype=float), np.asarray(p.z_b, dtype=float)
-        keep = ((np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) >= min_parallax_deg) & (st[:, 0] > 0.2)
-                & (st[:, 1] > 0.2) & (z_a > 0) & (z_b > 0) & np.isfinite(z_a) & np.isfinite(z_b))
+        with np.errstate(invalid="ignore"):
+            keep = (wide & (st[:, 0] > 0.2) & (st[:, 1] > 0.2) & (z_a > 0) & (z_b > 0) & np.isfinite(z_a)
+                    & np.isfinite(z_b))
         measured += [z_a[keep], z_b[keep]]
         images += [st[keep, 0], st[keep, 1]]
     return np.concatenate(measured), np.concatenate(images)
