@@ -84,3 +84,7 @@ def test_a_survey_without_wide_baselines_says_why_it_has_no_figure():
     empty = depth_against_images([PairMatches(0, 1, np.empty((0, 2)), np.empty((0, 2)), np.empty(0), np.empty(0))],
                                  T, K)
     assert empty["observations"] == 0 and "reason" in empty
+    wide, T_wide = _survey(0.0, spread_deg=8.0)
+    one_depth = [PairMatches(p.a, p.b, p.uv_a, p.uv_b, np.full(len(p.z_a), 2.0), np.full(len(p.z_b), 2.0))
+                 for p in wide]
+    assert depth_against_images(one_depth, T_wide, K)["reason"] == "every match at the same depth"

@@ -98,6 +98,8 @@ def depth_against_images(pairs: list, T_map_key: np.ndarray, intrinsics: Intrins
         x.append(float(np.median(inv_depth[chunk])))
         y.append(float(np.median(inv_images[chunk])))
     x_arr, y_arr = np.asarray(x), np.asarray(y)
+    if np.ptp(x_arr) < 1e-3 * np.median(x_arr):  # one wall at one distance: no line through one point
+        return {"observations": int(len(z_depth)), "reason": "every match at the same depth"}
     slope, intercept = np.polyfit(x_arr, y_arr, 1)
     ratio = y_arr / x_arr  # z_depth / z_images per bin
     ratio = ratio / np.median(ratio)
