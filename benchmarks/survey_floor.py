@@ -6,8 +6,9 @@ out a wrong metre and a clock offset).
 - **The depth's disparity offset.** A Kinect's depth is ``f b / (d + offset)``: a wrong offset
   makes far depth read long and near depth short. Fitted from the survey alone, no ground truth:
   every verified match seen from two keyframes at least 8 degrees apart is triangulated from
-  its two pixels and the map's keyframe poses; in ten bins of the measured inverse depth, the
-  median triangulated inverse depth is fitted with a line ``1/z_images = a / z_depth + b``.
+  its two pixels and the map's keyframe poses; in up to ten bins of the measured inverse depth,
+  the median triangulated inverse depth is fitted with a line ``1/z_images = a / z_depth + b``
+  (the map's own check, :func:`~nap3d_graph.mapping.depth_check.depth_against_images`).
   The depths are then corrected along that line, scaled so the median depth stays where the
   sensor put it (the metre is the depth's; only its shape changes), and the bundle solved
   again with the map's settings.
@@ -50,7 +51,7 @@ import numpy as np
 from map_bundle import _graph, _references  # noqa: E402  (beside this file)
 from provenance import write_result
 
-from nap3d_graph.mapping.depth_check import depth_against_images, triangulated_depths
+from nap3d_graph.mapping.depth_check import depth_against_images
 
 #: Disparity offsets (1/m) added to the real matches' depths to see the map's check tell them.
 CHECK_OFFSETS_PER_M = (0.0, 0.02, 0.05)
@@ -66,51 +67,34 @@ def _arguments() -> argparse.Namespace:
     return parser.parse_args()
 
 
-def fit_disparity_offset(z_depth: np.ndarray, z_images: np.ndarray) -> dict:
-    """The line ``1/z_images = slope / z_depth + intercept`` through the medians of ten
-    equal-count bins of the measured inverse depth (the measured depth is the precise axis, so
-    the triangulation's noise does not flatten the line), and the bins as
-    ``[median z_depth m, z_depth / z_images]``."""
-    inv_depth, inv_images = 1.0 / z_depth, 1.0 / z_images
-    edges = np.quantile(inv_depth, np.linspace(0, 1, 11))
-    x, y, n = [], [], []
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        inside = (inv_depth >= lo) & (inv_depth <= hi)
-        if inside.sum() >= 50:
-            x.append(np.median(inv_depth[inside]))
-            y.append(np.median(inv_images[inside]))
-            n.append(int(inside.sum()))
-    slope, intercept = np.polyfit(x, y, 1, w=np.sqrt(n))
-    return {"slope": float(slope), "intercept_per_m": float(intercept), "median_depth_m": float(np.median(z_depth)),
-            "observations": int(len(z_depth)),
-            "bins": [[round(1.0 / a, 3), round(b / a, 4)] for a, b in zip(x, y)]}
-
-
-def corrected_pairs(pairs: list, fit: dict) -> list:
-    """The pairs with every depth moved along the fitted line, scaled so the median depth is
-    unchanged."""
-    a, b, z_med = fit["slope"], fit["intercept_per_m"], fit["median_depth_m"]
-    keep_metre = z_med * (a / z_med + b)  # 1 / (corrected median / median)
-
-    def correct(z: np.ndarray) -> np.ndarray:
-        z = np.asarray(z, dtype=float)
-        valid = z > 0
-        out = z.copy()
-        out[valid] = keep_metre / (a / z[valid] + b)
-        return out
-
-    return [dataclasses.replace(p, z_a=correct(p.z_a), z_b=correct(p.z_b)) for p in pairs]
-
-
-def _through_offset(z: np.ndarray, offset_per_m: float) -> np.ndarray:
-    """Depths read through a disparity offset: ``1 / z_read = 1 / z - offset_per_m`` (far reads
-    long for a positive offset)."""
+def _along_line(z: np.ndarray, slope: float, intercept_per_m: float, scale: float = 1.0) -> np.ndarray:
+    """Depths moved along ``1 / z_new = (slope / z + intercept_per_m) / scale``; NaN where that
+    passes infinity, missing depths (<= 0) kept as they are."""
     z = np.asarray(z, dtype=float)
     out = z.copy()
     valid = z > 0
-    inverse = 1.0 / z[valid] - offset_per_m
-    out[valid] = np.where(inverse > 0, 1.0 / np.maximum(inverse, 1e-9), np.nan)  # beyond infinity: no depth
+    inverse = (slope / z[valid] + intercept_per_m) / scale
+    out[valid] = np.where(inverse > 0, 1.0 / np.maximum(inverse, 1e-12), np.nan)
     return out
+
+
+def _with_depths(pairs: list, slope: float, intercept_per_m: float, scale: float = 1.0) -> list:
+    """The pairs with both keyframes' depths moved along the line (:func:`_along_line`)."""
+    return [dataclasses.replace(p, z_a=_along_line(p.z_a, slope, intercept_per_m, scale),
+                                z_b=_along_line(p.z_b, slope, intercept_per_m, scale)) for p in pairs]
+
+
+def corrected_pairs(pairs: list, fit: dict) -> list:
+    """The pairs with every depth moved along the fitted line (:func:`depth_against_images`),
+    scaled so the median depth is unchanged."""
+    a, b, z_med = fit["slope"], fit["intercept_per_m"], fit["median_depth_m"]
+    return _with_depths(pairs, a, b, scale=z_med * (a / z_med + b))
+
+
+def through_offset(pairs: list, offset_per_m: float) -> list:
+    """The pairs with their depths read through a disparity offset: ``1 / z_read = 1 / z -
+    offset_per_m`` (far reads long for a positive offset)."""
+    return _with_depths(pairs, 1.0, -offset_per_m)
 
 
 def camera_offset_fit(T_est: np.ndarray, T_ref: np.ndarray, rounds: int = 50) -> tuple[np.ndarray, float]:
@@ -164,35 +148,48 @@ def _residuals(report: dict) -> dict:
             "readout_s": report.get("readout_s"), "loops_admitted": report.get("loops_admitted", 0)}
 
 
-def survey_floor(map_dir: Path, data: Path, second_gt: Path | None, focal_scales: list[float]) -> dict:
-    """Every figure above for one map folder."""
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, _working_intrinsics, adjust_keyframes, place_frames
-    from nap3d_graph.mapping.bundle import BundleSettings, keyframe_twists
-    from nap3d_graph.mapping.loops import load_edges
-    from nap3d_graph.mapping.survey import SurveyOdometry
+class _MapHalf:
+    """A map folder with its recording: its frames placed from keyframe poses, scored against
+    every reference, and its bundle adjustment solved again from its saved edges."""
 
-    info = json.loads((map_dir / "map.json").read_text())
-    settings = info["settings"]
-    sequence = open_sequence(data, frames="%d:%d" % tuple(info["frame_range"]))
-    references = _references(sequence, second_gt)
-    keys = np.load(map_dir / "keyframes.npz")["indices"]
-    survey = SurveyOdometry.load(map_dir / "odometry.npz")
-    start, stop = info["segment"]["start"], info["segment"]["stop"]
-    K0 = _working_intrinsics(sequence, MapSettings(width=settings["width"]))
-    twists = keyframe_twists(survey.T_odom_cam, np.asarray(sequence.timestamps, dtype=float), keys)
+    def __init__(self, map_dir: Path, data: Path, second_gt: Path | None):
+        from nap3d_graph.datasets import open_sequence
+        from nap3d_graph.mapping.build import MapSettings, _working_intrinsics
+        from nap3d_graph.mapping.bundle import keyframe_twists
+        from nap3d_graph.mapping.survey import SurveyOdometry
 
-    def frames(T_key):
-        return place_frames(survey.T_odom_cam, keys, T_key, start, stop)
+        self.map_dir = map_dir
+        info = json.loads((map_dir / "map.json").read_text())
+        self.settings = info["settings"]
+        self.sequence = open_sequence(data, frames="%d:%d" % tuple(info["frame_range"]))
+        self.references = _references(self.sequence, second_gt)
+        self.keys = np.load(map_dir / "keyframes.npz")["indices"]
+        self.survey = SurveyOdometry.load(map_dir / "odometry.npz")
+        self.start, self.stop = info["segment"]["start"], info["segment"]["stop"]
+        self.K = _working_intrinsics(self.sequence, MapSettings(width=self.settings["width"]))
+        self.twists = keyframe_twists(self.survey.T_odom_cam, np.asarray(self.sequence.timestamps, dtype=float),
+                                      self.keys)
 
-    def score(T_key) -> dict:
-        return {name: aligned_errors(sequence.timestamps, ref, frames(T_key)).summary()["rmse_m"] * 100
-                for name, ref in references.items()}
+    def frames(self, T_key: np.ndarray) -> np.ndarray:
+        from nap3d_graph.mapping.build import place_frames
 
-    def adjust(K, bundle: BundleSettings, depth_fit: dict | None = None):
-        chain, loops, chain_matches = load_edges(map_dir / "edges.npz")  # fresh: adjusting changes loops' status
-        graph, verified = _graph(survey, keys, chain, loops, settings)
+        return place_frames(self.survey.T_odom_cam, self.keys, T_key, self.start, self.stop)
+
+    def score(self, T_key: np.ndarray) -> dict:
+        """ATE in cm against each reference."""
+        from nap3d_graph.evaluation.alignment import aligned_errors
+
+        return {name: aligned_errors(self.sequence.timestamps, ref, self.frames(T_key)).summary()["rmse_m"] * 100
+                for name, ref in self.references.items()}
+
+    def adjust(self, K, bundle, depth_fit: dict | None = None):
+        """``((T_map_key, report), verified loops)``: the graph and the bundle solved again
+        (with the depths moved along ``depth_fit`` when given)."""
+        from nap3d_graph.mapping.build import adjust_keyframes
+        from nap3d_graph.mapping.loops import load_edges
+
+        chain, loops, chain_matches = load_edges(self.map_dir / "edges.npz")  # fresh: adjusting changes loops' status
+        graph, verified = _graph(self.survey, self.keys, chain, loops, self.settings)
         for lp, kept in zip(verified, graph.loop_kept):
             lp.status = "accepted" if kept else "rejected"
         if depth_fit is not None:
@@ -200,47 +197,74 @@ def survey_floor(map_dir: Path, data: Path, second_gt: Path | None, focal_scales
             for lp in verified:
                 if lp.matches_kept is not None:
                     lp.matches_kept = corrected_pairs([lp.matches_kept], depth_fit)[0]
-        return adjust_keyframes(graph.T_map_key, chain_matches, verified, K, bundle, twists), verified
+        return adjust_keyframes(graph.T_map_key, chain_matches, verified, K, bundle, self.twists), verified
 
-    (T_base, base_report), verified = adjust(K0, BundleSettings())
-    out = {"map": str(map_dir), "frames": int(stop - start), "keyframes": int(len(keys)),
-           "as_mapped": {"ate_cm": score(T_base), **_residuals(base_report)}}
-    print(map_dir, "as mapped", out["as_mapped"], flush=True)
+    def used_pairs(self, verified: list) -> list:
+        """Every pair an adjustment used: the chain's and the kept or admitted loops'."""
+        from nap3d_graph.mapping.loops import load_edges
 
-    chain, _, chain_matches = load_edges(map_dir / "edges.npz")
-    pairs = chain_matches + [lp.matches_kept for lp in verified
-                             if lp.status in ("accepted", "admitted") and lp.matches_kept is not None]
-    fit = fit_disparity_offset(*triangulated_depths(pairs, T_base, K0))
-    (T_depth, depth_report), _ = adjust(K0, BundleSettings(), fit)
-    out["depth_offset"] = {"fit": fit, "ate_cm": score(T_depth), **_residuals(depth_report)}
-    print(map_dir, "depth corrected", out["depth_offset"], flush=True)
-    # The map's report check on the same real matches, as measured and with the depth read
-    # through a disparity offset added on purpose: does it tell one?
-    out["depth_check"] = {}
-    for added in CHECK_OFFSETS_PER_M:
-        read = [dataclasses.replace(p, z_a=_through_offset(p.z_a, added), z_b=_through_offset(p.z_b, added))
-                for p in pairs]
-        check = depth_against_images(read, T_base, K0)
-        out["depth_check"][f"{added:g}"] = {k: check.get(k) for k in ("observations", "intercept_per_m", "worst", "bad")}
-    print(map_dir, "depth check", out["depth_check"], flush=True)
+        _, _, chain_matches = load_edges(self.map_dir / "edges.npz")
+        return chain_matches + [lp.matches_kept for lp in verified
+                                if lp.status in ("accepted", "admitted") and lp.matches_kept is not None]
 
-    out["focal"] = []
+
+def _depth_steps(half: _MapHalf, T_base: np.ndarray, pairs: list) -> dict:
+    """The depth's disparity offset fitted and undone (the bundle solved again), and the map's
+    depth check on the same matches with offsets added on purpose."""
+    from nap3d_graph.mapping.bundle import BundleSettings
+
+    checks = {added: depth_against_images(through_offset(pairs, added), T_base, half.K) for added in CHECK_OFFSETS_PER_M}
+    fit = checks[0.0]
+    (T_depth, depth_report), _ = half.adjust(half.K, BundleSettings(), fit)
+    return {"depth_offset": {"fit": fit, "ate_cm": half.score(T_depth), **_residuals(depth_report)},
+            "depth_check": {f"{added:g}": {k: c.get(k) for k in ("observations", "intercept_per_m", "worst", "bad")}
+                            for added, c in checks.items()}}
+
+
+def _focal_steps(half: _MapHalf, focal_scales: list[float], readout_s: float) -> list:
+    """The bundle solved again at each focal length scale, at the readout the map chose."""
+    from nap3d_graph.mapping.bundle import BundleSettings
+
+    rows = []
     for scale in focal_scales:
-        K = dataclasses.replace(K0, fx=K0.fx * scale, fy=K0.fy * scale)
-        (T_focal, report), _ = adjust(K, BundleSettings(readout_s=float(base_report["readout_s"])))
-        out["focal"].append({"scale": scale, "ate_cm": score(T_focal), **_residuals(report)})
-        print(map_dir, "focal", out["focal"][-1], flush=True)
+        K = dataclasses.replace(half.K, fx=half.K.fx * scale, fy=half.K.fy * scale)
+        (T_focal, report), _ = half.adjust(K, BundleSettings(readout_s=readout_s))
+        rows.append({"scale": scale, "ate_cm": half.score(T_focal), **_residuals(report)})
+    return rows
 
-    out["camera_offset"], out["error_structure"] = {}, {}
-    T_frames = frames(T_base)
-    for name, ref in references.items():
+
+def _reference_steps(half: _MapHalf, T_base: np.ndarray) -> dict:
+    """Each reference given a camera offset, and where the as-mapped error is against it."""
+    from nap3d_graph.evaluation.alignment import aligned_errors
+
+    out: dict = {"camera_offset": {}, "error_structure": {}}
+    T_frames = half.frames(T_base)
+    for name, ref in half.references.items():
+        ref = np.asarray(ref)
         both = np.all(np.isfinite(T_frames), axis=(1, 2)) & np.all(np.isfinite(ref), axis=(1, 2))
-        offset, ate = camera_offset_fit(T_frames[both], np.asarray(ref)[both])
-        plain = aligned_errors(sequence.timestamps, ref, T_frames).summary()["rmse_position_only_alignment_m"]
+        offset, ate = camera_offset_fit(T_frames[both], ref[both])
+        plain = aligned_errors(half.sequence.timestamps, ref, T_frames).summary()["rmse_position_only_alignment_m"]
         out["camera_offset"][name] = {"ate_position_cm": plain * 100, "ate_with_offset_cm": ate * 100,
                                       "offset_cm": [round(float(v) * 100, 2) for v in offset]}
-        out["error_structure"][name] = error_structure(sequence.timestamps, T_frames, np.asarray(ref))
-    print(map_dir, "camera offset", out["camera_offset"], "error structure", out["error_structure"], flush=True)
+        out["error_structure"][name] = error_structure(half.sequence.timestamps, T_frames, ref)
+    return out
+
+
+def survey_floor(map_dir: Path, data: Path, second_gt: Path | None, focal_scales: list[float]) -> dict:
+    """Every figure above for one map folder."""
+    from nap3d_graph.mapping.bundle import BundleSettings
+
+    half = _MapHalf(map_dir, data, second_gt)
+    (T_base, base_report), verified = half.adjust(half.K, BundleSettings())
+    out = {"map": str(map_dir), "frames": int(half.stop - half.start), "keyframes": int(len(half.keys)),
+           "as_mapped": {"ate_cm": half.score(T_base), **_residuals(base_report)}}
+    print(map_dir, "as mapped", out["as_mapped"], flush=True)
+    out.update(_depth_steps(half, T_base, half.used_pairs(verified)))
+    print(map_dir, "depth", out["depth_offset"], out["depth_check"], flush=True)
+    out["focal"] = _focal_steps(half, focal_scales, float(base_report["readout_s"]))
+    print(map_dir, "focal", out["focal"], flush=True)
+    out.update(_reference_steps(half, T_base))
+    print(map_dir, "references", out["camera_offset"], out["error_structure"], flush=True)
     return out
 
 

@@ -330,7 +330,7 @@ def survey_floor_table() -> str:
     """Each self-made map's keyframes as mapped, with the depth's disparity offset undone, at
     other focal lengths, and against references given a camera offset."""
     rows = ["| file | half | as mapped: ATE cm; pixel / disparity residual px | depth / images at the nearest and "
-            "farthest bins (median depth) | depth corrected: ATE cm; residuals px | focal scale: ATE cm; residuals px "
+            "farthest bins, the median bin as 1 (median depth) | depth corrected: ATE cm; residuals px | focal scale: ATE cm; residuals px "
             "| reference camera offset: position ATE cm before → after; offset cm (x, y, z in the camera) "
             "| error cm: slow part (1 s) / fast rest; fastest-turning quarter / slowest (median deg/s) "
             "| the map's depth check: worst bin off, offset found (1/m), told; the same with an offset added |",
@@ -339,7 +339,7 @@ def survey_floor_table() -> str:
         r = read(name)
         for half, m in r.get("maps", {}).items():
             base, depth, fit = m["as_mapped"], m["depth_offset"], m["depth_offset"]["fit"]
-            near, far = min(fit["bins"]), max(fit["bins"])
+            near, far = fit["bins"][0], fit["bins"][-1]  # nearest first
             focal = "; ".join(f"x{f['scale']:g}: {_each_reference(f['ate_cm'])}, {f['residual_px']:.3f} / "
                               f"{f['residual_disparity_px']:.3f}" for f in m["focal"])
             offset = "; ".join(f"{o['ate_position_cm']:.2f} → {o['ate_with_offset_cm']:.2f}, "

@@ -78,7 +78,7 @@ def depth_against_images(pairs: list, T_map_key: np.ndarray, intrinsics: Intrins
     """The measured depth against the images' triangulation (module docstring):
     ``observations``; ``bins`` ``[[median z_depth m, z_depth / z_images], ...]`` nearest
     first, each ratio divided by the median bin's (the depth's metre kept); ``worst`` the
-    largest ``|ratio - 1|`` of them; the fitted ``slope`` and ``intercept_per_m`` (the
+    largest ``|ratio - 1|`` of them; ``median_depth_m``; the fitted ``slope`` and ``intercept_per_m`` (the
     disparity offset: the depth reads ``intercept_per_m`` x its depth too long); ``bad``
     when ``worst`` is beyond :data:`DEPTH_SHAPE_BAD` or the offset beyond
     :data:`DEPTH_OFFSET_BAD_PER_M`. ``reason`` instead when too few matches
@@ -105,5 +105,6 @@ def depth_against_images(pairs: list, T_map_key: np.ndarray, intrinsics: Intrins
     ratio = ratio / np.median(ratio)
     worst = float(np.max(np.abs(ratio - 1.0)))
     return {"observations": int(len(z_depth)), "slope": float(slope), "intercept_per_m": float(intercept),
+            "median_depth_m": float(np.median(z_depth)),
             "bins": [[round(float(1.0 / a), 3), round(float(r), 4)] for a, r in zip(x_arr, ratio)],
             "worst": worst, "bad": bool(worst > DEPTH_SHAPE_BAD or abs(intercept) > DEPTH_OFFSET_BAD_PER_M)}
