@@ -22,7 +22,8 @@ from nap3d_graph.camera import Intrinsics, RenderedView
 
 from .textures import TextureSpec, shade_texture
 
-__all__ = ["Box", "Cylinder", "Sphere", "Room", "Scene", "OracleField", "make_scene", "SCENE_VERSION"]
+__all__ = ["Box", "Cylinder", "Sphere", "Room", "Scene", "OracleField", "make_scene", "load_scene", "RayCastRenderer",
+           "SCENE_VERSION"]
 
 SCENE_VERSION = 1
 _EPS = 1e-6
@@ -269,8 +270,56 @@ def _object_from_dict(d: dict):
     raise ValueError(f"unknown scene object type {kind!r}")
 
 
+class RayCastRenderer:
+    """RGB, z-depth and hit mask of anything that ray-casts (``cast(origin, dirs, shade)``) and
+    has an ``ambient`` light level: one room (:class:`Scene`) or a floor of rooms
+    (:class:`~nap3d_graph.sims.building.Building`)."""
+
+    ambient: float
+
+    def cast(self, origin: np.ndarray, dirs: np.ndarray, shade: bool = True):
+        raise NotImplementedError
+
+    def render_depth(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+        """Noise-free z-depth (H, W) metres only (0 where nothing is hit): no shading, cheaper."""
+        T_world_cam = np.asarray(T_world_cam, dtype=float)
+        h, w = intrinsics.height, intrinsics.width
+        v, u = np.mgrid[0:h, 0:w]
+        rays_cam = np.stack(
+            [(u.ravel() - intrinsics.cx) / intrinsics.fx, (v.ravel() - intrinsics.cy) / intrinsics.fy,
+             np.ones(h * w)], axis=1)
+        t = self.cast(T_world_cam[:3, 3], rays_cam @ T_world_cam[:3, :3].T, shade=False)[0]
+        return np.where(np.isfinite(t), t, 0.0).reshape(h, w)
+
+    def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics):
+        """Noise-free RGB (H, W, 3) float in [0, 1], z-depth (H, W) metres, hit mask (H, W).
+
+        Camera: OpenCV frame, pixel centres at integer coordinates.
+        """
+        T_world_cam = np.asarray(T_world_cam, dtype=float)
+        h, w = intrinsics.height, intrinsics.width
+        v, u = np.mgrid[0:h, 0:w]
+        rays_cam = np.stack(
+            [(u.ravel() - intrinsics.cx) / intrinsics.fx, (v.ravel() - intrinsics.cy) / intrinsics.fy,
+             np.ones(h * w)], axis=1)
+        # Direction with unit camera-z: the ray parameter t is the z-depth directly.
+        dirs = rays_cam @ T_world_cam[:3, :3].T
+        t, _, normal, albedo = self.cast(T_world_cam[:3, 3], dirs)
+        unit_dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+        # Two-sided Lambertian + ambient: view-independent, as a radiance field assumes.
+        facing = np.abs(normal @ _LIGHT_DIR)
+        shade = self.ambient + (1 - self.ambient) * facing
+        # A little darkening at grazing view angles gives depth cues at object edges.
+        shade *= 0.85 + 0.15 * np.abs(np.einsum("ij,ij->i", normal, unit_dirs))
+        rgb = np.clip(albedo * shade[:, None], 0.0, 1.0)
+        hit = np.isfinite(t)
+        depth = np.where(hit, t, 0.0)
+        return rgb.reshape(h, w, 3), depth.reshape(h, w), hit.reshape(h, w)
+
+
+
 @dataclass(frozen=True)
-class Scene:
+class Scene(RayCastRenderer):
     """A furnished room and the free region where cameras may move.
 
     free_xy_m: ((x_min, x_max), (y_min, y_max)) of the floor area with no furniture.
@@ -307,6 +356,10 @@ class Scene:
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(json.dumps(self.to_dict(), indent=1))
+
+    def bounds(self) -> np.ndarray:
+        """(2, 3) axis-aligned world bounds ``[min, max]`` of the room in metres."""
+        return np.array([[0.0, 0.0, 0.0], list(self.room.size_m)])
 
     @classmethod
     def load(cls, path: str | Path) -> "Scene":
@@ -354,46 +407,28 @@ class Scene:
             albedo[sel] = shade_texture(textures[owner_id], local)
         return t, points, normal, albedo
 
-    def render_depth(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-        """Noise-free z-depth (H, W) metres only (0 where nothing is hit): no shading, cheaper."""
-        T_world_cam = np.asarray(T_world_cam, dtype=float)
-        h, w = intrinsics.height, intrinsics.width
-        v, u = np.mgrid[0:h, 0:w]
-        rays_cam = np.stack(
-            [(u.ravel() - intrinsics.cx) / intrinsics.fx, (v.ravel() - intrinsics.cy) / intrinsics.fy,
-             np.ones(h * w)], axis=1)
-        t = self.cast(T_world_cam[:3, 3], rays_cam @ T_world_cam[:3, :3].T, shade=False)[0]
-        return np.where(np.isfinite(t), t, 0.0).reshape(h, w)
-
-    def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics):
-        """Noise-free RGB (H, W, 3) float in [0, 1], z-depth (H, W) metres, hit mask (H, W).
-
-        Camera: OpenCV frame, pixel centres at integer coordinates.
-        """
-        T_world_cam = np.asarray(T_world_cam, dtype=float)
-        h, w = intrinsics.height, intrinsics.width
-        v, u = np.mgrid[0:h, 0:w]
-        rays_cam = np.stack(
-            [(u.ravel() - intrinsics.cx) / intrinsics.fx, (v.ravel() - intrinsics.cy) / intrinsics.fy,
-             np.ones(h * w)], axis=1)
-        # Direction with unit camera-z: the ray parameter t is the z-depth directly.
-        dirs = rays_cam @ T_world_cam[:3, :3].T
-        t, _, normal, albedo = self.cast(T_world_cam[:3, 3], dirs)
-        unit_dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-        # Two-sided Lambertian + ambient: view-independent, as a radiance field assumes.
-        facing = np.abs(normal @ _LIGHT_DIR)
-        shade = self.ambient + (1 - self.ambient) * facing
-        # A little darkening at grazing view angles gives depth cues at object edges.
-        shade *= 0.85 + 0.15 * np.abs(np.einsum("ij,ij->i", normal, unit_dirs))
-        rgb = np.clip(albedo * shade[:, None], 0.0, 1.0)
-        hit = np.isfinite(t)
-        depth = np.where(hit, t, 0.0)
-        return rgb.reshape(h, w, 3), depth.reshape(h, w), hit.reshape(h, w)
-
     def inside_free_space(self, p_world: np.ndarray, margin_m: float = 0.3) -> bool:
         (x0, x1), (y0, y1) = self.free_xy_m
         x, y, z = np.asarray(p_world, dtype=float)
         return x0 <= x <= x1 and y0 <= y <= y1 and margin_m < z < self.room.size_m[2] - margin_m
+
+
+def load_scene(path: str | Path):
+    """The scene a ``scene.json`` describes: one room (:class:`Scene`) or a floor of rooms
+    (:class:`~nap3d_graph.sims.building.Building`); ``ValueError`` when it is neither."""
+    path = Path(path)
+    try:
+        description = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a valid scene description ({exc})") from None
+    if isinstance(description, dict) and description.get("kind") == "building":
+        from .building import Building
+
+        try:
+            return Building.from_dict(description)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise ValueError(f"{path}: not a valid building description ({exc})") from None
+    return Scene.load(path)
 
 
 class OracleField:
@@ -410,11 +445,11 @@ class OracleField:
     @property
     def bounds(self) -> np.ndarray:
         """(2, 3) axis-aligned world bounds ``[min, max]`` in metres."""
-        return np.array([[0.0, 0.0, 0.0], list(self.scene.room.size_m)])
+        return self.scene.bounds()
 
     @classmethod
     def from_file(cls, path: str | Path) -> "OracleField":
-        return cls(Scene.load(path))
+        return cls(load_scene(path))
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
         rgb, depth, hit = self.scene.render(T_world_cam, intrinsics.without_distortion())
@@ -448,6 +483,16 @@ def make_scene(seed: int = 0) -> Scene:
     band = 1.0  # furniture stands within this distance of the walls
     # Cameras keep half a metre from the furniture band, so no view is a close-up of one object.
     free = ((band + 0.5, size[0] - band - 0.5), (band + 0.5, size[1] - band - 0.5))
+    objects = furnish(rng, size, texture, band)
+    return Scene(room=room, objects=tuple(objects), free_xy_m=free, seed=seed)
+
+
+def furnish(rng: np.random.Generator, size: tuple[float, float, float], texture, band: float = 1.0,
+            blocked=None) -> list:
+    """Boxes, cylinders and spheres standing in a ``band`` (metres) along the walls of a room of
+    ``size`` (its own frame, floor corner at the origin), deterministic from ``rng``;
+    ``texture()`` gives each its surface; ``blocked(x, y, radius)``: footprints it refuses (a
+    doorway kept clear), None for none."""
     objects: list = []
     occupied: list[tuple[float, float, float]] = []  # (x, y, radius) footprints
 
@@ -465,6 +510,8 @@ def make_scene(seed: int = 0) -> Scene:
                 x, y = off, along
             else:
                 x, y = size[0] - off, along
+            if blocked is not None and blocked(x, y, radius):
+                continue
             if all(np.hypot(x - ox, y - oy) > radius + orad + 0.05 for ox, oy, orad in occupied):
                 occupied.append((x, y, radius))
                 return x, y
@@ -486,4 +533,4 @@ def make_scene(seed: int = 0) -> Scene:
         if xy is not None:
             z = radius + float(rng.uniform(0.0, 0.8))
             objects.append(Sphere((xy[0], xy[1], z), radius, texture()))
-    return Scene(room=room, objects=tuple(objects), free_xy_m=free, seed=seed)
+    return objects

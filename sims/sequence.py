@@ -27,6 +27,8 @@ import numpy as np
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.trajectory import Trajectory
 
+from .building import make_building
+from .floor_paths import floor_survey, floor_traverse
 from .scene import make_scene, with_twin_posters
 from .sensors import (
     CameraTiming,
@@ -75,6 +77,14 @@ class SimConfig:
     #: "identical": one picture on two opposite walls (:func:`~nap3d_graph.sims.scene.with_twin_posters`);
     #: "different": two pictures there (its control); None: neither.
     twin_posters: str | None = None
+    #: A floor of this many rooms in a row (:func:`~nap3d_graph.sims.building.make_building`,
+    #: every third room a twin) instead of one room; None: one room (``scene_seed``'s).
+    rooms: int | None = None
+    #: A traverse across a floor: from ``start_room`` to ``end_room`` (None: the far end), first
+    #: looking ``look_aside_deg`` to its left at the side wall (see :mod:`~nap3d_graph.sims.floor_paths`).
+    start_room: int = 0
+    end_room: int | None = None
+    look_aside_deg: float = 0.0
 
     def __post_init__(self) -> None:
         if self.fps is None:
@@ -94,7 +104,21 @@ class SimConfig:
         d["imu"] = self.imu.to_dict()
         if self.twin_posters is not None:  # only when set: every other sequence's record stays as it was
             d["twin_posters"] = self.twin_posters
+        if self.rooms is not None:
+            d.update(rooms=self.rooms, start_room=self.start_room, end_room=self.end_room,
+                     look_aside_deg=self.look_aside_deg)
         return d
+
+
+def _trajectory(config: SimConfig, scene, rng: np.random.Generator, duration_s: float):
+    """The camera's path: through one room (:mod:`.trajectories`) or across a floor (:mod:`.floor_paths`)."""
+    if config.rooms is None:
+        return make_trajectory(config.path, scene, rng, duration_s)
+    if config.path == "mapping":
+        return floor_survey(scene, rng, duration_s)
+    if config.path == "traverse":
+        return floor_traverse(scene, rng, duration_s, config.start_room, config.end_room, config.look_aside_deg)
+    raise ValueError(f"unknown path kind {config.path!r}; use 'traverse' or 'mapping'")
 
 
 def _write_list(path: Path, header: str, stamps: np.ndarray, folder: str) -> None:
@@ -190,8 +214,10 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(exist_ok=True)
 
-    scene = make_scene(config.scene_seed)
+    scene = make_scene(config.scene_seed) if config.rooms is None else make_building(config.rooms, config.scene_seed)
     if config.twin_posters is not None:
+        if config.rooms is not None:
+            raise ValueError("twin_posters hang in one room; a floor of rooms has twin rooms instead")
         if config.twin_posters not in ("identical", "different"):
             raise ValueError(f"twin_posters must be 'identical', 'different' or None, got {config.twin_posters!r}")
         scene = with_twin_posters(scene, config.scene_seed, identical=config.twin_posters == "identical")
@@ -200,7 +226,7 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     path_rng, image_rng, odom_rng, imu_rng, stamp_rng, exposure_rng = (
         np.random.default_rng(s) for s in np.random.SeedSequence(config.seed).spawn(6))
     duration = (config.frames - 1) / config.fps
-    trajectory = make_trajectory(config.path, scene, path_rng, duration)
+    trajectory = _trajectory(config, scene, path_rng, duration)
     intrinsics = default_intrinsics(config.width, config.height)
 
     t_rel = np.arange(config.frames) / config.fps

@@ -1,4 +1,4 @@
-"""``nap3d-graph simulate``: a procedural room rendered along a path, in the TUM layout."""
+"""``nap3d-graph simulate``: a procedural room (or a floor of rooms) rendered along a path, in the TUM layout."""
 
 from __future__ import annotations
 
@@ -26,6 +26,17 @@ def add_parser(sub) -> None:
     p.add_argument("--path", choices=("traverse", "mapping"), default="traverse",
                    help="traverse: a walk that never revisits a place; mapping: a survey for "
                    "training a field (default traverse)")
+    p.add_argument("--rooms", type=positive_int, default=None, metavar="N",
+                   help="a floor of N furnished rooms in a row joined by doors instead of one room; every third room "
+                   "is a twin of the one two before it (same furniture, same textures): --scene-seed picks the floor. "
+                   "The mapping path surveys it room by room, the traverse crosses it without coming back")
+    p.add_argument("--start-room", type=int, default=0, metavar="R",
+                   help="with --rooms, a traverse starts in room R (0 = first; default 0)")
+    p.add_argument("--end-room", type=int, default=None, metavar="R",
+                   help="with --rooms, a traverse ends in room R (default: the far end of the floor)")
+    p.add_argument("--look-aside", type=float, default=0.0, metavar="DEG",
+                   help="with --rooms, a traverse starts looking DEG to its left at the side wall and turns ahead over "
+                   "its first metre (a start that first sees only what a twin room has too; default 0)")
     p.add_argument("--fps", type=positive_float, default=None,
                    help="frame rate in Hz (default 15 for a traverse; 3.75 for a mapping survey: every fourth frame "
                    "of a 15 Hz recording, so the survey's pace and motion blur are realistic)")
@@ -62,15 +73,23 @@ def run(args) -> int:
         import_pyrealsense2()  # a missing libusb is said now, not after the rendering
     if args.rosbag is not None and args.rosbag.exists():
         raise UsageError(f"--rosbag {args.rosbag} exists; a bag is never overwritten: choose another name")
+    if args.rooms is None and (args.start_room != 0 or args.end_room is not None or args.look_aside != 0.0):
+        raise UsageError("--start-room, --end-room and --look-aside walk across a floor: add --rooms N")
+    if args.rooms is not None:
+        for name, room in (("--start-room", args.start_room), ("--end-room", args.end_room)):
+            if room is not None and not 0 <= room < args.rooms:
+                raise UsageError(f"{name} {room} is not on a floor of {args.rooms} room(s) (0 to {args.rooms - 1})")
     empty_or_new_dir(args.out, args.force)
     config = SimConfig(frames=args.count, scene_seed=args.scene_seed, seed=args.seed, path=args.path,
-                       fps=args.fps, width=args.width, height=args.height)
+                       fps=args.fps, width=args.width, height=args.height, rooms=args.rooms,
+                       start_room=args.start_room, end_room=args.end_room, look_aside_deg=args.look_aside)
     # SIGINT / SIGTERM set a flag the rendering loop reads after each frame (a second one stops
     # at once): raised wherever the main thread is, an interruption can land in the process
     # pool's finalizers, where Python prints and drops it, and the simulation went on to the end.
     with PartialOutput(args.out, f"nap3d-graph simulate {args.out}"), StopOnSignal() as stop:
         out = simulate_sequence(args.out, config, progress=True, stop=stop)
-    print(f"wrote {args.count} frames ({args.path}, room {args.scene_seed}, seed {args.seed}) to {out}")
+    where = f"room {args.scene_seed}" if args.rooms is None else f"a floor of {args.rooms} rooms, floor {args.scene_seed}"
+    print(f"wrote {args.count} frames ({args.path}, {where}, seed {args.seed}) to {out}")
     if args.realsense is not None:
         from nap3d_graph.datasets.realsense_sim import write_realsense_recording
 

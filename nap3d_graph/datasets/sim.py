@@ -42,10 +42,10 @@ class SimSequence(TumSequence):
             )
         super().__init__(path, *args, **kwargs)
 
-        from nap3d_graph.sims.scene import Scene  # numpy only, but keep the package import light
+        from nap3d_graph.sims.scene import load_scene  # numpy only, but keep the package import light
 
         try:
-            self.scene = Scene.load(scene_path)
+            self.scene = load_scene(scene_path)
         except ValueError as exc:
             raise DatasetError(str(exc)) from None
         self.config = self._read_config(self.path / "sim.json")
