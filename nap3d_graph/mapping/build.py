@@ -51,7 +51,7 @@ from .report import write_outputs
 from .retrieval import Vocabulary, vlad
 from .survey import SurveyOdometry, keyframe_indices, track, tracked_segment
 
-__all__ = ["MapSettings", "MapResult", "build_map", "training_minutes", "place_frames"]
+__all__ = ["MapSettings", "MapResult", "build_map", "training_minutes", "place_frames", "index_posed_survey"]
 
 log = logging.getLogger(__name__)
 
@@ -139,6 +139,27 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     T_graph_cam = place_frames(survey.T_odom_cam, keys, graph.T_map_key, start, stop) if settings.bundle else None
     write_outputs(folder, sequence, survey, (start, stop), T_map_cam, T_map_key, T_graph_cam, loops, verified)
     return MapResult(folder.root, folder.info)
+
+
+def index_posed_survey(sequence, out: Path, T_map_cam: np.ndarray, settings: MapSettings | None = None,
+                       progress: bool = False) -> MapFolder:
+    """The relocalisation index of a survey whose poses are already known, ``T_map_cam`` (N, 4, 4)
+    for every frame of ``sequence`` (motion capture, a simulator's truth): its keyframes chosen
+    as ``map`` chooses them, their descriptors, vocabulary and small images, and their poses;
+    no odometry, loops, graph or field (bring the field: a :class:`~.relocalise.Relocaliser`
+    takes any). What a study of relocalisation alone reads, apart from every survey error."""
+    settings = settings or MapSettings()
+    T_map_cam = np.asarray(T_map_cam, dtype=float)
+    if T_map_cam.shape != (len(sequence), 4, 4):
+        raise ValueError(f"T_map_cam must be ({len(sequence)}, 4, 4) for the survey's frames, got {T_map_cam.shape}")
+    folder = _open_folder(sequence, out, settings)
+    keys = keyframe_indices(T_map_cam, 0, len(sequence), settings.keyframe_every, settings.keyframe_distance_m,
+                            settings.keyframe_angle_deg)
+    _keyframe_stage(sequence, keys, folder, settings, progress)
+    np.save(folder.keyframe_poses, T_map_cam[keys])
+    folder.info["posed_by"] = "given poses (index_posed_survey)"
+    folder.save()
+    return folder
 
 
 def _open_folder(sequence, out: Path, settings: MapSettings) -> MapFolder:

@@ -103,7 +103,17 @@ class RelocaliseSettings:
     keyframe's pose): that answer only places the render, which the verification then judges,
     so it can ask less than a verified candidate does (12: chosen on the tuning sets of
     ``benchmarks/map_relocalise_rules.py``, where it found more of simulated room 3 than 30 and
-    lost nothing on fr1/xyz)."""
+    lost nothing on fr1/xyz).
+
+    Rivals: a floor repeats itself (offices with the same furniture), and a frame of one can
+    verify in its twin as well as in itself: the first answer found is not the only one there.
+    Once an answer is found, the ``rival_checks`` best-ranked keyframes of the shortlist that
+    stand more than ``rival_m`` from it are tried too; a verified answer there (or one among
+    those already tried) with at least ``rival_ratio`` of the answer's inliers is a *rival*:
+    the relocalisation reports it, and a run that is not yet placed stays unplaced
+    (:class:`~.start.MapPlacement`) until a frame that only one place explains. 1 m: twins
+    are a room apart, while the answers one place gives agree within centimetres (0: no
+    rivals looked for)."""
 
     top_k: int = 6
     shortlist: int = 20
@@ -119,6 +129,9 @@ class RelocaliseSettings:
     max_sigma_deg: float = 2.0
     agree_m: float = 0.05
     agree_deg: float = 3.0
+    rival_m: float = 1.0
+    rival_checks: int = 2
+    rival_ratio: float = 0.5
 
     @property
     def verification(self) -> Verification:
@@ -146,6 +159,14 @@ class Relocalisation:
     seconds: float = 0.0
     reason: str = ""
     wide_baseline: int = 0
+    #: Other places the frame verified in (:class:`RelocaliseSettings`' rivals): each
+    #: ``{"T_map_cam": (4, 4), "keyframe": survey frame, "inliers": n, "distance_m": from this answer}``.
+    rivals: list = field(default_factory=list)
+
+    @property
+    def ambiguous(self) -> bool:
+        """Whether another place answered as well (a twin room): where the frame is is not known."""
+        return bool(self.rivals)
 
     def describe(self) -> str:
         """One line: where it started and how sure it is (or why it could not)."""
@@ -154,13 +175,16 @@ class Relocalisation:
         t = self.T_map_cam[:3, 3]
         return (f"found in the map at ({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}) m from survey keyframe {self.keyframe}: "
                 f"{self.inliers} inliers, sigma {self.sigma_m * 100:.1f} cm / {self.sigma_deg:.2f} deg, "
-                f"{self.agreeing} of {max(self.tried - 1, 0)} other candidates tried agree ({self.seconds:.2f} s)")
+                f"{self.agreeing} of {max(self.tried - 1, 0)} other candidates tried agree ({self.seconds:.2f} s)"
+                + (f"; ambiguous: {len(self.rivals)} other place(s) {self.rivals[0]['distance_m']:.1f} m or more away "
+                   "answer as well" if self.rivals else ""))
 
     def to_dict(self) -> dict:
         return {"success": self.success, "T_map_cam": self.T_map_cam.tolist(), "keyframe": self.keyframe,
                 "inliers": self.inliers, "sigma_m": self.sigma_m, "sigma_deg": self.sigma_deg,
                 "agreeing": self.agreeing, "tried": self.tried, "seconds": round(self.seconds, 3),
-                "reason": self.reason, "wide_baseline": self.wide_baseline}
+                "reason": self.reason, "wide_baseline": self.wide_baseline,
+                "rivals": [{**r, "T_map_cam": np.asarray(r["T_map_cam"]).tolist()} for r in self.rivals]}
 
 
 class Relocaliser:
@@ -228,17 +252,18 @@ class Relocaliser:
         return self._keyframe_features[k]
 
     def _ranked(self, frame: RGBDFrame, query) -> list[int]:
-        """The ``top_k`` candidate keyframes (indices into the map's keyframes), most likely
+        """The shortlist of candidate keyframes (indices into the map's keyframes), most likely
         first: the global descriptor's ``shortlist`` most similar, re-ranked by the distinctive
-        local matches each shares with ``query`` (ties: the descriptor's order)."""
+        local matches each shares with ``query`` (ties: the descriptor's order); the first
+        ``top_k`` are the candidates, the rest where rivals are looked for."""
         s = self.settings
         order = [int(k) for k in np.argsort(-similarities(self.descriptor(frame), self.descriptors), kind="stable")]
         if s.shortlist <= 0 or query is None:
-            return order[: s.top_k]
+            return order[: max(s.shortlist, s.top_k)]
         short = order[: max(s.shortlist, s.top_k)]
         shared = [shared_matches(query.features.descriptors, self._features(k).descriptors, s.distinct_ratio)
                   for k in short]
-        return [short[i] for i in np.argsort(-np.asarray(shared), kind="stable")][: s.top_k]
+        return [short[i] for i in np.argsort(-np.asarray(shared), kind="stable")]
 
     def _query(self, frame: RGBDFrame, detected=None):
         """The query at the kept images' width with its features (None without kept images);
@@ -293,7 +318,8 @@ class Relocaliser:
         render_intrinsics = self.render_intrinsics or frame.intrinsics
         feats_real, _ = real_features(frame, render_intrinsics, self.config)
         query = self._query(frame, (render_intrinsics.shape, feats_real))
-        queue, tried_keys = self._ranked(frame, query), set()
+        ranked = self._ranked(frame, query)
+        queue, tried_keys = ranked[: s.top_k], set()
         while queue:
             k = queue.pop(0)
             if k in tried_keys:
@@ -310,7 +336,7 @@ class Relocaliser:
             if len(found) == 1:  # the first verified answer: its neighbours next, for a second view of it
                 queue = self._neighbours(verified[2], tried_keys) + queue
         tried = len(reasons) + len(found)
-        found = self._agreeing(found)
+        every_verified, found = found, self._agreeing(found)
         if len(found) <= s.min_agreeing:
             if found:
                 reasons.append(f"{len(found)} verified candidate(s) but fewer than {s.min_agreeing} other(s) agreeing")
@@ -320,8 +346,48 @@ class Relocaliser:
             return Relocalisation(False, tried=tried, seconds=time.perf_counter() - started, wide_baseline=wide,
                                   reason=f"none of the {tried} most similar keyframes verified ({why})")
         sigma_m, k, T, cov, inliers, sigma_deg = self._tightest_again(frame, found, feats_real, motion)
-        return Relocalisation(True, T @ shift, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, len(found) - 1, tried,
-                              time.perf_counter() - started, wide_baseline=wide)
+        # Rivals are weighed against the answer's first round, as theirs is (the extra round from
+        # where it landed gives the answer alone more inliers).
+        first_round = max(f[4] for f in found)
+        rivals = self._rivals(frame, query, feats_real, motion, (T, first_round), every_verified, ranked, tried_keys)
+        return Relocalisation(True, T @ shift, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, len(found) - 1,
+                              len(tried_keys), time.perf_counter() - started, wide_baseline=wide,
+                              rivals=[{**r, "T_map_cam": r["T_map_cam"] @ shift} for r in rivals])
+
+    def _rivals(self, frame: RGBDFrame, query, feats_real, motion, answer: tuple, verified: list, ranked: list[int],
+                tried_keys: set) -> list[dict]:
+        """Other places the frame verifies in (see :class:`RelocaliseSettings`): among the
+        candidates ``verified`` already and the ``rival_checks`` best of ``ranked`` whose
+        keyframes stand over ``rival_m`` from ``answer`` (``(T_map_cam, inliers)``), each one
+        landing over ``rival_m`` from it with ``rival_ratio`` of its inliers; ``tried_keys`` grows."""
+        s = self.settings
+        if s.rival_m <= 0:
+            return []
+        T_answer, inliers = answer
+        checked = 0
+        for k in ranked:
+            if checked >= s.rival_checks:
+                break
+            if k in tried_keys or _gap(T_answer, self.T_map_key[k])[0] <= s.rival_m:
+                continue
+            tried_keys.add(k)
+            # The real-vs-real step says cheaply where this keyframe puts the frame: a keyframe
+            # across the same room that sees the same wall puts it where the answer is (no rival
+            # there, and no render spent on it).
+            start = self._start_pose(query, k)
+            if not start[1] or _gap(T_answer, start[0])[0] <= s.rival_m:
+                continue
+            checked += 1
+            candidate = self._candidate(frame, query, k, feats_real, motion, start)[0]
+            if candidate is not None:
+                verified = verified + [candidate]
+        rivals = []
+        for _, k, T, _, n, _ in verified:
+            distance_m = _gap(T_answer, T)[0]
+            if distance_m > s.rival_m and n >= s.rival_ratio * inliers:
+                rivals.append({"T_map_cam": T, "keyframe": int(self.indices[k]), "inliers": int(n),
+                               "distance_m": round(distance_m, 3)})
+        return sorted(rivals, key=lambda r: -r["inliers"])
 
     def _at_one_instant(self, frame: RGBDFrame, twist: np.ndarray | None) -> tuple[RGBDFrame, object, np.ndarray]:
         """``(frame, motion, shift)`` of :func:`~nap3d_graph.run.keyframe.at_one_instant` with
@@ -333,15 +399,17 @@ class Relocaliser:
             return frame, None, np.eye(4)
         return at_one_instant(frame, self.timing, np.asarray(twist, dtype=float), float(self.timing.readout_s), 1.0)
 
-    def _candidate(self, frame: RGBDFrame, query, k: int, feats_real, motion=None) -> tuple[tuple | None, str, bool]:
+    def _candidate(self, frame: RGBDFrame, query, k: int, feats_real, motion=None, start: tuple | None = None
+                   ) -> tuple[tuple | None, str, bool]:
         """``(verified, refusal, wide)``: keyframe ``k`` as a candidate, its render started
-        where :meth:`_start_pose` puts it (``wide``: real-vs-real); ``verified``: ``(sigma_m,
+        where :meth:`_start_pose` puts it (or ``start``, its answer already had; ``wide``:
+        real-vs-real); ``verified``: ``(sigma_m,
         k, T_map_cam, covariance, inliers, sigma_deg)`` when the correction passes the
         verification, else None with ``refusal`` saying why."""
         from nap3d_graph.nap3d.correct import correct_pose
 
         s = self.settings
-        T_start, wide = self._start_pose(query, k)
+        T_start, wide = start if start is not None else self._start_pose(query, k)
         correction = correct_pose(frame, self.field, T_start, iterations=s.iterations, config=self.config,
                                   render_intrinsics=self.render_intrinsics, feats_real=feats_real, motion=motion)
         if not correction.success:

@@ -11,8 +11,18 @@ by it (``T_map_run @ T_run_cam(k + n)``, carried there by the odometry) and alig
 field rendered at that pose, land within ``agree_m`` / ``agree_deg`` of where it put them.
 A candidate that disagrees is dropped and the keyframe that refuted it relocalises afresh.
 
+On a floor that repeats itself (twin offices), two places can explain one frame, and two
+keyframes of the same room agree as readily as one. So a relocalisation that found a rival
+(:class:`~.relocalise.RelocaliseSettings`: another place, a room away, that verified as well)
+is no candidate: the run stays unplaced, its odometry running on, until a frame that only one
+place explains. And a candidate is accepted only once the keyframes that confirmed it span
+``confirm_travel_m`` of the run's own travel, so that what the camera sees along the way,
+not one view twice, decides.
+
 The same steps recover a run that is placed but lost (keyframes refused in a row): the
-candidate then maps the lost estimate onto the map again.
+candidate then maps the lost estimate onto the map again. The odometry is the prior there: of
+the answer and its rivals the one nearest where the run believes it is wins, and one that
+jumps more than ``max_jump_m`` from it (a look-alike room) is refused.
 
 :class:`MapPlacement` holds that state and decides; it touches no graph. The run
 (:class:`~nap3d_graph.run.pipeline.Pipeline`) measures, and once placed moves what it has
@@ -37,16 +47,26 @@ class PlacementSettings:
     """confirmations: keyframes after the relocalised one whose correction, rendered where
     the candidate places them, must agree with it (0: a verified relocalisation is taken at
     once); agree_m / agree_deg: how far such a correction may move the keyframe and still
-    agree (the relocalisation's own agreement radius, :class:`~.relocalise.RelocaliseSettings`).
-    Chosen on the simulator and fr1/xyz (tests), not on the recordings the results report."""
+    agree (the relocalisation's own agreement radius, :class:`~.relocalise.RelocaliseSettings`);
+    confirm_travel_m: the run's travel from the relocalised keyframe to the last confirming one
+    that a placement needs besides (confirmations go on until it is reached); max_jump_m: once
+    placed, how far from the run's own estimate a recovery may move it. ``confirmations``,
+    ``agree_*``: chosen on the simulator and fr1/xyz (tests); ``confirm_travel_m`` and
+    ``max_jump_m`` on the simulated floors of ``benchmarks/building.py``; none on the
+    recordings the results report."""
 
     confirmations: int = 1
     agree_m: float = 0.05
     agree_deg: float = 3.0
+    confirm_travel_m: float = 0.0
+    max_jump_m: float = 1.0
 
     def __post_init__(self):
         if self.confirmations < 0:
             raise ValueError(f"confirmations must be 0 or more, got {self.confirmations}")
+        if self.confirm_travel_m < 0 or self.max_jump_m <= 0:
+            raise ValueError(f"confirm_travel_m must be >= 0 and max_jump_m > 0, got {self.confirm_travel_m} / "
+                             f"{self.max_jump_m}")
 
 
 @dataclass
@@ -97,12 +117,45 @@ class MapPlacement:
             event.update(success=False, reason="relocalisation without a usable covariance")
             self.events.append(event)
             return None
+        event.update(keyframe=int(found.keyframe), inliers=int(found.inliers), agreeing=int(found.agreeing),
+                     sigma_m=round(float(found.sigma_m), 4), sigma_deg=round(float(found.sigma_deg), 3),
+                     at_m=np.round(found.T_map_cam[:3, 3], 3).tolist())
+        refusal = self._placed_answer(found, T_run_cam) if self.placed else self._unique(found)
+        if refusal:
+            event.update(success=False, reason=refusal)
+            if found.rivals:
+                event["rivals"] = [{k: v for k, v in r.items() if k != "T_map_cam"} for r in found.rivals]
+            self.events.append(event)
+            return None
         T_map_run = found.T_map_cam @ inv_T(T_run_cam)
         self.candidate = Candidate(int(i), int(key), T_map_run, found)
-        event.update(keyframe=int(found.keyframe), inliers=int(found.inliers), agreeing=int(found.agreeing),
-                     sigma_m=round(float(found.sigma_m), 4), sigma_deg=round(float(found.sigma_deg), 3))
         self.events.append(event)
         return self.candidate
+
+    @staticmethod
+    def _unique(found: Relocalisation) -> str:
+        """Why an answer of a run not yet placed is no candidate: another place answered too."""
+        if not found.rivals:
+            return ""
+        rival = found.rivals[0]
+        return (f"ambiguous: the frame verifies {rival['distance_m']:.1f} m away as well (survey keyframe "
+                f"{rival['keyframe']}, {rival['inliers']} inliers); unplaced until the camera sees what tells the "
+                "places apart")
+
+    def _placed_answer(self, found: Relocalisation, T_run_cam: np.ndarray) -> str:
+        """A placed run's relocalisation (a recovery): the answer or rival nearest the run's own
+        estimate ``T_run_cam`` (4, 4, in the map's frame now) becomes the answer; why it is
+        refused when even that one jumps past ``max_jump_m``."""
+        options = [(found.T_map_cam, found.inliers, found.keyframe)]
+        options += [(np.asarray(r["T_map_cam"]), r["inliers"], r["keyframe"]) for r in found.rivals]
+        jumps = [float(np.linalg.norm(T[:3, 3] - T_run_cam[:3, 3])) for T, _, _ in options]
+        best = int(np.argmin(jumps))
+        if jumps[best] > self.settings.max_jump_m:
+            return (f"the answer jumps {jumps[best]:.2f} m from where the odometry puts the run (> "
+                    f"{self.settings.max_jump_m:.2f} m): a look-alike place, refused")
+        if best:  # a rival is where the run is: the answer was its twin (its covariance stands for the rival's)
+            found.T_map_cam, found.inliers, found.keyframe = options[best]
+        return ""
 
     def predicted(self, T_run_cam: np.ndarray) -> np.ndarray:
         """(4, 4) where the pending candidate places a camera at ``T_run_cam`` in the map."""
@@ -125,9 +178,12 @@ class MapPlacement:
             moved_m, moved_deg = pose_error(correction.T_world_cam_corrected, T_map_cam_pred)
             event.update(moved_m=round(float(moved_m), 4), moved_deg=round(float(moved_deg), 3),
                          inliers=int(correction.num_inliers))
+            travel_m = float(np.linalg.norm(T_map_cam_pred[:3, 3] - cand.found.T_map_cam[:3, 3]))
+            event["travel_m"] = round(travel_m, 3)
             if moved_m <= s.agree_m and moved_deg <= s.agree_deg:
                 cand.confirmed.append((int(i), int(key), correction))
-                verdict = "confirmed" if len(cand.confirmed) >= s.confirmations else "agrees"
+                enough = len(cand.confirmed) >= s.confirmations and travel_m >= s.confirm_travel_m
+                verdict = "confirmed" if enough else "agrees"
             else:
                 verdict = "refuted"
                 event["reason"] = (f"the next keyframe lands {moved_m * 100:.1f} cm / {moved_deg:.1f} deg from where "

@@ -1,0 +1,112 @@
+"""A run that starts in one of two twin rooms of a simulated floor: never placed in the twin,
+placed once the camera sees what tells them apart; and the placement's rules one by one."""
+
+import numpy as np
+import pytest
+
+from nap3d_graph.conventions import exp_se3, inv_T
+from nap3d_graph.mapping.relocalise import Relocalisation
+from nap3d_graph.mapping.start import MapPlacement, PlacementSettings
+
+
+@pytest.fixture(scope="module")
+def twin_floor(tmp_path_factory):
+    """A three-room floor (room 2 the twin of room 0), its survey indexed at its true poses
+    (no survey error: relocalisation alone is under test), and a walk that starts in room 2
+    looking at a side wall both twins have, then turns towards the door to room 1."""
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.mapping.build import MapSettings, index_posed_survey
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    root = tmp_path_factory.mktemp("floor")
+    survey = open_sequence(simulate_sequence(root / "survey", SimConfig(
+        frames=300, path="mapping", rooms=3, width=240, height=180, fps=1.875, seed=1)))
+    walk = open_sequence(simulate_sequence(root / "walk", SimConfig(
+        frames=60, path="traverse", rooms=3, start_room=2, end_room=1, look_aside_deg=80.0, width=240, height=180,
+        fps=4.5, seed=2)))
+    index = index_posed_survey(survey, root / "index", survey.T_world_cam_gt, MapSettings(matcher="sift",
+                                                                                          keyframe_every=2))
+    return index.root, walk
+
+
+def test_a_start_in_a_twin_room_waits_for_what_tells_the_rooms_apart(twin_floor):
+    from nap3d_graph.mapping.relocalise import Relocaliser
+    from nap3d_graph.motion.odometry import RecordedOdometry
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.pipeline import Pipeline
+
+    index, walk = twin_floor
+    field = walk.oracle_field()
+    floor = field.scene
+    T_gt, T_odom = np.asarray(walk.T_world_cam_gt), np.asarray(walk.T_world_cam_odom)
+    pipeline = Pipeline(walk, field, RecordedOdometry(inv_T(T_odom[0]) @ T_odom),
+                        PipelineConfig(keyframe_every=3, align=AlignConfig(matcher="sift")))
+    pipeline.start_in_map(Relocaliser(index, field, AlignConfig(matcher="sift")))
+    run = pipeline.run()
+    events = run.placement["events"]
+    relocalised = [e for e in events if e["step"] == "relocalise" and "at_m" in e]
+    ambiguous = [e for e in relocalised if e.get("reason", "").startswith("ambiguous")]
+    # The first views (a side wall both twins have) verify in both rooms: refused, not guessed.
+    assert len(ambiguous) >= 3 and ambiguous[0]["frame"] == 0
+    assert all(abs(r["distance_m"] - (floor.walls_x[2] - floor.walls_x[0])) < 0.5 for e in ambiguous
+               for r in e["rivals"])
+    # No answer taken as a candidate is in the wrong room.
+    for e in relocalised:
+        if e["success"]:
+            assert floor.room_of(e["at_m"]) == floor.room_of(T_gt[e["frame"], :3, 3]), e
+    assert run.placement["placed"] and run.placement["placed_at_frame"] > ambiguous[-1]["frame"]
+    errors = np.linalg.norm(run.T_world_cam_estimate[:, :3, 3] - T_gt[:, :3, 3], axis=1)
+    assert errors.max() < 0.15 and np.sqrt(np.mean(errors**2)) < 0.08
+    placed = run.placement["placed_at_frame"]
+    assert errors[placed:].max() < 0.05  # once placed, in the right room to centimetres
+
+
+class _Answers:
+    """A relocaliser that answers from a list, in turn."""
+
+    def __init__(self, answers):
+        self.answers = list(answers)
+
+    def locate(self, frame, twist=None):
+        return self.answers.pop(0)
+
+
+def _found(x_m: float, rivals_x_m=(), inliers: int = 100) -> Relocalisation:
+    T = exp_se3(np.array([0, 0, 0, x_m, 0, 0.0]))
+    rivals = [{"T_map_cam": exp_se3(np.array([0, 0, 0, r, 0, 0.0])), "keyframe": 7, "inliers": inliers,
+               "distance_m": abs(r - x_m)} for r in rivals_x_m]
+    return Relocalisation(True, T, np.eye(6) * 1e-4, keyframe=3, inliers=inliers, sigma_m=0.01, sigma_deg=0.5,
+                          agreeing=1, tried=4, rivals=rivals)
+
+
+class _Correction:
+    def __init__(self, T):
+        self.success, self.T_world_cam_corrected, self.num_inliers, self.reason = True, T, 80, ""
+
+
+def test_an_ambiguous_answer_is_no_candidate_and_a_placed_run_takes_the_one_where_it_is():
+    placement = MapPlacement(_Answers([_found(1.0, [12.0])]))
+    assert placement.propose(0, 0, None, np.eye(4)) is None and placement.candidate is None
+    assert placement.events[-1]["reason"].startswith("ambiguous: the frame verifies 11.0 m away")
+    # Once placed, the odometry is the prior: the rival where the run is wins, a jump is refused.
+    placed = MapPlacement(_Answers([_found(1.0, [12.0]), _found(5.0)]), placed=True)
+    T_here = exp_se3(np.array([0, 0, 0, 11.9, 0, 0.0]))
+    candidate = placed.propose(3, 3, None, T_here)
+    assert candidate is not None and abs(candidate.found.T_map_cam[0, 3] - 12.0) < 1e-9
+    assert placed.propose(4, 4, None, T_here) is None
+    assert "jumps 6.90 m" in placed.events[-1]["reason"]
+
+
+def test_a_placement_needs_the_travel_its_settings_ask_for():
+    settings = PlacementSettings(confirmations=1, confirm_travel_m=0.5)
+    placement = MapPlacement(_Answers([_found(0.0)]), settings)
+    placement.propose(0, 0, None, np.eye(4))
+    verdicts = []
+    for k, x in enumerate((0.2, 0.4, 0.6)):
+        T = exp_se3(np.array([0, 0, 0, x, 0, 0.0]))
+        verdicts.append(placement.confirm(k + 1, k + 1, _Correction(T), T))
+    assert verdicts == ["agrees", "agrees", "confirmed"]
+    assert [e["travel_m"] for e in placement.events if e["step"] == "confirm"] == [0.2, 0.4, 0.6]
+    with pytest.raises(ValueError, match="confirm_travel_m"):
+        PlacementSettings(confirm_travel_m=-1.0)
