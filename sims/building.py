@@ -36,10 +36,10 @@ from .scene import (
     SCENE_VERSION,
     RayCastRenderer,
     Room,
-    _bounding_sphere,
-    _hits_sphere,
-    _object_from_dict,
+    bounding_sphere,
     furnish,
+    hits_sphere,
+    object_from_dict,
 )
 from .textures import TextureSpec, shade_texture
 
@@ -68,7 +68,7 @@ class RoomDesign:
     @classmethod
     def from_dict(cls, d: dict) -> "RoomDesign":
         return cls(tuple(float(v) for v in d["size_m"]), tuple(TextureSpec.from_dict(t) for t in d["textures"]),
-                   tuple(_object_from_dict(o) for o in d["objects"]), int(d["seed"]))
+                   tuple(object_from_dict(o) for o in d["objects"]), int(d["seed"]))
 
 
 def twin_layout(rooms: int) -> tuple[int, ...]:
@@ -185,7 +185,7 @@ class Building(RayCastRenderer):
             local = origin - self.origin(r)
             for index, obj in enumerate(self.room_design(r).objects):
                 # Only the rays that crossed this room can meet its furniture; cull by the bounding sphere.
-                cand = rays[_hits_sphere(local, dirs[rays], dirs_sq[rays], *_bounding_sphere(obj))]
+                cand = rays[hits_sphere(local, dirs[rays], dirs_sq[rays], *bounding_sphere(obj))]
                 if cand.size == 0:
                     continue
                 t_obj, n_obj = obj.intersect(local, dirs[cand])

@@ -24,7 +24,7 @@ from scipy.interpolate import CubicSpline
 from scipy.ndimage import gaussian_filter1d
 
 from .building import Building
-from .trajectories import Trajectory, _smooth_noise
+from .trajectories import Trajectory, smooth_noise
 
 __all__ = ["floor_survey", "floor_traverse"]
 
@@ -60,7 +60,7 @@ def _line(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def floor_survey(building: Building, rng: np.random.Generator, duration_s: float) -> Trajectory:
     """The room-by-room survey of the module's text, first room to last, in ``duration_s``."""
-    sweep = _smooth_noise(rng)
+    sweep = smooth_noise(rng)
     parts = []
     for r in range(building.rooms):
         size_x = building.room_design(r).size_m[0]
@@ -115,7 +115,7 @@ def floor_traverse(building: Building, rng: np.random.Generator, duration_s: flo
     lengths = building.walls_x[room_of + 1] - x0
     y = building.door_y_m + np.array([amplitude.get(r, 0.0) for r in room_of]) * np.sin(np.pi * (xs - x0) / lengths)
     travelled = np.abs(xs - x_start)
-    yaw_sweep, bob = _smooth_noise(rng), _smooth_noise(rng)
+    yaw_sweep, bob = smooth_noise(rng), smooth_noise(rng)
     heading = 0.0 if step > 0 else np.pi
     aside = np.radians(look_aside_deg) * np.clip(1.0 - travelled / 1.0, 0.0, 1.0) ** 2
     height = float(rng.uniform(1.2, 1.5))

@@ -22,7 +22,8 @@ from nap3d_graph.camera import Intrinsics, RenderedView
 
 from .textures import TextureSpec, shade_texture
 
-__all__ = ["Box", "Cylinder", "Sphere", "Room", "Scene", "OracleField", "make_scene", "load_scene", "RayCastRenderer",
+__all__ = ["Box", "Cylinder", "Sphere", "Room", "Scene", "OracleField", "make_scene", "RayCastRenderer", "furnish",
+           "bounding_sphere", "hits_sphere", "object_from_dict",
            "SCENE_VERSION"]
 
 SCENE_VERSION = 1
@@ -234,7 +235,7 @@ def with_twin_posters(scene: "Scene", seed: int = 0, identical: bool = True) -> 
                  ambient=scene.ambient)
 
 
-def _bounding_sphere(obj) -> tuple[np.ndarray, float]:
+def bounding_sphere(obj) -> tuple[np.ndarray, float]:
     if isinstance(obj, Poster):
         return obj.centre3(), float(np.hypot(*obj.half_m)) + obj.standoff_m
     if isinstance(obj, Box):
@@ -246,7 +247,7 @@ def _bounding_sphere(obj) -> tuple[np.ndarray, float]:
     return np.asarray(obj.center_m), float(obj.radius_m)
 
 
-def _hits_sphere(origin, dirs, dirs_sq, centre, radius) -> np.ndarray:
+def hits_sphere(origin, dirs, dirs_sq, centre, radius) -> np.ndarray:
     """Rays (not unit) that pass within ``radius`` of ``centre`` in front of the origin."""
     oc = centre - origin
     along = dirs @ oc
@@ -254,7 +255,7 @@ def _hits_sphere(origin, dirs, dirs_sq, centre, radius) -> np.ndarray:
     return (dist_sq <= radius * radius) & ((along > 0) | (oc @ oc <= radius * radius))
 
 
-def _object_from_dict(d: dict):
+def object_from_dict(d: dict):
     kind = d["type"]
     texture = TextureSpec.from_dict(d["texture"])
     if kind == "box":
@@ -348,7 +349,7 @@ class Scene(RayCastRenderer):
         room = Room(tuple(d["room"]["size_m"]), tuple(TextureSpec.from_dict(t) for t in d["room"]["textures"]))
         return cls(
             room=room,
-            objects=tuple(_object_from_dict(o) for o in d["objects"]),
+            objects=tuple(object_from_dict(o) for o in d["objects"]),
             free_xy_m=tuple(tuple(r) for r in d["free_xy_m"]),
             seed=int(d["seed"]),
             ambient=float(d["ambient"]),
@@ -384,7 +385,7 @@ class Scene(RayCastRenderer):
         dirs_sq = np.einsum("ij,ij->i", dirs, dirs)
         for index, obj in enumerate(self.objects):
             # Cull with the bounding sphere first: most objects cover a small part of a view.
-            cand = np.flatnonzero(_hits_sphere(origin, dirs, dirs_sq, *_bounding_sphere(obj)))
+            cand = np.flatnonzero(hits_sphere(origin, dirs, dirs_sq, *bounding_sphere(obj)))
             if cand.size == 0:
                 continue
             t_obj, n_obj = obj.intersect(origin, dirs[cand])
@@ -413,24 +414,6 @@ class Scene(RayCastRenderer):
         return x0 <= x <= x1 and y0 <= y <= y1 and margin_m < z < self.room.size_m[2] - margin_m
 
 
-def load_scene(path: str | Path):
-    """The scene a ``scene.json`` describes: one room (:class:`Scene`) or a floor of rooms
-    (:class:`~nap3d_graph.sims.building.Building`); ``ValueError`` when it is neither."""
-    path = Path(path)
-    try:
-        description = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: not a valid scene description ({exc})") from None
-    if isinstance(description, dict) and description.get("kind") == "building":
-        from .building import Building
-
-        try:
-            return Building.from_dict(description)
-        except (ValueError, KeyError, TypeError) as exc:
-            raise ValueError(f"{path}: not a valid building description ({exc})") from None
-    return Scene.load(path)
-
-
 class OracleField:
     """The simulated room as a radiance field: exact RGB, z-depth and opacity.
 
@@ -446,10 +429,6 @@ class OracleField:
     def bounds(self) -> np.ndarray:
         """(2, 3) axis-aligned world bounds ``[min, max]`` in metres."""
         return self.scene.bounds()
-
-    @classmethod
-    def from_file(cls, path: str | Path) -> "OracleField":
-        return cls(load_scene(path))
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
         rgb, depth, hit = self.scene.render(T_world_cam, intrinsics.without_distortion())

@@ -20,7 +20,7 @@ from nap3d_graph.conventions import exp_so3, log_so3
 from .scene import Scene
 
 __all__ = ["Trajectory", "traverse_trajectory", "mapping_trajectory", "make_trajectory", "R_world_cam_from_angles",
-           "ImagelessWalk"]
+           "ImagelessWalk", "smooth_noise"]
 
 # Camera looking along world +X, level: x_cam = -Y_world (right), y_cam = -Z_world (down).
 _R_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
@@ -69,7 +69,7 @@ class Trajectory:
         return log_so3(R0.T @ R1) / (2 * h)
 
 
-def _smooth_noise(rng: np.random.Generator, n_terms: int = 3):
+def smooth_noise(rng: np.random.Generator, n_terms: int = 3):
     """A random smooth function of a scalar in about [-1, 1]: a few low-frequency sines."""
     freqs = rng.uniform(0.5, 2.0, n_terms)
     phases = rng.uniform(0, 2 * np.pi, n_terms)
@@ -90,9 +90,9 @@ def traverse_trajectory(scene: Scene, rng: np.random.Generator, duration_s: floa
     axis /= length
     lateral = np.array([-axis[1], axis[0]])
     half_width = 0.4 * ((y1 - y0) if long_x else (x1 - x0)) / 2
-    wiggle = _smooth_noise(rng)
-    yaw_sweep = _smooth_noise(rng)
-    bob = _smooth_noise(rng)
+    wiggle = smooth_noise(rng)
+    yaw_sweep = smooth_noise(rng)
+    bob = smooth_noise(rng)
     heading = float(np.arctan2(axis[1], axis[0]))
     duration = float(duration_s)
     height = float(rng.uniform(1.2, 1.5))
@@ -124,7 +124,7 @@ def mapping_trajectory(scene: Scene, rng: np.random.Generator, duration_s: float
     loops = 2.0
     duration = float(duration_s)
     phase0 = float(rng.uniform(0, 2 * np.pi))
-    sweep = _smooth_noise(rng)
+    sweep = smooth_noise(rng)
     heights = (float(rng.uniform(1.0, 1.2)), float(rng.uniform(1.5, 1.7)))
 
     def angle_of(t: float) -> float:

@@ -6,7 +6,8 @@ import pytest
 
 from nap3d_graph.sims.building import Building, make_building, twin_layout
 from nap3d_graph.sims.floor_paths import floor_survey, floor_traverse
-from nap3d_graph.sims.scene import OracleField, load_scene
+from nap3d_graph.sims.scene import OracleField
+from nap3d_graph.sims.scene_file import load_scene, oracle_from_file
 from nap3d_graph.sims.sequence import default_intrinsics
 from nap3d_graph.sims.trajectories import R_world_cam_from_angles
 
@@ -72,7 +73,7 @@ def test_a_floor_round_trips_through_its_scene_file(floor, tmp_path):
     assert isinstance(again, Building) and again.to_dict() == floor.to_dict()
     T = _pose(floor.walls_x[1] + 1.0, 2.0, 0.4)
     np.testing.assert_array_equal(OracleField(again).render(T, K).rgb, OracleField(floor).render(T, K).rgb)
-    np.testing.assert_allclose(OracleField.from_file(tmp_path / "scene.json").bounds, floor.bounds())
+    np.testing.assert_allclose(oracle_from_file(tmp_path / "scene.json").bounds, floor.bounds())
     (tmp_path / "bad.json").write_text('{"kind": "building", "version": 1}')
     with pytest.raises(ValueError, match="bad.json"):
         load_scene(tmp_path / "bad.json")

@@ -42,7 +42,7 @@ class SimSequence(TumSequence):
             )
         super().__init__(path, *args, **kwargs)
 
-        from nap3d_graph.sims.scene import load_scene  # numpy only, but keep the package import light
+        from nap3d_graph.sims.scene_file import load_scene  # numpy only, but keep the package import light
 
         try:
             self.scene = load_scene(scene_path)

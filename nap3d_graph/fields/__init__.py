@@ -24,10 +24,10 @@ def load_field(path: str | Path):
     if not path.exists():
         raise FieldError(f"{path}: no such field checkpoint, config or scene")
     if path.name == "scene.json":
-        from nap3d_graph.sims.scene import OracleField
+        from nap3d_graph.sims.scene_file import oracle_from_file
 
         try:
-            return OracleField.from_file(path)
+            return oracle_from_file(path)
         except ValueError as exc:
             raise FieldError(str(exc)) from None
     if path.suffix == ".pt":

@@ -57,10 +57,10 @@ def oracle_for(sequence):
             return None
     folder = getattr(sequence, "path", None)
     if folder is not None and (Path(folder) / "scene.json").is_file():
-        from nap3d_graph.sims.scene import OracleField
+        from nap3d_graph.sims.scene_file import oracle_from_file
 
         try:
-            return OracleField.from_file(Path(folder) / "scene.json")
+            return oracle_from_file(Path(folder) / "scene.json")
         except ValueError as exc:
             log.warning("cannot build the oracle field: %s", exc)
     return None

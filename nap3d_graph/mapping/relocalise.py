@@ -162,6 +162,8 @@ class Relocalisation:
     #: Other places the frame verified in (:class:`RelocaliseSettings`' rivals): each
     #: ``{"T_map_cam": (4, 4), "keyframe": survey frame, "inliers": n, "distance_m": from this answer}``.
     rivals: list = field(default_factory=list)
+    #: Keyframes looked at for rivals after the answer was found (not in ``tried``).
+    rival_checks: int = 0
 
     @property
     def ambiguous(self) -> bool:
@@ -184,7 +186,8 @@ class Relocalisation:
                 "inliers": self.inliers, "sigma_m": self.sigma_m, "sigma_deg": self.sigma_deg,
                 "agreeing": self.agreeing, "tried": self.tried, "seconds": round(self.seconds, 3),
                 "reason": self.reason, "wide_baseline": self.wide_baseline,
-                "rivals": [{**r, "T_map_cam": np.asarray(r["T_map_cam"]).tolist()} for r in self.rivals]}
+                "rivals": [{**r, "T_map_cam": np.asarray(r["T_map_cam"]).tolist()} for r in self.rivals],
+                "rival_checks": self.rival_checks}
 
 
 class Relocaliser:
@@ -351,7 +354,7 @@ class Relocaliser:
         first_round = max(f[4] for f in found)
         rivals = self._rivals(frame, query, feats_real, motion, (T, first_round), every_verified, ranked, tried_keys)
         return Relocalisation(True, T @ shift, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, len(found) - 1,
-                              len(tried_keys), time.perf_counter() - started, wide_baseline=wide,
+                              tried, time.perf_counter() - started, wide_baseline=wide, rival_checks=len(tried_keys) - tried,
                               rivals=[{**r, "T_map_cam": r["T_map_cam"] @ shift} for r in rivals])
 
     def _rivals(self, frame: RGBDFrame, query, feats_real, motion, answer: tuple, verified: list, ranked: list[int],

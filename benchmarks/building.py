@@ -1,0 +1,274 @@
+"""A floor of a building, 1, 3 and 6 rooms (issue 61): what a map, a run and a placement do as
+the floor grows, on simulated floors no test or tuning used (floor seed 1; the tests use 0).
+
+Two parts, each its own JSON:
+
+* ``--part placement`` (minutes): the survey indexed at its true poses and the simulator's exact
+  field (no survey or field error: relocalisation and placement alone). Every fourth frame of
+  a traverse across the floor is relocalised (time per attempt, found within 5 cm / 3 deg, in
+  the wrong room, refused as ambiguous); then runs that start in a room with a twin, looking
+  first at a side wall both twins have, are placed from their own start with the rival check
+  (``RelocaliseSettings.rival_m`` 1 m, the default) and without it (``rival_m`` 0: before
+  issue 61): where and when each was placed, and whether ever in the twin.
+* ``--part map`` (an hour and more on two cores): ``nap3d-graph map`` of each floor's survey,
+  as a user runs it (defaults, a subprocess timed by ``/usr/bin/time`` for its peak memory),
+  held-out PSNR of its field per room, then ``nap3d-graph run --odom vo`` of a traverse
+  across the floor from its own start in that map (ATE tied through the survey's alignment,
+  the largest error, peak memory).
+
+    python benchmarks/building.py --part placement --rooms 1 3 6 --out benchmarks/results/building_placement.json
+    python benchmarks/building.py --part map --rooms 1 3 6 --out benchmarks/results/building_map.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from provenance import write_result
+
+FLOOR_SEED = 1  # the tests' floors are seed 0
+SURVEY_SEED, TRAVERSE_SEED, START_SEEDS = 3, 4, (5, 6, 7)
+SURVEY_FPS = 3.75  # every fourth frame of a 15 Hz recording, as the one-room survey
+TRAVERSE_FPS = 7.5
+WALK_SPEED_MPS = 0.5
+
+
+def _simulate(folder: Path, **settings):
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    if not (folder / "sim.json").is_file():
+        simulate_sequence(folder, SimConfig(**settings), progress=True)
+    return open_sequence(folder)
+
+
+def _floor_data(args, rooms: int, work: Path):
+    """The floor's survey (``frames_per_room`` per room) and a traverse from its first room to
+    its last at walking pace."""
+    from nap3d_graph.sims.building import make_building
+
+    floor = make_building(rooms, FLOOR_SEED)
+    size = {"width": args.width, "height": args.height, "scene_seed": FLOOR_SEED, "rooms": rooms}
+    survey = _simulate(work / f"floor{rooms}_survey", frames=args.frames_per_room * rooms, path="mapping",
+                       fps=SURVEY_FPS, seed=SURVEY_SEED, **size)
+    length_m = float(floor.walls_x[-1]) - 2.4
+    frames = max(int(length_m / WALK_SPEED_MPS * TRAVERSE_FPS), 30)
+    traverse = _simulate(work / f"floor{rooms}_traverse", frames=frames, path="traverse", fps=TRAVERSE_FPS,
+                         seed=TRAVERSE_SEED, **size)
+    return floor, survey, traverse, length_m
+
+
+def _pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    from nap3d_graph.conventions import inv_T, log_se3
+
+    d = log_se3(inv_T(T_a) @ T_b)
+    return float(np.linalg.norm(d[3:])), float(np.degrees(np.linalg.norm(d[:3])))
+
+
+def _spread(values) -> dict:
+    v = np.asarray(values, dtype=float)
+    if v.size == 0:
+        return {"n": 0}
+    return {"n": int(v.size), "median": round(float(np.median(v)), 4), "p90": round(float(np.percentile(v, 90)), 4),
+            "max": round(float(v.max()), 4)}
+
+
+# --- placement ---------------------------------------------------------------------------------
+
+
+def relocalise_traverse(floor, index: Path, traverse, every: int) -> dict:
+    """Every ``every``-th traverse frame relocalised in the posed index with the exact field."""
+    from nap3d_graph.mapping.relocalise import Relocaliser
+
+    field = traverse.oracle_field()
+    relocaliser = Relocaliser(index, field)
+    seconds, errors_m, rows = [], [], {"found_within_5cm_3deg": 0, "found_farther": 0, "wrong_room": 0,
+                                       "ambiguous": 0, "refused": 0}
+    for i in range(0, len(traverse), every):
+        t0 = time.perf_counter()
+        found = relocaliser.locate(traverse[i])
+        seconds.append(time.perf_counter() - t0)
+        T_true = traverse.T_world_cam_gt[i]
+        if not found.success:
+            rows["refused"] += 1
+            continue
+        if found.ambiguous:
+            rows["ambiguous"] += 1
+        metres, degrees = _pose_gap(found.T_map_cam, T_true)
+        errors_m.append(metres)
+        if floor.room_of(found.T_map_cam[:3, 3]) != floor.room_of(T_true[:3, 3]):
+            rows["wrong_room"] += 1
+        elif metres <= 0.05 and degrees <= 3.0:
+            rows["found_within_5cm_3deg"] += 1
+        else:
+            rows["found_farther"] += 1
+    return {"attempts": len(seconds), **rows, "seconds": _spread(seconds), "error_m": _spread(errors_m)}
+
+
+def place_from_start(floor, index: Path, walk, rival_m: float) -> dict:
+    """A run of ``walk`` from its own start (the simulator's drifting odometry, the exact field)
+    placed in the index with the rival check at ``rival_m`` (0: off)."""
+    from nap3d_graph.conventions import inv_T
+    from nap3d_graph.mapping.relocalise import Relocaliser, RelocaliseSettings
+    from nap3d_graph.motion.odometry import RecordedOdometry
+    from nap3d_graph.run.config import PipelineConfig
+    from nap3d_graph.run.pipeline import Pipeline
+
+    field = walk.oracle_field()
+    T_gt, T_odom = np.asarray(walk.T_world_cam_gt), np.asarray(walk.T_world_cam_odom)
+    pipeline = Pipeline(walk, field, RecordedOdometry(inv_T(T_odom[0]) @ T_odom), PipelineConfig(keyframe_every=3))
+    pipeline.start_in_map(Relocaliser(index, field, settings=RelocaliseSettings(rival_m=rival_m)))
+    run = pipeline.run()
+    placement = run.placement
+    errors = np.linalg.norm(run.T_world_cam_estimate[:, :3, 3] - T_gt[:, :3, 3], axis=1)
+    out = {"placed": bool(placement["placed"]), "placed_at_frame": placement["placed_at_frame"],
+           "relocalisations_tried": placement["relocalisations_tried"],
+           "ambiguous_refusals": sum(str(e.get("reason", "")).startswith("ambiguous") for e in placement["events"]),
+           "candidates_in_the_twin": sum(e["step"] == "relocalise" and e["success"]
+                                         and floor.room_of(e["at_m"]) != floor.room_of(T_gt[e["frame"], :3, 3])
+                                         for e in placement["events"]),
+           "odometry_max_error_m": round(float(np.linalg.norm(T_odom[:, :3, 3] - T_gt[:, :3, 3], axis=1).max()), 4)}
+    if placement["placed"]:
+        at = placement["placed_at_frame"]
+        out.update(placed_in_the_twin=bool(errors[at] > 1.0), ate_m=round(float(np.sqrt(np.mean(errors**2))), 4),
+                   max_error_m=round(float(errors.max()), 4),
+                   placed_after_m=round(float(np.linalg.norm(T_gt[at, :3, 3] - T_gt[0, :3, 3])), 3))
+    return out
+
+
+def twin_starts(args, floor, index: Path, work: Path) -> list[dict]:
+    """Runs that start in each room with an earlier twin, looking at a side wall both have."""
+    out = []
+    for room in range(floor.rooms):
+        if not any(q < room for q in floor.twins(room)):
+            continue
+        end = room - 1  # towards the room between the twins: its door is what tells them apart
+        for seed in START_SEEDS:
+            walk = _simulate(work / f"floor{floor.rooms}_start{room}_seed{seed}", frames=75, path="traverse",
+                             fps=TRAVERSE_FPS * 0.6, seed=seed, width=args.width, height=args.height,
+                             scene_seed=FLOOR_SEED, rooms=floor.rooms, start_room=room, end_room=end,
+                             look_aside_deg=80.0)
+            row = {"start_room": room, "twin": floor.twins(room), "seed": seed}
+            for name, rival_m in (("before_no_rivals", 0.0), ("after_rivals_1m", 1.0)):
+                row[name] = place_from_start(floor, index, walk, rival_m)
+                print(f"  start in room {room} seed {seed} {name}: {row[name]}")
+            out.append(row)
+    return out
+
+
+def placement_part(args, work: Path) -> dict:
+    from nap3d_graph.mapping.build import index_posed_survey
+
+    floors = {}
+    for rooms in args.rooms:
+        floor, survey, traverse, length_m = _floor_data(args, rooms, work)
+        index = work / f"floor{rooms}_index"
+        if not (index / "keyframe_poses.npy").is_file():
+            index_posed_survey(survey, index, survey.T_world_cam_gt, progress=True)
+        keyframes = len(np.load(index / "keyframe_poses.npy"))
+        print(f"floor of {rooms} room(s): {len(survey)} survey frames, {keyframes} keyframes, traverse "
+              f"{length_m:.1f} m in {len(traverse)} frames")
+        row = {"survey_frames": len(survey), "keyframes": keyframes, "traverse_m": round(length_m, 2),
+               "traverse_frames": len(traverse), "relocalisation": relocalise_traverse(floor, index, traverse, 4)}
+        print(f"  relocalisation: {row['relocalisation']}")
+        row["twin_starts"] = twin_starts(args, floor, index, work)
+        floors[str(rooms)] = row
+    one = floors.get("1", {}).get("relocalisation", {}).get("seconds", {}).get("median")
+    ratios = {k: round(v["relocalisation"]["seconds"]["median"] / one, 3) for k, v in floors.items() if one}
+    return {"floor_seed": FLOOR_SEED, "size": [args.width, args.height], "frames_per_room": args.frames_per_room,
+            "floors": floors, "relocalisation_seconds_ratio_to_one_room": ratios}
+
+
+# --- map ---------------------------------------------------------------------------------------
+
+
+def _timed(command: list[str], log: Path) -> dict:
+    """``command`` under ``/usr/bin/time``: its wall seconds and peak memory (GB)."""
+    timing = log.with_suffix(".time")
+    t0 = time.perf_counter()
+    with open(log, "w") as out:
+        subprocess.run(["/usr/bin/time", "-f", "%M", "-o", str(timing), *command], check=True, stdout=out,
+                       stderr=subprocess.STDOUT)
+    return {"wall_s": round(time.perf_counter() - t0, 1),
+            "peak_memory_gb": round(int(timing.read_text().split()[-1]) / 1024**2, 3)}
+
+
+def per_room_psnr(floor, map_dir: Path, survey) -> dict:
+    """Held-out PSNR (dB) of the map's field per room: survey frames it did not train on, at the
+    map's poses, grouped by the room the camera stood in."""
+    from nap3d_graph.datasets.posed import PosedSequence
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.fields.evaluation import evaluate_field
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    field = resolve_field(str(map_dir))
+    stamps, T_map_cam = read_tum_trajectory(map_dir / "poses.txt")
+    index_of = {round(float(t), 6): i for i, t in enumerate(survey.timestamps)}
+    frames = [index_of[round(float(t), 6)] for t in stamps]
+    T_all = np.full((len(survey), 4, 4), np.nan)
+    T_all[frames] = T_map_cam
+    trained = set(field.meta.get("train_frames", []))
+    held = [i for i in frames if i not in trained][::3]
+    posed = PosedSequence(survey, T_all, "map")
+    result = evaluate_field(field, posed, held, size=(survey.intrinsics.width, survey.intrinsics.height))
+    by_room: dict[int, list[float]] = {}
+    for i, row in zip(held, result["per_frame"]):
+        by_room.setdefault(floor.room_of(survey.T_world_cam_gt[i][:3, 3]), []).append(row["psnr_db"])
+    return {str(r): {"median_db": round(float(np.median(v)), 2), "frames": len(v)} for r, v in sorted(by_room.items())}
+
+
+def map_part(args, work: Path) -> dict:
+    floors = {}
+    for rooms in args.rooms:
+        floor, survey, traverse, length_m = _floor_data(args, rooms, work)
+        map_dir, run_dir = work / f"floor{rooms}_map", work / f"floor{rooms}_run"
+        row: dict = {"survey_frames": len(survey), "traverse_m": round(length_m, 2), "traverse_frames": len(traverse)}
+        row["map"] = _timed([sys.executable, "-m", "nap3d_graph", "map", str(survey.path), "--out", str(map_dir),
+                             "--quiet"], work / f"floor{rooms}_map.log")
+        info = json.loads((map_dir / "map.json").read_text())
+        report = json.loads((map_dir / "field.report.json").read_text())
+        row["map"].update(seconds_per_frame=round(row["map"]["wall_s"] / len(survey), 3),
+                          stages_s={k: v["seconds"] for k, v in info["stages"].items()},
+                          train_seconds=report.get("train_seconds"),
+                          survey_ate_m=(info.get("survey_ate") or {}).get("map", {}).get("rmse_m"),
+                          held_out_psnr_db=(report.get("held_out") or {}).get("psnr_db"),
+                          held_out_psnr_per_room=per_room_psnr(floor, map_dir, survey))
+        row["run"] = _timed([sys.executable, "-m", "nap3d_graph", "run", "--data", str(traverse.path), "--field",
+                             str(map_dir), "--odom", "vo", "--out", str(run_dir)], work / f"floor{rooms}_run.log")
+        metrics = json.loads((run_dir / "latest" / "metrics.json").read_text())
+        placement = (metrics.get("map") or {}).get("placement") or {}
+        row["run"].update(ate_m=((metrics["estimate"].get("ate_m") or {}).get("rmse")),
+                          odometry_ate_m=((metrics["odometry"].get("ate_m") or {}).get("rmse")),
+                          max_error_m=((metrics["estimate"].get("ate_m") or {}).get("max")),
+                          placed_at_frame=placement.get("placed_at_frame"),
+                          accepted=metrics.get("corrections_accepted"))
+        print(f"floor of {rooms} room(s): {json.dumps(row)}")
+        floors[str(rooms)] = row
+    return {"floor_seed": FLOOR_SEED, "size": [args.width, args.height], "frames_per_room": args.frames_per_room,
+            "floors": floors}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=("placement", "map"), required=True)
+    parser.add_argument("--rooms", type=int, nargs="+", default=[1, 3, 6])
+    parser.add_argument("--frames-per-room", type=int, default=270,
+                        help="survey frames per room (the one-room survey's 270 at 3.75 Hz)")
+    parser.add_argument("--width", type=int, default=320)
+    parser.add_argument("--height", type=int, default=240)
+    parser.add_argument("--work", type=Path, default=Path("/tmp/nap3d_building"))
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    args.work.mkdir(parents=True, exist_ok=True)
+    result = placement_part(args, args.work) if args.part == "placement" else map_part(args, args.work)
+    write_result(args.out, {"command": " ".join(sys.argv), **result}, args)
+
+
+if __name__ == "__main__":
+    main()
