@@ -62,8 +62,10 @@ def test_map_poses_come_from_the_camera_and_match_the_ground_truth(xyz_map):
     # The ground truth was read only once the poses were final.
     assert sequence.read_with_poses_written is True
     for name in ("poses.txt", "odometry.txt", "loops.csv", "map.png", "field.pt", "field.report.json",
-                 "survey_ate.json", "keyframes.npz"):
+                 "survey_ate.json", "keyframes.npz", "map.ply"):
         assert (out / name).is_file(), name
+    mesh = json.loads((out / "map.json").read_text())["mesh"]
+    assert mesh["file"] == "map.ply" and mesh["vertices"] > 1000 and mesh["frames"] == 6
     from evo.tools import file_interface
 
     poses = file_interface.read_tum_trajectory_file(str(out / "poses.txt"))

@@ -60,6 +60,10 @@ def add_parser(sub) -> None:
                    help="rounds of the depth refinement of the training poses (each frame's depth aligned with its "
                    "neighbours', the poses solved again) before the field is trained (default 0)")
     p.add_argument("--no-field", action="store_true", help="stop after the poses (no field)")
+    p.add_argument("--no-mesh", action="store_true",
+                   help="do not fuse map.ply (by default the survey's depth is fused at the map's poses into a coloured "
+                   "mesh for MeshLab, CloudCompare or rerun, and the report says how thick its walls are: a doubled "
+                   "wall is a wrong survey; needs Open3D, pip install 'nap3d-graph[mesh]', else skipped with a line)")
     p.add_argument("--seed", type=int, default=0, help="random seed (vocabulary, training; default 0)")
     p.add_argument("--device", default=None, help="torch device for the grid (default: cuda if available, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -87,7 +91,7 @@ def run(args) -> int:
                            refine_rounds=args.refine_rounds, seed=args.seed)
     try:
         result = build_map(sequence, args.out, settings, progress=not args.quiet, say=print,
-                           build_field_stage=not args.no_field, device=args.device)
+                           build_field_stage=not args.no_field, device=args.device, mesh=not args.no_mesh)
     except FileExistsError as exc:
         raise UsageError(str(exc)) from None
     print(summary(result.info, args.out))
@@ -111,6 +115,9 @@ def summary(info: dict, out: Path) -> str:
     stages = info.get("stages", {})
     if "field" in stages:
         lines.append(f"field: {out / 'field.pt'} ({stages['field']['model']}, {stages['field']['seconds']:.0f} s)")
+    if (info.get("mesh") or {}).get("file"):
+        lines.append(f"mesh: {out / info['mesh']['file']} ({info['mesh']['vertices']} vertices; open it in MeshLab, "
+                     "CloudCompare or rerun)")
     bad = (info.get("report") or {}).get("past_bad_line")
     if bad is not None:
         lines.append(f"report: {out / 'report.md'} (" + ("look at: " + "; ".join(bad) if bad else

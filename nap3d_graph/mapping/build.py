@@ -117,9 +117,11 @@ def _say(say, text: str) -> None:
 
 
 def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progress: bool = True, say=None,
-              build_field_stage: bool = True, device: str | None = None) -> MapResult:
+              build_field_stage: bool = True, device: str | None = None, mesh: bool = True) -> MapResult:
     """Build (or resume) the map of ``sequence`` in ``out``. The sequence's ground truth is
-    never read before the survey's poses are final (only ``survey_ate.json`` uses it)."""
+    never read before the survey's poses are final (only ``survey_ate.json`` uses it).
+    ``mesh``: fuse ``map.ply`` at the map's poses (:mod:`.mesh`; skipped, with the reason in
+    ``map.json``, without Open3D)."""
     settings = settings or MapSettings()
     started = time.perf_counter()
     folder = _open_folder(sequence, out, settings)
@@ -136,6 +138,8 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     _write_poses(sequence, survey, T_map_cam, T_map_key, start, stop, folder)
     if build_field_stage:
         _field_stage(sequence, T_map_cam, folder, settings, started, progress, say, device)
+    if mesh:
+        _mesh_stage(sequence, T_map_cam, folder, progress, say)
     T_graph_cam = place_frames(survey.T_odom_cam, keys, graph.T_map_key, start, stop) if settings.bundle else None
     write_outputs(folder, sequence, survey, (start, stop), T_map_cam, T_map_key, T_graph_cam, loops, verified)
     return MapResult(folder.root, folder.info)
@@ -381,6 +385,43 @@ def _field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: M
     write_json_atomic(folder.field_report, report, default=float)
     folder.done("field", time.perf_counter() - t0, model=settings.model, settings=field_settings,
                 **({"train_minutes": round(minutes, 2)} if settings.model == "grid" and minutes is not None else {}))
+
+
+def _mesh_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, progress: bool, say) -> None:
+    """Stage 6: ``map.ply``, the survey fused at the map's poses (each depth at its capture
+    instant by the field's timing, when there is a field), and its walls' thickness in
+    ``map.json``. Never fails the map: without Open3D, or when nothing could be fused, the
+    reason is recorded instead."""
+    from nap3d_graph.datasets.depth_timing import CaptureTiming
+    from nap3d_graph.datasets.posed import PosedSequence
+
+    from .mesh import fuse_mesh
+
+    if folder.finished("mesh", folder.mesh):
+        return
+    timing = None
+    if folder.field_report.is_file():
+        import json
+
+        timing = CaptureTiming.of(json.loads(folder.field_report.read_text()).get("timing"))
+    t0 = time.perf_counter()
+    try:
+        result = fuse_mesh(PosedSequence(sequence, T_map_cam, "map"), folder.mesh, timing=timing, progress=progress)
+    except ImportError as exc:
+        folder.info["mesh"] = {"file": None, "reason": str(exc)}
+        folder.save()
+        _say(say, f"mesh: not written ({exc})")
+        return
+    except (ValueError, OSError, RuntimeError) as exc:  # RuntimeError: Open3D's own errors
+        folder.info["mesh"] = {"file": None, "reason": f"nothing fused: {exc}"}
+        folder.save()
+        log.warning("mesh: not written (%s)", exc)
+        return
+    folder.info["mesh"] = result.to_dict()
+    folder.done("mesh", time.perf_counter() - t0, vertices=result.vertices)
+    thickness = result.thickness.get("thickness_m")
+    _say(say, f"mesh: {folder.mesh.name} ({result.vertices} vertices from {result.frames} frames); walls "
+              + (f"{thickness * 100:.1f} cm thick at most" if thickness is not None else "not measured"))
 
 
 def training_minutes(settings: MapSettings, elapsed_s: float) -> float | None:

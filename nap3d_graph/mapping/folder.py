@@ -89,6 +89,11 @@ class MapFolder:
         return self.root / "field.report.json"
 
     @property
+    def mesh(self) -> Path:
+        """Stage 6: the survey fused at the map's poses, a coloured triangle mesh (PLY)."""
+        return self.root / "map.ply"
+
+    @property
     def survey_ate(self) -> Path:
         """The survey's poses against the recording's ground truth, where it has one."""
         return self.root / "survey_ate.json"

@@ -26,6 +26,9 @@ The figures and the lines past which they say something went wrong:
   room); a median depth error beyond 3 cm or less than 70% covered, NAP3D has too little of
   the field to align with; more than half failing or a median beyond 3 cm, the field cannot
   correct a run.
+- **walls of the mesh**: where the frames that see each of the largest planes of the fused mesh
+  put it, the 5-95% spread of their median offsets (:mod:`.mesh`): millimetres on a consistent
+  survey; beyond 3 cm the survey put one surface in two places (a doubled wall).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from nap3d_graph.textfiles import write_json_atomic
 
 from .depth_check import DEPTH_OFFSET_BAD_PER_M, DEPTH_SHAPE_BAD
 from .folder import MapFolder
+from .mesh import WALL_THICKNESS_BAD_M
 
 __all__ = ["MapReport", "map_report", "write_map_report", "write_outputs", "LOOP_RESIDUAL_BAD", "REPROJECTION_BAD_PX",
            "HELD_OUT_PSNR_BAD_DB", "HELD_OUT_DEPTH_BAD_M", "COVERED_BAD", "HELD_OUT_NAP3D_BAD_M"]
@@ -187,6 +191,25 @@ def _field(report: MapReport, folder: Path) -> None:
                    False if failed > tried / 2 else None if not np.isfinite(moved) else moved <= HELD_OUT_NAP3D_BAD_M)
 
 
+def _mesh(report: MapReport, info: dict) -> None:
+    mesh = info.get("mesh")
+    if mesh is None:
+        return
+    if not mesh.get("file"):
+        report.add("mesh (map.ply)", f"not written: {mesh.get('reason', '')}", "written", None)
+        return
+    walls = mesh.get("wall_thickness") or {}
+    thickness = walls.get("thickness_m")
+    if thickness is None:
+        report.add("mesh walls: spread of where the frames put each large plane (worst)",
+                   f"not measured: {walls.get('reason', '')}", "measured", None)
+        return
+    report.values["wall_thickness_m"] = thickness
+    report.add(f"mesh walls: spread of where the frames put each of the {len(walls['planes'])} largest planes "
+               "(worst; median plane)", f"{thickness * 100:.1f} cm; {walls['median_plane_m'] * 100:.1f} cm",
+               f"within {WALL_THICKNESS_BAD_M * 100:.0f} cm", thickness <= WALL_THICKNESS_BAD_M)
+
+
 def map_report(folder) -> MapReport:
     """The map's figures without ground truth, read from its folder."""
     folder = Path(folder)
@@ -196,6 +219,7 @@ def map_report(folder) -> MapReport:
     _bundle(report, info)
     _depth_check(report, info)
     _field(report, folder)
+    _mesh(report, info)
     ate = (info.get("survey_ate") or {}).get("map")
     if ate:
         odometry = info["survey_ate"].get("odometry_only", {})

@@ -1,0 +1,52 @@
+"""The map's mesh: the survey fused at its poses into a coloured PLY that Open3D reads back,
+and the thickness of its walls, millimetres when the poses are right and the doubling itself
+when part of the survey is shifted."""
+
+import numpy as np
+import pytest
+
+from nap3d_graph.conventions import exp_se3
+
+
+@pytest.fixture(scope="module")
+def room_survey(sim_walk):
+    from nap3d_graph.datasets import open_sequence
+
+    return open_sequence(sim_walk(60, fps=1.875, path="mapping"))
+
+
+def test_a_right_survey_has_thin_walls_and_a_doubled_one_says_how_far(room_survey, tmp_path):
+    import open3d as o3d
+
+    from nap3d_graph.datasets.posed import PosedSequence
+    from nap3d_graph.mapping.mesh import WALL_THICKNESS_BAD_M, MeshSettings, fuse_mesh
+
+    T = np.asarray(room_survey.T_world_cam_gt)
+    right = fuse_mesh(PosedSequence(room_survey, T, "truth"), tmp_path / "right.ply")
+    mesh = o3d.io.read_triangle_mesh(str(tmp_path / "right.ply"))
+    assert len(mesh.vertices) == right.vertices > 10_000 and mesh.has_vertex_colors()
+    colours = np.asarray(mesh.vertex_colors)
+    assert colours.std() > 0.05  # the room's textures, not one grey
+    # The mesh lies on the room's surfaces: its vertices are within a voxel of the exact depth's points.
+    lo, hi = room_survey.scene.bounds()
+    vertices = np.asarray(mesh.vertices)
+    assert np.all(vertices > lo - 0.1) and np.all(vertices < hi + 0.1)
+    walls = right.thickness
+    assert len(walls["planes"]) >= 4 and walls["thickness_m"] < 0.005, walls
+    # The second half of the survey 6 cm along x: the walls across x are seen twice, 6 cm apart.
+    bent_T = T.copy()
+    bent_T[len(T) // 2:] = exp_se3(np.array([0.0, 0.0, 0.0, 0.06, 0.0, 0.0])) @ bent_T[len(T) // 2:]
+    bent = fuse_mesh(PosedSequence(room_survey, bent_T, "bent"), tmp_path / "bent.ply", MeshSettings(every=1))
+    x_walls = [p["spread_m"] for p in bent.thickness["planes"] if abs(p["normal"][0]) > 0.95]
+    assert x_walls and 0.04 < max(x_walls) < 0.1, bent.thickness
+    assert bent.thickness["thickness_m"] > WALL_THICKNESS_BAD_M > walls["thickness_m"]
+
+
+def test_nothing_to_fuse_is_a_clear_error(room_survey, tmp_path):
+    from nap3d_graph.datasets.posed import PosedSequence
+    from nap3d_graph.mapping.mesh import fuse_mesh
+
+    nowhere = np.full((len(room_survey), 4, 4), np.nan)
+    with pytest.raises(ValueError, match="no frame of the survey has a pose"):
+        fuse_mesh(PosedSequence(room_survey, nowhere, "none"), tmp_path / "x.ply")
+    assert not (tmp_path / "x.ply").exists()
