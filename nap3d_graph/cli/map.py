@@ -60,6 +60,17 @@ def add_parser(sub) -> None:
                    help="rounds of the depth refinement of the training poses (each frame's depth aligned with its "
                    "neighbours', the poses solved again) before the field is trained (default 0)")
     p.add_argument("--no-field", action="store_true", help="stop after the poses (no field)")
+    p.add_argument("--submap-frames", type=positive_int, default=300, metavar="N",
+                   help="a survey of more than N frames is cut by space into submaps of about N frames, each its own "
+                   "field over its own part of the floor and its own training budget, under the one pose graph "
+                   "(default %(default)s: a room's survey stays one field)")
+    p.add_argument("--workers", type=positive_int, default=None, metavar="N",
+                   help="submap fields trained side by side on N workers (default: this machine's cores, at most the "
+                   "submaps; 1: one after another in this process)")
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="train the submap fields as Ray tasks: 'auto' starts Ray on this machine with --workers CPUs, "
+                   "an address joins that cluster (ray start --head there); default: processes on this machine. "
+                   "Needs pip install 'nap3d-graph[ray]'")
     p.add_argument("--no-mesh", action="store_true",
                    help="do not fuse map.ply (by default the survey's depth is fused at the map's poses into a coloured "
                    "mesh for MeshLab, CloudCompare or rerun, and the report says how thick its walls are: a doubled "
@@ -72,6 +83,7 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.fields.submaps import SubmapSettings
     from nap3d_graph.mapping.build import MapSettings, build_map
 
     from .sources import chosen_matcher, warn_guessed_camera
@@ -88,14 +100,36 @@ def run(args) -> int:
     settings = MapSettings(odometry=args.odom, matcher=matcher, width=args.width, keyframe_every=args.keyframe_every,
                            model=args.model, minutes=None if args.steps else args.minutes, steps=args.steps,
                            budget_minutes=args.budget_minutes or None,
-                           refine_rounds=args.refine_rounds, seed=args.seed)
+                           refine_rounds=args.refine_rounds, seed=args.seed,
+                           submaps=SubmapSettings(max_frames=args.submap_frames))
+    # The pool is sized from the survey's length; the cut itself waits for the poses.
+    pool = _pool(args, -(-len(sequence) // args.submap_frames))
     try:
         result = build_map(sequence, args.out, settings, progress=not args.quiet, say=print,
-                           build_field_stage=not args.no_field, device=args.device, mesh=not args.no_mesh)
+                           build_field_stage=not args.no_field, device=args.device, mesh=not args.no_mesh, pool=pool)
     except FileExistsError as exc:
         raise UsageError(str(exc)) from None
+    finally:
+        pool.close()
     print(summary(result.info, args.out))
     return 0
+
+
+def _pool(args, submaps: int):
+    """Where submap fields train: Ray with --ray-address, else processes on this machine."""
+    import os
+
+    from nap3d_graph.pools import make_pool
+
+    from .common import UsageError
+
+    workers = args.workers or max(1, min(os.cpu_count() or 1, submaps))
+    if workers == 1 and args.ray_address is None:
+        return make_pool(1)
+    try:
+        return make_pool(workers, args.ray_address)
+    except RuntimeError as exc:  # Ray not installed, or no cluster at that address
+        raise UsageError(str(exc)) from None
 
 
 def summary(info: dict, out: Path) -> str:
@@ -114,7 +148,11 @@ def summary(info: dict, out: Path) -> str:
             lines.append(f"warning: {ate['warning']}")
     stages = info.get("stages", {})
     if "field" in stages:
-        lines.append(f"field: {out / 'field.pt'} ({stages['field']['model']}, {stages['field']['seconds']:.0f} s)")
+        if stages["field"].get("submap_count"):
+            lines.append(f"field: {stages['field']['submap_count']} submaps in {out / 'submaps'} (index "
+                         f"{out / 'submaps.json'}; {stages['field']['model']}, {stages['field']['seconds']:.0f} s)")
+        else:
+            lines.append(f"field: {out / 'field.pt'} ({stages['field']['model']}, {stages['field']['seconds']:.0f} s)")
     if (info.get("mesh") or {}).get("file"):
         lines.append(f"mesh: {out / info['mesh']['file']} ({info['mesh']['vertices']} vertices; open it in MeshLab, "
                      "CloudCompare or rerun)")

@@ -71,8 +71,9 @@ def check_argv(argv: list[str]) -> None:
 
 
 def run(args) -> int:
+    from nap3d_graph.pools import LocalPool, RayPool
     from nap3d_graph.sweep.report import write_report
-    from nap3d_graph.sweep.run import LocalPool, RayPool, SweepLocked, cell_status, run_sweep
+    from nap3d_graph.sweep.run import SweepLocked, cell_status, run_sweep
     from nap3d_graph.sweep.spec import SweepError, SweepSpec
 
     from . import main

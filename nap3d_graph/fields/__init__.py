@@ -68,6 +68,15 @@ def resolve_field(field_arg: str, sequence=None):
 
     folder = Path(field_arg)
     if folder.is_dir() and (folder / "map.json").is_file():  # a map from 'nap3d-graph map'
+        from .submaps import SUBMAPS_INDEX, load_submap_field
+
+        if (folder / SUBMAPS_INDEX).is_file():  # a map cut into submaps: their fields, one protocol
+            try:
+                field = load_submap_field(folder, load_field)
+            except (FileNotFoundError, ValueError, KeyError) as exc:
+                raise FieldError(str(exc)) from None
+            field.meta["map"] = str(folder.resolve())
+            return field
         checkpoint = folder / "field.pt"
         if not checkpoint.is_file():
             raise FieldError(f"{folder}: the map has no field (its 'nap3d-graph map' stopped before the field stage, "

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
+from nap3d_graph.fields.submaps import SubmapSettings
 from nap3d_graph.textfiles import write_json_atomic
 
 from .bundle import BundleSettings, PairMatches, agreeing_pairs, bundle_adjust, keyframe_twists
@@ -49,6 +50,7 @@ from .pose_graph import Edge, GraphResult, floor_covariance, solve
 from .relocalise import save_keyframe_frames
 from .report import write_outputs
 from .retrieval import Vocabulary, vlad
+from .submaps import plan_submaps
 from .survey import SurveyOdometry, keyframe_indices, track, tracked_segment
 
 __all__ = ["MapSettings", "MapResult", "build_map", "training_minutes", "place_frames", "index_posed_survey"]
@@ -57,7 +59,7 @@ log = logging.getLogger(__name__)
 
 #: Settings of the field alone: changing them re-trains the field, not the poses.
 FIELD_SETTINGS = ("model", "minutes", "steps", "refine_rounds", "budget_minutes", "budget_reserve_s",
-                  "min_train_minutes")
+                  "min_train_minutes", "submaps")
 
 @dataclass(frozen=True)
 class MapSettings:
@@ -97,6 +99,7 @@ class MapSettings:
     bundle: bool = True
     loops: LoopSettings = field(default_factory=LoopSettings)
     bundle_settings: BundleSettings = field(default_factory=BundleSettings)
+    submaps: SubmapSettings = field(default_factory=SubmapSettings)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -117,11 +120,12 @@ def _say(say, text: str) -> None:
 
 
 def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progress: bool = True, say=None,
-              build_field_stage: bool = True, device: str | None = None, mesh: bool = True) -> MapResult:
+              build_field_stage: bool = True, device: str | None = None, mesh: bool = True, pool=None) -> MapResult:
     """Build (or resume) the map of ``sequence`` in ``out``. The sequence's ground truth is
     never read before the survey's poses are final (only ``survey_ate.json`` uses it).
     ``mesh``: fuse ``map.ply`` at the map's poses (:mod:`.mesh`; skipped, with the reason in
-    ``map.json``, without Open3D)."""
+    ``map.json``, without Open3D). ``pool``: where a survey cut into submaps trains their fields
+    (:func:`nap3d_graph.pools.make_pool`; None: one after another in this process)."""
     settings = settings or MapSettings()
     started = time.perf_counter()
     folder = _open_folder(sequence, out, settings)
@@ -137,7 +141,7 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     T_map_cam = place_frames(survey.T_odom_cam, keys, T_map_key, start, stop)
     _write_poses(sequence, survey, T_map_cam, T_map_key, start, stop, folder)
     if build_field_stage:
-        _field_stage(sequence, T_map_cam, folder, settings, started, progress, say, device)
+        _field_stage(sequence, T_map_cam, folder, settings, started, progress, say, device, pool)
     if mesh:
         _mesh_stage(sequence, T_map_cam, folder, progress, say)
     T_graph_cam = place_frames(survey.T_odom_cam, keys, graph.T_map_key, start, stop) if settings.bundle else None
@@ -360,12 +364,20 @@ def _write_poses(sequence, survey: SurveyOdometry, T_map_cam: np.ndarray, T_map_
 
 
 def _field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: MapSettings, started: float,
-                 progress: bool, say, device: str | None) -> None:
+                 progress: bool, say, device: str | None, pool=None) -> None:
     """Stage 5: the field of ``settings.model`` trained at the map's poses (kept when one with
-    the same field settings finished before)."""
+    the same field settings finished before): one ``field.pt`` for a survey of one submap's size,
+    else a field per submap (:mod:`.submap_fields`), as jobs on ``pool`` (None: one process)."""
     from nap3d_graph.datasets.posed import PosedSequence
 
-    field_settings = {k: getattr(settings, k) for k in FIELD_SETTINGS}
+    # As map.json holds them; how a survey is cut matters only once it is cut (a one-field map
+    # made before submaps resumes as it was).
+    field_settings = {k: v for k, v in settings.to_dict().items() if k in FIELD_SETTINGS and k != "submaps"}
+    plan = plan_submaps(T_map_cam, settings.submaps)
+    if len(plan) > 1:
+        field_settings["submaps"] = settings.submaps.to_dict()
+        _submap_field_stage(sequence, T_map_cam, folder, settings, plan, field_settings, started, say, device, pool)
+        return
     if folder.info["stages"].get("field", {}).get("settings") == field_settings and folder.field.is_file():
         return
     t0 = time.perf_counter()
@@ -385,6 +397,35 @@ def _field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: M
     write_json_atomic(folder.field_report, report, default=float)
     folder.done("field", time.perf_counter() - t0, model=settings.model, settings=field_settings,
                 **({"train_minutes": round(minutes, 2)} if settings.model == "grid" and minutes is not None else {}))
+
+
+def _submap_field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: MapSettings, plan: list,
+                        field_settings: dict, started: float, say, device: str | None, pool) -> None:
+    """Stage 5 for a survey cut into submaps: each its own field and budget (a one-room map's
+    budget less its share of the stages before), trained on ``pool``."""
+    from nap3d_graph.pools import SerialPool
+
+    from .submap_fields import submap_minutes, train_submap_fields
+
+    stage = folder.info["stages"].get("field", {})
+    if (stage.get("settings") == field_settings and stage.get("done")
+            and all((folder.root / s.file).is_file() for s in plan)):
+        return
+    t0 = time.perf_counter()
+    minutes = settings.minutes
+    if settings.model == "grid" and settings.steps is None and minutes is None:
+        minutes = submap_minutes(settings.budget_minutes, settings.min_train_minutes, settings.budget_reserve_s,
+                                 t0 - started, len(plan))
+    _say(say, f"field: the survey is cut into {len(plan)} submaps of at most {settings.submaps.max_frames} frames "
+              "(each its own field)")
+    if folder.field.is_file():
+        folder.field.unlink()  # a one-field map of these poses made before: the submaps replace it
+    train_submap_fields(sequence, T_map_cam, folder, plan, settings, settings.submaps, field_settings, minutes,
+                        pool or SerialPool(), device, say)
+    folder.info["stages"].setdefault("field", {}).update(seconds=round(time.perf_counter() - t0, 2), model=settings.model,
+                                          settings=field_settings, done=True, submap_count=len(plan),
+                                          **({"train_minutes": round(minutes, 2)} if minutes is not None else {}))
+    folder.save()
 
 
 def _mesh_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, progress: bool, say) -> None:

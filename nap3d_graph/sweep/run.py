@@ -34,14 +34,12 @@ import time
 import traceback
 from pathlib import Path
 
+from nap3d_graph.pools import THREAD_ENV
 from nap3d_graph.textfiles import write_json_atomic
 
-__all__ = ["run_sweep", "SweepLocked", "cell_status", "LocalPool", "RayPool"]
+__all__ = ["run_sweep", "SweepLocked", "cell_status"]
 
 log = logging.getLogger(__name__)
-
-#: Threads each task may use (one core per task).
-THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
 
 
 class SweepLocked(RuntimeError):
@@ -141,76 +139,6 @@ def _cell_metrics(metrics: dict) -> dict:
 
 
 # --- pools ----------------------------------------------------------------------------------
-
-
-class LocalPool:
-    """``workers`` processes on this machine (spawned: no state shared with the parent)."""
-
-    name = "local"
-
-    def __init__(self, workers: int):
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        os.environ.update(THREAD_ENV)  # inherited by the spawned workers before numpy loads
-        self.workers = workers
-        self.executor = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
-
-    def submit(self, fn, *args):
-        return self.executor.submit(fn, *args)
-
-    def wait_any(self, pending: list) -> tuple[list, list]:
-        from concurrent.futures import FIRST_COMPLETED, wait
-
-        done, rest = wait(pending, return_when=FIRST_COMPLETED)
-        return list(done), list(rest)
-
-    @staticmethod
-    def result(future):
-        return future.result()
-
-    def close(self) -> None:
-        self.executor.shutdown(wait=True, cancel_futures=True)
-
-
-class RayPool:
-    """Ray tasks of one CPU each: ``address`` "auto" starts a local Ray instance with
-    ``workers`` CPUs; any other address joins that cluster (``ray start --head`` on it)."""
-
-    name = "ray"
-
-    def __init__(self, address: str, workers: int):
-        try:
-            import ray
-        except ImportError:
-            raise RuntimeError("`ray` needs Ray: pip install 'nap3d-graph[ray]'") from None
-        self.ray = ray
-        self.started = not ray.is_initialized()
-        if self.started:
-            env = {"env_vars": dict(THREAD_ENV)}
-            if address == "auto":
-                ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False, runtime_env=env,
-                         configure_logging=False)
-            else:
-                ray.init(address=address, log_to_driver=False, runtime_env=env, configure_logging=False)
-        self.workers = int(ray.cluster_resources().get("CPU", workers))
-        self._remote = {}
-
-    def submit(self, fn, *args):
-        if fn not in self._remote:
-            self._remote[fn] = self.ray.remote(num_cpus=1, max_retries=1)(fn)
-        return self._remote[fn].remote(*args)
-
-    def wait_any(self, pending: list) -> tuple[list, list]:
-        done, rest = self.ray.wait(pending, num_returns=1)
-        return list(done), list(rest)
-
-    def result(self, ref):
-        return self.ray.get(ref)
-
-    def close(self) -> None:
-        if self.started:
-            self.ray.shutdown()
 
 
 # --- the sweep ------------------------------------------------------------------------------

@@ -1,0 +1,138 @@
+"""The field stage of a map cut into submaps: one field per submap, trained side by side.
+
+Each submap's field is built as a one-room map's is (:func:`~nap3d_graph.fields.build.build_field`
+at the map's poses, the frames outside the submap left unposed) with the capture timing
+estimated once for the whole survey, and each gets the training time a one-room map of its size
+gets: what the map's per-room budget leaves once its share of the stages before the field ran.
+The submaps are independent jobs on a pool (:mod:`nap3d_graph.pools`): processes on this
+machine, or Ray tasks on this machine or a cluster. A map interrupted here resumes with the
+submaps already trained. ``field.report.json`` then holds the submaps' reports and their
+held-out figures merged, for the map's report.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nap3d_graph.fields.submaps import Submap, SubmapSettings, write_submaps_index
+from nap3d_graph.textfiles import write_json_atomic
+
+__all__ = ["train_submap_fields", "train_one_submap", "submap_minutes"]
+
+log = logging.getLogger(__name__)
+
+
+def submap_minutes(budget_minutes: float | None, min_minutes: float, reserve_s: float, elapsed_s: float,
+                   submaps: int) -> float | None:
+    """Training minutes of each submap: a one-room map's budget less its share of the
+    ``elapsed_s`` the stages before the field spent and the ``reserve_s`` kept for what follows
+    its training, at least ``min_minutes`` (None: no budget, the trainer's own default)."""
+    if budget_minutes is None:
+        return None
+    left_s = budget_minutes * 60.0 - elapsed_s / max(submaps, 1) - reserve_s
+    return max(min_minutes, left_s / 60.0)
+
+
+def train_one_submap(job: dict) -> dict:
+    """One submap's field (runs in a worker): ``job`` holds the survey, the map's poses, the
+    submap's frames, the build's settings and the file to write. Returns its report."""
+    from nap3d_graph.datasets.posed import PosedSequence
+    from nap3d_graph.fields.build import build_field
+    from nap3d_graph.torch_threads import torch_threads
+
+    t0 = time.perf_counter()
+    T = np.full_like(job["T_map_cam"], np.nan)
+    frames = np.asarray(job["frames"], dtype=int)
+    T[frames] = job["T_map_cam"][frames]
+    with torch_threads(1):
+        field, report = build_field(PosedSequence(job["sequence"], T, "map"), job["model"], steps=job["steps"],
+                                    minutes=job["minutes"], seed=job["seed"], device=job["device"], progress=False,
+                                    matcher=job["matcher"], refine_poses=job["refine_rounds"], refine_method="depth",
+                                    timing=job["timing"])
+    field.meta["submap"] = int(job["index"])
+    out = Path(job["out"])
+    out.parent.mkdir(parents=True, exist_ok=True)
+    field.save(out)
+    report["submap_seconds"] = round(time.perf_counter() - t0, 2)
+    return report
+
+
+def train_submap_fields(sequence, T_map_cam: np.ndarray, folder, submaps: list[Submap], settings,
+                        submap_settings: SubmapSettings, field_settings: dict, minutes: float | None, pool,
+                        device: str | None, say=None) -> dict:
+    """Every submap's field not already trained with ``field_settings``, as jobs on ``pool``;
+    ``submaps.json`` and the merged ``field.report.json`` written. Returns the merged report."""
+    from nap3d_graph.datasets.depth_timing import estimate_timing
+    from nap3d_graph.datasets.posed import PosedSequence
+
+    done = folder.info["stages"].get("field", {}).get("submaps", {})
+    timing = estimate_timing(PosedSequence(sequence, T_map_cam, "map"))
+    timing_dict = None if timing is None else timing.to_dict()
+    jobs = {}
+    for s in submaps:
+        key = str(s.index)
+        if done.get(key, {}).get("settings") == field_settings and (folder.root / s.file).is_file():
+            continue
+        jobs[key] = {"sequence": sequence, "T_map_cam": np.asarray(T_map_cam, dtype=float), "frames": s.frames,
+                     "index": s.index, "model": settings.model, "steps": settings.steps, "minutes": minutes,
+                     "seed": settings.seed, "device": device, "matcher": settings.matcher,
+                     "refine_rounds": settings.refine_rounds, "timing": timing_dict, "out": str(folder.root / s.file)}
+    if say is not None and jobs:
+        say(f"field: {len(jobs)} submap field(s) of {len(submaps)} to train on {getattr(pool, 'workers', 1)} "
+            f"worker(s) ({pool.name})" + (f", {minutes:.1f} min each" if minutes is not None else ""))
+    reports = {key: value.get("report") for key, value in done.items()}
+    started = time.perf_counter()
+    pending = {pool.submit(train_one_submap, job): key for key, job in jobs.items()}
+    while pending:
+        finished, _ = pool.wait_any(list(pending))
+        for ref in finished:
+            key = pending.pop(ref)
+            report = pool.result(ref)
+            reports[key] = _summary(report)
+            done[key] = {"settings": field_settings, "seconds": report.get("submap_seconds"), "report": reports[key]}
+            folder.info["stages"].setdefault("field", {})["submaps"] = done
+            folder.save()  # a map interrupted now resumes with this submap trained
+            log.info("submap %s trained in %.0f s", key, report.get("submap_seconds", 0.0))
+    write_submaps_index(folder.root, submaps, submap_settings,
+                        {"timing": timing_dict, "wall_seconds": round(time.perf_counter() - started, 2)})
+    merged = _merged_report(submaps, reports, timing_dict)
+    write_json_atomic(folder.field_report, merged, default=float)
+    return merged
+
+
+def _summary(report: dict) -> dict:
+    """What the map keeps of a submap's report: its held-out figures (without the per-frame
+    rows' images), its field error and its times."""
+    held = dict(report.get("held_out") or {})
+    keep = {k: held.get(k) for k in ("frames", "psnr_db", "psnr_affine_db", "depth_abs_err_m", "opaque_fraction")}
+    error = {k: v for k, v in (report.get("field_error") or {}).items() if k != "by_view"}
+    return {"held_out": keep, "field_error": error, "train_seconds": report.get("train_seconds"),
+            "total_seconds": report.get("total_seconds"), "submap_seconds": report.get("submap_seconds"),
+            "train_frames": report.get("train_frames"), "model": report.get("model")}
+
+
+def _merged_report(submaps: list[Submap], reports: dict, timing: dict | None) -> dict:
+    """The map's ``field.report.json`` over its submaps: the held-out figures over all their
+    held-out frames (PSNR and cover weighted by frames, the median depth error the median of
+    theirs), the largest field error, and each submap's report."""
+    parts = [reports[str(s.index)] for s in submaps if reports.get(str(s.index))]
+    held = [p["held_out"] for p in parts if (p.get("held_out") or {}).get("frames")]
+    weights = np.array([len(h["frames"]) for h in held], dtype=float)
+
+    def weighted(key: str):
+        values = [(h.get(key), w) for h, w in zip(held, weights) if h.get(key) is not None]
+        return float(np.average([v for v, _ in values], weights=[w for _, w in values])) if values else None
+
+    medians = [h["depth_abs_err_m"]["median"] for h in held if (h.get("depth_abs_err_m") or {}).get("median") is not None]
+    merged_held = {"frames": [f for h in held for f in h["frames"]], "psnr_db": weighted("psnr_db"),
+                   "psnr_affine_db": weighted("psnr_affine_db"), "opaque_fraction": weighted("opaque_fraction"),
+                   "depth_abs_err_m": {"median": float(np.median(medians)) if medians else None}} if held else None
+    errors = [p["field_error"] for p in parts if p.get("field_error")]
+    worst = max(errors, key=lambda e: float(e.get("sigma_m", 0.0) or 0.0)) if errors else None
+    return {"model": parts[0].get("model") if parts else None, "submaps": [reports.get(str(s.index)) for s in submaps],
+            "timing": timing, "held_out": merged_held, "field_error": worst,
+            "train_seconds": max((p.get("train_seconds") or 0.0) for p in parts) if parts else None}

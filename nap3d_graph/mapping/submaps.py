@@ -1,0 +1,41 @@
+"""Cutting a long survey into submaps (:mod:`nap3d_graph.fields.submaps` says why and what a
+submap is): by space, along the survey's principal direction, in slabs of equal frame count,
+each training on its slab and ``overlap_m`` beyond."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from nap3d_graph.fields.submaps import Submap, SubmapSettings
+
+__all__ = ["plan_submaps"]
+
+
+def plan_submaps(T_map_cam: np.ndarray, settings: SubmapSettings | None = None) -> list[Submap]:
+    """The submaps of a survey posed at ``T_map_cam`` (N, 4, 4; NaN where a frame has no pose):
+    the posed cameras ordered along their principal direction (the map's frame is the first
+    camera's, so no axis of it is known to be level or long) and cut into slabs of equal count,
+    ``ceil(frames / max_frames)`` of them, each taking the frames within ``overlap_m`` of its
+    slab too; one submap of every posed frame when there are no more than ``max_frames``."""
+    s = settings or SubmapSettings()
+    T = np.asarray(T_map_cam, dtype=float)
+    posed = np.flatnonzero(np.all(np.isfinite(T.reshape(len(T), -1)), axis=1))
+    p = T[posed, :3, 3]
+    axis = np.array([1.0, 0.0, 0.0])
+    if len(p) > 1:
+        axis = np.linalg.svd(p - p.mean(axis=0), full_matrices=False)[2][0]
+    if len(posed) <= s.max_frames:
+        return [Submap(0, axis, np.array([-np.inf, np.inf]), posed)]
+    along = p @ axis
+    order = np.argsort(along, kind="stable")
+    slabs = np.array_split(order, math.ceil(len(posed) / s.max_frames))
+    # Cut halfway between neighbouring slabs: every point of the floor has one core.
+    cuts = [(along[a[-1]] + along[b[0]]) / 2 for a, b in zip(slabs[:-1], slabs[1:])]
+    edges = [-np.inf, *cuts, np.inf]
+    submaps = []
+    for k in range(len(slabs)):
+        near = (along >= edges[k] - s.overlap_m) & (along <= edges[k + 1] + s.overlap_m)
+        submaps.append(Submap(k, axis, np.array([edges[k], edges[k + 1]]), posed[near]))
+    return submaps
