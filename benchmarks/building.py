@@ -7,9 +7,10 @@ Two parts, each its own JSON:
   field (no survey or field error: relocalisation and placement alone). Every fourth frame of
   a traverse across the floor is relocalised (time per attempt, found within 5 cm / 3 deg, in
   the wrong room, refused as ambiguous); then runs that start in a room with a twin, looking
-  first at a side wall both twins have, are placed from their own start with the rival check
-  (``RelocaliseSettings.rival_m`` 1 m, the default) and without it (``rival_m`` 0: before
-  issue 61): where and when each was placed, and whether ever in the twin.
+  first at a side wall both twins have, are placed from their own start with the rules before
+  issue 61 (no rival check, one confirming keyframe), with the rival check alone, and with the
+  defaults (rivals a room away, 1 m of confirmed travel): where and when each was placed, and
+  whether ever in the twin.
 * ``--part map`` (an hour and more on two cores): ``nap3d-graph map`` of each floor's survey,
   as a user runs it (defaults, a subprocess timed by ``/usr/bin/time`` for its peak memory),
   held-out PSNR of its field per room, then ``nap3d-graph run --odom vo`` of a traverse
@@ -17,7 +18,10 @@ Two parts, each its own JSON:
   the largest error, peak memory).
 
     python benchmarks/building.py --part placement --rooms 1 3 6 --out benchmarks/results/building_placement.json
-    python benchmarks/building.py --part map --rooms 1 3 6 --out benchmarks/results/building_map.json
+    python benchmarks/building.py --part map --rooms 1 3 6 --frames-per-room 150 \
+        --out benchmarks/results/building_map.json
+    python benchmarks/building.py --part map --rooms 3 --frames-per-room 150 --one-field \
+        --out benchmarks/results/building_map_one_field.json
 """
 
 from __future__ import annotations
@@ -37,6 +41,9 @@ SURVEY_SEED, TRAVERSE_SEED, START_SEEDS = 3, 4, (5, 6, 7)
 SURVEY_FPS = 3.75  # every fourth frame of a 15 Hz recording, as the one-room survey
 TRAVERSE_FPS = 7.5
 WALK_SPEED_MPS = 0.5
+#: Placement rules compared on the twin starts: before issue 61, its rival check alone, and its
+#: defaults (rivals a room away refuse an answer; 1 m of confirmed travel).
+VARIANTS = (("before", 0.0, 0.0), ("rivals_only", 1.0, 0.0), ("after", 1.0, 1.0))
 
 
 def _simulate(folder: Path, **settings):
@@ -55,7 +62,8 @@ def _floor_data(args, rooms: int, work: Path):
 
     floor = make_building(rooms, FLOOR_SEED)
     size = {"width": args.width, "height": args.height, "scene_seed": FLOOR_SEED, "rooms": rooms}
-    survey = _simulate(work / f"floor{rooms}_survey", frames=args.frames_per_room * rooms, path="mapping",
+    survey = _simulate(work / f"floor{rooms}_{args.frames_per_room}f_survey", frames=args.frames_per_room * rooms,
+                       path="mapping",
                        fps=SURVEY_FPS, seed=SURVEY_SEED, **size)
     length_m = float(floor.walls_x[-1]) - 2.4
     frames = max(int(length_m / WALK_SPEED_MPS * TRAVERSE_FPS), 30)
@@ -111,11 +119,13 @@ def relocalise_traverse(floor, index: Path, traverse, every: int) -> dict:
     return {"attempts": len(seconds), **rows, "seconds": _spread(seconds), "error_m": _spread(errors_m)}
 
 
-def place_from_start(floor, index: Path, walk, rival_m: float) -> dict:
+def place_from_start(floor, index: Path, walk, rival_m: float, travel_m: float) -> dict:
     """A run of ``walk`` from its own start (the simulator's drifting odometry, the exact field)
-    placed in the index with the rival check at ``rival_m`` (0: off)."""
+    placed in the index with the rival check at ``rival_m`` (0: off) and ``travel_m`` of
+    confirmed travel (0: one confirming keyframe, as before issue 61)."""
     from nap3d_graph.conventions import inv_T
     from nap3d_graph.mapping.relocalise import Relocaliser, RelocaliseSettings
+    from nap3d_graph.mapping.start import PlacementSettings
     from nap3d_graph.motion.odometry import RecordedOdometry
     from nap3d_graph.run.config import PipelineConfig
     from nap3d_graph.run.pipeline import Pipeline
@@ -123,7 +133,8 @@ def place_from_start(floor, index: Path, walk, rival_m: float) -> dict:
     field = walk.oracle_field()
     T_gt, T_odom = np.asarray(walk.T_world_cam_gt), np.asarray(walk.T_world_cam_odom)
     pipeline = Pipeline(walk, field, RecordedOdometry(inv_T(T_odom[0]) @ T_odom), PipelineConfig(keyframe_every=3))
-    pipeline.start_in_map(Relocaliser(index, field, settings=RelocaliseSettings(rival_m=rival_m)))
+    pipeline.start_in_map(Relocaliser(index, field, settings=RelocaliseSettings(rival_m=rival_m)),
+                          PlacementSettings(confirm_travel_m=travel_m))
     run = pipeline.run()
     placement = run.placement
     errors = np.linalg.norm(run.T_world_cam_estimate[:, :3, 3] - T_gt[:, :3, 3], axis=1)
@@ -155,8 +166,8 @@ def twin_starts(args, floor, index: Path, work: Path) -> list[dict]:
                              scene_seed=FLOOR_SEED, rooms=floor.rooms, start_room=room, end_room=end,
                              look_aside_deg=80.0)
             row = {"start_room": room, "twin": floor.twins(room), "seed": seed}
-            for name, rival_m in (("before_no_rivals", 0.0), ("after_rivals_1m", 1.0)):
-                row[name] = place_from_start(floor, index, walk, rival_m)
+            for name, rival_m, travel_m in VARIANTS:
+                row[name] = place_from_start(floor, index, walk, rival_m, travel_m)
                 print(f"  start in room {room} seed {seed} {name}: {row[name]}")
             out.append(row)
     return out
@@ -168,7 +179,7 @@ def placement_part(args, work: Path) -> dict:
     floors = {}
     for rooms in args.rooms:
         floor, survey, traverse, length_m = _floor_data(args, rooms, work)
-        index = work / f"floor{rooms}_index"
+        index = work / f"floor{rooms}_{args.frames_per_room}f_index"
         if not (index / "keyframe_poses.npy").is_file():
             index_posed_survey(survey, index, survey.T_world_cam_gt, progress=True)
         keyframes = len(np.load(index / "keyframe_poses.npy"))
@@ -225,12 +236,15 @@ def per_room_psnr(floor, map_dir: Path, survey) -> dict:
 
 def map_part(args, work: Path) -> dict:
     floors = {}
+    label = "one_field" if args.one_field else "submaps"
     for rooms in args.rooms:
         floor, survey, traverse, length_m = _floor_data(args, rooms, work)
-        map_dir, run_dir = work / f"floor{rooms}_map", work / f"floor{rooms}_run"
+        name = f"floor{rooms}_{args.frames_per_room}f_{label}"
+        map_dir, run_dir = work / f"{name}_map", work / f"{name}_run"
         row: dict = {"survey_frames": len(survey), "traverse_m": round(length_m, 2), "traverse_frames": len(traverse)}
+        before = ["--submap-frames", str(10**6)] if args.one_field else []
         row["map"] = _timed([sys.executable, "-m", "nap3d_graph", "map", str(survey.path), "--out", str(map_dir),
-                             "--quiet"], work / f"floor{rooms}_map.log")
+                             "--quiet", *before], work / f"{name}_map.log")
         info = json.loads((map_dir / "map.json").read_text())
         report = json.loads((map_dir / "field.report.json").read_text())
         row["map"].update(seconds_per_frame=round(row["map"]["wall_s"] / len(survey), 3),
@@ -240,7 +254,7 @@ def map_part(args, work: Path) -> dict:
                           held_out_psnr_db=(report.get("held_out") or {}).get("psnr_db"),
                           held_out_psnr_per_room=per_room_psnr(floor, map_dir, survey))
         row["run"] = _timed([sys.executable, "-m", "nap3d_graph", "run", "--data", str(traverse.path), "--field",
-                             str(map_dir), "--odom", "vo", "--out", str(run_dir)], work / f"floor{rooms}_run.log")
+                             str(map_dir), "--odom", "vo", "--out", str(run_dir)], work / f"{name}_run.log")
         metrics = json.loads((run_dir / "latest" / "metrics.json").read_text())
         placement = (metrics.get("map") or {}).get("placement") or {}
         row["run"].update(ate_m=((metrics["estimate"].get("ate_m") or {}).get("rmse")),
@@ -251,7 +265,7 @@ def map_part(args, work: Path) -> dict:
         print(f"floor of {rooms} room(s): {json.dumps(row)}")
         floors[str(rooms)] = row
     return {"floor_seed": FLOOR_SEED, "size": [args.width, args.height], "frames_per_room": args.frames_per_room,
-            "floors": floors}
+            "field": label, "floors": floors}
 
 
 def main() -> None:
@@ -260,6 +274,8 @@ def main() -> None:
     parser.add_argument("--rooms", type=int, nargs="+", default=[1, 3, 6])
     parser.add_argument("--frames-per-room", type=int, default=270,
                         help="survey frames per room (the one-room survey's 270 at 3.75 Hz)")
+    parser.add_argument("--one-field", action="store_true",
+                        help="map part: one field for the whole floor (before submaps: --submap-frames beyond the survey)")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--work", type=Path, default=Path("/tmp/nap3d_building"))

@@ -258,7 +258,7 @@ def write_outputs(folder: MapFolder, sequence, survey, segment: tuple[int, int],
                      "admitted": admitted, "rejected": len(verified) - accepted - admitted}
     info["keyframes"] = int(len(T_map_key))
     folder.save()
-    _plot(folder.plot, T_map_cam, T_map_key, verified, sequence, info.get("survey_ate"))
+    _plot(folder.plot, T_map_cam, T_map_key, verified, sequence, info.get("survey_ate"), _submaps_of(folder.root))
     info["report"] = {"file": folder.report.name, "past_bad_line": write_map_report(folder.root).bad}
     folder.save()
 
@@ -295,9 +295,21 @@ def _survey_ate(folder: MapFolder, sequence, T_map_cam: np.ndarray, survey, star
         {"warning": report["warning"]} if "warning" in report else {})
 
 
-def _plot(path: Path, T_map_cam: np.ndarray, T_map_key: np.ndarray, loops: list, sequence, ate) -> None:
+def _submaps_of(root: Path) -> list:
+    """The map's submaps (:mod:`nap3d_graph.fields.submaps`) from its index, or none."""
+    from nap3d_graph.fields.submaps import SUBMAPS_INDEX, Submap
+
+    index = Path(root) / SUBMAPS_INDEX
+    if not index.is_file():
+        return []
+    return [Submap.from_dict(d) for d in json.loads(index.read_text())["submaps"]]
+
+
+def _plot(path: Path, T_map_cam: np.ndarray, T_map_key: np.ndarray, loops: list, sequence, ate,
+          submaps: list | None = None) -> None:
     """Top view (the first camera's x and z) of the path, keyframes and loop edges (accepted
-    green, rejected red), and the ground truth moved into the map where known."""
+    green, rejected red), the ground truth moved into the map where known, and each submap's
+    part of the floor (the survey frames of its core, shaded)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -305,6 +317,11 @@ def _plot(path: Path, T_map_cam: np.ndarray, T_map_key: np.ndarray, loops: list,
 
     fig, ax = plt.subplots(figsize=(7, 6))
     posed = np.all(np.isfinite(T_map_cam), axis=(1, 2))
+    for k, submap in enumerate(submaps or []):
+        p = T_map_cam[submap.frames, :3, 3]
+        core = np.array([submap.distance_m(x) == 0.0 for x in p], dtype=bool)
+        ax.scatter(p[core, 0], p[core, 2], s=40, color=plt.cm.tab10(k % 10), alpha=0.18, lw=0,
+                   label=f"submap {k} ({len(submap.frames)} frames)")
     if ate and sequence.T_world_cam_gt is not None:
         T_gt_in_map = inv_T(np.asarray(ate["T_gt_map"])) @ np.asarray(sequence.T_world_cam_gt)
         ok = np.all(np.isfinite(T_gt_in_map), axis=(1, 2))
