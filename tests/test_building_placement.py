@@ -110,3 +110,18 @@ def test_a_placement_needs_the_travel_its_settings_ask_for():
     assert [e["travel_m"] for e in placement.events if e["step"] == "confirm"] == [0.2, 0.4, 0.6]
     with pytest.raises(ValueError, match="confirm_travel_m"):
         PlacementSettings(confirm_travel_m=-1.0)
+
+
+def test_a_survey_loop_between_twin_rooms_is_refused_and_a_revisit_kept():
+    """Keyframes every 0.1 m along a 12 m walk. A revisit after 6 m of walking that the
+    odometry put 20 cm off (it drifted) is kept; a loop between twin rooms 5.7 m apart, which
+    says the two keyframes are in one place, is refused against the odometry."""
+    from nap3d_graph.mapping.loops import Loop, LoopSettings, refuse_look_alikes
+
+    T = np.tile(np.eye(4), (121, 1, 1))
+    T[:, 0, 3] = np.linspace(0.0, 12.0, 121)
+    revisit = Loop(10, 70, 10, 70, "appearance", T_a_b=exp_se3(np.array([0, 0, 0, 6.2, 0.0, 0])), status="verified")
+    twins = Loop(20, 77, 20, 77, "appearance", T_a_b=np.eye(4), status="verified")
+    refused = refuse_look_alikes([revisit, twins], T, LoopSettings())
+    assert refused == 1 and revisit.status == "verified"
+    assert twins.status == "refused" and twins.reason.startswith("look-alike place: the loop moves keyframe b 5.70 m")

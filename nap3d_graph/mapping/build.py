@@ -42,6 +42,7 @@ from .loops import (
     candidates,
     consecutive_edges,
     load_edges,
+    refuse_look_alikes,
     save_edges,
     verify,
     write_loops_csv,
@@ -249,6 +250,10 @@ def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, de
                                                           settings.edge_floor_m)
     pairs = candidates(survey.T_odom_cam[keys], descriptors, settings.loops)
     loops = verify(keyframes, pairs, config, settings.loops, progress)
+    look_alikes = refuse_look_alikes(loops, survey.T_odom_cam[keys], settings.loops)
+    if look_alikes:
+        _say(say, f"loops: {look_alikes} verified loop(s) refused as look-alike places (a room or more from where the "
+                  "odometry puts them)")
     save_edges(folder.edges, chain, loops, chain_matches)
     folder.done("loops", time.perf_counter() - t0, candidates=len(pairs),
                 verified=sum(lp.status == "verified" for lp in loops),

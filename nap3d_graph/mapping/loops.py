@@ -6,8 +6,9 @@ looking the same way). Each candidate pair is verified with NAP3D's own aligner 
 real-vs-real: keyframe j plays the rendered view with its own depth (opaque where the sensor
 measured), keyframe i the real frame, so a verified loop is ``T_i_j`` (keyframe j's camera
 in keyframe i's) with the alignment's 6x6 covariance, as a correction would be.
-Verification cannot tell a repeated texture from a revisit; the robust pose graph does
-(:mod:`.pose_graph`).
+Verification cannot tell a repeated texture from a revisit. A look-alike a room away is
+refused against the survey's own odometry (:func:`refuse_look_alikes`); a nearer one is left
+to the robust pose graph (:mod:`.pose_graph`).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from .retrieval import similarities
 from .verification import Verification, worst_sigmas
 
 __all__ = ["Keyframe", "Loop", "LoopSettings", "as_view", "candidates", "verify", "verify_pair", "consecutive_edges",
-           "save_edges", "load_edges", "write_loops_csv"]
+           "save_edges", "load_edges", "write_loops_csv", "refuse_look_alikes"]
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +56,10 @@ class LoopSettings:
     centres this close and optical axes within this angle are candidates (at most
     ``proximity_k`` nearest per keyframe); min_gap: keyframes nearer in time than this are
     not loop candidates (their consecutive edge already ties them); min_inliers, max_sigma_m,
-    max_sigma_deg: what a verified loop must reach."""
+    max_sigma_deg: what a verified loop must reach; max_jump_m, drift_per_m: a verified loop
+    that puts its keyframes further from where the survey's odometry puts them than
+    ``max_jump_m`` plus ``drift_per_m`` of the path walked between them is refused (a twin room
+    or a repeated picture a room away, not the place revisited: :func:`refuse_look_alikes`)."""
 
     appearance_k: int = 4
     proximity_m: float = 0.6
@@ -65,6 +69,8 @@ class LoopSettings:
     min_inliers: int = 30
     max_sigma_m: float = 0.02
     max_sigma_deg: float = 1.5
+    max_jump_m: float = 1.0
+    drift_per_m: float = 0.05
 
     @property
     def verification(self) -> Verification:
@@ -195,6 +201,29 @@ def verify(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config:
         loop.status = "refused" if loop.reason else "verified"
         loops.append(loop)
     return loops
+
+
+def refuse_look_alikes(loops: list[Loop], T_odom_key: np.ndarray, settings: LoopSettings) -> int:
+    """Refuse each verified loop whose measured ``T_a_b`` puts keyframe b further from where
+    the odometry ``T_odom_key`` (K, 4, 4) puts it (seen from a) than ``max_jump_m`` plus
+    ``drift_per_m`` of the path between them: the odometry cannot have drifted that far, so
+    the two views are two look-alike places (twin rooms), which verification alone cannot
+    tell from a revisit. Returns how many were refused."""
+    centres = np.asarray(T_odom_key, dtype=float)[:, :3, 3]
+    walked = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(centres, axis=0), axis=1))])
+    refused = 0
+    for loop in loops:
+        if loop.status != "verified":
+            continue
+        T_a_b_odom = inv_T(T_odom_key[loop.a]) @ T_odom_key[loop.b]
+        jump = float(np.linalg.norm(loop.T_a_b[:3, 3] - T_a_b_odom[:3, 3]))
+        allowed = settings.max_jump_m + settings.drift_per_m * abs(walked[loop.b] - walked[loop.a])
+        if jump > allowed:
+            loop.status = "refused"
+            loop.reason = (f"look-alike place: the loop moves keyframe b {jump:.2f} m from where the odometry puts it "
+                           f"(> {allowed:.2f} m it can have drifted)")
+            refused += 1
+    return refused
 
 
 def relative_motion(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
