@@ -45,6 +45,14 @@ class _GroundTruthWatch:
         return self._base[i]
 
 
+def _short_walk_config(folder) -> str:
+    """A run's config file for fr1/xyz's few centimetres of travel: one confirming keyframe
+    places it (the default asks for a metre: :class:`PlacementSettings`)."""
+    path = folder / "short_walk.yaml"
+    path.write_text("settings:\n  graph:\n    placement_travel_m: 0.0\n")
+    return path
+
+
 @pytest.fixture(scope="module")
 def xyz_map(tum_path, tmp_path_factory):
     """A splat map of the 12 real fr1/xyz frames, posed by the camera alone (SIFT)."""
@@ -119,7 +127,7 @@ def test_a_run_on_a_map_reads_no_ground_truth_before_its_trajectories_are_writte
 
     monkeypatch.setattr(datasets, "open_sequence", watched_open)
     assert main(["run", "--data", str(tum_path), "--frames", "6:12", "--field", str(result.folder),
-                 "--matcher", "sift", "--out", str(out)]) == 0
+                 "--matcher", "sift", "--out", str(out), "--config", str(_short_walk_config(tmp_path))]) == 0
     assert "placed in the map" in capsys.readouterr().out
     (sequence,) = opened
     assert sequence.touches and all(written for _, written in sequence.touches), sequence.touches
@@ -339,7 +347,7 @@ def test_a_camera_without_ground_truth_maps_then_runs_in_its_map(tum_path, tmp_p
     printed = capsys.readouterr().out
     assert "accepted" in printed and not (tmp_path / "map" / "survey_ate.json").exists()
     assert main(["run", "--traj", "tum", "--data", str(survey), "--frames", "6:12", "--field", str(tmp_path / "map"),
-                 "--matcher", "sift", "--out", str(tmp_path / "runs")]) == 0
+                 "--matcher", "sift", "--out", str(tmp_path / "runs"), "--config", str(_short_walk_config(tmp_path))]) == 0
     printed = capsys.readouterr().out
     assert "start: anywhere in the map" in printed and "map: placed in the map at frame 5" in printed  # found at 0, confirmed by the next keyframe
     from evo.tools import file_interface

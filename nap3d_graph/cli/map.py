@@ -60,6 +60,9 @@ def add_parser(sub) -> None:
                    help="rounds of the depth refinement of the training poses (each frame's depth aligned with its "
                    "neighbours', the poses solved again) before the field is trained (default 0)")
     p.add_argument("--no-field", action="store_true", help="stop after the poses (no field)")
+    p.add_argument("--viz", metavar="MAP.rrd", default=None,
+                   help="also write the map as a rerun recording (the survey's path, keyframes coloured by submap, "
+                   "loops, the mesh, the report): open it with `rerun MAP.rrd`; needs pip install 'nap3d-graph[viz]'")
     p.add_argument("--submap-frames", type=positive_int, default=300, metavar="N",
                    help="a survey of more than N frames is cut by space into submaps of about N frames, each its own "
                    "field over its own part of the floor and its own training budget, under the one pose graph "
@@ -102,6 +105,15 @@ def run(args) -> int:
                            budget_minutes=args.budget_minutes or None,
                            refine_rounds=args.refine_rounds, seed=args.seed,
                            submaps=SubmapSettings(max_frames=args.submap_frames))
+    if args.viz is not None:
+        from nap3d_graph.run.viz import VizError, check_viz_target
+
+        try:
+            check_viz_target(args.viz)  # before the work: a bad target costs nothing
+        except VizError as exc:
+            raise UsageError(str(exc)) from None
+        if args.viz == "spawn":
+            raise UsageError("`map --viz` writes a recording: give a path ending in .rrd")
     # The pool is sized from the survey's length; the cut itself waits for the poses.
     pool = _pool(args, -(-len(sequence) // args.submap_frames))
     try:
@@ -112,6 +124,10 @@ def run(args) -> int:
     finally:
         pool.close()
     print(summary(result.info, args.out))
+    if args.viz is not None:
+        from nap3d_graph.mapping.viz import write_map_recording
+
+        print(f"rerun recording: {write_map_recording(args.out, args.viz)} (open it with: rerun {args.viz})")
     return 0
 
 

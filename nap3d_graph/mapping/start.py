@@ -39,6 +39,7 @@ import numpy as np
 from nap3d_graph.conventions import inv_T, pose_error
 
 from .relocalise import Relocalisation
+from .verification import DEPTH_DISAGREEMENT_BAD, depth_disagreement
 
 __all__ = ["PlacementSettings", "Candidate", "MapPlacement", "map_relocaliser"]
 
@@ -50,7 +51,8 @@ class PlacementSettings:
     once); agree_m / agree_deg: how far such a correction may move the keyframe and still
     agree (the relocalisation's own agreement radius, :class:`~.relocalise.RelocaliseSettings`);
     confirm_travel_m: the run's travel from the relocalised keyframe to the last confirming one
-    that a placement needs besides (confirmations go on until it is reached); max_jump_m: once
+    that a start's placement needs besides (confirmations go on until it is reached; a recovery
+    of a placed run does not wait for it); max_jump_m: once
     placed, how far from the run's own estimate a recovery may move it. ``confirmations``,
     ``agree_*``: chosen on the simulator and fr1/xyz (tests); ``confirm_travel_m`` (1 m, the top of
     the issue's 0.5-1 m: a start in a twin room first verified in the twin was placed there
@@ -167,17 +169,25 @@ class MapPlacement:
             raise RuntimeError("no candidate to place by: propose one first")
         return self.candidate.T_map_run @ T_run_cam
 
-    def confirm(self, i: int, key: int, correction, T_map_cam_pred: np.ndarray) -> str:
+    def confirm(self, i: int, key: int, correction, T_map_cam_pred: np.ndarray, frame=None) -> str:
         """Keyframe ``i``'s correction (a :class:`~nap3d_graph.results.Correction` rendered at
         ``T_map_cam_pred``, the candidate's placement of it) against the candidate: returns
         "confirmed" (enough keyframes agreed), "agrees" (one more needed) or "refuted" (the
-        candidate is dropped)."""
+        candidate is dropped). ``frame`` (the keyframe's RGBDFrame, or None): its depth is also
+        compared with the field's at the corrected pose (:func:`~.verification.depth_disagreement`)."""
         s, cand = self.settings, self.candidate
         if cand is None:
             raise RuntimeError("no candidate to confirm: propose one first")
         event: dict = {"frame": int(i), "step": "confirm", "candidate_frame": cand.frame}
+        disagreement = self._depth_disagreement(frame, correction) if correction.success else float("nan")
+        if np.isfinite(disagreement):
+            event["depth_disagreement"] = round(disagreement, 4)
         if not correction.success:
             verdict, event["reason"] = "refuted", f"the next keyframe's correction failed: {correction.reason}"
+        elif disagreement > DEPTH_DISAGREEMENT_BAD:
+            verdict = "refuted"
+            event["reason"] = (f"the next keyframe's depth disagrees with the map's over {disagreement:.0%} of the frame "
+                               f"(> {DEPTH_DISAGREEMENT_BAD:.0%}): not the place the candidate says")
         else:
             moved_m, moved_deg = pose_error(correction.T_world_cam_corrected, T_map_cam_pred)
             event.update(moved_m=round(float(moved_m), 4), moved_deg=round(float(moved_deg), 3),
@@ -186,7 +196,10 @@ class MapPlacement:
             event["travel_m"] = round(travel_m, 3)
             if moved_m <= s.agree_m and moved_deg <= s.agree_deg:
                 cand.confirmed.append((int(i), int(key), correction))
-                enough = len(cand.confirmed) >= s.confirmations and travel_m >= s.confirm_travel_m
+                # Travel is asked of a start only: a placed run that recovers has its odometry as the
+                # prior against a look-alike (max_jump_m), and needs its pose back while it moves.
+                travel_needed = 0.0 if self.placed else s.confirm_travel_m
+                enough = len(cand.confirmed) >= s.confirmations and travel_m >= travel_needed
                 verdict = "confirmed" if enough else "agrees"
                 if not enough:
                     # The next keyframe is predicted from this one's correction: over a metre of travel
@@ -201,6 +214,18 @@ class MapPlacement:
         if verdict == "refuted":
             self.candidate = None
         return verdict
+
+    def _depth_disagreement(self, frame, correction) -> float:
+        """How much of ``frame``'s depth the map's field, rendered at the correction's pose at a
+        small size, disagrees with (NaN without a frame or a field)."""
+        field_obj = getattr(self.relocaliser, "field", None)
+        if frame is None or field_obj is None:
+            return float("nan")
+        from nap3d_graph.nap3d.correct import at_width
+
+        small = at_width(frame, 160)
+        view = field_obj.render(correction.T_world_cam_corrected, small.intrinsics)
+        return depth_disagreement(small.depth_m, view.depth_m, view.opacity)
 
     def accept(self, i: int) -> Candidate:
         """The pending candidate, confirmed at keyframe ``i``: the run is placed by it."""

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["Verification", "worst_sigmas"]
+__all__ = ["Verification", "worst_sigmas", "depth_disagreement", "DEPTH_DISAGREEMENT_BAD"]
 
 
 def worst_sigmas(covariance: np.ndarray) -> tuple[float, float]:
@@ -18,6 +18,28 @@ def worst_sigmas(covariance: np.ndarray) -> tuple[float, float]:
     sigma_m = float(np.sqrt(np.max(np.linalg.eigvalsh(cov[3:, 3:]))))
     sigma_deg = float(np.degrees(np.sqrt(np.max(np.linalg.eigvalsh(cov[:3, :3])))))
     return sigma_m, sigma_deg
+
+
+#: A view whose depth disagrees with the field's render over more than this share of the frame is
+#: not of the place the render is (a doorway where a twin room has a wall; chosen on the tests' floor).
+DEPTH_DISAGREEMENT_BAD = 0.08
+
+
+def depth_disagreement(depth_m: np.ndarray, rendered_depth_m: np.ndarray, opacity: np.ndarray,
+                       tolerance_m: float = 0.25, tolerance_fraction: float = 0.1) -> float:
+    """The share of a frame (H, W: the sensor's depth, the field's depth and opacity rendered at
+    the pose under test, metres) where both have depth and they differ by more than
+    ``tolerance_m`` or ``tolerance_fraction`` of the depth, whichever is larger: features can
+    align on the walls and furniture two look-alike rooms share while a doorway one of them has
+    and the other does not stays out of the matches; the depth of the whole view does not.
+    NaN when no pixel has both."""
+    real = np.asarray(depth_m, dtype=float)
+    rendered = np.asarray(rendered_depth_m, dtype=float)
+    both = np.isfinite(real) & (real > 0) & np.isfinite(rendered) & (rendered > 0) & (np.asarray(opacity) > 0.5)
+    if not both.any():
+        return float("nan")
+    gap = np.abs(real[both] - rendered[both])
+    return float(np.mean(gap > np.maximum(tolerance_m, tolerance_fraction * real[both])))
 
 
 @dataclass(frozen=True)

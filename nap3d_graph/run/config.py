@@ -185,6 +185,9 @@ class PipelineConfig:
     max_frames: int | None = None
     progress: bool = False
     relocalise_after: int = 3
+    #: A run started anywhere in a map is placed once the keyframes that confirm its
+    #: relocalisation span this much of its own travel (metres; :class:`~nap3d_graph.mapping.start.PlacementSettings`).
+    placement_travel_m: float = 1.0
     align: AlignConfig = field(default_factory=AlignConfig)
 
     def __post_init__(self) -> None:

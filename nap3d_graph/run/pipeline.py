@@ -343,8 +343,10 @@ class Pipeline:
         self.intrinsics_model = IntrinsicsModelTracker.for_run(self.config)
         self.stream = MeasurementStream()
         self.corrections = CorrectionGate(self)
+        placement_settings = self._placement_settings or PlacementSettings(
+            confirm_travel_m=self.config.placement_travel_m)
         self.placement = None if self.relocaliser is None else MapPlacement(
-            self.relocaliser, self._placement_settings, placed=not self._starts_unplaced)
+            self.relocaliser, placement_settings, placed=not self._starts_unplaced)
         self.recovery = MapRecovery(self, self.placement)
         self.recoveries = self.recovery.recoveries
         if self.config.use_anchor:  # the field's frame in the odometry's world, to be estimated

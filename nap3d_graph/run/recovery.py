@@ -95,7 +95,7 @@ class MapRecovery:
         correction = measure_keyframe(job, run.field, run.config)
         record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
                                                              correction.iterations)
-        verdict = placement.confirm(i, record.key, correction, T_map_cam_pred)
+        verdict = placement.confirm(i, record.key, correction, T_map_cam_pred, frame)
         if verdict == "confirmed":
             self._place(record, i)
         elif verdict == "agrees":

@@ -151,7 +151,8 @@ class AlignmentSettings:
 class GraphSettings:
     """How a correction enters iSAM2 (see ``PipelineConfig``): the chi-square gate, the
     window of keyframes kept, the map anchor, the robust loss, the priors, the final GNC
-    solve and how many refused keyframes in a row call for relocalising in a map."""
+    solve, how many refused keyframes in a row call for relocalising in a map and how far a
+    run started anywhere in a map travels confirming its placement."""
 
     gate_p: float = _pipe("gate_p")
     window: int = _pipe("graph_window")
@@ -165,6 +166,7 @@ class GraphSettings:
     final_gnc: bool = _pipe("final_gnc")
     gnc_p: float = _pipe("gnc_p")
     relocalise_after: int = _pipe("relocalise_after")
+    placement_travel_m: float = _pipe("placement_travel_m")
 
 
 @dataclass
