@@ -28,9 +28,9 @@ TRAINING_KEYS = ("train_steps", "steps", "minutes", "budget_s", "train_budget", 
 
 def sections() -> list[Section]:
     """The results page's sections, in page order."""
-    from report import checks, drift, estimation, faults, mapping, real, speed
+    from report import building, checks, drift, estimation, faults, mapping, real, speed
 
-    return [*mapping.SECTIONS, *real.SECTIONS, *drift.SECTIONS, *estimation.SECTIONS, *speed.SECTIONS, *faults.SECTIONS, *checks.SECTIONS]
+    return [*mapping.SECTIONS, *building.SECTIONS, *real.SECTIONS, *drift.SECTIONS, *estimation.SECTIONS, *speed.SECTIONS, *faults.SECTIONS, *checks.SECTIONS]
 
 
 def _read(name: str):
