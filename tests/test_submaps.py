@@ -2,6 +2,8 @@
 with the same result as one after another; the map's field renders from the part the camera
 looks into, in one frame (no jump at the hand-over)."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -115,3 +117,31 @@ def test_submap_fields_trained_side_by_side_equal_those_trained_one_after_anothe
     # Each submap's grid covers its own part of the room, not the whole survey's bounds.
     spans = [np.ptp(f.bounds, axis=0) for f in serial.fields]
     assert all(np.prod(s) < np.prod(np.ptp(serial.bounds, axis=0)) for s in spans)
+
+
+@pytest.mark.slow
+def test_map_cut_into_submaps_through_the_command_line_then_run_in_it(sim_walk, tmp_path, capsys):
+    """`map --submap-frames` on a simulated room's survey: two submaps trained on two workers,
+    their index, the mesh and the rerun recording; `run --field MAP` renders from them."""
+    from nap3d_graph.cli import main
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.run.viz import keyframe_entries
+
+    survey = sim_walk(120, fps=3.75, path="mapping", width=240, height=180)
+    walk = sim_walk(40, fps=6.0, seed=6, width=240, height=180)
+    out = tmp_path / "map"
+    assert main(["map", str(survey), "--out", str(out), "--matcher", "sift", "--steps", "40", "--submap-frames", "70",
+                 "--workers", "2", "--viz", str(tmp_path / "map.rrd"), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "cut into 2 submaps" in printed and "field: 2 submaps" in printed and "mesh:" in printed
+    field = resolve_field(str(out))
+    assert isinstance(field, SubmapField) and len(field.fields) == 2 and not (out / "field.pt").exists()
+    entries = keyframe_entries(tmp_path / "map.rrd")
+    assert {"/world/mesh", "/world/keyframes/submap_00", "/world/keyframes/submap_01", "/map/report"} <= set(entries)
+    assert main(["run", "--data", str(walk), "--field", str(out), "--matcher", "sift", "--odom", "vo",
+                 "--out", str(tmp_path / "run")]) == 0
+    metrics = json.loads((tmp_path / "run" / "latest" / "metrics.json").read_text())
+    placement = metrics["map"]["placement"]
+    assert placement["placed"] and placement["placed_at_frame"] is not None, placement
+    # Scored through the survey's alignment: the corrections from the submaps' fields hold the run.
+    assert metrics["corrections_accepted"] >= 3 and metrics["estimate"]["ate_m"]["rmse"] < 0.05, metrics["estimate"]
