@@ -22,6 +22,12 @@ Two parts, each its own JSON:
         --out benchmarks/results/building_map.json
     python benchmarks/building.py --part map --rooms 3 --frames-per-room 150 --one-field \
         --out benchmarks/results/building_map_one_field.json
+    python benchmarks/building.py --part workers --rooms 3 --frames-per-room 150 \
+        --out benchmarks/results/building_workers.json
+
+``--part workers``: the field stage alone on the 3-room floor's survey at its true poses, its
+submap fields trained one after another, on 2 worker processes and as 2 Ray tasks (fixed
+steps): wall time, and whether the fields are the same.
 """
 
 from __future__ import annotations
@@ -268,9 +274,62 @@ def map_part(args, work: Path) -> dict:
             "field": label, "floors": floors}
 
 
+# --- workers ------------------------------------------------------------------------------------
+
+
+def workers_part(args, work: Path) -> dict:
+    """The field stage alone (the survey at its true poses, cut into submaps), the same fields
+    trained one after another in this process, on 2 worker processes and as 2 Ray tasks: wall
+    time and whether the checkpoints are the same (fixed steps)."""
+    import torch
+
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping.build import MapSettings
+    from nap3d_graph.mapping.folder import MapFolder
+    from nap3d_graph.mapping.submap_fields import train_submap_fields
+    from nap3d_graph.mapping.submaps import plan_submaps
+    from nap3d_graph.pools import LocalPool, RayPool, SerialPool
+
+    rooms = args.rooms[0]
+    _, survey, _, _ = _floor_data(args, rooms, work)
+    T = np.asarray(survey.T_world_cam_gt)
+    settings = MapSettings(steps=args.steps)
+    plan = plan_submaps(T, settings.submaps)
+    out: dict = {"rooms": rooms, "survey_frames": len(survey), "submaps": len(plan), "steps": args.steps, "pools": {}}
+    fields = {}
+    for name, make in (("serial", SerialPool), ("2 processes", lambda: LocalPool(2)),
+                       ("2 Ray tasks", lambda: RayPool("auto", 2))):
+        root = work / f"workers_{rooms}_{name.replace(' ', '_')}"
+        if root.exists():
+            import shutil
+
+            shutil.rmtree(root)
+        folder = MapFolder.open(root, {"data": str(survey.path)}, ("data",))
+        t0 = time.perf_counter()
+        pool = make()
+        try:
+            train_submap_fields(survey, T, folder, plan, settings, settings.submaps, {"steps": args.steps}, None, pool,
+                                "cpu")
+        finally:
+            pool.close()
+        seconds = time.perf_counter() - t0
+        fields[name] = resolve_field(str(root))
+        out["pools"][name] = {"wall_s": round(seconds, 1)}
+        print(f"{name}: {seconds:.0f} s")
+    base = fields["serial"]
+    for name, field in fields.items():
+        same = all(torch.equal(v, b.state_dict()[k]) for a, b in zip(field.fields, base.fields)
+                   for k, v in a.state_dict().items() if isinstance(v, torch.Tensor))
+        out["pools"][name].update(same_fields_as_serial=bool(same),
+                                  ratio_to_serial=round(out["pools"][name]["wall_s"] / out["pools"]["serial"]["wall_s"],
+                                                        3))
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=("placement", "map"), required=True)
+    parser.add_argument("--part", choices=("placement", "map", "workers"), required=True)
+    parser.add_argument("--steps", type=int, default=600, help="workers part: grid steps per submap field")
     parser.add_argument("--rooms", type=int, nargs="+", default=[1, 3, 6])
     parser.add_argument("--frames-per-room", type=int, default=270,
                         help="survey frames per room (the one-room survey's 270 at 3.75 Hz)")
@@ -282,7 +341,8 @@ def main() -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    result = placement_part(args, args.work) if args.part == "placement" else map_part(args, args.work)
+    parts = {"placement": placement_part, "map": map_part, "workers": workers_part}
+    result = parts[args.part](args, args.work)
     write_result(args.out, {"command": " ".join(sys.argv), **result}, args)
 
 
