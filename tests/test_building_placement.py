@@ -108,6 +108,13 @@ def test_a_placement_needs_the_travel_its_settings_ask_for():
         verdicts.append(placement.confirm(k + 1, k + 1, _Correction(T), T))
     assert verdicts == ["agrees", "agrees", "confirmed"]
     assert [e["travel_m"] for e in placement.events if e["step"] == "confirm"] == [0.2, 0.4, 0.6]
+    # A map whose survey found no look-alike places, and no rival met: one confirming keyframe places it.
+    plain = _Answers([_found(0.0)])
+    plain.look_alikes = False
+    placement = MapPlacement(plain, settings)
+    placement.propose(0, 0, None, np.eye(4))
+    T = exp_se3(np.array([0, 0, 0, 0.2, 0, 0.0]))
+    assert placement.confirm(1, 1, _Correction(T), T) == "confirmed"
     with pytest.raises(ValueError, match="confirm_travel_m"):
         PlacementSettings(confirm_travel_m=-1.0)
 

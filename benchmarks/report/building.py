@@ -7,6 +7,7 @@ from report import Section, cm, read
 
 PLACEMENT_FILE = "building_placement.json"
 MAP_FILES = ("building_map.json", "building_map_one_field.json")
+WORKERS_FILE = "building_workers.json"
 
 
 def _s(value, digits: int = 2) -> str:
@@ -79,6 +80,14 @@ def maps_table() -> str:
     return "\n".join(rows)
 
 
+def workers_table() -> str:
+    r = read(WORKERS_FILE)
+    rows = ["| pool | wall s | against one after another | the same fields |", "|---|---|---|---|"]
+    for name, p in (r.get("pools") or {}).items():
+        rows.append(f"| {name} | {p['wall_s']:.0f} | {p['ratio_to_serial']:.2f}x | {'yes' if p['same_fields_as_serial'] else 'no'} |")
+    return "\n".join(rows)
+
+
 SECTIONS = [
     Section("A floor of a building, relocalisation: every fourth frame of a traverse across simulated floors of 1, 3 "
             "and 6 rooms (every third room a twin), in the survey indexed at its true poses with the exact field",
@@ -101,4 +110,9 @@ SECTIONS = [
             note="320x240 frames, 150 survey frames a room. Peak memory is the largest process's (GNU time); "
                  "wall times were measured while other work shared the two cores, so their ratios are the "
                  "figure to read, not their seconds."),
+    Section("A floor of a building, the field stage side by side: the 3-room floor's submap fields (its survey at its "
+            "true poses, fixed steps) trained one after another, on 2 processes and as 2 Ray tasks, on two cores",
+            (WORKERS_FILE,), "python benchmarks/building.py --part workers --rooms 3 --frames-per-room 150 --out ...",
+            workers_table,
+            note="Each job runs with one thread; one after another runs in the map's own process."),
 ]

@@ -256,7 +256,7 @@ def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, de
                   "odometry puts them)")
     save_edges(folder.edges, chain, loops, chain_matches)
     folder.done("loops", time.perf_counter() - t0, candidates=len(pairs),
-                verified=sum(lp.status == "verified" for lp in loops),
+                verified=sum(lp.status == "verified" for lp in loops), look_alikes=look_alikes,
                 consecutive_aligned=chain_kinds.count("alignment"), consecutive_odometry=chain_kinds.count("odometry"))
     return chain, loops, chain_matches
 

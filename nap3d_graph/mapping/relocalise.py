@@ -204,6 +204,9 @@ class Relocaliser:
             width = int(data["width"])
             self.width = None if width < 0 else width
         self.T_map_key = np.load(folder.keyframe_poses)
+        #: Whether the map repeats itself: its survey found look-alike places a room apart (loops
+        #: refused against its odometry); None when the map does not say (made without a loop stage).
+        self.look_alikes = _look_alikes(folder)
         self.field = field_obj
         # The capture timing the map's field recorded: what a frame given its twist is aligned with.
         self.timing, _ = resolve_capture_timing(field_obj)
@@ -438,6 +441,18 @@ class Relocaliser:
             if s2 <= s.max_sigma_m:
                 return s2, k, again.T_world_cam_corrected, again.covariance, again.alignment.num_inliers, d2
         return sigma_m, k, T, cov, inliers, sigma_deg
+
+
+def _look_alikes(folder: MapFolder) -> bool | None:
+    """``map.json``'s count of survey loops refused as look-alike places, as a flag (None: the
+    map does not record it)."""
+    import json
+
+    try:
+        count = json.loads(folder.info_path.read_text())["stages"]["loops"].get("look_alikes")
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return None if count is None else bool(count)
 
 
 def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:

@@ -15,8 +15,9 @@ On a floor that repeats itself (twin offices), two places can explain one frame,
 keyframes of the same room agree as readily as one. So a relocalisation that found a rival
 (:class:`~.relocalise.RelocaliseSettings`: another place, a room away, that verified as well)
 is no candidate: the run stays unplaced, its odometry running on, until a frame that only one
-place explains. And a candidate is accepted only once the keyframes that confirmed it span
-``confirm_travel_m`` of the run's own travel, each rendered where the candidate (re-anchored
+place explains. And where the map repeats itself (its survey refused loops between look-alike
+places, the map does not say, or this run met a rival) a candidate is accepted only once the
+keyframes that confirmed it span ``confirm_travel_m`` of the run's own travel, each rendered where the candidate (re-anchored
 at the previous one) puts it and agreeing, so that what the camera sees along the way, not
 one view twice, decides: a twin found first is refuted when the camera turns to what differs.
 
@@ -198,7 +199,7 @@ class MapPlacement:
                 cand.confirmed.append((int(i), int(key), correction))
                 # Travel is asked of a start only: a placed run that recovers has its odometry as the
                 # prior against a look-alike (max_jump_m), and needs its pose back while it moves.
-                travel_needed = 0.0 if self.placed else s.confirm_travel_m
+                travel_needed = 0.0 if self.placed or not self._may_alias() else s.confirm_travel_m
                 enough = len(cand.confirmed) >= s.confirmations and travel_m >= travel_needed
                 verdict = "confirmed" if enough else "agrees"
                 if not enough:
@@ -214,6 +215,13 @@ class MapPlacement:
         if verdict == "refuted":
             self.candidate = None
         return verdict
+
+    def _may_alias(self) -> bool:
+        """Whether a start could be a look-alike place: the map's survey found look-alikes (or
+        the map does not say), or a relocalisation of this run had a rival."""
+        if getattr(self.relocaliser, "look_alikes", None) is not False:
+            return True
+        return any(str(e.get("reason", "")).startswith("ambiguous") for e in self.events)
 
     def _depth_disagreement(self, frame, correction) -> float:
         """How much of ``frame``'s depth the map's field, rendered at the correction's pose at a
