@@ -50,3 +50,14 @@ def test_nothing_to_fuse_is_a_clear_error(room_survey, tmp_path):
     with pytest.raises(ValueError, match="no frame of the survey has a pose"):
         fuse_mesh(PosedSequence(room_survey, nowhere, "none"), tmp_path / "x.ply")
     assert not (tmp_path / "x.ply").exists()
+
+
+def test_a_map_of_a_simulated_room_is_not_scored_against_the_simulators_world(room_survey):
+    """The oracle renders in the simulator's world frame; a map's poses are in its first
+    camera's: held-out depth of a self-posed simulated survey is scored against the sensor's
+    depth, not against the oracle at the wrong place (it read 2.5 m of depth error)."""
+    from nap3d_graph.datasets.posed import PosedSequence
+    from nap3d_graph.fields.evaluation import oracle_for
+
+    assert oracle_for(room_survey) is not None
+    assert oracle_for(PosedSequence(room_survey, np.asarray(room_survey.T_world_cam_gt), "map")) is None

@@ -47,8 +47,12 @@ def oracle_for(sequence):
     """The noise-free oracle of a simulated sequence, or None for real data.
 
     Uses ``sequence.oracle_field()`` when the sequence offers one (``SimSequence``), else a
-    ``scene.json`` in the sequence's folder.
+    ``scene.json`` in the sequence's folder. None for a simulated sequence posed by anything but
+    the simulator (a map's poses, a reframed ground truth: ``pose_source``): the oracle renders in
+    the simulator's world frame, and at a map's poses it would be another view of the room.
     """
+    if getattr(sequence, "pose_source", None) is not None:
+        return None
     if hasattr(sequence, "oracle_field"):
         try:
             return sequence.oracle_field()
