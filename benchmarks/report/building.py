@@ -1,12 +1,11 @@
 """A floor of a building (issue 61): relocalisation and placement on floors of 1, 3 and 6
-simulated rooms with twins, and maps of them cut into submaps against one field."""
+simulated rooms with twins, and the submap fields trained side by side."""
 
 from __future__ import annotations
 
 from report import Section, cm, read
 
 PLACEMENT_FILE = "building_placement.json"
-MAP_FILES = ("building_map.json",)
 WORKERS_FILE = "building_workers.json"
 
 
@@ -57,29 +56,6 @@ def twin_starts_table() -> str:
     return "\n".join(rows)
 
 
-def maps_table() -> str:
-    rows = ["| field | rooms | survey frames | map s (s per frame, against one room) | peak GB map (against one "
-            "room) | survey ATE cm | held-out PSNR dB: map; per room min-max | run from its own start: ATE cm (max; "
-            "odometry alone), placed at frame | peak GB run |",
-            "|---|---|---|---|---|---|---|---|---|"]
-    for name in MAP_FILES:
-        r = read(name)
-        floors = r.get("floors") or {}
-        one = floors.get("1", {}).get("map", {})
-        for rooms, f in floors.items():
-            m, run = f["map"], f["run"]
-            per_room = [v["median_db"] for v in (m.get("held_out_psnr_per_room") or {}).values()]
-            ratio = (f"{m['seconds_per_frame'] / one['seconds_per_frame']:.2f}x" if one else "n/a")
-            mem = f"{m['peak_memory_gb'] / one['peak_memory_gb']:.2f}x" if one else "n/a"
-            rows.append(f"| {r.get('field')} `{name}` | {rooms} | {f['survey_frames']} | {m['wall_s']:.0f} "
-                        f"({m['seconds_per_frame']:.2f}, {ratio}) | {m['peak_memory_gb']:.2f} ({mem}) | "
-                        f"{cm(m.get('survey_ate_m'))} | {_s(m.get('held_out_psnr_db'), 1)}; "
-                        + (f"{min(per_room):.1f}-{max(per_room):.1f}" if per_room else "n/a")
-                        + f" | {cm(run.get('ate_m'))} ({cm(run.get('max_error_m'))}; {cm(run.get('odometry_ate_m'))}), "
-                        f"{run.get('placed_at_frame')} | {run['peak_memory_gb']:.2f} |")
-    return "\n".join(rows)
-
-
 def workers_table() -> str:
     r = read(WORKERS_FILE)
     rows = ["| pool | wall s | against one after another | the same fields |", "|---|---|---|---|"]
@@ -102,12 +78,6 @@ SECTIONS = [
             twin_starts_table,
             note="Drifting odometry of the simulator, the exact field. 'In the twin' is a placement 10 m or more "
                  "from the truth: every pose of that run is in the wrong room."),
-    Section("A floor of a building, maps: `nap3d-graph map` of the floor's survey with its defaults (submaps), "
-            "then a traverse across it from its own start (--odom vo), on two cores", MAP_FILES,
-            "python benchmarks/building.py --part map --rooms 1 3 --frames-per-room 270 --out ...",
-            maps_table,
-            note="320x240 frames, 270 survey frames a room (the one-room survey's pace). Peak memory is the largest "
-                 "process's (GNU time). The 6-room floor and the one-field baseline were not measured (time)."),
     Section("A floor of a building, the field stage side by side: the 3-room floor's submap fields (its survey at its "
             "true poses, fixed steps) trained one after another, on 2 processes and as 2 Ray tasks, on two cores",
             (WORKERS_FILE,), "python benchmarks/building.py --part workers --rooms 3 --frames-per-room 150 --out ...",
