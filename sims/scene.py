@@ -12,6 +12,7 @@ with exact z-depth and no GPU/OpenGL context; the geometry here is a few quadric
 
 from __future__ import annotations
 
+import abc
 import json
 from dataclasses import dataclass
 from pathlib import Path
@@ -271,26 +272,30 @@ def object_from_dict(d: dict):
     raise ValueError(f"unknown scene object type {kind!r}")
 
 
-class RayCastRenderer:
+def _pixel_rays(intrinsics: Intrinsics) -> np.ndarray:
+    """(H*W, 3) each pixel's ray in the camera (OpenCV), unit z: a ray's parameter is its z-depth."""
+    h, w = intrinsics.height, intrinsics.width
+    v, u = np.mgrid[0:h, 0:w]
+    return np.stack([(u.ravel() - intrinsics.cx) / intrinsics.fx, (v.ravel() - intrinsics.cy) / intrinsics.fy,
+                     np.ones(h * w)], axis=1)
+
+
+class RayCastRenderer(abc.ABC):
     """RGB, z-depth and hit mask of anything that ray-casts (``cast(origin, dirs, shade)``) and
     has an ``ambient`` light level: one room (:class:`Scene`) or a floor of rooms
     (:class:`~nap3d_graph.sims.building.Building`)."""
 
     ambient: float
 
+    @abc.abstractmethod
     def cast(self, origin: np.ndarray, dirs: np.ndarray, shade: bool = True):
-        raise NotImplementedError
+        """``(t, points, normals, albedo)`` of rays ``origin + t * dirs`` (see :meth:`Scene.cast`)."""
 
     def render_depth(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
         """Noise-free z-depth (H, W) metres only (0 where nothing is hit): no shading, cheaper."""
         T_world_cam = np.asarray(T_world_cam, dtype=float)
-        h, w = intrinsics.height, intrinsics.width
-        v, u = np.mgrid[0:h, 0:w]
-        rays_cam = np.stack(
-            [(u.ravel() - intrinsics.cx) / intrinsics.fx, (v.ravel() - intrinsics.cy) / intrinsics.fy,
-             np.ones(h * w)], axis=1)
-        t = self.cast(T_world_cam[:3, 3], rays_cam @ T_world_cam[:3, :3].T, shade=False)[0]
-        return np.where(np.isfinite(t), t, 0.0).reshape(h, w)
+        t = self.cast(T_world_cam[:3, 3], _pixel_rays(intrinsics) @ T_world_cam[:3, :3].T, shade=False)[0]
+        return np.where(np.isfinite(t), t, 0.0).reshape(intrinsics.height, intrinsics.width)
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics):
         """Noise-free RGB (H, W, 3) float in [0, 1], z-depth (H, W) metres, hit mask (H, W).
@@ -299,10 +304,7 @@ class RayCastRenderer:
         """
         T_world_cam = np.asarray(T_world_cam, dtype=float)
         h, w = intrinsics.height, intrinsics.width
-        v, u = np.mgrid[0:h, 0:w]
-        rays_cam = np.stack(
-            [(u.ravel() - intrinsics.cx) / intrinsics.fx, (v.ravel() - intrinsics.cy) / intrinsics.fy,
-             np.ones(h * w)], axis=1)
+        rays_cam = _pixel_rays(intrinsics)
         # Direction with unit camera-z: the ray parameter t is the z-depth directly.
         dirs = rays_cam @ T_world_cam[:3, :3].T
         t, _, normal, albedo = self.cast(T_world_cam[:3, 3], dirs)

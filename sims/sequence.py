@@ -203,10 +203,7 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     """
     import os
 
-    from nap3d_graph.progress import progress_bar
-
     workers = min(os.cpu_count() or 1, 4) if workers is None else int(workers)
-
     config = config or SimConfig()
     if config.frames < 2:
         raise ValueError(f"need at least 2 frames, got {config.frames}")
@@ -214,13 +211,7 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     (out / "rgb").mkdir(parents=True, exist_ok=True)
     (out / "depth").mkdir(exist_ok=True)
 
-    scene = make_scene(config.scene_seed) if config.rooms is None else make_building(config.rooms, config.scene_seed)
-    if config.twin_posters is not None:
-        if config.rooms is not None:
-            raise ValueError("twin_posters hang in one room; a floor of rooms has twin rooms instead")
-        if config.twin_posters not in ("identical", "different"):
-            raise ValueError(f"twin_posters must be 'identical', 'different' or None, got {config.twin_posters!r}")
-        scene = with_twin_posters(scene, config.scene_seed, identical=config.twin_posters == "identical")
+    scene = _scene(config)
     # Separate streams: the path, the image noise, the odometry and the IMU each get their
     # own generator, so changing one model does not reshuffle the others.
     path_rng, image_rng, odom_rng, imu_rng, stamp_rng, exposure_rng = (
@@ -228,10 +219,45 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     duration = (config.frames - 1) / config.fps
     trajectory = _trajectory(config, scene, path_rng, duration)
     intrinsics = default_intrinsics(config.width, config.height)
+    t_rel, rgb_stamps, depth_capture_rel, depth_stamps = _frame_clocks(config, stamp_rng)
+    gains = exposure_gains(config.frames, config.exposure, exposure_rng)
 
+    _render_frames(out, config, scene, trajectory, intrinsics, (t_rel, rgb_stamps, depth_capture_rel, depth_stamps),
+                   gains, image_rng, workers, progress, stop)
+    _write_list(out / "rgb.txt", "color images", rgb_stamps, "rgb")
+    _write_list(out / "depth.txt", "depth maps", depth_stamps, "depth")
+    _write_ground_truth(out, trajectory, t_rel, depth_capture_rel, duration)
+    T_odom, _ = drifting_odometry(trajectory.poses(t_rel), rgb_stamps, config.odometry, odom_rng)
+    Trajectory(rgb_stamps, T_odom).write_tum(out / "odometry.txt", header="drifting odometry (simulated), T_world_cam")
+    _write_imu(out, trajectory, duration, config.imu, imu_rng)
+    (out / "intrinsics.json").write_text(json.dumps(intrinsics.to_dict(), indent=1))
+    scene.save(out / "scene.json")
+    (out / "sim.json").write_text(json.dumps({"generator": "nap3d-graph simulate", **config.to_dict(),
+                                              "duration_s": duration,
+                                              # The truth a compensation is checked against.
+                                              "depth_capture_stamps": (TIME_ORIGIN_S + depth_capture_rel).tolist(),
+                                              "exposure_gains": np.round(gains, 6).tolist()}, indent=1))
+    log.info("simulated %d frames of %s path into %s", config.frames, config.path, out)
+    return out
+
+
+def _scene(config: SimConfig):
+    """One room (``scene_seed``'s, with twin posters when asked) or a floor of ``rooms``."""
+    scene = make_scene(config.scene_seed) if config.rooms is None else make_building(config.rooms, config.scene_seed)
+    if config.twin_posters is not None:
+        if config.rooms is not None:
+            raise ValueError("twin_posters hang in one room; a floor of rooms has twin rooms instead")
+        if config.twin_posters not in ("identical", "different"):
+            raise ValueError(f"twin_posters must be 'identical', 'different' or None, got {config.twin_posters!r}")
+        scene = with_twin_posters(scene, config.scene_seed, identical=config.twin_posters == "identical")
+    return scene
+
+
+def _frame_clocks(config: SimConfig, stamp_rng: np.random.Generator) -> tuple:
+    """``(t_rel, rgb_stamps, depth_capture_rel, depth_stamps)`` (each (N,), seconds): the frame
+    instants from the start, the colour stamps, when each depth was captured and its stamp."""
     t_rel = np.arange(config.frames) / config.fps
     rgb_stamps = TIME_ORIGIN_S + t_rel
-    T_world_cam_gt = trajectory.poses(t_rel)
     timing = config.timing
     if timing is None:  # an ideal camera: both images at the frame instant, stamps a little apart
         depth_capture_rel = t_rel
@@ -240,11 +266,19 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
         depth_capture_rel = t_rel + timing.depth_capture_offset_s
         depth_stamps = (TIME_ORIGIN_S + depth_capture_rel + timing.depth_stamp_lag_s
                         + stamp_rng.uniform(-timing.stamp_jitter_s, timing.stamp_jitter_s, config.frames))
-    gains = exposure_gains(config.frames, config.exposure, exposure_rng)
+    return t_rel, rgb_stamps, depth_capture_rel, depth_stamps
 
+
+def _render_frames(out: Path, config: SimConfig, scene, trajectory, intrinsics: Intrinsics, clocks: tuple,
+                   gains: np.ndarray, image_rng: np.random.Generator, workers: int, progress: bool,
+                   stop: Callable[[], bool] | None) -> None:
+    """Every frame's colour and depth PNGs, on ``workers`` processes (see :func:`simulate_sequence`)."""
+    from nap3d_graph.progress import progress_bar
+
+    t_rel, rgb_stamps, depth_capture_rel, depth_stamps = clocks
     # One noise seed per frame, so the images do not depend on which worker renders them.
     frame_seeds = image_rng.integers(0, 2**63 - 1, config.frames)
-    jobs = [(scene, blur_poses(trajectory, float(t_rel[k]), timing, intrinsics),
+    jobs = [(scene, blur_poses(trajectory, float(t_rel[k]), config.timing, intrinsics),
              trajectory.T_world_cam(float(depth_capture_rel[k])), gains[k], intrinsics, config.rgb_noise_sigma,
              config.depth, int(frame_seeds[k]), str(out / "rgb" / f"{rgb_stamps[k]:.6f}.png"),
              str(out / "depth" / f"{depth_stamps[k]:.6f}.png"))
@@ -262,11 +296,11 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
         if not isinstance(pool, _SerialPool):
             pool.shutdown(wait=True)
 
-    _write_list(out / "rgb.txt", "color images", rgb_stamps, "rgb")
-    _write_list(out / "depth.txt", "depth maps", depth_stamps, "depth")
 
-    # Ground truth at 100 Hz on its own clock, plus the exact frame instants; it starts early
-    # enough to cover the depth captured before the first colour frame.
+def _write_ground_truth(out: Path, trajectory, t_rel: np.ndarray, depth_capture_rel: np.ndarray,
+                        duration: float) -> None:
+    """``groundtruth.txt``: 100 Hz on its own clock, plus the exact frame instants; it starts
+    early enough to cover the depth captured before the first colour frame."""
     start = min(0.0, float(depth_capture_rel.min()))
     gt_rel = np.arange(start - 0.05, duration + 0.05, 1.0 / _GT_RATE_HZ) + 0.0037
     gt_rel = np.clip(np.union1d(gt_rel, t_rel), start, duration)
@@ -274,26 +308,16 @@ def simulate_sequence(out_dir: str | Path, config: SimConfig | None = None, prog
     Trajectory(TIME_ORIGIN_S + gt_rel, trajectory.poses(gt_rel)).write_tum(out / "groundtruth.txt",
                "ground truth trajectory (simulated), T_world_cam, OpenCV camera, world +Z up")
 
-    T_odom, _ = drifting_odometry(T_world_cam_gt, rgb_stamps, config.odometry, odom_rng)
-    Trajectory(rgb_stamps, T_odom).write_tum(out / "odometry.txt", header="drifting odometry (simulated), T_world_cam")
 
-    imu = simulate_imu(trajectory, 0.0, duration, config.imu, imu_rng)
+def _write_imu(out: Path, trajectory, duration: float, noise: ImuNoise, imu_rng: np.random.Generator) -> None:
+    """``imu.txt`` (camera frame) and ``imu_bias.txt`` (the biases its samples carry, so an
+    estimate of them can be checked)."""
+    imu = simulate_imu(trajectory, 0.0, duration, noise, imu_rng)
     imu_rows = np.column_stack([TIME_ORIGIN_S + imu["stamps"], imu["accel"], imu["gyro"]])
     np.savetxt(out / "imu.txt", imu_rows, fmt=["%.6f"] + ["%.9f"] * 6,
                header="IMU in the camera frame (OpenCV axes), specific force m/s^2 and rate rad/s\n"
                       "timestamp ax ay az gx gy gz")
-    # The biases the samples carry, so an estimate of them can be checked.
     bias_rows = np.column_stack([TIME_ORIGIN_S + imu["stamps"], imu["accel_bias"], imu["gyro_bias"]])[::20]
     np.savetxt(out / "imu_bias.txt", bias_rows, fmt=["%.6f"] + ["%.9f"] * 6,
                header="true IMU biases (simulated, every 20th sample), m/s^2 and rad/s\n"
                       "timestamp bax bay baz bgx bgy bgz")
-
-    (out / "intrinsics.json").write_text(json.dumps(intrinsics.to_dict(), indent=1))
-    scene.save(out / "scene.json")
-    (out / "sim.json").write_text(json.dumps({"generator": "nap3d-graph simulate", **config.to_dict(),
-                                              "duration_s": duration,
-                                              # The truth a compensation is checked against.
-                                              "depth_capture_stamps": (TIME_ORIGIN_S + depth_capture_rel).tolist(),
-                                              "exposure_gains": np.round(gains, 6).tolist()}, indent=1))
-    log.info("simulated %d frames of %s path into %s", config.frames, config.path, out)
-    return out
