@@ -78,13 +78,6 @@ def _floor_data(args, rooms: int, work: Path):
     return floor, survey, traverse, length_m
 
 
-def _pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
-    from nap3d_graph.conventions import inv_T, log_se3
-
-    d = log_se3(inv_T(T_a) @ T_b)
-    return float(np.linalg.norm(d[3:])), float(np.degrees(np.linalg.norm(d[:3])))
-
-
 def _spread(values) -> dict:
     v = np.asarray(values, dtype=float)
     if v.size == 0:
@@ -98,7 +91,7 @@ def _spread(values) -> dict:
 
 def relocalise_traverse(floor, index: Path, traverse, every: int) -> dict:
     """Every ``every``-th traverse frame relocalised in the posed index with the exact field."""
-    from nap3d_graph.mapping.relocalise import Relocaliser
+    from nap3d_graph.mapping.relocalise import Relocaliser, pose_gap
 
     field = traverse.oracle_field()
     relocaliser = Relocaliser(index, field)
@@ -114,7 +107,7 @@ def relocalise_traverse(floor, index: Path, traverse, every: int) -> dict:
             continue
         if found.ambiguous:
             rows["ambiguous"] += 1
-        metres, degrees = _pose_gap(found.T_map_cam, T_true)
+        metres, degrees = pose_gap(found.T_map_cam, T_true)
         errors_m.append(metres)
         if floor.room_of(found.T_map_cam[:3, 3]) != floor.room_of(T_true[:3, 3]):
             rows["wrong_room"] += 1

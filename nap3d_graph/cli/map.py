@@ -140,8 +140,6 @@ def _pool(args, submaps: int):
     from .common import UsageError
 
     workers = args.workers or max(1, min(os.cpu_count() or 1, submaps))
-    if workers == 1 and args.ray_address is None:
-        return make_pool(1)
     try:
         return make_pool(workers, args.ray_address)
     except RuntimeError as exc:  # Ray not installed, or no cluster at that address

@@ -21,6 +21,7 @@ made with other settings is refused rather than mixed):
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from dataclasses import asdict, dataclass, field
@@ -30,6 +31,7 @@ import numpy as np
 
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
 from nap3d_graph.fields.submaps import SubmapSettings
+from nap3d_graph.pools import SerialPool
 from nap3d_graph.textfiles import write_json_atomic
 
 from .bundle import BundleSettings, PairMatches, agreeing_pairs, bundle_adjust, keyframe_twists
@@ -51,6 +53,7 @@ from .pose_graph import Edge, GraphResult, floor_covariance, solve
 from .relocalise import save_keyframe_frames
 from .report import write_outputs
 from .retrieval import Vocabulary, vlad
+from .submap_fields import submap_minutes, train_submap_fields
 from .submaps import plan_submaps
 from .survey import SurveyOdometry, keyframe_indices, track, tracked_segment
 
@@ -408,10 +411,6 @@ def _submap_field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, sett
                         field_settings: dict, started: float, say, device: str | None, pool) -> None:
     """Stage 5 for a survey cut into submaps: each its own field and budget (a one-room map's
     budget less its share of the stages before), trained on ``pool``."""
-    from nap3d_graph.pools import SerialPool
-
-    from .submap_fields import submap_minutes, train_submap_fields
-
     stage = folder.info["stages"].get("field", {})
     if (stage.get("settings") == field_settings and stage.get("done")
             and all((folder.root / s.file).is_file() for s in plan)):
@@ -447,8 +446,6 @@ def _mesh_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, progress: bo
         return
     timing = None
     if folder.field_report.is_file():
-        import json
-
         timing = CaptureTiming.of(json.loads(folder.field_report.read_text()).get("timing"))
     t0 = time.perf_counter()
     try:

@@ -38,11 +38,11 @@ from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 from nap3d_graph.nap3d.config import AlignConfig
 
-from .folder import MapFolder
+from .folder import MapFolder, load_map_info
 from .retrieval import Vocabulary, shared_matches, similarities, vlad
 from .verification import Verification, worst_sigmas
 
-__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames"]
+__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames", "pose_gap"]
 
 log = logging.getLogger(__name__)
 
@@ -107,9 +107,10 @@ class RelocaliseSettings:
 
     Rivals: a floor repeats itself (offices with the same furniture), and a frame of one can
     verify in its twin as well as in itself: the first answer found is not the only one there.
-    Once an answer is found, the ``rival_checks`` best-ranked keyframes of the shortlist that
-    stand more than ``rival_m`` from it are tried too; a verified answer there (or one among
-    those already tried) with at least ``rival_ratio`` of the answer's inliers is a *rival*:
+    Once an answer is found, the shortlist's keyframes that stand more than ``rival_m`` from it
+    and whose real-vs-real step puts the frame that far from it too are tried, the best-ranked
+    ``rival_checks`` of them; a verified answer there (or one among those already tried) with at
+    least ``rival_ratio`` of the answer's inliers is a *rival*:
     the relocalisation reports it, and a run that is not yet placed stays unplaced
     (:class:`~.start.MapPlacement`) until a frame that only one place explains. 1 m: twins
     are a room apart, while the answers one place gives agree within centimetres (0: no
@@ -294,7 +295,7 @@ class Relocaliser:
         s = self.settings
         if s.neighbours <= 0:
             return []
-        gaps = [(_gap(T_map_cam, T), k) for k, T in enumerate(self.T_map_key) if k not in tried]
+        gaps = [(pose_gap(T_map_cam, T), k) for k, T in enumerate(self.T_map_key) if k not in tried]
         near = [(m, k) for (m, deg), k in gaps if m <= s.neighbour_m and deg <= s.neighbour_deg]
         return [k for _, k in sorted(near)[: s.neighbours]]
 
@@ -374,14 +375,14 @@ class Relocaliser:
         for k in ranked:
             if checked >= s.rival_checks:
                 break
-            if k in tried_keys or _gap(T_answer, self.T_map_key[k])[0] <= s.rival_m:
+            if k in tried_keys or pose_gap(T_answer, self.T_map_key[k])[0] <= s.rival_m:
                 continue
             tried_keys.add(k)
             # The real-vs-real step says cheaply where this keyframe puts the frame: a keyframe
             # across the same room that sees the same wall puts it where the answer is (no rival
             # there, and no render spent on it).
             start = self._start_pose(query, k)
-            if not start[1] or _gap(T_answer, start[0])[0] <= s.rival_m:
+            if not start[1] or pose_gap(T_answer, start[0])[0] <= s.rival_m:
                 continue
             checked += 1
             candidate = self._candidate(frame, query, k, feats_real, motion, start)[0]
@@ -389,7 +390,7 @@ class Relocaliser:
                 verified = verified + [candidate]
         rivals = []
         for _, k, T, _, n, _ in verified:
-            distance_m = _gap(T_answer, T)[0]
+            distance_m = pose_gap(T_answer, T)[0]
             if distance_m > s.rival_m and n >= s.rival_ratio * inliers:
                 rivals.append({"T_map_cam": T, "keyframe": int(self.indices[k]), "inliers": int(n),
                                "distance_m": round(distance_m, 3)})
@@ -446,22 +447,21 @@ class Relocaliser:
 def _look_alikes(folder: MapFolder) -> bool | None:
     """``map.json``'s count of survey loops refused as look-alike places, as a flag (None: the
     map does not record it)."""
-    import json
-
     try:
-        count = json.loads(folder.info_path.read_text())["stages"]["loops"].get("look_alikes")
+        count = load_map_info(folder.root)["stages"]["loops"].get("look_alikes")
     except (OSError, ValueError, KeyError, TypeError):
         return None
     return None if count is None else bool(count)
 
 
-def _gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
-    """``(metres, degrees)`` between two poses."""
+def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """``(metres, degrees)`` between two poses: the norms of the translation and rotation parts
+    of ``log(inv(T_a) @ T_b)``."""
     d = log_se3(inv_T(T_a) @ T_b)
     return float(np.linalg.norm(d[3:])), float(np.degrees(np.linalg.norm(d[:3])))
 
 
 def _close(T_a: np.ndarray, T_b: np.ndarray, metres: float, degrees: float) -> bool:
     """Whether two poses are within ``metres`` and ``degrees`` of each other."""
-    m, deg = _gap(T_a, T_b)
+    m, deg = pose_gap(T_a, T_b)
     return m <= metres and deg <= degrees

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nap3d_graph.conventions import inv_T, pose_error
+from nap3d_graph.nap3d.correct import at_width
 
 from .relocalise import Relocalisation
 from .verification import DEPTH_DISAGREEMENT_BAD, depth_disagreement
@@ -229,8 +230,6 @@ class MapPlacement:
         field_obj = getattr(self.relocaliser, "field", None)
         if frame is None or field_obj is None:
             return float("nan")
-        from nap3d_graph.nap3d.correct import at_width
-
         small = at_width(frame, 160)
         view = field_obj.render(correction.T_world_cam_corrected, small.intrinsics)
         return depth_disagreement(small.depth_m, view.depth_m, view.opacity)
