@@ -36,7 +36,14 @@ def add_parser(sub) -> None:
         "command resumes from the last finished stage. Use the map with: nap3d-graph run --field MAP_DIR ...")
     p.add_argument("data", type=Path, help="the survey: a TUM-layout or 7-Scenes folder, a ROS bag, or a RealSense "
                    "recording (.bag/.db3); its ground truth, if any, is ignored until the map is made")
-    p.add_argument("--out", type=Path, required=True, help="the map folder (created; an unfinished one resumes)")
+    p.add_argument("--out", type=Path, default=None,
+                   help="the map folder (created; an unfinished one resumes). With --extend: where the grown map is "
+                   "written (default: it replaces MAP, swapped in whole once finished)")
+    p.add_argument("--extend", type=Path, default=None, metavar="MAP",
+                   help="grow an existing map by this survey (another day, another room): the survey is posed on its "
+                   "own, found in MAP by verified matches against its keyframes, joined to it in one graph (MAP's "
+                   "poses held), and new submap fields are trained where it saw space MAP did not have; refused in one "
+                   "line, MAP untouched, when the survey is not found in MAP or fits two places of it")
     add_topics_argument(p)
     add_unit_arguments(p)
     add_frames_argument(p, "the survey")
@@ -91,7 +98,9 @@ def run(args) -> int:
 
     from .sources import chosen_matcher, warn_guessed_camera
 
-    if args.out.exists() and not args.out.is_dir():
+    if args.out is None and args.extend is None:
+        raise UsageError("--out is required (the map folder to make), or --extend MAP (the map to grow)")
+    if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file, not a folder")
     sequence = open_sequence(args.data, frames=args.frames, topics=args.topics, depth_scale=args.depth_scale,
                              stamps=args.stamps)
@@ -116,6 +125,8 @@ def run(args) -> int:
             raise UsageError("`map --viz` writes a recording: give a path ending in .rrd")
     # The pool is sized from the survey's length; the cut itself waits for the poses.
     pool = _pool(args, -(-len(sequence) // args.submap_frames))
+    if args.extend is not None:
+        return _extend(args, sequence, settings, pool)
     try:
         result = build_map(sequence, args.out, settings, progress=not args.quiet, say=print,
                            build_field_stage=not args.no_field, device=args.device, mesh=not args.no_mesh, pool=pool)
@@ -128,6 +139,26 @@ def run(args) -> int:
         from nap3d_graph.mapping.viz import write_map_recording
 
         print(f"rerun recording: {write_map_recording(args.out, args.viz)} (open it with: rerun {args.viz})")
+    return 0
+
+
+def _extend(args, sequence, settings, pool) -> int:
+    """``map NEW --extend MAP``: the map grown by the survey (:mod:`nap3d_graph.mapping.extend`)."""
+    from nap3d_graph.mapping.extend import MapExtensionRefused, extend_map
+
+    try:
+        result = extend_map(sequence, args.extend, args.out, settings, progress=not args.quiet, say=print,
+                            device=args.device, pool=pool, mesh=not args.no_mesh)
+    except (MapExtensionRefused, FileExistsError) as exc:
+        raise UsageError(f"map --extend {args.extend}: {exc}") from None
+    finally:
+        pool.close()
+    record = result.info["extensions"][-1]
+    print(f"map: {result.folder} grown by {args.data} (extension {record['number']}: {record['keyframes']} keyframes, "
+          f"placed by {record['accepted']} verified pair(s) with the map, {record['look-alike']} pointing elsewhere "
+          f"set aside; {record['unseen_frames']} frames of new space, "
+          + (f"new submap field(s) {record['new_submaps']}" if record["new_submaps"] else "no new field")
+          + f"; {record['seconds']:.0f} s). Its own poses in the map: {result.folder / record['folder'] / 'poses_in_map.txt'}")
     return 0
 
 

@@ -62,12 +62,17 @@ class SubmapSettings:
 class Submap:
     """``core`` (2,): its slab of the floor, ``[from, to]`` metres along ``axis`` (3,), the
     survey's principal direction in the map's frame (unbounded ends at -+inf); ``frames``: the
-    survey frames it trains on."""
+    survey frames it trains on. A map grown by another day's survey (:mod:`~nap3d_graph.mapping.extend`)
+    holds submaps of several surveys, whose slabs lie along different axes: each submap then has
+    ``look_points`` (M, 3), the points its training cameras looked at (``look_ahead_m`` along
+    their optical axes, map frame), and ``survey``, the survey its frames index (0: the first)."""
 
     index: int
     axis: np.ndarray
     core: np.ndarray
     frames: np.ndarray
+    survey: int = 0
+    look_points: np.ndarray | None = None
 
     @property
     def file(self) -> str:
@@ -79,14 +84,19 @@ class Submap:
         return max(self.core[0] - x, x - self.core[1], 0.0)
 
     def to_dict(self) -> dict:
-        return {"index": self.index, "axis": [round(float(v), 6) for v in self.axis],
-                "core": [_finite(v) for v in self.core], "frames": [int(i) for i in self.frames], "file": self.file}
+        out = {"index": self.index, "axis": [round(float(v), 6) for v in self.axis],
+               "core": [_finite(v) for v in self.core], "frames": [int(i) for i in self.frames], "file": self.file}
+        if self.look_points is not None:
+            out.update(survey=self.survey, look_points=np.round(self.look_points, 3).tolist())
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> "Submap":
         lo, hi = d["core"]
         core = np.array([-np.inf if lo is None else float(lo), np.inf if hi is None else float(hi)])
-        return cls(int(d["index"]), np.asarray(d["axis"], dtype=float), core, np.asarray(d["frames"], dtype=int))
+        look = d.get("look_points")
+        return cls(int(d["index"]), np.asarray(d["axis"], dtype=float), core, np.asarray(d["frames"], dtype=int),
+                   int(d.get("survey", 0)), None if look is None else np.asarray(look, dtype=float).reshape(-1, 3))
 
 
 def _finite(v: float):
@@ -116,9 +126,13 @@ class SubmapField:
 
     def submap_at(self, T_world_cam: np.ndarray) -> int:
         """The submap that renders a camera at ``T_world_cam`` (4, 4): the one whose core holds
-        the point ``look_ahead_m`` along its optical axis, else the nearest core."""
+        the point ``look_ahead_m`` along its optical axis, else the nearest core; in a map of
+        several surveys (every submap with ``look_points``) the one whose training cameras looked
+        nearest to that point."""
         T = np.asarray(T_world_cam, dtype=float)
         point = T[:3, 3] + T[:3, 2] * self.settings.look_ahead_m
+        if all(s.look_points is not None and len(s.look_points) for s in self.submaps):
+            return int(np.argmin([np.min(np.linalg.norm(s.look_points - point, axis=1)) for s in self.submaps]))
         return int(np.argmin([s.distance_m(point) for s in self.submaps]))
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:

@@ -36,7 +36,7 @@ from nap3d_graph.textfiles import write_json_atomic
 
 from .bundle import BundleSettings, PairMatches, agreeing_pairs, bundle_adjust, keyframe_twists
 from .depth_check import depth_against_images
-from .folder import MapFolder
+from .folder import MAP_INFO, MapFolder
 from .loops import (
     Keyframe,
     Loop,
@@ -185,6 +185,10 @@ def _open_folder(sequence, out: Path, settings: MapSettings) -> MapFolder:
     if hasattr(sequence, "registration"):  # 7-Scenes: another colour camera is another survey
         wanted["registration"] = {k: v for k, v in sequence.registration.to_dict().items()
                                   if k in ("colour", "T_colour_depth")}  # not its fit's figures (NaN when given)
+    info_path = Path(out) / MAP_INFO
+    if info_path.is_file() and json.loads(info_path.read_text()).get("extensions"):
+        raise FileExistsError(f"{out} holds a map extended by other surveys: it is not re-made or "
+                              "resumed from one survey; choose another folder")
     return MapFolder.open(out, wanted, (*wanted, "depth_units_per_m", "registration"))
 
 
@@ -219,7 +223,7 @@ def _keyframe_stage(sequence, keys: np.ndarray, folder: MapFolder, settings: Map
     keyframes = None
     if not folder.finished("keyframes", folder.keyframes):
         t0 = time.perf_counter()
-        keyframes = _keyframes(sequence, keys, settings, progress)
+        keyframes = read_keyframes(sequence, keys, settings, progress)
         vocabulary = Vocabulary.fit([k.features.descriptors for k in keyframes], settings.vocabulary_k, settings.seed)
         for k in keyframes:
             k.descriptor = vlad(k.features.descriptors, vocabulary)
@@ -228,7 +232,7 @@ def _keyframe_stage(sequence, keys: np.ndarray, folder: MapFolder, settings: Map
                             width=-1 if settings.width is None else settings.width)
         folder.done("keyframes", time.perf_counter() - t0, keyframes=len(keys))
     if not folder.keyframe_frames.is_file():  # a map made before the relocaliser read them gets them now
-        save_keyframe_frames(folder.keyframe_frames, keyframes or _keyframes(sequence, keys, settings, progress))
+        save_keyframe_frames(folder.keyframe_frames, keyframes or read_keyframes(sequence, keys, settings, progress))
     with np.load(folder.keyframes) as data:
         return keyframes, data["descriptors"]
 
@@ -244,10 +248,10 @@ def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, de
         return load_edges(folder.edges)
     t0 = time.perf_counter()
     if keyframes is None:
-        keyframes = _keyframes(sequence, keys, settings, progress)
+        keyframes = read_keyframes(sequence, keys, settings, progress)
         for k, d in zip(keyframes, descriptors):
             k.descriptor = d
-    config = _align_config(settings)
+    config = align_config(settings)
     chain, chain_kinds, chain_matches = consecutive_edges(keyframes, survey, config, settings.loops.min_inliers,
                                                           settings.gate_p, settings.edge_floor_rad,
                                                           settings.edge_floor_m)
@@ -487,7 +491,7 @@ def _ranges(start: int, stop: int, n: int) -> list[str]:
     return parts
 
 
-def _align_config(settings: MapSettings):
+def align_config(settings: MapSettings):
     from nap3d_graph.nap3d.config import AlignConfig
 
     # Both sides are the same camera: no self-calibration of the intrinsics between them, and
@@ -514,13 +518,13 @@ def _working_intrinsics(sequence, settings: MapSettings):
     return K
 
 
-def _keyframes(sequence, keys: np.ndarray, settings: MapSettings, progress: bool) -> list[Keyframe]:
+def read_keyframes(sequence, keys: np.ndarray, settings: MapSettings, progress: bool) -> list[Keyframe]:
     """The keyframes read, at the working width, with their local features."""
     from nap3d_graph.nap3d.correct import at_width
     from nap3d_graph.nap3d.matching import detect_features
     from nap3d_graph.progress import progress_bar
 
-    config = _align_config(settings)
+    config = align_config(settings)
     out = []
     for i in progress_bar(keys, desc="keyframes", unit="frame", disable=not progress, mininterval=2.0):
         frame = at_width(sequence[int(i)], settings.width)

@@ -79,14 +79,18 @@ def _between(edge: Edge):
     return gtsam.BetweenFactorPose3(X(edge.a), X(edge.b), T_to_pose3(edge.T_a_b), noise_model(covariance=edge.covariance))
 
 
-def _graph(num_keys: int, edges: list[Edge]):
+def _graph(num_keys: int, edges: list[Edge], held: np.ndarray | None = None):
+    """The factor graph: the gauge (keyframe 0 at the identity), or with ``held`` (H, 4, 4) the
+    first H keyframes held at those poses; then a between factor per edge."""
     import gtsam
     from gtsam.symbol_shorthand import X
 
     from nap3d_graph.factors import noise_model
 
     graph = gtsam.NonlinearFactorGraph()
-    graph.add(gtsam.PriorFactorPose3(X(0), gtsam.Pose3(), noise_model(rot_sigma_rad=1e-6, trans_sigma_m=1e-6)))
+    pin = noise_model(rot_sigma_rad=1e-6, trans_sigma_m=1e-6)
+    for k, T in enumerate([np.eye(4)] if held is None else held):
+        graph.add(gtsam.PriorFactorPose3(X(k), T_to_pose3(T), pin))
     for edge in edges:
         graph.add(_between(edge))
     return graph
@@ -108,23 +112,28 @@ def _poses(values, num_keys: int) -> np.ndarray:
     return np.stack([pose3_to_T(values.atPose3(X(k))) for k in range(num_keys)])
 
 
-def solve(T_init: np.ndarray, chain: list[Edge], loops: list[Edge], gate_p: float = 0.999) -> GraphResult:
+def solve(T_init: np.ndarray, chain: list[Edge], loops: list[Edge], gate_p: float = 0.999, held: int = 0
+          ) -> GraphResult:
     """Solve the graph from ``T_init`` (K, 4, 4): ``chain`` edges are trusted, ``loops`` are
-    decided by GNC and then gated at probability ``gate_p`` (chi-square, 6 dof)."""
+    decided by GNC and then gated at probability ``gate_p`` (chi-square, 6 dof). ``held``: the
+    first so many keyframes stay where ``T_init`` puts them (a map being extended: its fields
+    were trained at those poses) instead of the gauge at keyframe 0."""
     import gtsam
 
     num_keys = len(T_init)
     edges = chain + loops
-    graph = _graph(num_keys, edges)
+    pinned = np.asarray(T_init, dtype=float)[:held] if held else None
+    priors = held or 1
+    graph = _graph(num_keys, edges, pinned)
     initial = _values(T_init)
     if loops:
         params = gtsam.GncLMParams(gtsam.LevenbergMarquardtParams())
-        params.setKnownInliers(list(range(1 + len(chain))))  # the prior and the consecutive edges
+        params.setKnownInliers(list(range(priors + len(chain))))  # the priors and the consecutive edges
         params.setLossType(gtsam.GncLossType.TLS)
         optimizer = gtsam.GncLMOptimizer(graph, initial, params)
         optimizer.setInlierCostThresholdsAtProbability(gate_p)
         values = optimizer.optimize()
-        weights = np.asarray(optimizer.getWeights())[1 + len(chain):]
+        weights = np.asarray(optimizer.getWeights())[priors + len(chain):]
     else:
         values = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams()).optimize()
         weights = np.zeros(0)
@@ -132,7 +141,7 @@ def solve(T_init: np.ndarray, chain: list[Edge], loops: list[Edge], gate_p: floa
     # Once more with the kept loops alone, as Gaussians, and each one gated at the solution.
     threshold = chi2_threshold(gate_p, 6)
     for _ in range(len(loops) + 1):
-        graph = _graph(num_keys, chain + [e for e, k in zip(loops, kept) if k])
+        graph = _graph(num_keys, chain + [e for e, k in zip(loops, kept) if k], pinned)
         values = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
         T_map_key = _poses(values, num_keys)
         d2 = np.array([mahalanobis_sq(T_map_key[e.a], T_map_key[e.b], e) for e in loops])
