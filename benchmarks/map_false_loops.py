@@ -76,7 +76,7 @@ def forced_twin_pairs(map_dir: Path, survey: Path, matcher: str, limit: int = 40
     from nap3d_graph.conventions import inv_T, log_se3
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, align_config, read_keyframes, place_frames
+    from nap3d_graph.mapping.build import MapSettings, align_config, place_frames
     from nap3d_graph.mapping.loops import load_edges, verify_pair
     from nap3d_graph.mapping.pose_graph import Edge, floor_covariance, solve
     from nap3d_graph.mapping.survey import SurveyOdometry
@@ -95,7 +95,7 @@ def forced_twin_pairs(map_dir: Path, survey: Path, matcher: str, limit: int = 40
         pairs = [pairs[k] for k in sorted(rng.choice(len(pairs), limit, replace=False))]
     settings = MapSettings(matcher=matcher)
     chosen = sorted({a for a, _ in pairs} | {b for _, b in pairs})
-    frames = dict(zip(chosen, readread_keyframes(sequence, keys[chosen], settings, progress=False)))
+    frames = dict(zip(chosen, read_keyframes(sequence, keys[chosen], settings, progress=False)))
     rows, forced = [], []
     for a, b in pairs:
         T_a_b, cov, alignment = verify_pair(frames[a], frames[b], align_config(settings), a, b)

@@ -48,7 +48,6 @@ import numpy as np
 from nap3d_graph.conventions import inv_T, rotation_angle_deg
 from nap3d_graph.fields.submaps import SUBMAPS_INDEX, Submap, SubmapSettings
 from nap3d_graph.pools import SerialPool
-from nap3d_graph.textfiles import write_json_atomic
 
 from .build import MapResult, MapSettings, align_config, build_map, place_frames
 from .folder import MapFolder
