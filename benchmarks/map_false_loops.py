@@ -76,7 +76,7 @@ def forced_twin_pairs(map_dir: Path, survey: Path, matcher: str, limit: int = 40
     from nap3d_graph.conventions import inv_T, log_se3
     from nap3d_graph.datasets import open_sequence
     from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, align_config, place_frames
+    from nap3d_graph.mapping.build import MapSettings, align_config, place_frames, read_keyframes
     from nap3d_graph.mapping.loops import load_edges, verify_pair
     from nap3d_graph.mapping.pose_graph import Edge, floor_covariance, solve
     from nap3d_graph.mapping.survey import SurveyOdometry
