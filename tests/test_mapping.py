@@ -359,6 +359,23 @@ def test_a_camera_without_ground_truth_maps_then_runs_in_its_map(tum_path, tmp_p
     # Frame 6 of the run is frame 6 of the survey: it starts where the map put that frame.
     assert np.linalg.norm(estimate.poses_se3[0][:3, 3] - T_map[6][:3, 3]) < 0.02
 
+    # The same frames with their ground truth, in the map that has none: the run's frame (the
+    # map's) and the ground truth's are tied by nothing, so no figure compares them directly.
+    assert main(["run", "--traj", "tum", "--data", str(tum_path), "--frames", "6:12", "--field", str(tmp_path / "map"),
+                 "--matcher", "sift", "--out", str(tmp_path / "scored"), "--config",
+                 str(_short_walk_config(tmp_path))]) == 0
+    printed = capsys.readouterr().out
+    assert "scored SE(3)-aligned only: the map's survey had no ground truth" in printed
+    latest = tmp_path / "scored" / "latest"
+    metrics = json.loads((latest / "metrics.json").read_text())
+    for name in ("odometry", "estimate", "estimate_online"):
+        entry = metrics[name]
+        assert entry["ate_m"] is None and entry["ate_first_half_m"] is None and entry["ate_second_half_m"] is None
+        assert "not tied" in entry["ate_m_reason"] and 0 < entry["ate_se3_aligned_m"] < 0.03, entry
+    ate_rows = [line for line in (latest / "report.md").read_text().splitlines() if "ATE" in line]
+    assert len(ate_rows) == 1 and "SE(3)-aligned only" in ate_rows[0], ate_rows
+    assert f"{metrics['estimate']['ate_se3_aligned_m'] * 100:.2f} cm" in ate_rows[0]
+
 
 def test_auto_start_without_a_map_is_a_clear_error(tum_path, tmp_path, capsys):
     from nap3d_graph.cli import main

@@ -215,7 +215,7 @@ def _map_metrics(start: dict | None, pipeline, result) -> dict:
         print(f"map: {pipeline.placement.describe()}")
     untied = _untied_frames(start, result.placement)
     if untied:
-        extra["scored"] = f"SE(3)-aligned only: {untied}; ate_m compares frames that are not tied, do not read it"
+        extra["scored"] = f"SE(3)-aligned only: {untied} (ate_m is null)"
     return extra
 
 

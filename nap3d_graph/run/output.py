@@ -207,15 +207,47 @@ class RunWriter:
                                              "turned_deg": round(gravity_angle_deg(result.gravity_world,
                                                                                    result.gravity_world_prior), 3)}
         metrics.update(extra or {})
+        plotted = result
+        if "scored" in metrics and result.T_world_cam_gt is not None:
+            untie_metrics(metrics, trajectories, str(metrics["scored"]))
+            plotted = _ground_truth_in_run_frame(result)
         from .report import write_run_report
 
         report = write_run_report(run, result.keyframes, metrics)
         metrics["report"] = {"file": "report.md", "past_bad_line": report.bad}
         (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
-        plot_top_view(run / "trajectory_top_view.png", result)
-        plot_error_over_time(run / "translation_error.png", result)
+        plot_top_view(run / "trajectory_top_view.png", plotted)
+        plot_error_over_time(run / "translation_error.png", plotted)
         link_latest(run)
         return metrics
+
+
+def untie_metrics(metrics: dict, names, why: str) -> None:
+    """A run whose frame no survey alignment ties to its ground truth's (``why``): every figure
+    that compares the two frames directly (each trajectory's ``ate_m`` and its halves) is null
+    with the reason, so no script reads it; the SE(3)-aligned ATE and the RPE (frame-free) stay."""
+    for name in names:
+        entry = metrics.get(name)
+        if not isinstance(entry, dict):
+            continue
+        entry.update(ate_m=None, ate_first_half_m=None, ate_second_half_m=None,
+                     ate_m_reason=f"not tied: {why}; read ate_se3_aligned_m")
+
+
+def _ground_truth_in_run_frame(result):
+    """The result with its ground truth moved into the run's frame by the estimate's own SE(3)
+    alignment (for the plots of an untied run: the paths are drawn as the aligned ATE scores them)."""
+    import copy
+
+    from nap3d_graph.conventions import inv_T
+    from nap3d_graph.evaluation.alignment import aligned_errors
+
+    aligned = aligned_errors(result.timestamps, result.T_world_cam_gt, result.T_world_cam_estimate)
+    if aligned is None:
+        return result
+    moved = copy.copy(result)
+    moved.ground_truth = inv_T(aligned.T_ref_est)[None] @ np.asarray(result.T_world_cam_gt, dtype=float)
+    return moved
 
 
 def _bias_rows(result) -> np.ndarray:
