@@ -108,12 +108,14 @@ def test_every_ground_truth_accessor_of_every_reader_is_watched():
     assert found <= set(GROUND_TRUTH_ACCESSORS), sorted(found - set(GROUND_TRUTH_ACCESSORS))
 
 
-@pytest.mark.slow
-def test_a_run_on_a_map_reads_no_ground_truth_before_its_trajectories_are_written(xyz_map, tum_path, tmp_path,
+@pytest.mark.parametrize("odom", ["vo", "dense", "noisy", "recorded", "imu"])
+def test_a_run_on_a_map_reads_no_ground_truth_before_its_trajectories_are_written(odom, xyz_map, tum_path, tmp_path,
                                                                                   monkeypatch, capsys):
-    """Through the command line, every ground-truth accessor of the run's sequence watched: the
-    first touch comes after estimate.txt is written (the ATE is computed then, in the map's
-    frame through the survey's alignment)."""
+    """Through the command line, every ground-truth accessor of the run's sequence watched, for
+    every odometry: with vo and dense the first touch comes after estimate.txt is written (the
+    ATE is computed then, in the map's frame through the survey's alignment); the odometries
+    that would read the ground truth (its motion, its start, its velocity) are refused in one
+    line before any touch."""
     import nap3d_graph.datasets as datasets
     from nap3d_graph.cli import main
 
@@ -126,10 +128,15 @@ def test_a_run_on_a_map_reads_no_ground_truth_before_its_trajectories_are_writte
         return opened[-1]
 
     monkeypatch.setattr(datasets, "open_sequence", watched_open)
-    assert main(["run", "--data", str(tum_path), "--frames", "6:12", "--field", str(result.folder),
-                 "--matcher", "sift", "--out", str(out), "--config", str(_short_walk_config(tmp_path))]) == 0
-    assert "placed in the map" in capsys.readouterr().out
+    code = main(["run", "--data", str(tum_path), "--frames", "6:12", "--field", str(result.folder), "--odom", odom,
+                 "--matcher", "sift", "--out", str(out), "--config", str(_short_walk_config(tmp_path))])
     (sequence,) = opened
+    if odom in ("noisy", "recorded", "imu"):
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and f"--odom {odom} on a map" in err[-1] and "--odom vo or dense" in err[-1], err
+        assert sequence.touches == [] and not list(out.rglob("*.txt"))
+        return
+    assert code == 0 and "placed in the map" in capsys.readouterr().out
     assert sequence.touches and all(written for _, written in sequence.touches), sequence.touches
     metrics = json.loads((out / "latest" / "metrics.json").read_text())
     assert metrics["estimate"]["ate_m"]["rmse"] < 0.03  # scored against the ground truth, read at the end

@@ -303,6 +303,14 @@ def _checked_gravity(args, odometry):
     return config
 
 
+#: The odometries that read the recording's ground truth, and what they read of it: refused on a map.
+GROUND_TRUTH_ODOMETRY = {
+    "noisy": "its motion is the ground truth with noise added",
+    "recorded": "without --initial-pose (its start in the map's frame) it starts at the ground truth's first pose",
+    "imu": "it starts from the ground truth's pose and velocity",
+}
+
+
 def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
     """``(sequence, initial_pose, record)``: with a map from ``nap3d-graph map`` the run's
     world is the map's, so the sequence's ground truth is moved into it through the *survey's*
@@ -320,6 +328,11 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
         from nap3d_graph.datasets.posed import reframed
         from nap3d_graph.mapping.folder import load_map_info
 
+        given_start = initial_pose is not None or args.initial_pose_file is not None
+        if args.odom in GROUND_TRUTH_ODOMETRY and not (args.odom == "recorded" and given_start):
+            raise UsageError(f"--odom {args.odom} on a map: {GROUND_TRUTH_ODOMETRY[args.odom]}, which a run on a map "
+                             "made without ground truth must not read; use --odom vo or dense (the start is found in "
+                             "the map)")
         info = load_map_info(map_dir)
         T_gt_map = (info.get("survey_ate") or {}).get("T_gt_map")
         record["map"] = str(map_dir)
