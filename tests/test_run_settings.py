@@ -28,7 +28,7 @@ RESOLVED = {"render_width", "render_height", "compensate_timing", "timing", "lan
 SAMPLES = {
     "--traj": "tum", "--data": "some/folder", "--topics": "gt=/tf", "--groundtruth": "gt.txt",
     "--realsense-config": "rs.yaml", "--record": "live.bag", "--seconds": "12.5", "--frames": "10:200",
-    "--depth-scale": "1000", "--stamps": "file-order",
+    "--depth-scale": "1000", "--stamps": "file-order", "--fps": "30",
     "--field": "oracle", "--odom": "dense", "--vo-width": "320", "--imu-noise": "1e-3 1e-4 1e-5 1e-6",
     "--imu-extrinsics": "0 0 0.01 0 0 0 1", "--gravity": "0 -9.81 0", "--fallback-odom": "vo", "--timing": "none",
     "--initial-pose": "1 2 3 0 0 0 1", "--initial-pose-file": "start.txt", "--odom-rot-sigma": "0.004",

@@ -319,3 +319,45 @@ def test_mixed_sizes_unregistered_depth_and_a_wrong_camera_are_refused_before_an
     assert main(["map", str(mixed), "--out", str(tmp_path / "map")]) == 2
     err = capsys.readouterr().err.strip()
     assert "mix recordings" in err and "\n" not in err and not (tmp_path / "map").exists()
+
+
+def test_stamps_that_are_not_a_clock_are_warned_about_and_fps_gives_the_cameras_rate(tmp_path, capsys, caplog):
+    """The popular RealSense script's stamps: each frame's processing time (6-15 ms, not the
+    33 ms between frames of a 30 Hz camera). Their running sum implies over 100 frames a second,
+    which no RGB-D camera has: a warning names ``--fps``; with ``--fps 30`` the frames, in file
+    order, are 1/30 s apart, through the library and the command line."""
+    import yaml
+
+    from nap3d_graph.cli import main
+    from nap3d_graph.datasets import open_sequence
+
+    folder = small_copy(tmp_path, frames=6)
+    processing_s = [0.0059, 0.0071, 0.0154, 0.0148, 0.0063, 0.0090]
+    for list_name in ("rgb.txt", "depth.txt"):
+        lines = (folder / list_name).read_text().splitlines()
+        data = [line.split() for line in lines if line and not line.startswith("#")]
+        (folder / list_name).write_text("".join(f"{t:.4f} {name}\n" for t, (_, name) in zip(processing_s, data)))
+    (folder / "groundtruth.txt").unlink()
+    seq = open_sequence(folder, stamps="file-order")
+    rate = 1.0 / np.median(np.diff(seq.timestamps))
+    assert rate > 100  # what a run would take for the camera's rate without --fps
+    assert open_sequence(folder, fps=30).timestamps.tolist() == pytest.approx([i / 30 for i in range(6)])
+
+    out = tmp_path / "runs"
+    with caplog.at_level(logging.WARNING, logger="nap3d_graph.datasets.tum"):
+        assert main(["run", "--data", str(folder), "--field", "none", "--out", str(out), "--stamps", "file-order"]) == 0
+    warned = [r.getMessage() for r in caplog.records if "no RGB-D camera" in r.getMessage()]
+    assert warned and "`fps`, e.g. 30" in warned[0] and "frames a second" in warned[0], warned
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="nap3d_graph.datasets.tum"):
+        assert main(["run", "--data", str(folder), "--field", "none", "--out", str(out), "--fps", "30"]) == 0
+    assert not [r for r in caplog.records if "no RGB-D camera" in r.getMessage()]
+    run = sorted(p for p in out.iterdir() if p.is_dir() and not p.is_symlink())[-1]
+    assert yaml.safe_load((run / "config.yaml").read_text())["settings"]["source"]["fps"] == 30.0
+    stamps, _ = read_tum_trajectory(run / "estimate.txt")
+    np.testing.assert_allclose(np.diff(stamps), 1 / 30, atol=1e-6)
+
+    # The two lists must pair line by line.
+    (folder / "depth.txt").write_text("".join((folder / "depth.txt").read_text().splitlines(True)[:5]))
+    with pytest.raises(DatasetError, match="they list 6 and 5 images"):
+        open_sequence(folder, fps=30)

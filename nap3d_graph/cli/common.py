@@ -8,7 +8,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "frames_option", "matcher_option", "TOPICS_OPTION", "warn_trained_frames", "warn_depth_units", "add_unit_arguments", "DEPTH_SCALE_OPTION", "STAMPS_OPTION", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
+__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "frames_option", "matcher_option", "TOPICS_OPTION", "warn_trained_frames", "warn_depth_units", "add_unit_arguments", "DEPTH_SCALE_OPTION", "STAMPS_OPTION", "FPS_OPTION", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
@@ -19,7 +19,7 @@ SETTING_FLAGS = {"odometry": "--odom", "vo_width": "--vo-width", "topics": "--to
                  "initial_pose_file": "--initial-pose-file", "matcher": "--matcher", "every": "--every",
                  "field": "--field", "no_field": "--no-field", "force": "--force", "write_bag": "--write-bag",
                  "viz": "--viz", "use_anchor": "--anchor", "ray": "--ray", "stamps": "--stamps",
-                 "depth_scale": "--depth-scale"}
+                 "depth_scale": "--depth-scale", "fps": "--fps"}
 
 
 def in_flags(message: str) -> str:
@@ -221,10 +221,17 @@ STAMPS_OPTION = {"choices": ("as-written", "file-order"),
                  "per-frame intervals)"}
 
 
+FPS_OPTION = {"type": positive_float, "metavar": "HZ",
+              "help": "TUM-layout folders whose stamps are not a clock (a recording script that wrote each frame's "
+              "processing time): the camera's frame rate; the frames keep their file order, stamped 1/HZ apart "
+              "(without it, stamps implying under 5 or over 120 frames a second are warned about)"}
+
+
 def add_unit_arguments(parser) -> None:
-    """``--depth-scale`` and ``--stamps``: what a folder does not say about its depth and stamps."""
+    """``--depth-scale``, ``--stamps`` and ``--fps``: what a folder does not say about its depth and clock."""
     parser.add_argument("--depth-scale", default=None, **DEPTH_SCALE_OPTION)
     parser.add_argument("--stamps", default=None, **STAMPS_OPTION)
+    parser.add_argument("--fps", default=None, **FPS_OPTION)
 
 
 def add_frames_argument(parser, what: str) -> None:

@@ -103,7 +103,7 @@ def run(args) -> int:
     if args.out is not None and args.out.exists() and not args.out.is_dir():
         raise UsageError(f"--out {args.out} is a file, not a folder")
     sequence = open_sequence(args.data, frames=args.frames, topics=args.topics, depth_scale=args.depth_scale,
-                             stamps=args.stamps)
+                             stamps=args.stamps, fps=args.fps)
     if len(sequence) < 3:
         raise UsageError(f"{args.data}: a survey needs at least 3 frames, got {len(sequence)}")
     warn_depth_units(sequence)

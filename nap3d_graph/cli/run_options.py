@@ -19,6 +19,7 @@ from .common import (
     DEPTH_SCALE_OPTION,
     RUN_MATCHER,
     STAMPS_OPTION,
+    FPS_OPTION,
     TOPICS_OPTION,
     frames_option,
     matcher_option,
@@ -79,6 +80,7 @@ SOURCE_OPTIONS: tuple[Option, ...] = (
     Option("--seconds", "source.seconds", type=positive_float, help="realsense live: how long to capture before correcting (default %(default)g)"),
     Option("--depth-scale", "source.depth_scale", **DEPTH_SCALE_OPTION),
     Option("--stamps", "source.stamps", **STAMPS_OPTION),
+    Option("--fps", "source.fps", **FPS_OPTION),
     Option("--frames", "source.frames", **frames_option("the run (a field should not have been trained on them)")),
     Option("--field", "alignment.field", help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from "
                    "'nap3d-graph train-field'), a nerfstudio config.yml, or 'none' (odometry only)"),

@@ -440,7 +440,8 @@ def _open_inputs(args):
     data, field_obj, field_desc, name = _inputs(args)
     extra = {"groundtruth": args.groundtruth, "realsense_config": args.realsense_config} if args.traj == "realsense" \
         else {"topics": args.topics} if args.traj == "rosbag" else {}
-    sequence = open_sequence(data, frames=args.frames, depth_scale=args.depth_scale, stamps=args.stamps, **extra)
+    sequence = open_sequence(data, frames=args.frames, depth_scale=args.depth_scale, stamps=args.stamps, fps=args.fps,
+                             **extra)
     if args.data is not None:
         field_obj = resolve_field(args.field, sequence)
     return data, sequence, field_obj, field_desc, name

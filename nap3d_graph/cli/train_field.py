@@ -122,7 +122,7 @@ def run(args) -> int:
     if args.threads is not None:
         torch.set_num_threads(args.threads)
     sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses, topics=args.topics,
-                             depth_scale=args.depth_scale, stamps=args.stamps)
+                             depth_scale=args.depth_scale, stamps=args.stamps, fps=args.fps)
     warn_depth_units(sequence)
     from .sources import chosen_matcher, warn_guessed_camera
 

@@ -65,7 +65,7 @@ def source_of(path) -> str:
 
 
 def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, depth_scale=None, stamps=None,
-                  **kwargs):
+                  fps=None, **kwargs):
     """A sequence as the right class: :class:`RosbagSequence` for a ROS bag (a ROS 2 bag
     folder, or a ``.bag`` whose topics are not a RealSense recording's; ``topics``: its
     :class:`BagTopics` or their ``key=value`` text), :class:`RealSenseRecording` for a RealSense
@@ -75,7 +75,9 @@ def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, de
     (``frame-*.pose.txt`` or sequence folders ``seq-01/``...), :class:`TumSequence` for any
     other folder (its own groundtruth.txt). ``depth_scale`` (depth units per metre) is for
     folders of depth PNGs (TUM layout, 7-Scenes); ``stamps`` (``"as-written"`` or
-    ``"file-order"``) for TUM-layout folders: a recording carries its own units and clock."""
+    ``"file-order"``) and ``fps`` (the camera's rate, for lists whose stamps are not a clock:
+    stamps ``i / fps`` in file order) for TUM-layout folders: a recording carries its own units
+    and clock."""
     from pathlib import Path
 
     path = Path(path)
@@ -90,6 +92,11 @@ def open_sequence(path, groundtruth=None, realsense_config=None, topics=None, de
             raise DatasetError(f"{path}: `stamps` is for TUM-layout folders (rgb.txt, depth.txt); a {source} "
                                "source's frames carry their own stamps")
         kwargs["stamps"] = stamps
+    if fps is not None:
+        if source != "tum":
+            raise DatasetError(f"{path}: `fps` is for TUM-layout folders whose stamps are not a clock; a {source} "
+                               "source's frames carry their own stamps")
+        kwargs["fps"] = fps
     if source == "rosbag":
         if groundtruth is not None or realsense_config is not None:
             raise DatasetError(f"{path}: a ROS bag's ground truth comes from its /tf or a pose topic (`topics=gt=...`), "

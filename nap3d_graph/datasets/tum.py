@@ -110,6 +110,39 @@ def _per_frame_intervals(stamps: np.ndarray) -> bool:
                 and np.ptp(stamps) < np.median(stamps))
 
 
+#: Frame rates no RGB-D camera has: stamps implying a rate outside these (Hz) are not a clock.
+PLAUSIBLE_RATE_HZ = (5.0, 120.0)
+
+
+def implausible_rate(path, stamps: np.ndarray) -> str | None:
+    """A warning when a list's stamps imply a frame rate (its median forward step) no RGB-D
+    camera has (outside :data:`PLAUSIBLE_RATE_HZ`): a script that wrote something else than a
+    clock (each frame's processing time, a counter), whose every derived velocity (rolling
+    shutter, depth instant, motion prior) would be off by the same factor. None when plausible."""
+    steps = np.diff(np.asarray(stamps, dtype=float))
+    steps = steps[steps > 0]
+    if not steps.size:
+        return None
+    rate = 1.0 / float(np.median(steps))
+    low, high = PLAUSIBLE_RATE_HZ
+    if low <= rate <= high:
+        return None
+    return (f"{path}: its stamps imply {rate:.1f} frames a second, which no RGB-D camera delivers (outside "
+            f"{low:g}-{high:g} Hz): if they are not a clock, give the camera's rate (`fps`, e.g. 30)")
+
+
+def fps_stamps(rgb_list: Path, depth_list: Path, rgb_count: int, depth_count: int, fps: float) -> np.ndarray:
+    """Stamps ``i / fps`` for the lists' lines in file order (the camera's rate given, the
+    lists' stamps not a clock), one colour and one depth image per line; a one-line error when
+    the two lists do not have a line for every frame."""
+    if not fps > 0:
+        raise DatasetError(f"{rgb_list.parent}: `fps` must be a positive frame rate, got {fps}")
+    if rgb_count != depth_count:
+        raise DatasetError(f"{rgb_list.parent}: with `fps` each line of {rgb_list.name} and {depth_list.name} is one "
+                           f"frame, but they list {rgb_count} and {depth_count} images")
+    return np.arange(rgb_count, dtype=float) / float(fps)
+
+
 def file_order_stamps(path, stamps: np.ndarray) -> np.ndarray:
     """Strictly increasing stamps for a list's lines in file order. Stamps that never go
     backwards are returned as they are; per-frame intervals (:func:`_per_frame_intervals`)
@@ -282,9 +315,11 @@ class TumSequence(GroundTruthLookup):
         frames: str | None = None,
         stamps: str = "as-written",
         depth_scale: float | None = None,
+        fps: float | None = None,
     ):
         self.path = Path(path)
         self._check_arguments(stamps, association)
+        self.fps = None if fps is None else float(fps)
         self.name = self.path.name
         self.max_difference = float(max_difference)
         self.association = association
@@ -342,6 +377,12 @@ class TumSequence(GroundTruthLookup):
                 raise DatasetError(f"{listed}: file not found")
         rgb_stamps, rgb_names = read_file_list(rgb_list)
         depth_stamps, depth_names = read_file_list(depth_list)
+        if self.fps is not None:  # the camera's rate given: the lists' stamps are not a clock
+            rgb_stamps = depth_stamps = fps_stamps(rgb_list, depth_list, len(rgb_names), len(depth_names), self.fps)
+            if (self.path / "groundtruth.txt").is_file():
+                logger.warning("%s: stamps from `fps` (%g Hz) start at 0 s; groundtruth.txt keeps its own stamps, so "
+                               "it pairs with the frames only if it was written on the same clock", self.path, self.fps)
+            return rgb_list, depth_list, (rgb_stamps, rgb_names), (depth_stamps, depth_names)
         # Stamps that go backwards (a recording script's badly formatted fractions) would be
         # re-sorted by the association and written out of order downstream: refuse them, or
         # keep the file order when asked.
@@ -353,6 +394,9 @@ class TumSequence(GroundTruthLookup):
         else:
             rgb_stamps = file_order_stamps(rgb_list, rgb_stamps)
             depth_stamps = file_order_stamps(depth_list, depth_stamps)
+        warning = implausible_rate(rgb_list, rgb_stamps)
+        if warning:
+            logger.warning(warning)
         return rgb_list, depth_list, (rgb_stamps, rgb_names), (depth_stamps, depth_names)
 
     def _associate(self, rgb_list: Path, depth_list: Path, rgb_stamps: np.ndarray, depth_stamps: np.ndarray

@@ -182,6 +182,8 @@ def _open_folder(sequence, out: Path, settings: MapSettings) -> MapFolder:
               "recording_id": getattr(sequence, "recording_id", None), "settings": pose_settings}
     if getattr(sequence, "depth_scale_source", "") in ("argument", "intrinsics.json"):
         wanted["depth_units_per_m"] = float(sequence.depth_units_per_m)  # a declared unit: another survey
+    if getattr(sequence, "fps", None) is not None:  # stamps from the camera's rate: another clock, another survey
+        wanted["fps"] = float(sequence.fps)
     if hasattr(sequence, "registration"):  # 7-Scenes: another colour camera is another survey
         wanted["registration"] = {k: v for k, v in sequence.registration.to_dict().items()
                                   if k in ("colour", "T_colour_depth")}  # not its fit's figures (NaN when given)

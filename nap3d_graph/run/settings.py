@@ -53,7 +53,7 @@ class SourceSettings:
     data's path says; sim without data); ``data``: the folder, recording or bag (None with
     sim: the embedded default); ``frames``: START:STOP (indices or fractions);
     ``depth_scale``: a folder's depth units per metre (None: intrinsics.json's, else the
-    format's); ``stamps``: a TUM-layout folder's stamps as-written or file-order; ``topics``: a ROS bag's KEY=TOPIC pairs; ``groundtruth`` /
+    format's); ``stamps``: a TUM-layout folder's stamps as-written or file-order; ``fps``: its camera's rate when its stamps are not a clock; ``topics``: a ROS bag's KEY=TOPIC pairs; ``groundtruth`` /
     ``realsense_config`` / ``record`` / ``seconds``: a RealSense recording's ground truth,
     IMU settings, live capture file and length; ``initial_pose``: 'auto' (found in a map) or
     'tx ty tz qx qy qz qw' in the field's frame, ``initial_pose_file`` its TUM file;
@@ -66,6 +66,7 @@ class SourceSettings:
     frames: str | None = None
     depth_scale: float | None = None
     stamps: str | None = None
+    fps: float | None = None
     topics: str | None = None
     groundtruth: str | None = None
     realsense_config: str | None = None
