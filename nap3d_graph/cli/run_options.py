@@ -17,9 +17,9 @@ from nap3d_graph.datasets import SOURCES
 from .binding import Option
 from .common import (
     DEPTH_SCALE_OPTION,
+    FPS_OPTION,
     RUN_MATCHER,
     STAMPS_OPTION,
-    FPS_OPTION,
     TOPICS_OPTION,
     frames_option,
     matcher_option,
