@@ -51,3 +51,23 @@ def test_a_run_never_placed_in_its_map_is_told(walk):
     assert "placed in the map" in report.bad
     placed = run_report([], {"map": {"placement": {"placed": True, "placed_at_frame": 5}, "recoveries": []}})
     assert "placed in the map" not in placed.bad
+
+
+def test_gate_consistency_is_two_sided(walk):
+    """The same run's d2 as if its covariances were 10x too small (d2 x10) or 10x too large
+    (d2 / 10): each past its own side's line, saying which side and by about what factor; the
+    run as it is within both lines."""
+    from nap3d_graph.run.report import consistency
+
+    good = _run(walk, walk.oracle_field())
+    d2 = np.array([k.gate_d2 for k in good.keyframes if np.isfinite(k.gate_d2)])
+    value, line, verdict = consistency(d2)
+    assert verdict is True and line.startswith("0.87 - 16.8"), (value, line)
+    value, _, verdict = consistency(d2 * 10)
+    assert verdict is False and "too confident" in value, value
+    value, _, verdict = consistency(d2 / 10)
+    assert verdict is False and "too cautious" in value, value
+    # The issue's run: median 0.78 over 40, about seven times too cautious.
+    value, _, verdict = consistency(np.full(40, 0.78))
+    assert verdict is False and "about 7x larger" in value, value
+    assert consistency(np.array([]))[2] is None
