@@ -24,14 +24,15 @@ def _looking_at(centre: np.ndarray, eye: np.ndarray) -> np.ndarray:
     return T
 
 
-def _survey(offset_per_m: float, spread_deg: float, seed: int = 0, depth_span_m: float = 1.2):
+def _survey(offset_per_m: float, spread_deg: float, seed: int = 0, depth_span_m: float = 1.2,
+            width_m: float = 1.0, noise: float = 0.003):
     """Keyframes on an arc 2 m from a cloud of points 2 m +- ``depth_span_m`` away,
     ``spread_deg`` between neighbours, every pair's matches with pixels (0.3 px noise) and
     depths read through a disparity offset: ``1 / z_depth = 1 / z - offset_per_m`` (and 0.3%
     noise)."""
     rng = np.random.default_rng(seed)
     centre = np.array([0.0, 0.0, 2.0])
-    points = centre + rng.uniform(-1.0, 1.0, (2000, 3)) * [1.0, 0.7, depth_span_m]
+    points = centre + rng.uniform(-1.0, 1.0, (2000, 3)) * [width_m, 0.7 * width_m, depth_span_m]
     angles = np.radians(spread_deg * (np.arange(6) - 2.5))
     T = np.stack([_looking_at(centre, centre + 2.0 * np.array([np.sin(a), 0.0, -np.cos(a)])) for a in angles])
     seen = []
@@ -39,7 +40,7 @@ def _survey(offset_per_m: float, spread_deg: float, seed: int = 0, depth_span_m:
         p = (points - T_key[:3, 3]) @ T_key[:3, :3]
         uv = np.c_[K.fx * p[:, 0] / p[:, 2] + K.cx, K.fy * p[:, 1] / p[:, 2] + K.cy]
         inside = (p[:, 2] > 0.3) & np.all((uv >= 0) & (uv < [K.width, K.height]), axis=1)
-        z = 1.0 / (1.0 / p[:, 2] - offset_per_m) * (1 + rng.normal(0, 0.003, len(p)))
+        z = 1.0 / (1.0 / p[:, 2] - offset_per_m) * (1 + rng.normal(0, noise, len(p)))
         seen.append((uv + rng.normal(0, 0.3, uv.shape), z, inside))
     pairs = []
     for a in range(len(T)):
@@ -88,3 +89,18 @@ def test_a_survey_without_wide_baselines_says_why_it_has_no_figure():
     one_depth = [PairMatches(p.a, p.b, p.uv_a, p.uv_b, np.full(len(p.z_a), 2.0), np.full(len(p.z_b), 2.0))
                  for p in wide]
     assert depth_against_images(one_depth, T_wide, K)["reason"] == "every match at the same depth"
+
+
+def test_an_offset_the_survey_cannot_measure_carries_its_uncertainty_and_no_verdict():
+    """A survey of one small object, its depths within a few centimetres (the D435 desk survey's
+    bins at 0.46 and 0.52 m), with a sensor's 1% noise: the fitted offset comes with an
+    the bins sort the sensor's noise rather than the depth (an offset of tenths per metre fitted
+    from none), so it is not measurable: no verdict from it. The same camera over a room's
+    depths measures it."""
+    small = depth_against_images(*_survey(0.0, spread_deg=8.0, depth_span_m=0.03, width_m=0.08, noise=0.01), K)
+    assert small["bins"][-1][0] - small["bins"][0][0] < 0.15
+    assert abs(small["intercept_per_m"]) > DEPTH_OFFSET_BAD_PER_M  # what a fit through sorted noise finds
+    assert small["offset_measurable"] is False and not small["bad"] and small["intercept_sigma_per_m"] > 0
+    room = depth_against_images(*_survey(0.0, spread_deg=8.0, noise=0.01), K)
+    assert room["offset_measurable"] is True and room["intercept_sigma_per_m"] < 0.005 and not room["bad"]
+    assert 5 < room["scatter_at_1m_mm"] < 30  # 1% of a metre, and the triangulation's own noise

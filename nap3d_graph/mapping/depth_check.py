@@ -38,6 +38,9 @@ DEPTH_SHAPE_BAD = 0.05
 #: depth, three times those cameras' specified error at 2 m. A survey that saw a narrow range
 #: of depths has bins too close together to show an offset, while the line still measures it.
 DEPTH_OFFSET_BAD_PER_M = 0.03
+#: The bins' span in inverse depth against the observations' scatter in it, at least, for the
+#: fitted offset to be measured (see :func:`depth_against_images`).
+SPAN_OVER_NOISE = 10.0
 
 
 def triangulated_depths(pairs: list, T_map_key: np.ndarray, intrinsics: Intrinsics,
@@ -81,8 +84,11 @@ def depth_against_images(pairs: list, T_map_key: np.ndarray, intrinsics: Intrins
     largest ``|ratio - 1|`` of them; ``median_depth_m``; the fitted ``slope`` and ``intercept_per_m`` (the
     disparity offset: the depth reads ``intercept_per_m`` x its depth too long); ``bad``
     when ``worst`` is beyond :data:`DEPTH_SHAPE_BAD` or the offset beyond
-    :data:`DEPTH_OFFSET_BAD_PER_M`. ``reason`` instead when too few matches
-    were seen from far enough apart."""
+    :data:`DEPTH_OFFSET_BAD_PER_M` where ``offset_measurable`` (the bins span
+    :data:`SPAN_OVER_NOISE` times the observations' scatter and the offset's resampled
+    ``intercept_sigma_per_m`` is small against its line); ``scatter_at_1m_mm``: the depth's
+    scatter about the images near 1 m. ``reason`` instead when too few matches were seen from
+    far enough apart."""
     z_depth, z_images = triangulated_depths(pairs, T_map_key, intrinsics)
     keep = np.isfinite(z_depth) & np.isfinite(z_images)
     z_depth, z_images = z_depth[keep], z_images[keep]
@@ -91,20 +97,67 @@ def depth_against_images(pairs: list, T_map_key: np.ndarray, intrinsics: Intrins
         return {"observations": int(len(z_depth)),
                 "reason": f"{len(z_depth)} observations of matches seen {MIN_PARALLAX_DEG:g} deg apart or more "
                           f"(at least {3 * MIN_PER_BIN} needed)"}
-    inv_depth, inv_images = 1.0 / z_depth, 1.0 / z_images
-    order = np.argsort(-inv_depth)  # nearest first (the largest inverse depth)
-    x, y = [], []
-    for chunk in np.array_split(order, n_bins):
-        x.append(float(np.median(inv_depth[chunk])))
-        y.append(float(np.median(inv_images[chunk])))
-    x_arr, y_arr = np.asarray(x), np.asarray(y)
+    x_arr, y_arr = _bins(1.0 / z_depth, 1.0 / z_images, n_bins)
     if np.ptp(x_arr) < 1e-3 * np.median(x_arr):  # one wall at one distance: no line through one point
         return {"observations": int(len(z_depth)), "reason": "every match at the same depth"}
     slope, intercept = np.polyfit(x_arr, y_arr, 1)
+    sigma = _intercept_sigma(z_depth, z_images, n_bins)
+    # An offset is measurable when the survey's depths span enough to tell it from none: the
+    # bins' span in inverse depth at least SPAN_OVER_NOISE times the observations' own scatter
+    # (else the bins sort the noise, not the depth, and the line tilts by itself: a desk 6 cm
+    # deep fits an offset of tenths per metre from none), and its 2-sigma at most half the line.
+    inverse_scatter = _inverse_scatter(1.0 / z_depth, 1.0 / z_images, n_bins)
+    measurable = bool(np.ptp(x_arr) >= SPAN_OVER_NOISE * inverse_scatter
+                      and 2.0 * sigma <= DEPTH_OFFSET_BAD_PER_M / 2.0)
     ratio = y_arr / x_arr  # z_depth / z_images per bin
     ratio = ratio / np.median(ratio)
     worst = float(np.max(np.abs(ratio - 1.0)))
     return {"observations": int(len(z_depth)), "slope": float(slope), "intercept_per_m": float(intercept),
-            "median_depth_m": float(np.median(z_depth)),
+            "intercept_sigma_per_m": sigma, "offset_measurable": measurable,
+            "median_depth_m": float(np.median(z_depth)), "scatter_at_1m_mm": _scatter_at_1m_mm(z_depth, z_images),
             "bins": [[round(float(1.0 / a), 3), round(float(r), 4)] for a, r in zip(x_arr, ratio)],
-            "worst": worst, "bad": bool(worst > DEPTH_SHAPE_BAD or abs(intercept) > DEPTH_OFFSET_BAD_PER_M)}
+            "worst": worst,
+            "bad": bool(worst > DEPTH_SHAPE_BAD or (measurable and abs(intercept) > DEPTH_OFFSET_BAD_PER_M))}
+
+
+def _bins(inv_depth: np.ndarray, inv_images: np.ndarray, n_bins: int) -> tuple[np.ndarray, np.ndarray]:
+    """The bins' medians of the inverse depths ``(x, y)``, nearest bin first."""
+    order = np.argsort(-inv_depth)  # nearest first (the largest inverse depth)
+    chunks = np.array_split(order, n_bins)
+    return (np.array([np.median(inv_depth[c]) for c in chunks]), np.array([np.median(inv_images[c]) for c in chunks]))
+
+
+def _inverse_scatter(inv_depth: np.ndarray, inv_images: np.ndarray, n_bins: int) -> float:
+    """The observations' scatter in inverse depth (1/m): the robust sigma of the depth's inverse
+    against the images' (their common scale taken out), about each bin's median, so an offset's
+    slow trend across the bins is not counted as scatter. Binned by the images' depth: binned by
+    the measured depth, each bin would hold the observations whose noise is alike and hide it."""
+    gap = inv_depth - np.median(inv_depth / inv_images) * inv_images
+    order = np.argsort(-inv_images)
+    spread = np.concatenate([gap[c] - np.median(gap[c]) for c in np.array_split(order, n_bins)])
+    return 1.4826 * float(np.median(np.abs(spread)))
+
+
+def _intercept_sigma(z_depth: np.ndarray, z_images: np.ndarray, n_bins: int, draws: int = 200) -> float:
+    """The fitted offset's standard deviation (1/m), by resampling the observations (a fixed
+    seed: the same map reports the same figure)."""
+    rng = np.random.default_rng(0)
+    fits = []
+    for _ in range(draws):
+        pick = rng.integers(0, len(z_depth), len(z_depth))
+        x, y = _bins(1.0 / z_depth[pick], 1.0 / z_images[pick], n_bins)
+        if np.ptp(x) > 0:
+            fits.append(np.polyfit(x, y, 1)[1])
+    return float(np.std(fits)) if len(fits) > 1 else float("inf")
+
+
+def _scatter_at_1m_mm(z_depth: np.ndarray, z_images: np.ndarray) -> float | None:
+    """How far the measured depth scatters about the images' triangulation (robust sigma of
+    their difference) for observations within 0.25 m of 1 m, in mm; an upper bound of the
+    sensor's noise there (the triangulation's own noise is in it). None with under 20 there."""
+    near = np.abs(z_depth - 1.0) <= 0.25
+    if near.sum() < 20:
+        return None
+    ratio = z_depth[near] / z_images[near]
+    ratio = ratio / np.median(z_depth / z_images)  # the depth's metre kept, as the bins do
+    return float(1.4826 * np.median(np.abs(ratio - np.median(ratio))) * 1000.0)

@@ -129,9 +129,12 @@ def _bundle(report: MapReport, info: dict) -> None:
     report.add("bundle adjustment: median reprojection residual", f"{last['residual_px']:.2f} px "
                f"({bundle.get('landmarks', 0)} landmarks)", f"<= {REPROJECTION_BAD_PX} px",
                last["residual_px"] <= REPROJECTION_BAD_PX)
+    scatter = ((bundle.get("depth_against_images") or {}).get("scatter_at_1m_mm"))
+    measured = (f"; the sensor's depth scatters {scatter:.0f} mm about the images' triangulation at 1 m (an upper "
+                "bound of its noise)" if scatter is not None else "")
     report.add("bundle adjustment: median depth residual (as disparity)", f"{last['residual_disparity_px']:.2f} px; "
-               f"depth noise at 1 m {bundle.get('depth_sigma_at_1m_mm', float('nan')):.0f} mm", "the sensor's noise",
-               None)
+               f"the adjustment weighs a depth at 1 m as {bundle.get('depth_sigma_at_1m_mm', float('nan')):.0f} mm "
+               "uncertain (its fitted weight, not the sensor's noise)" + measured, "the sensor's noise", None)
 
 
 def _depth_check(report: MapReport, info: dict) -> None:
@@ -143,12 +146,17 @@ def _depth_check(report: MapReport, info: dict) -> None:
         return
     (near_m, near), (far_m, far) = check["bins"][0], check["bins"][-1]
     report.values["depth_against_images"] = {"worst": check["worst"], "near": [near_m, near], "far": [far_m, far]}
+    sigma = check.get("intercept_sigma_per_m")
+    offset = f"offset {check['intercept_per_m']:+.3f}" + (f" +- {sigma:.3f}" if sigma is not None else "") + " /m"
+    if check.get("offset_measurable") is False:
+        offset += (f" (not measurable from this survey: its depths {near_m:.2f}-{far_m:.2f} m span too little to tell "
+                   "an offset from none; judged on the bins alone)")
     report.add("depth against the images' triangulation (depth / images, the median bin as the metre; the "
                "disparity offset fitted)",
                f"{near:.3f} at {near_m:.2f} m, {far:.3f} at {far_m:.2f} m; worst bin {check['worst']:.1%} off; "
-               f"offset {check['intercept_per_m']:+.3f} /m ({check['observations']} observations)",
-               f"every bin within {DEPTH_SHAPE_BAD:.0%}, the offset within {DEPTH_OFFSET_BAD_PER_M:.2f} /m",
-               not check["bad"])
+               f"{offset} ({check['observations']} observations)",
+               f"every bin within {DEPTH_SHAPE_BAD:.0%}, the offset within {DEPTH_OFFSET_BAD_PER_M:.2f} /m where "
+               "measurable", not check["bad"])
 
 
 def _number(value) -> float:
