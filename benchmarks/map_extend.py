@@ -46,6 +46,7 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--other-frames", default="0:120")
     parser.add_argument("--work", type=Path, required=True)
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--reuse-runs", action="store_true", help="read the runs already in --work instead of running them")
     return parser.parse_args()
 
 
@@ -78,7 +79,9 @@ def _poses_error(T_gt_map: np.ndarray, stamps, T_map_cam, gt_of_stamp: dict) -> 
 
 def _run(args, field: Path, frames: str, out: Path) -> dict:
     result = run_query(args.data, args.traj, frames, field, out)
-    return {k: v for k, v in result.items() if not k.startswith("_")}
+    placement = (json.loads((out / "latest" / "metrics.json").read_text()).get("map") or {}).get("placement") or {}
+    return {**{k: v for k, v in result.items() if not k.startswith("_")},
+            "placed_at_frame": placement.get("placed_at_frame")}
 
 
 def main() -> None:
@@ -86,6 +89,10 @@ def main() -> None:
     from nap3d_graph.trajectory import read_tum_trajectory
 
     args = parse_args()
+    if args.reuse_runs:
+        import map_survey
+
+        map_survey.REUSE_RUNS = True
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
     n = len(open_sequence(args.data))

@@ -97,7 +97,8 @@ def _start_of(config_text: str) -> dict | str:
     """How the run started: the relocalisation's record, or 'ground truth'."""
     import yaml
 
-    start = (yaml.safe_load(config_text) or {}).get("start") or {}
+    config = yaml.safe_load(config_text) or {}
+    start = config.get("start") or (config.get("resolved") or {}).get("start") or {}
     found = start.get("initial_pose")
     if not found:
         return "ground truth"
