@@ -54,12 +54,22 @@ class LocalPool:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        os.environ.update(THREAD_ENV)  # inherited by the spawned workers before numpy loads
         self.workers = workers
         self.executor = ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"))
 
     def submit(self, fn, *args):
-        return self.executor.submit(fn, *args)
+        # The workers start within submit and inherit THREAD_ENV before numpy loads; this
+        # process keeps its own threads (a map's field after its loops trains on all cores).
+        saved = {k: os.environ.get(k) for k in THREAD_ENV}
+        os.environ.update(THREAD_ENV)
+        try:
+            return self.executor.submit(fn, *args)
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
 
     def wait_any(self, pending: list) -> tuple[list, list]:
         from concurrent.futures import FIRST_COMPLETED, wait

@@ -145,3 +145,31 @@ def test_map_cut_into_submaps_through_the_command_line_then_run_in_it(sim_walk, 
     assert placement["placed"] and placement["placed_at_frame"] is not None, placement
     # Scored through the survey's alignment: the corrections from the submaps' fields hold the run.
     assert metrics["corrections_accepted"] >= 3 and metrics["estimate"]["ate_m"]["rmse"] < 0.05, metrics["estimate"]
+
+
+def test_loop_candidates_verified_on_two_workers_equal_those_verified_in_one_process(sim_walk):
+    """Loop verification as jobs on a pool (what `map --workers/--ray-address` does with a long
+    survey's candidates): the same loops, in the same order, as in one process."""
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.mapping.build import MapSettings, align_config, read_keyframes
+    from nap3d_graph.mapping.loops import LoopSettings, verify, verify_on_pool
+    from nap3d_graph.pools import LocalPool
+
+    sequence = open_sequence(sim_walk(30, fps=15.0, seed=0, width=320, height=240, path="mapping", scene_seed=3))
+    settings = MapSettings(matcher="sift")
+    keyframes = read_keyframes(sequence, np.arange(0, 30, 3), settings, progress=False)
+    pairs = [(a, b, "test") for a in range(len(keyframes)) for b in range(a + 2, len(keyframes))]
+    config = align_config(settings)
+    serial = verify(keyframes, pairs, config, LoopSettings(), progress=False)
+    pool = LocalPool(2)
+    try:
+        pooled = verify_on_pool(keyframes, pairs, config, LoopSettings(), pool, progress=False, min_pairs=0)
+    finally:
+        pool.close()
+
+    def summary(loops):
+        return [(lp.a, lp.b, lp.status, lp.inliers, lp.reason) for lp in loops]
+
+    assert summary(pooled) == summary(serial) and sum(lp.status == "verified" for lp in serial) >= 5
+    for p, s in zip(pooled, serial):
+        np.testing.assert_allclose(p.T_a_b, s.T_a_b, atol=1e-9)

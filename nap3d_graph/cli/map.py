@@ -75,10 +75,11 @@ def add_parser(sub) -> None:
                    "field over its own part of the floor and its own training budget, under the one pose graph "
                    "(default %(default)s: a room's survey stays one field)")
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
-                   help="submap fields trained side by side on N workers (default: this machine's cores, at most the "
-                   "submaps; 1: one after another in this process)")
+                   help="submap fields trained, and the loop candidates of a long survey (200 pairs or more) verified, "
+                   "side by side on N workers (default: this machine's cores; 1: one after another in this process)")
     p.add_argument("--ray-address", default=None, metavar="ADDR",
-                   help="train the submap fields as Ray tasks: 'auto' starts Ray on this machine with --workers CPUs, "
+                   help="train the submap fields and verify the loop candidates as Ray tasks: 'auto' starts Ray on this "
+                   "machine with --workers CPUs, "
                    "an address joins that cluster (ray start --head there); default: processes on this machine. "
                    "Needs pip install 'nap3d-graph[ray]'")
     p.add_argument("--no-mesh", action="store_true",
@@ -123,8 +124,7 @@ def run(args) -> int:
             raise UsageError(str(exc)) from None
         if args.viz == "spawn":
             raise UsageError("`map --viz` writes a recording: give a path ending in .rrd")
-    # The pool is sized from the survey's length; the cut itself waits for the poses.
-    pool = _pool(args, -(-len(sequence) // args.submap_frames))
+    pool = _pool(args)
     if args.extend is not None:
         return _extend(args, sequence, settings, pool)
     try:
@@ -162,15 +162,16 @@ def _extend(args, sequence, settings, pool) -> int:
     return 0
 
 
-def _pool(args, submaps: int):
-    """Where submap fields train: Ray with --ray-address, else processes on this machine."""
+def _pool(args):
+    """Where submap fields train and many loop candidates are verified: Ray with --ray-address,
+    else processes on this machine (started only when there is work for them)."""
     import os
 
     from nap3d_graph.pools import make_pool
 
     from .common import UsageError
 
-    workers = args.workers or max(1, min(os.cpu_count() or 1, submaps))
+    workers = args.workers or max(1, os.cpu_count() or 1)
     try:
         return make_pool(workers, args.ray_address)
     except RuntimeError as exc:  # Ray not installed, or no cluster at that address

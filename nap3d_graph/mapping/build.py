@@ -46,7 +46,7 @@ from .loops import (
     load_edges,
     refuse_look_alikes,
     save_edges,
-    verify,
+    verify_on_pool,
     write_loops_csv,
 )
 from .pose_graph import Edge, GraphResult, floor_covariance, solve
@@ -129,7 +129,8 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     never read before the survey's poses are final (only ``survey_ate.json`` uses it).
     ``mesh``: fuse ``map.ply`` at the map's poses (:mod:`.mesh`; skipped, with the reason in
     ``map.json``, without Open3D). ``pool``: where a survey cut into submaps trains their fields
-    (:func:`nap3d_graph.pools.make_pool`; None: one after another in this process)."""
+    and where many loop candidates are verified (:func:`nap3d_graph.pools.make_pool`; None: one
+    after another in this process)."""
     settings = settings or MapSettings()
     started = time.perf_counter()
     folder = _open_folder(sequence, out, settings)
@@ -138,7 +139,7 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
                             settings.keyframe_angle_deg)
     keyframes, descriptors = _keyframe_stage(sequence, keys, folder, settings, progress)
     chain, loops, chain_matches = _loop_stage(sequence, keys, keyframes, descriptors, survey, folder, settings,
-                                              progress, say)
+                                              progress, say, pool)
     del keyframes  # the frames are not needed any more
     graph, T_map_key, verified = _graph_stage(sequence, keys, survey, chain, loops, chain_matches, folder, settings,
                                               say)
@@ -240,11 +241,12 @@ def _keyframe_stage(sequence, keys: np.ndarray, folder: MapFolder, settings: Map
 
 
 def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, descriptors: np.ndarray,
-                survey: SurveyOdometry, folder: MapFolder, settings: MapSettings, progress: bool, say
+                survey: SurveyOdometry, folder: MapFolder, settings: MapSettings, progress: bool, say, pool=None
                 ) -> tuple[list[Edge], list[Loop], list[PairMatches]]:
     """Stage 3: consecutive keyframes aligned, loop candidates proposed and verified (the
-    keyframes read again when stage 2 ran before), saved; reused when finished before.
-    Returns the chain's edges, the loops and the chain's matches."""
+    keyframes read again when stage 2 ran before; the candidates on ``pool`` when there are
+    many, :func:`~.loops.verify_on_pool`), saved; reused when finished before. Returns the
+    chain's edges, the loops and the chain's matches."""
     if folder.finished("loops", folder.edges):
         _say(say, "loops: finished before, reused")
         return load_edges(folder.edges)
@@ -258,7 +260,7 @@ def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, de
                                                           settings.gate_p, settings.edge_floor_rad,
                                                           settings.edge_floor_m)
     pairs = candidates(survey.T_odom_cam[keys], descriptors, settings.loops)
-    loops = verify(keyframes, pairs, config, settings.loops, progress)
+    loops = verify_on_pool(keyframes, pairs, config, settings.loops, pool, progress)
     look_alikes = refuse_look_alikes(loops, survey.T_odom_cam[keys], settings.loops)
     if look_alikes:
         _say(say, f"loops: {look_alikes} verified loop(s) refused as look-alike places (a room or more from where the "

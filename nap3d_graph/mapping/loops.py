@@ -32,7 +32,8 @@ from .retrieval import similarities
 from .verification import Verification, worst_sigmas
 
 __all__ = ["Keyframe", "Loop", "LoopSettings", "as_view", "candidates", "verify", "verify_pair", "consecutive_edges",
-           "save_edges", "load_edges", "write_loops_csv", "refuse_look_alikes"]
+           "save_edges", "load_edges", "write_loops_csv", "refuse_look_alikes", "verify_on_pool", "verify_chunk",
+           "POOL_MIN_PAIRS"]
 
 log = logging.getLogger(__name__)
 
@@ -188,23 +189,74 @@ def verify(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config:
     """Every candidate pair aligned and checked; returns each with its status and reason."""
     from nap3d_graph.progress import progress_bar
 
-    loops = []
-    for a, b, source in progress_bar(pairs, desc="loop verification", unit="pair", disable=not progress, mininterval=2.0):
-        loop = Loop(a, b, keyframes[a].index, keyframes[b].index, source)
-        T_a_b, cov, alignment = verify_pair(keyframes[a], keyframes[b], config, a, b)
-        loop.matches_kept = alignment.diagnostics.get("matches")
-        loop.matches, loop.inliers = alignment.num_matches, alignment.num_inliers
-        if not alignment.success:
-            loop.status, loop.reason = "refused", alignment.reason
-            loops.append(loop)
-            continue
-        loop.rmse_m = float(alignment.inlier_rmse_m)
-        loop.sigma_m, loop.sigma_deg = worst_sigmas(cov)
-        loop.T_a_b, loop.covariance = T_a_b, cov
-        loop.reason = settings.verification.refusal(loop.inliers, loop.sigma_m, loop.sigma_deg)
-        loop.status = "refused" if loop.reason else "verified"
-        loops.append(loop)
-    return loops
+    return [_verified_loop(keyframes[a], keyframes[b], a, b, source, config, settings)
+            for a, b, source in progress_bar(pairs, desc="loop verification", unit="pair", disable=not progress,
+                                             mininterval=2.0)]
+
+
+def _verified_loop(key_a: Keyframe, key_b: Keyframe, a: int, b: int, source: str, config: AlignConfig,
+                   settings: LoopSettings) -> Loop:
+    """One candidate pair aligned and checked against the loop settings' verification rule."""
+    loop = Loop(a, b, key_a.index, key_b.index, source)
+    T_a_b, cov, alignment = verify_pair(key_a, key_b, config, a, b)
+    loop.matches_kept = alignment.diagnostics.get("matches")
+    loop.matches, loop.inliers = alignment.num_matches, alignment.num_inliers
+    if not alignment.success:
+        loop.status, loop.reason = "refused", alignment.reason
+        return loop
+    loop.rmse_m = float(alignment.inlier_rmse_m)
+    loop.sigma_m, loop.sigma_deg = worst_sigmas(cov)
+    loop.T_a_b, loop.covariance = T_a_b, cov
+    loop.reason = settings.verification.refusal(loop.inliers, loop.sigma_m, loop.sigma_deg)
+    loop.status = "refused" if loop.reason else "verified"
+    return loop
+
+
+#: Fewer candidate pairs than this are verified in the map's own process: starting workers
+#: (a second or more each, importing the aligner) costs more than these pairs take.
+POOL_MIN_PAIRS = 200
+
+
+def verify_chunk(job: dict) -> list[Loop]:
+    """One job of :func:`verify_on_pool` (runs in a worker): ``job`` holds the keyframes its
+    pairs name (by position), the pairs, the aligner's config and the loop settings."""
+    from nap3d_graph.torch_threads import torch_threads
+
+    keyframes = job["keyframes"]
+    with torch_threads(1):
+        return [_verified_loop(keyframes[a], keyframes[b], a, b, source, job["config"], job["settings"])
+                for a, b, source in job["pairs"]]
+
+
+def verify_on_pool(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config: AlignConfig,
+                   settings: LoopSettings, pool=None, progress: bool = True, min_pairs: int = POOL_MIN_PAIRS
+                   ) -> list[Loop]:
+    """:func:`verify` with the pairs cut into jobs on ``pool`` (:mod:`nap3d_graph.pools`: processes
+    or Ray tasks), four per worker, each carrying the keyframes its pairs name; the loops in the
+    pairs' order, the same as :func:`verify`'s (each pair's alignment is seeded, not shared).
+    One process (:func:`verify`) without a pool of two or more workers, or under ``min_pairs``."""
+    from nap3d_graph.progress import progress_bar
+
+    workers = getattr(pool, "workers", 1)
+    if pool is None or workers < 2 or len(pairs) < min_pairs:
+        return verify(keyframes, pairs, config, settings, progress)
+    chunks = [c for c in np.array_split(np.arange(len(pairs)), 4 * workers) if len(c)]
+    handles = []
+    for chunk in chunks:
+        mine = [pairs[i] for i in chunk]
+        named = {k: keyframes[k] for a, b, _ in mine for k in (a, b)}
+        handles.append(pool.submit(verify_chunk, {"keyframes": named, "pairs": mine, "config": config,
+                                                  "settings": settings}))
+    results: dict = {}
+    pending = list(handles)
+    with progress_bar(total=len(pairs), desc=f"loop verification ({workers} workers)", unit="pair",
+                      disable=not progress, mininterval=2.0) as bar:
+        while pending:
+            finished, pending = pool.wait_any(pending)
+            for ref in finished:
+                results[handles.index(ref)] = pool.result(ref)
+                bar.update(len(results[handles.index(ref)]))
+    return [loop for k in range(len(handles)) for loop in results[k]]
 
 
 def refuse_look_alikes(loops: list[Loop], T_odom_key: np.ndarray, settings: LoopSettings) -> int:
