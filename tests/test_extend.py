@@ -24,9 +24,9 @@ SETTINGS = MapSettings(matcher="sift", keyframe_every=2, model="splat")
 
 
 def _walk(sim_walk):
-    # A 4-second walk through simulated room 3 at 15 Hz: its first 36 frames are the map, frames
-    # 24-59 the next day's survey (12 frames seen both days, 24 only the second).
-    return sim_walk(60, fps=15.0, seed=0, width=320, height=240, path="mapping", scene_seed=3)
+    # A walk through simulated room 3 at 15 Hz: its first 36 frames are the map, frames 24-47
+    # the next day's survey (12 frames seen both days, 12 only the second).
+    return sim_walk(48, fps=15.0, seed=0, width=320, height=240, path="mapping", scene_seed=3)
 
 
 @pytest.fixture(scope="module")
@@ -50,9 +50,10 @@ def test_a_second_days_survey_joins_the_map_where_the_ground_truth_puts_it(first
     from nap3d_graph.trajectory import read_tum_trajectory
 
     before = _digest(first_day)
-    second = open_sequence(_walk(sim_walk), frames="24:60")
+    second = open_sequence(_walk(sim_walk), frames="24:48")
     # seen_m 0: every frame counts as new space, so the extension trains a field of its own.
-    result = extend_map(second, first_day, tmp_path / "grown", SETTINGS, ExtendSettings(seen_m=0.0), progress=False)
+    result = extend_map(second, first_day, tmp_path / "grown", SETTINGS, ExtendSettings(seen_m=0.0, min_new_frames=20),
+                        progress=False, mesh=False)
     assert _digest(first_day) == before  # the first day's map is untouched
     assert not any(p.name.startswith(f".{first_day.name}.extend") for p in first_day.parent.iterdir())
     record = result.info["extensions"][0]
@@ -64,7 +65,9 @@ def test_a_second_days_survey_joins_the_map_where_the_ground_truth_puts_it(first
     by_stamp = dict(zip(np.round(second.timestamps, 6), second.T_world_cam_gt))
     errors = [np.linalg.norm((inv_T(T_gt_map) @ by_stamp[round(float(t), 6)])[:3, 3] - T[:3, 3])
               for t, T in zip(stamps, T_map_cam)]
-    assert len(errors) == 36 and np.median(errors) < 0.03 and max(errors) < 0.08, np.round(errors, 3)
+    # Through the first day's alignment, so its own survey error (2-3 cm here) is in them too.
+    first_ate = json.loads((first_day / "survey_ate.json").read_text())["map"]["rmse_m"]
+    assert len(errors) == 24 and np.median(errors) < 0.04 and max(errors) < 0.08, (first_ate, np.round(errors, 3))
 
     # The map's keyframes held where they were, the new ones after them; both days' fields.
     old_keys = np.load(first_day / "keyframe_poses.npy")
@@ -76,7 +79,7 @@ def test_a_second_days_survey_joins_the_map_where_the_ground_truth_puts_it(first
     # Frames of the second day's own stretch are found in the grown map, where the truth is.
     relocaliser = map_relocaliser(result.folder, field, "sift", second.intrinsics)
     found = []
-    for i in (15, 25, 35):
+    for i in (0, 6, 12, 18):
         answer = relocaliser.locate(second[i])
         if answer.success:
             found.append(np.linalg.norm((inv_T(T_gt_map) @ second.T_world_cam_gt[i])[:3, 3] - answer.T_map_cam[:3, 3]))
@@ -88,9 +91,9 @@ def test_a_survey_of_another_place_is_refused_in_one_line_and_the_map_is_untouch
     from nap3d_graph.cli import main
 
     before = _digest(first_day)
-    other = sim_walk(24, fps=15.0, seed=0, width=320, height=240, path="mapping", scene_seed=11)
+    other = sim_walk(16, fps=15.0, seed=0, width=320, height=240, path="mapping", scene_seed=11)
     code = main(["map", str(other), "--extend", str(first_day), "--out", str(tmp_path / "grown"), "--matcher", "sift",
-                 "--keyframe-every", "2", "--model", "splat", "--quiet"])
+                 "--keyframe-every", "2", "--model", "splat", "--no-mesh", "--quiet"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and "not found in the map" in err[-1], err
     assert _digest(first_day) == before and not (tmp_path / "grown").exists()
