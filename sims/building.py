@@ -34,6 +34,7 @@ import numpy as np
 
 from .scene import (
     SCENE_VERSION,
+    Box,
     RayCastRenderer,
     Room,
     bounding_sphere,
@@ -243,7 +244,39 @@ def _design(seed: int, size_y: float, size_z: float, door_y_m: float, clear_m: f
         # The end walls' doorways (x = 0 and x = size_x) and the walk through them stay free.
         return abs(y - door_y_m) < clear_m + radius and (x < 1.2 + radius or x > size[0] - 1.2 - radius)
 
-    return RoomDesign(size, textures, tuple(furnish(rng, size, texture, 1.0, blocked)), seed)
+    objects = furnish(rng, size, texture, 1.0, blocked)
+    return RoomDesign(size, textures, tuple(objects + _wall_items(seed, size, door_y_m, clear_m)), seed)
+
+
+def _wall_items(seed: int, size: tuple[float, float, float], door_y_m: float, clear_m: float) -> list:
+    """What hangs on an office's walls (pictures, pinboards, whiteboards): two or three panels a
+    wall, 2 cm thick, between 0.8 and 2.2 m high, none across an end wall's doorway. A painted
+    wall alone is a plane of one colour (nothing to track); a real room's walls rarely are.
+    From a stream of their own, so a design's paint and furniture stay what they were."""
+    rng = np.random.default_rng([seed, 31])
+    items: list = []
+    for wall in range(4):  # -y, +y (the long side walls), then the end walls -x, +x
+        length = size[0] if wall < 2 else size[1]
+        spans: list[tuple[float, float]] = []
+        for _ in range(int(rng.integers(2, 4))):
+            width, height = float(rng.uniform(0.5, 1.4)), float(rng.uniform(0.4, 1.0))
+            for _ in range(50):
+                along = float(rng.uniform(width / 2 + 0.2, length - width / 2 - 0.2))
+                lo, hi = along - width / 2, along + width / 2
+                in_door = wall >= 2 and hi > door_y_m - clear_m and lo < door_y_m + clear_m
+                if not in_door and all(hi + 0.1 < a or lo - 0.1 > b for a, b in spans):
+                    spans.append((lo, hi))
+                    break
+            else:
+                continue
+            z = float(rng.uniform(0.8 + height / 2, min(2.2, size[2] - 0.2) - height / 2))
+            texture = TextureSpec.random(rng).as_kind("standard")
+            if wall < 2:
+                centre, half = (along, 0.01 if wall == 0 else size[1] - 0.01, z), (width / 2, 0.01, height / 2)
+            else:
+                centre, half = (0.01 if wall == 2 else size[0] - 0.01, along, z), (0.01, width / 2, height / 2)
+            items.append(Box(centre, half, 0.0, texture))
+    return items
 
 
 def make_building(rooms: int = 3, seed: int = 0, layout: tuple[int, ...] | None = None) -> Building:

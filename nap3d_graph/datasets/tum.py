@@ -128,7 +128,8 @@ def implausible_rate(path, stamps: np.ndarray) -> str | None:
     if low <= rate <= high:
         return None
     return (f"{path}: its stamps imply {rate:.1f} frames a second, which no RGB-D camera delivers (outside "
-            f"{low:g}-{high:g} Hz): if they are not a clock, give the camera's rate (`fps`, e.g. 30)")
+            f"{low:g}-{high:g} Hz): if they are not a clock, give the camera's rate (`fps`, e.g. 30); a recording thinned "
+            "on purpose can ignore this")
 
 
 def fps_stamps(rgb_list: Path, depth_list: Path, rgb_count: int, depth_count: int, fps: float) -> np.ndarray:
