@@ -158,19 +158,27 @@ def _poses_of(sequence) -> np.ndarray:
     return poses
 
 
+#: Depth beyond this (metres) does not set a field's bounds: past an RGB-D camera's useful range
+#: (Kinect v1 and RealSense D400 up to about 4-8 m), and on a floor of rooms in a row it is the
+#: view through a line of doorways, which would stretch one room's grid down the whole floor.
+BOUNDS_MAX_DEPTH_M = 8.0
+
+
 def scene_bounds_from_depth(depth_m: np.ndarray, T_world_cam: np.ndarray, intrinsics: Intrinsics,
-                            margin_m: float = 0.15, stride: int = 4, percentile: float = 0.02) -> np.ndarray:
+                            margin_m: float = 0.15, stride: int = 4, percentile: float = 0.02,
+                            max_depth_m: float = BOUNDS_MAX_DEPTH_M) -> np.ndarray:
     """World box (2, 3) that holds what the depth images see and the cameras.
 
     depth_m (F, H, W) z-depth metres (0 = missing); T_world_cam (F, 4, 4). Points are
-    back-projected on every ``stride``-th pixel; the box spans their ``percentile`` to
-    ``100 - percentile`` percentiles per axis (stray far returns do not blow it up), grown by
-    ``margin_m`` so windows behind the farthest surfaces still fit.
+    back-projected on every ``stride``-th pixel up to ``max_depth_m``; the box spans their
+    ``percentile`` to ``100 - percentile`` percentiles per axis (stray far returns do not blow it
+    up), grown by ``margin_m`` so windows behind the farthest surfaces still fit.
     """
     depth_m = np.asarray(depth_m)
     chunks = []
     for k in range(depth_m.shape[0]):
         p_cam, _ = backproject_depth(depth_m[k], intrinsics, stride)
+        p_cam = p_cam[p_cam[:, 2] <= max_depth_m]
         chunks.append(transform_points(T_world_cam[k], p_cam))
     points = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     if len(points) < 10:
