@@ -51,14 +51,13 @@ from nap3d_graph.pools import SerialPool
 
 from .build import MapResult, MapSettings, align_config, build_map, place_frames
 from .folder import MapFolder
-from .loops import Keyframe, load_edges, verify_pair
+from .loops import Keyframe, load_edges, verified_loop
 from .pose_graph import Edge, floor_covariance, solve
-from .relocalise import KEYFRAME_WIDTH, RelocaliseSettings, pose_gap
+from .relocalise import KEYFRAME_WIDTH, RelocaliseSettings, load_keyframe_frames, pose_gap, write_keyframe_frames
 from .retrieval import Vocabulary, similarities, vlad
-from .submap_fields import submap_minutes, train_one_submap
+from .submap_fields import submap_job, submap_minutes, train_one_submap
 from .submaps import plan_submaps
 from .survey import SurveyOdometry
-from .verification import worst_sigmas
 
 __all__ = ["ExtendSettings", "MapExtensionRefused", "CrossPair", "extend_map", "place_survey"]
 
@@ -131,24 +130,52 @@ class _MapIndex:
     matcher: str
     width: int
     T_map_key: np.ndarray
-    rgb: np.ndarray
-    depth_mm: np.ndarray
-    camera: np.ndarray
+    frames: list
 
     @classmethod
     def read(cls, folder: MapFolder) -> "_MapIndex":
-        with np.load(folder.keyframes) as k, np.load(folder.keyframe_frames) as f:
+        frames = load_keyframe_frames(folder.keyframe_frames)
+        if frames is None:
+            raise MapExtensionRefused(f"{folder.root}: its keyframe images ({folder.keyframe_frames.name}) cannot be "
+                                      "read; make the map again")
+        with np.load(folder.keyframes) as k:
             indices = k["indices"].astype(int)
             surveys = k["surveys"].astype(int) if "surveys" in k.files else np.zeros(len(indices), dtype=int)
             return cls(indices, surveys, k["descriptors"], Vocabulary(k["centres"]), str(k["matcher"]),
-                       int(k["width"]), np.load(folder.keyframe_poses), f["rgb"], f["depth_mm"], f["camera"])
+                       int(k["width"]), np.load(folder.keyframe_poses), frames)
 
-    def frame(self, k: int):
-        from nap3d_graph.camera import Intrinsics, RGBDFrame
 
-        fx, fy, cx, cy, w, h = self.camera
-        return RGBDFrame(self.rgb[k], self.depth_mm[k].astype(np.float32) / 1000.0,
-                         Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h)))
+@dataclass
+class _NewKeyframes:
+    """The new survey's keyframes as the map sees them, each read once: ``descriptors`` (K1, D)
+    in the map's vocabulary at its width, ``frames`` at the map's kept width and their
+    ``features``."""
+
+    descriptors: np.ndarray
+    frames: list
+    features: list
+
+    @classmethod
+    def read(cls, sequence, keys: np.ndarray, index: _MapIndex, config, progress: bool = False) -> "_NewKeyframes":
+        from nap3d_graph.nap3d.correct import at_width
+        from nap3d_graph.nap3d.matching import detect_features
+        from nap3d_graph.progress import progress_bar
+
+        width = None if index.width < 0 else index.width
+        kept = index.frames[0].intrinsics
+        descriptors, frames, features = [], [], []
+        for i in progress_bar(keys, desc="new keyframes", unit="keyframe", disable=not progress, mininterval=2.0):
+            frame = sequence[int(i)]
+            descriptors.append(vlad(detect_features(at_width(frame, width).rgb, 0, matcher=index.matcher).descriptors,
+                                    index.vocabulary))
+            small = at_width(frame, KEYFRAME_WIDTH)
+            if (small.intrinsics.width, small.intrinsics.height) != (kept.width, kept.height):
+                raise MapExtensionRefused(f"the new survey's images ({small.intrinsics.width}x{small.intrinsics.height} "
+                                          f"at the map's kept width) are not the map's ({kept.width}x{kept.height}): "
+                                          "extend a map with the camera that made it")
+            frames.append(small)
+            features.append(detect_features(small.rgb, config.max_features, matcher=config.matcher))
+        return cls(np.stack(descriptors), frames, features)
 
 
 def extend_map(sequence, map_dir: Path, out: Path | None = None, settings: MapSettings | None = None,
@@ -177,7 +204,8 @@ def extend_map(sequence, map_dir: Path, out: Path | None = None, settings: MapSe
     _say(say, f"extend: the new survey posed on its own ({len(keys)} keyframes over frames {start}:{stop}); "
               "finding it in the map")
     try:
-        pairs = cross_pairs(sequence, keys, T_new_key, index, settings, extend, progress)
+        views = _NewKeyframes.read(sequence, keys, index, align_config(settings), progress)
+        pairs = cross_pairs(views, keys, T_new_key, index, settings, extend, progress)
         anchor = place_survey(pairs, extend)
     except MapExtensionRefused:
         shutil.rmtree(staging, ignore_errors=True)  # nothing of the new survey is kept: it is not of this map
@@ -190,7 +218,7 @@ def extend_map(sequence, map_dir: Path, out: Path | None = None, settings: MapSe
     unseen = unseen_frames(T_map_newcam, index.T_map_key, extend)
     submaps, trained = _new_submaps(sequence, T_map_newcam, unseen, merged, old, index, settings, extend, number,
                                     started, device, pool, say)
-    _write_index(merged, index, sequence, keys, T_map_newkey, settings, number)
+    _write_index(merged, index, views, keys, T_map_newkey, number)
     record = _write_extension(merged, new, sequence, T_map_newcam, pairs, number, graph_report, unseen, trained,
                               submaps, mesh, progress, say, started)
     merged.info.setdefault("extensions", []).append(record)
@@ -240,57 +268,39 @@ def _new_survey(new: MapFolder) -> tuple[np.ndarray, np.ndarray, SurveyOdometry,
     return keys, np.load(new.keyframe_poses), SurveyOdometry.load(new.odometry), (segment["start"], segment["stop"])
 
 
-def cross_pairs(sequence, keys: np.ndarray, T_new_key: np.ndarray, index: _MapIndex, settings: MapSettings,
-                extend: ExtendSettings, progress: bool = False) -> list[CrossPair]:
+def cross_pairs(views: _NewKeyframes, keys: np.ndarray, T_new_key: np.ndarray, index: _MapIndex,
+                settings: MapSettings, extend: ExtendSettings, progress: bool = False) -> list[CrossPair]:
     """Every new keyframe against its ``appearance_k`` most similar map keyframes (descriptors in
-    the map's vocabulary), aligned at the map's kept width; each verified pair with its anchor
-    ``T_map_newframe`` (where it puts the new survey's frame in the map)."""
-    from nap3d_graph.nap3d.correct import at_width
+    the map's vocabulary), aligned at the map's kept width under the relocaliser's rule; each
+    verified pair with its anchor ``T_map_newframe`` (where it puts the new survey's frame in the map)."""
     from nap3d_graph.nap3d.matching import detect_features
     from nap3d_graph.progress import progress_bar
 
     config = align_config(settings)
     rule = RelocaliseSettings().verification
-    width = None if index.width < 0 else index.width
     features: dict[int, object] = {}
     pairs = []
     for a in progress_bar(range(len(keys)), desc="finding the survey in the map", unit="keyframe",
                           disable=not progress, mininterval=2.0):
-        frame = sequence[int(keys[a])]
-        descriptor = vlad(detect_features(at_width(frame, width).rgb, 0, matcher=index.matcher).descriptors,
-                          index.vocabulary)
-        small = at_width(frame, KEYFRAME_WIDTH)
-        if small.intrinsics.width != int(index.camera[4]) or small.intrinsics.height != int(index.camera[5]):
-            raise MapExtensionRefused(f"the new survey's images ({small.intrinsics.width}x{small.intrinsics.height} at "
-                                      f"the map's kept width) are not the map's ({int(index.camera[4])}x"
-                                      f"{int(index.camera[5])}): extend a map with the camera that made it")
-        query = Keyframe(int(keys[a]), small, detect_features(small.rgb, config.max_features, matcher=config.matcher))
-        for b in np.argsort(-similarities(descriptor, index.descriptors), kind="stable")[: extend.appearance_k]:
+        query = Keyframe(int(keys[a]), views.frames[a], views.features[a])
+        for b in np.argsort(-similarities(views.descriptors[a], index.descriptors), kind="stable")[: extend.appearance_k]:
             b = int(b)
             if b not in features:
-                features[b] = detect_features(index.rgb[b], config.max_features, matcher=config.matcher)
-            target = Keyframe(int(index.indices[b]), index.frame(b), features[b])
-            pairs.append(_verified(query, target, a, b, config, rule, index.T_map_key[b], T_new_key[a]))
+                features[b] = detect_features(index.frames[b].rgb, config.max_features, matcher=config.matcher)
+            loop = verified_loop(query, Keyframe(int(index.indices[b]), index.frames[b], features[b]), a, b, "map",
+                                 config, rule)
+            pairs.append(_cross_pair(loop, index.T_map_key[b], T_new_key[a]))
     return pairs
 
 
-def _verified(query: Keyframe, target: Keyframe, a: int, b: int, config, rule, T_map_old: np.ndarray,
-              T_new_a: np.ndarray) -> CrossPair:
-    """One cross pair aligned and checked against the relocaliser's verification rule."""
-    pair = CrossPair(a, b)
-    T_new_old, cov, alignment = verify_pair(query, target, config)
-    pair.inliers = int(alignment.num_inliers)
-    if not alignment.success:
-        pair.status, pair.reason = "refused", alignment.reason
-        return pair
-    pair.sigma_m, pair.sigma_deg = worst_sigmas(cov)
-    pair.reason = rule.refusal(pair.inliers, pair.sigma_m, pair.sigma_deg)
-    if pair.reason:
-        pair.status = "refused"
-        return pair
-    pair.status, pair.T_new_old, pair.covariance = "verified", T_new_old, cov
-    # The new keyframe in the map by this pair, then the new survey's frame by its own pose.
-    pair.anchor = T_map_old @ inv_T(T_new_old) @ inv_T(T_new_a)
+def _cross_pair(loop, T_map_old: np.ndarray, T_new_a: np.ndarray) -> CrossPair:
+    """A verified (or refused) alignment of new keyframe ``loop.a`` with map keyframe ``loop.b``
+    as a cross pair, with its anchor when verified."""
+    pair = CrossPair(loop.a, loop.b, loop.inliers, loop.sigma_m, loop.sigma_deg, status=loop.status, reason=loop.reason)
+    if loop.status == "verified":
+        pair.T_new_old, pair.covariance = loop.T_a_b, loop.covariance
+        # The new keyframe in the map by this pair, then the new survey's frame by its own pose.
+        pair.anchor = T_map_old @ inv_T(loop.T_a_b) @ inv_T(T_new_a)
     return pair
 
 
@@ -452,11 +462,9 @@ def _new_submaps(sequence, T_map_newcam: np.ndarray, unseen: np.ndarray, merged:
     timing = estimate_timing(PosedSequence(sequence, T_map_newcam, "map"))
     pool = pool or SerialPool()
     _say(say, f"extend: {len(unseen)} frames of new space: {len(jobs)} new submap field(s) on {pool.name}")
-    handles = [pool.submit(train_one_submap, {
-        "sequence": sequence, "T_map_cam": np.asarray(T_map_newcam, dtype=float), "frames": s.frames,
-        "index": s.index, "model": settings.model, "steps": settings.steps, "minutes": minutes, "seed": settings.seed,
-        "device": device, "matcher": settings.matcher, "refine_rounds": settings.refine_rounds,
-        "timing": None if timing is None else timing.to_dict(), "out": str(merged.root / s.file)}) for s in jobs]
+    timing_dict = None if timing is None else timing.to_dict()
+    handles = [pool.submit(train_one_submap, submap_job(sequence, T_map_newcam, s, settings, minutes, device,
+                                                        timing_dict, merged.root / s.file)) for s in jobs]
     reports = {}
     pending = list(handles)
     while pending:
@@ -481,30 +489,16 @@ def _within(T_map_cam: np.ndarray, frames: np.ndarray, metres: float) -> np.ndar
     return out
 
 
-def _write_index(merged: MapFolder, index: _MapIndex, sequence, keys: np.ndarray, T_map_newkey: np.ndarray,
-                 settings: MapSettings, number: int) -> None:
+def _write_index(merged: MapFolder, index: _MapIndex, views: _NewKeyframes, keys: np.ndarray,
+                 T_map_newkey: np.ndarray, number: int) -> None:
     """The merged relocalisation index: the map's keyframes then the new ones (descriptors in the
     map's vocabulary, images at its kept width, poses in the map), each with its survey."""
-    from nap3d_graph.nap3d.correct import at_width
-    from nap3d_graph.nap3d.matching import detect_features
-
-    width = None if index.width < 0 else index.width
-    descriptors, rgb, depth = [], [], []
-    for i in keys:
-        frame = sequence[int(i)]
-        features = detect_features(at_width(frame, width).rgb, 0, matcher=index.matcher)
-        descriptors.append(vlad(features.descriptors, index.vocabulary))
-        small = at_width(frame, KEYFRAME_WIDTH)
-        rgb.append(small.rgb)
-        depth.append(np.rint(np.clip(np.nan_to_num(small.depth_m), 0, 65.535) * 1000).astype(np.uint16))
     _replace(merged.keyframes, lambda p: np.savez_compressed(
         p, indices=np.concatenate([index.indices, keys]),
         surveys=np.concatenate([index.surveys, np.full(len(keys), number)]),
-        descriptors=np.concatenate([index.descriptors, np.stack(descriptors)]), centres=index.vocabulary.centres,
+        descriptors=np.concatenate([index.descriptors, views.descriptors]), centres=index.vocabulary.centres,
         matcher=index.matcher, width=index.width))
-    _replace(merged.keyframe_frames, lambda p: np.savez_compressed(
-        p, rgb=np.concatenate([index.rgb, np.stack(rgb)]), depth_mm=np.concatenate([index.depth_mm, np.stack(depth)]),
-        camera=index.camera))
+    _replace(merged.keyframe_frames, lambda p: write_keyframe_frames(p, index.frames + views.frames))
     _replace(merged.keyframe_poses, lambda p: np.save(p, np.concatenate([index.T_map_key, T_map_newkey])))
 
 
@@ -534,8 +528,8 @@ def _write_extension(merged: MapFolder, new: MapFolder, sequence, T_map_newcam: 
         writer.writerow(CrossPair.CSV_HEADER)
         writer.writerows(p.csv_row() for p in pairs)
     old_index = json.loads((merged.root / SUBMAPS_INDEX).read_text()) if (merged.root / SUBMAPS_INDEX).is_file() else {}
-    settings = SubmapSettings(**old_index["settings"]) if "settings" in old_index else SubmapSettings()
-    write_submaps_index(merged.root, submaps, settings,  # written atomically: a new file
+    kept = SubmapSettings(**old_index["settings"]) if "settings" in old_index else SubmapSettings()
+    write_submaps_index(merged.root, submaps, kept,  # written atomically: a new file
                         {k: v for k, v in old_index.items() if k not in ("settings", "submaps")})
     mesh_record = _extension_mesh(sequence, T_map_newcam, folder / "map.ply", progress) if mesh else None
     counts = {s: sum(p.status == s for p in pairs) for s in ("refused", "look-alike", "accepted", "rejected")}
@@ -543,7 +537,7 @@ def _write_extension(merged: MapFolder, new: MapFolder, sequence, T_map_newcam: 
             "frame_range": list(getattr(sequence, "frame_range", ())), "folder": str(folder.relative_to(merged.root)),
             "keyframes": int(len(np.load(new.keyframe_poses))), "pairs": len(pairs), **counts,
             "unseen_frames": int(len(unseen)), "new_submaps": trained, "mesh": mesh_record,
-            "seconds": round(time.perf_counter() - started, 1), **{"graph": graph_report}}
+            "seconds": round(time.perf_counter() - started, 1), "graph": graph_report}
 
 
 def _extension_mesh(sequence, T_map_cam: np.ndarray, path: Path, progress: bool) -> dict | None:

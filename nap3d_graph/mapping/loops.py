@@ -32,7 +32,7 @@ from .retrieval import similarities
 from .verification import Verification, worst_sigmas
 
 __all__ = ["Keyframe", "Loop", "LoopSettings", "as_view", "candidates", "verify", "verify_pair", "consecutive_edges",
-           "save_edges", "load_edges", "write_loops_csv", "refuse_look_alikes", "verify_on_pool", "verify_chunk",
+           "save_edges", "load_edges", "write_loops_csv", "refuse_look_alikes", "verify_on_pool", "verify_chunk", "verified_loop",
            "POOL_MIN_PAIRS"]
 
 log = logging.getLogger(__name__)
@@ -189,14 +189,15 @@ def verify(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config:
     """Every candidate pair aligned and checked; returns each with its status and reason."""
     from nap3d_graph.progress import progress_bar
 
-    return [_verified_loop(keyframes[a], keyframes[b], a, b, source, config, settings)
+    return [verified_loop(keyframes[a], keyframes[b], a, b, source, config, settings.verification)
             for a, b, source in progress_bar(pairs, desc="loop verification", unit="pair", disable=not progress,
                                              mininterval=2.0)]
 
 
-def _verified_loop(key_a: Keyframe, key_b: Keyframe, a: int, b: int, source: str, config: AlignConfig,
-                   settings: LoopSettings) -> Loop:
-    """One candidate pair aligned and checked against the loop settings' verification rule."""
+def verified_loop(key_a: Keyframe, key_b: Keyframe, a: int, b: int, source: str, config: AlignConfig,
+                  rule: Verification) -> Loop:
+    """One candidate pair aligned (:func:`verify_pair`) and checked against ``rule`` (a survey's
+    loop settings', or the relocaliser's for another survey's keyframes)."""
     loop = Loop(a, b, key_a.index, key_b.index, source)
     T_a_b, cov, alignment = verify_pair(key_a, key_b, config, a, b)
     loop.matches_kept = alignment.diagnostics.get("matches")
@@ -207,7 +208,7 @@ def _verified_loop(key_a: Keyframe, key_b: Keyframe, a: int, b: int, source: str
     loop.rmse_m = float(alignment.inlier_rmse_m)
     loop.sigma_m, loop.sigma_deg = worst_sigmas(cov)
     loop.T_a_b, loop.covariance = T_a_b, cov
-    loop.reason = settings.verification.refusal(loop.inliers, loop.sigma_m, loop.sigma_deg)
+    loop.reason = rule.refusal(loop.inliers, loop.sigma_m, loop.sigma_deg)
     loop.status = "refused" if loop.reason else "verified"
     return loop
 
@@ -224,7 +225,7 @@ def verify_chunk(job: dict) -> list[Loop]:
 
     keyframes = job["keyframes"]
     with torch_threads(1):
-        return [_verified_loop(keyframes[a], keyframes[b], a, b, source, job["config"], job["settings"])
+        return [verified_loop(keyframes[a], keyframes[b], a, b, source, job["config"], job["settings"].verification)
                 for a, b, source in job["pairs"]]
 
 

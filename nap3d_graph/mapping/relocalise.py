@@ -42,7 +42,8 @@ from .folder import MapFolder, load_map_info
 from .retrieval import Vocabulary, shared_matches, similarities, vlad
 from .verification import Verification, worst_sigmas
 
-__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames", "pose_gap"]
+__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames", "write_keyframe_frames",
+           "load_keyframe_frames", "pose_gap"]
 
 log = logging.getLogger(__name__)
 
@@ -51,11 +52,16 @@ KEYFRAME_WIDTH = 320
 
 
 def save_keyframe_frames(path: Path, keyframes) -> None:
-    """The survey keyframes' colour (K, H, W, 3) uint8 and depth (K, H, W) uint16 millimetres
-    (0: none) at ``KEYFRAME_WIDTH``, with their camera, in one compressed file."""
+    """The survey keyframes' colour and depth at ``KEYFRAME_WIDTH``, in one compressed file
+    (:func:`write_keyframe_frames`)."""
     from nap3d_graph.nap3d.correct import at_width
 
-    frames = [at_width(k.frame, KEYFRAME_WIDTH) for k in keyframes]
+    write_keyframe_frames(path, [at_width(k.frame, KEYFRAME_WIDTH) for k in keyframes])
+
+
+def write_keyframe_frames(path: Path, frames: list[RGBDFrame]) -> None:
+    """Frames already at the kept width, one camera: colour (K, H, W, 3) uint8 and depth (K, H, W)
+    uint16 millimetres (0: none), with the camera, in one compressed file (atomically)."""
     K = frames[0].intrinsics
     depth_mm = [np.rint(np.clip(np.nan_to_num(f.depth_m), 0, 65.535) * 1000).astype(np.uint16) for f in frames]
     tmp = path.with_suffix(".tmp.npz")
@@ -64,8 +70,8 @@ def save_keyframe_frames(path: Path, keyframes) -> None:
     tmp.replace(path)
 
 
-def _load_keyframe_frames(path: Path) -> list[RGBDFrame] | None:
-    """The frames :func:`save_keyframe_frames` kept, or None when the map has none or the
+def load_keyframe_frames(path: Path) -> list[RGBDFrame] | None:
+    """The frames :func:`write_keyframe_frames` kept, or None when the map has none or the
     file cannot be read (relocalisation then renders at the keyframes' poses alone)."""
     if not path.is_file():
         return None
@@ -215,7 +221,7 @@ class Relocaliser:
         self.config = dataclasses.replace(config or AlignConfig(matcher=self.matcher), estimate_scale=False)
         self.render_intrinsics = render_intrinsics
         self.settings = settings or RelocaliseSettings()
-        self.keyframe_frames = _load_keyframe_frames(folder.keyframe_frames)
+        self.keyframe_frames = load_keyframe_frames(folder.keyframe_frames)
         self._keyframe_features: dict[int, object] = {}
         if self.keyframe_frames is not None and self.settings.shortlist > 0:
             # Every kept keyframe's features now (~15 ms each at 320 px), not while a frame

@@ -21,7 +21,7 @@ import numpy as np
 from nap3d_graph.fields.submaps import Submap, SubmapSettings, write_submaps_index
 from nap3d_graph.textfiles import write_json_atomic
 
-__all__ = ["train_submap_fields", "train_one_submap", "submap_minutes"]
+__all__ = ["train_submap_fields", "train_one_submap", "submap_job", "submap_minutes"]
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +35,16 @@ def submap_minutes(budget_minutes: float | None, min_minutes: float, reserve_s: 
         return None
     left_s = budget_minutes * 60.0 - elapsed_s / max(submaps, 1) - reserve_s
     return max(min_minutes, left_s / 60.0)
+
+
+def submap_job(sequence, T_map_cam: np.ndarray, submap: Submap, settings, minutes: float | None, device: str | None,
+               timing: dict | None, out: Path) -> dict:
+    """What :func:`train_one_submap` needs to train ``submap``'s field (of ``settings.model``, on
+    its frames of ``sequence`` at ``T_map_cam``) into ``out``, as one picklable job."""
+    return {"sequence": sequence, "T_map_cam": np.asarray(T_map_cam, dtype=float), "frames": submap.frames,
+            "index": submap.index, "model": settings.model, "steps": settings.steps, "minutes": minutes,
+            "seed": settings.seed, "device": device, "matcher": settings.matcher,
+            "refine_rounds": settings.refine_rounds, "timing": timing, "out": str(out)}
 
 
 def train_one_submap(job: dict) -> dict:
@@ -77,10 +87,7 @@ def train_submap_fields(sequence, T_map_cam: np.ndarray, folder, submaps: list[S
         key = str(s.index)
         if done.get(key, {}).get("settings") == field_settings and (folder.root / s.file).is_file():
             continue
-        jobs[key] = {"sequence": sequence, "T_map_cam": np.asarray(T_map_cam, dtype=float), "frames": s.frames,
-                     "index": s.index, "model": settings.model, "steps": settings.steps, "minutes": minutes,
-                     "seed": settings.seed, "device": device, "matcher": settings.matcher,
-                     "refine_rounds": settings.refine_rounds, "timing": timing_dict, "out": str(folder.root / s.file)}
+        jobs[key] = submap_job(sequence, T_map_cam, s, settings, minutes, device, timing_dict, folder.root / s.file)
     if say is not None and jobs:
         say(f"field: {len(jobs)} submap field(s) of {len(submaps)} to train on {getattr(pool, 'workers', 1)} "
             f"worker(s) ({pool.name})" + (f", {minutes:.1f} min each" if minutes is not None else ""))
