@@ -84,17 +84,64 @@ def _run(args, field: Path, frames: str, out: Path) -> dict:
             "placed_at_frame": placement.get("placed_at_frame")}
 
 
+def whole_map(args, n: int, second: str, gt_of_stamp: dict) -> dict:
+    """1. The whole recording's map, its second half's poses in it, the second half run in it."""
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    whole = args.work / "whole"
+    seconds = _map(args.data, f"0:{n}", whole)
+    info = json.loads((whole / "map.json").read_text())
+    stamps, T_whole = read_tum_trajectory(whole / "poses.txt")
+    in_second = np.isin(np.round(stamps, 6), np.round(list(gt_of_stamp), 6))
+    return {"map_seconds": seconds, "survey_ate_m": info["survey_ate"]["map"]["rmse_m"],
+            "second_half_poses": _poses_error(np.asarray(info["survey_ate"]["T_gt_map"]), stamps[in_second],
+                                              T_whole[in_second], gt_of_stamp),
+            "run": _run(args, whole, second, args.work / "run_whole")}
+
+
+def grown_map(args, day1: Path, first: str, second: str, gt_of_stamp: dict) -> dict:
+    """2. The first half's map grown by the second half, the second half's poses in it, the same run."""
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    day1_s = _map(args.data, first, day1)
+    grown = args.work / "grown"
+    extend_s = float("nan")
+    if not (grown / "map.json").is_file():
+        extend_s = cli("map", str(args.data), "--frames", second, "--extend", str(day1), "--out", str(grown),
+                       "--quiet")
+    info = json.loads((grown / "map.json").read_text())
+    record = info["extensions"][-1]
+    stamps, T_grown = read_tum_trajectory(grown / record["folder"] / "poses_in_map.txt")
+    return {"first_map_seconds": day1_s, "extend_seconds": extend_s,
+            "first_survey_ate_m": info["survey_ate"]["map"]["rmse_m"],
+            "extension": {k: record[k] for k in ("keyframes", "pairs", "refused", "look-alike", "accepted",
+                                                 "rejected", "unseen_frames", "new_submaps", "seconds")},
+            "second_half_poses": _poses_error(np.asarray(info["survey_ate"]["T_gt_map"]), stamps, T_grown,
+                                              gt_of_stamp),
+            "run": _run(args, grown, second, args.work / "run_grown")}
+
+
+def other_place(args, day1: Path) -> dict:
+    """3. A survey of another place: refused in one line, the map unchanged, nothing written."""
+    before = _digest(day1)
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "nap3d_graph", "map", str(args.other), "--frames", args.other_frames,
+                           "--extend", str(day1), "--out", str(args.work / "other"), "--quiet"],
+                          capture_output=True, text=True)
+    return {"data": str(args.other), "frames": args.other_frames, "exit": done.returncode,
+            "message": (done.stderr.strip().splitlines() or [""])[-1], "seconds": round(time.perf_counter() - t0, 1),
+            "map_unchanged": _digest(day1) == before, "out_written": (args.work / "other").exists()}
+
+
 def main() -> None:
     from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.trajectory import read_tum_trajectory
 
     args = parse_args()
     if args.reuse_runs:
         import map_survey
 
         map_survey.REUSE_RUNS = True
-    work = args.work
-    work.mkdir(parents=True, exist_ok=True)
+    args.work.mkdir(parents=True, exist_ok=True)
     n = len(open_sequence(args.data))
     split = args.split or n // 2
     first, second = f"0:{split}", f"{split}:{n}"
@@ -102,51 +149,13 @@ def main() -> None:
     gt_of_stamp = dict(zip(np.round(query.timestamps, 6), query.T_world_cam_gt))
     result: dict = {"data": str(args.data), "halves": [first, second], "tuning": "extension rules chosen on the "
                     "tests' simulated room 3 (tests/test_extend.py); nothing chosen on this recording"}
-
-    # 1. The whole recording's map, the second half run in it.
-    whole = work / "whole"
-    whole_s = _map(args.data, f"0:{n}", whole)
-    whole_info = json.loads((whole / "map.json").read_text())
-    T_gt_whole = np.asarray(whole_info["survey_ate"]["T_gt_map"])
-    stamps, T_whole = read_tum_trajectory(whole / "poses.txt")
-    in_second = np.isin(np.round(stamps, 6), np.round(query.timestamps, 6))
-    result["whole"] = {"map_seconds": whole_s, "survey_ate_m": whole_info["survey_ate"]["map"]["rmse_m"],
-                       "second_half_poses": _poses_error(T_gt_whole, stamps[in_second], T_whole[in_second],
-                                                         gt_of_stamp),
-                       "run": _run(args, whole, second, work / "run_whole")}
-
-    # 2. The first half's map grown by the second half; the same run in it.
-    day1 = work / "first"
-    day1_s = _map(args.data, first, day1)
-    grown = work / "grown"
-    extend_s = float("nan")
-    if not (grown / "map.json").is_file():
-        extend_s = cli("map", str(args.data), "--frames", second, "--extend", str(day1), "--out", str(grown),
-                       "--quiet")
-    info = json.loads((grown / "map.json").read_text())
-    record = info["extensions"][-1]
-    T_gt_map = np.asarray(info["survey_ate"]["T_gt_map"])
-    stamps2, T_grown = read_tum_trajectory(grown / record["folder"] / "poses_in_map.txt")
-    result["grown"] = {"first_map_seconds": day1_s, "extend_seconds": extend_s,
-                       "first_survey_ate_m": info["survey_ate"]["map"]["rmse_m"],
-                       "extension": {k: record[k] for k in ("keyframes", "pairs", "refused", "look-alike", "accepted",
-                                                            "rejected", "unseen_frames", "new_submaps", "seconds")},
-                       "second_half_poses": _poses_error(T_gt_map, stamps2, T_grown, gt_of_stamp),
-                       "run": _run(args, grown, second, work / "run_grown")}
+    day1 = args.work / "first"
+    result["whole"] = whole_map(args, n, second, gt_of_stamp)
+    result["grown"] = grown_map(args, day1, first, second, gt_of_stamp)
     ratio = result["grown"]["run"]["ate_m"] / result["whole"]["run"]["ate_m"]
     result["run_ate_ratio"] = ratio
     result["within_5_percent"] = bool(ratio <= 1.05)
-
-    # 3. A survey of another place: refused in one line, the map unchanged.
-    before = _digest(day1)
-    t0 = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "nap3d_graph", "map", str(args.other), "--frames", args.other_frames,
-                           "--extend", str(day1), "--out", str(work / "other"), "--quiet"],
-                          capture_output=True, text=True)
-    result["other_place"] = {"data": str(args.other), "frames": args.other_frames, "exit": done.returncode,
-                             "message": (done.stderr.strip().splitlines() or [""])[-1],
-                             "seconds": round(time.perf_counter() - t0, 1),
-                             "map_unchanged": _digest(day1) == before, "out_written": (work / "other").exists()}
+    result["other_place"] = other_place(args, day1)
     print(json.dumps(result, indent=1, default=float))
     write_result(args.out, result, args)
 

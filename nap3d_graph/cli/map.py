@@ -67,6 +67,15 @@ def add_parser(sub) -> None:
                    help="rounds of the depth refinement of the training poses (each frame's depth aligned with its "
                    "neighbours', the poses solved again) before the field is trained (default 0)")
     p.add_argument("--no-field", action="store_true", help="stop after the poses (no field)")
+    _add_floor_arguments(p)
+    p.add_argument("--seed", type=int, default=0, help="random seed (vocabulary, training; default 0)")
+    p.add_argument("--device", default=None, help="torch device for the grid (default: cuda if available, else cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=run)
+
+
+def _add_floor_arguments(p) -> None:
+    """What a floor's map adds: submaps, where they train, the mesh and the rerun recording."""
     p.add_argument("--viz", metavar="MAP.rrd", default=None,
                    help="also write the map as a rerun recording (the survey's path, keyframes coloured by submap, "
                    "loops, the mesh, the report): open it with `rerun MAP.rrd`; needs pip install 'nap3d-graph[viz]'")
@@ -86,10 +95,6 @@ def add_parser(sub) -> None:
                    help="do not fuse map.ply (by default the survey's depth is fused at the map's poses into a coloured "
                    "mesh for MeshLab, CloudCompare or rerun, and the report says how thick its walls are: a doubled "
                    "wall is a wrong survey; needs Open3D, pip install 'nap3d-graph[mesh]', else skipped with a line)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (vocabulary, training; default 0)")
-    p.add_argument("--device", default=None, help="torch device for the grid (default: cuda if available, else cpu)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.set_defaults(func=run)
 
 
 def run(args) -> int:

@@ -191,6 +191,28 @@ class RunWriter:
             metrics["ground_truth"] = "none: no ATE/RPE; see the correction statistics"
         if result.T_world_map is not None:
             metrics["T_world_map"] = result.T_world_map.tolist()
+        metrics.update(self._motion_metrics(result))
+        metrics.update(extra or {})
+        plotted = result
+        if "scored" in metrics and result.T_world_cam_gt is not None:
+            untie_metrics(metrics, trajectories, str(metrics["scored"]))
+            plotted = _ground_truth_in_run_frame(result)
+        from .report import write_run_report
+
+        report = write_run_report(run, result.keyframes, metrics)
+        metrics["report"] = {"file": "report.md", "past_bad_line": report.bad}
+        (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
+        plot_top_view(run / "trajectory_top_view.png", plotted)
+        plot_error_over_time(run / "translation_error.png", plotted)
+        link_latest(run)
+        return metrics
+
+
+    def _motion_metrics(self, result) -> dict:
+        """metrics.json's entries of the motion model, where the run has them: the IMU's final
+        biases (``imu_biases.txt`` written) and skipped samples, the visual fallback's frames,
+        the refined gravity."""
+        metrics: dict = {}
         if getattr(result, "imu_biases", None) is not None:
             self._write_biases(result)
             metrics["imu_bias_final"] = {"accel_m_s2": result.imu_biases[-1, :3].tolist(),
@@ -206,19 +228,6 @@ class RunWriter:
                                              "given": np.round(result.gravity_world_prior, 4).tolist(),
                                              "turned_deg": round(gravity_angle_deg(result.gravity_world,
                                                                                    result.gravity_world_prior), 3)}
-        metrics.update(extra or {})
-        plotted = result
-        if "scored" in metrics and result.T_world_cam_gt is not None:
-            untie_metrics(metrics, trajectories, str(metrics["scored"]))
-            plotted = _ground_truth_in_run_frame(result)
-        from .report import write_run_report
-
-        report = write_run_report(run, result.keyframes, metrics)
-        metrics["report"] = {"file": "report.md", "past_bad_line": report.bad}
-        (run / "metrics.json").write_text(json.dumps(metrics, indent=1))
-        plot_top_view(run / "trajectory_top_view.png", plotted)
-        plot_error_over_time(run / "translation_error.png", plotted)
-        link_latest(run)
         return metrics
 
 
