@@ -9,8 +9,8 @@ import pytest
 
 from nap3d_graph.camera import RenderedView
 from nap3d_graph.conventions import exp_se3
-from nap3d_graph.fields.submaps import Submap, SubmapField, SubmapSettings
-from nap3d_graph.mapping.submaps import plan_submaps
+from nap3d_graph.fields.submaps import FramedField, Submap, SubmapField, SubmapSettings
+from nap3d_graph.mapping.submaps import level_frame, plan_submaps
 
 
 def _walk_along_x(n: int, length_m: float) -> np.ndarray:
@@ -35,6 +35,53 @@ def test_a_long_survey_is_cut_into_slabs_of_about_max_frames_with_overlap():
     # A survey of one submap's size is one submap of every posed frame, unbounded: as before submaps.
     one = plan_submaps(_walk_along_x(270, 5.0))
     assert len(one) == 1 and len(one[0].frames) == 270 and np.all(np.isinf(one[0].core))
+
+
+def test_a_submap_trains_in_a_level_frame_along_the_floor_and_over_its_slab():
+    """Cameras that pan and tilt (never roll) on a floor, seen in a first camera's tilted frame:
+    the submap's grid frame is the floor's (down, along the cut), and its slab reaches
+    ``reach_m`` beyond its core."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(0)
+    T_floor_cam = np.tile(np.eye(4), (60, 1, 1))
+    T_floor_cam[:, :3, :3] = Rotation.from_euler("YX", np.c_[rng.uniform(-3, 3, 60), rng.uniform(-0.5, 0.1, 60)]
+                                                 ).as_matrix()
+    T_floor_cam[:, :3, 3] = np.c_[np.linspace(0, 9, 60), np.full(60, -1.4), rng.uniform(0, 4, 60)]
+    T_map_floor = np.eye(4)
+    T_map_floor[:3, :3] = Rotation.from_euler("xyz", [0.3, 0.2, 0.1]).as_matrix()
+    T_map_cam = T_map_floor @ T_floor_cam
+    axis = T_map_floor[:3, 0]  # the floor's x in the map's frame
+    R_grid_map = level_frame(T_map_cam, axis)
+    np.testing.assert_allclose(R_grid_map @ T_map_floor[:3, :3], np.eye(3), atol=1e-9)
+    plan = plan_submaps(T_map_cam, SubmapSettings(max_frames=25, reach_m=1.5))
+    assert len(plan) == 3 and all(s.R_grid_map is not None for s in plan)
+    middle = plan[1]
+    ax, ay, az, lo, hi = middle.slab(1.5)
+    np.testing.assert_allclose(np.abs([ax, ay, az]), [1, 0, 0], atol=1e-6)
+    assert np.isclose(hi - lo, np.ptp(middle.core) + 3.0)
+    assert plan[0].slab(1.5)[3] < -1e5 and plan[2].slab(1.5)[4] > 1e5  # the floor's ends stay open
+    assert plan_submaps(T_map_cam[:20])[0].slab(1.5) is None  # one submap: the whole survey, as before
+
+
+def test_training_depth_beyond_a_fields_slab_is_left_out():
+    """A frame looking down +z from z = 0 at a wall 4 m away, and a slab ending at 3 m: none of its
+    depth trains the field; a slab ending at 5 m keeps all of it."""
+    import torch
+
+    from nap3d_graph.fields.training_data import TrainingRays
+    from nap3d_graph.sims.sequence import default_intrinsics
+
+    K = default_intrinsics(16, 12)
+    rays = TrainingRays(rgb=torch.zeros((1, 12, 16, 3), dtype=torch.uint8), depth=torch.full((1, 12, 16), 4.0),
+                        R_world_cam=torch.eye(3)[None], t_world_cam=np.zeros((1, 3)), num_valid=192, intrinsics=K)
+    assert rays.within_slab((0, 0, 1, -1, 5.0)).num_valid == 192
+    from nap3d_graph.fields.base import FieldError
+
+    with pytest.raises(FieldError, match="slab"):
+        rays.within_slab((0, 0, 1, -1, 3.0))
+    sideways = rays.within_slab((1, 0, 0, 0.0, 10.0))  # keeps the right half of the image (x >= 0)
+    assert 0.4 * 192 <= sideways.num_valid <= 0.6 * 192 and bool((sideways.depth[0, :, -1] > 0).all())
 
 
 class _Flat:
@@ -76,6 +123,49 @@ def test_the_map_field_renders_from_the_submap_the_camera_looks_into():
         SubmapField([_Flat(0, 0, 1)], submaps)
 
 
+def test_a_run_keeps_only_the_resident_submap_fields_loaded():
+    """Three submaps read when rendered: at most two in memory, the least recently used let go
+    and read again when the camera comes back; a field in its own frame answers in the map's."""
+    from nap3d_graph.sims.sequence import default_intrinsics
+
+    axis = np.array([1.0, 0.0, 0.0])
+    submaps = [Submap(k, axis, np.array([lo, hi]), np.arange(3)) for k, (lo, hi) in
+               enumerate([(-np.inf, 5.0), (5.0, 10.0), (10.0, np.inf)])]
+    reads = []
+
+    def loader(k):
+        def load():
+            reads.append(k)
+            return _Flat(k, 5 * k - 1, 5 * k + 6)
+        return load
+
+    field = SubmapField.lazy([loader(k) for k in range(3)], submaps, SubmapSettings(look_ahead_m=0.0, resident=2))
+    assert reads == [0, 1, 2] and field.meta["train_frames"] == [0, 1, 2]  # read once for the records
+    np.testing.assert_allclose(field.bounds, [[-1, -1, -1], [16, 1, 1]])
+    K = default_intrinsics(8, 6)
+    T = np.eye(4)
+    levels = []
+    for x in (1.0, 6.0, 11.0, 1.0, 6.0):
+        T[0, 3] = x
+        levels.append(int(field.render(T, K).rgb[0, 0, 0]))
+    assert levels == [0, 1, 2, 0, 1] and reads[3:] == [0, 1, 2, 0, 1] and len(field._loaded) == 2
+    T[0, 3] = 6.5  # still resident: not read again
+    assert int(field.render(T, K).rgb[0, 0, 0]) == 1 and len(reads) == 8
+
+    class _Seen(_Flat):
+        def render(self, T_world_cam, intrinsics):
+            self.seen = T_world_cam
+            return super().render(T_world_cam, intrinsics)
+
+    R = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0.0]])  # grid x = map z
+    inner = _Seen(0, 0, 1)
+    framed = FramedField(inner, R)
+    framed.render(T, K)
+    np.testing.assert_allclose(inner.seen[:3, :3], R)
+    np.testing.assert_allclose(inner.seen[:3, 3], R @ T[:3, 3])
+    np.testing.assert_allclose(framed.bounds, [[-1, -1, 0], [1, 1, 1]])
+
+
 def test_submap_fields_trained_side_by_side_equal_those_trained_one_after_another(sim_walk, tmp_path):
     """Two submaps of a simulated survey (posed by the simulator: the field stage alone), grid
     fields of 40 steps, on two worker processes and in this process: the same checkpoints."""
@@ -111,12 +201,26 @@ def test_submap_fields_trained_side_by_side_equal_those_trained_one_after_anothe
     serial, parallel = fields["serial"], fields["two_workers"]
     assert isinstance(serial, SubmapField) and len(serial.fields) == 2
     for a, b in zip(serial.fields, parallel.fields):
-        for key, value in a.state_dict().items():
+        assert isinstance(a, FramedField)  # each trained in its level frame along the floor
+        for key, value in a.field.state_dict().items():
             if isinstance(value, torch.Tensor):
-                assert torch.equal(value, b.state_dict()[key]), key
+                assert torch.equal(value, b.field.state_dict()[key]), key
     # Each submap's grid covers its own part of the room, not the whole survey's bounds.
     spans = [np.ptp(f.bounds, axis=0) for f in serial.fields]
     assert all(np.prod(s) < np.prod(np.ptp(serial.bounds, axis=0)) for s in spans)
+    # Rendered in the map's frame from the submap each camera looks into (each field trained in
+    # its own frame, over its own slab): the room's true depth all along the survey.
+    from nap3d_graph.sims.sequence import default_intrinsics
+
+    K = default_intrinsics(64, 48)
+    oracle = survey.oracle_field()
+    cover, errors = [], []
+    for i in range(0, len(T), 3):
+        got, want = serial.render(T[i], K).depth_m, oracle.render(T[i], K).depth_m
+        ok = (got > 0) & (want > 0)
+        cover.append(ok.mean())
+        errors.append(np.median(np.abs(got[ok] - want[ok])))
+    assert min(cover) > 0.7 and np.median(errors) < 0.015 and max(errors) < 0.03, (cover, errors)
 
 
 @pytest.mark.slow

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -31,7 +32,7 @@ import numpy as np
 from nap3d_graph.camera import Intrinsics, RenderedView
 from nap3d_graph.textfiles import write_json_atomic
 
-__all__ = ["SubmapSettings", "Submap", "SubmapField", "SUBMAPS_INDEX", "load_submap_field", "write_submaps_index"]
+__all__ = ["SubmapSettings", "Submap", "SubmapField", "FramedField", "SUBMAPS_INDEX", "load_submap_field", "write_submaps_index"]
 
 log = logging.getLogger(__name__)
 
@@ -44,15 +45,21 @@ class SubmapSettings:
     """max_frames: survey frames per submap at most before the survey is cut (300: a room's
     survey, fr1/desk's 277 frames and the simulated room's 270 stay one submap); overlap_m: how
     far beyond its core a submap takes training frames; look_ahead_m: the point in front of the
-    camera whose submap renders."""
+    camera whose submap renders; reach_m: how far beyond its core a submap's field reaches (what
+    its cameras see further away, through a doorway down a row of rooms, is the next submap's:
+    a field over all of it made one submap of the 3-room floor 7 x 9 x 15 m, a 1.6 GB grid);
+    resident: submap fields a run keeps loaded at once (the rest are read again when rendered)."""
 
     max_frames: int = 300
     overlap_m: float = 0.75
     look_ahead_m: float = 1.0
+    reach_m: float = 1.5
+    resident: int = 2
 
     def __post_init__(self):
-        if self.max_frames < 2 or self.overlap_m < 0 or self.look_ahead_m < 0:
-            raise ValueError(f"submaps need max_frames >= 2, overlap_m >= 0, look_ahead_m >= 0; got {self}")
+        if self.max_frames < 2 or self.overlap_m < 0 or self.look_ahead_m < 0 or self.reach_m < 0 or self.resident < 1:
+            raise ValueError(f"submaps need max_frames >= 2, overlap_m, look_ahead_m, reach_m >= 0 and resident >= 1; "
+                             f"got {self}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -65,7 +72,10 @@ class Submap:
     survey frames it trains on. A map grown by another day's survey (:mod:`~nap3d_graph.mapping.extend`)
     holds submaps of several surveys, whose slabs lie along different axes: each submap then has
     ``look_points`` (M, 3), the points its training cameras looked at (``look_ahead_m`` along
-    their optical axes, map frame), and ``survey``, the survey its frames index (0: the first)."""
+    their optical axes, map frame), and ``survey``, the survey its frames index (0: the first).
+    ``R_grid_map`` (3, 3): the rotation into the frame its field's grid is trained in (rows: the
+    grid's axes in the map's frame; level and along the floor, so the grid's box holds its part of
+    the floor and not the tilt of the first camera's frame); None: the map's own frame."""
 
     index: int
     axis: np.ndarray
@@ -73,6 +83,19 @@ class Submap:
     frames: np.ndarray
     survey: int = 0
     look_points: np.ndarray | None = None
+    R_grid_map: np.ndarray | None = None
+
+    def slab(self, reach_m: float) -> tuple[float, ...] | None:
+        """The part of space its field covers, in its grid's frame: ``(ax, ay, az, lo, hi)``
+        (:attr:`~nap3d_graph.fields.train_config.TrainConfig.slab`), its core and ``reach_m``
+        beyond along its axis; None for an unbounded core (a one-submap map)."""
+        lo, hi = self.core[0] - reach_m, self.core[1] + reach_m
+        if not (np.isfinite(lo) or np.isfinite(hi)):
+            return None
+        R = np.eye(3) if self.R_grid_map is None else self.R_grid_map
+        a = R @ self.axis
+        big = 1e6  # an open end of the floor's first or last submap
+        return (*(float(v) for v in a), float(lo) if np.isfinite(lo) else -big, float(hi) if np.isfinite(hi) else big)
 
     @property
     def file(self) -> str:
@@ -88,40 +111,114 @@ class Submap:
                "core": [_finite(v) for v in self.core], "frames": [int(i) for i in self.frames], "file": self.file}
         if self.look_points is not None:
             out.update(survey=self.survey, look_points=np.round(self.look_points, 3).tolist())
+        if self.R_grid_map is not None:
+            out["R_grid_map"] = np.round(self.R_grid_map, 9).tolist()
         return out
 
     @classmethod
     def from_dict(cls, d: dict) -> "Submap":
         lo, hi = d["core"]
         core = np.array([-np.inf if lo is None else float(lo), np.inf if hi is None else float(hi)])
-        look = d.get("look_points")
+        look, R = d.get("look_points"), d.get("R_grid_map")
         return cls(int(d["index"]), np.asarray(d["axis"], dtype=float), core, np.asarray(d["frames"], dtype=int),
-                   int(d.get("survey", 0)), None if look is None else np.asarray(look, dtype=float).reshape(-1, 3))
+                   int(d.get("survey", 0)), None if look is None else np.asarray(look, dtype=float).reshape(-1, 3),
+                   None if R is None else np.asarray(R, dtype=float).reshape(3, 3))
 
 
 def _finite(v: float):
     return None if not np.isfinite(v) else round(float(v), 4)
 
 
+class FramedField:
+    """A field trained in another frame (a submap's grid frame, ``R_grid_map`` (3, 3)) answering
+    in the map's: it renders the camera at ``R_grid_map @ T_map_cam``; depth and colour are the
+    camera's own, so the render is the same in either frame. ``bounds``: the box of its grid's
+    bounds in the map's frame (metres)."""
+
+    def __init__(self, field, R_grid_map: np.ndarray):
+        self.field = field
+        self.T_grid_map = np.eye(4)
+        self.T_grid_map[:3, :3] = np.asarray(R_grid_map, dtype=float)
+        self.meta = getattr(field, "meta", {})
+        self.name = getattr(field, "name", type(field).__name__)
+
+    @property
+    def bounds(self) -> np.ndarray:
+        lo, hi = np.asarray(self.field.bounds, dtype=float)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        in_map = corners @ self.T_grid_map[:3, :3]  # R^T applied to each corner: grid -> map
+        return np.stack([in_map.min(axis=0), in_map.max(axis=0)])
+
+    def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
+        return self.field.render(self.T_grid_map @ np.asarray(T_world_cam, dtype=float), intrinsics)
+
+    def __repr__(self) -> str:
+        return f"FramedField({self.field!r})"
+
+
 class SubmapField:
-    """The map's field over its submaps (see the module's text): ``fields`` and ``submaps`` in
-    the same order; ``meta``: the map-wide record (capture timing, the field error a run widens
-    its corrections by: the largest of the submaps', training frames and stamps of all)."""
+    """The map's field over its submaps (see the module's text), ``submaps`` in order, each
+    field given loaded (``fields``) or read when first rendered (:meth:`lazy`): a run across a
+    floor keeps ``settings.resident`` of them in memory, the ones it rendered from last, so its
+    memory does not grow with the floor. ``meta``: the map-wide record (capture timing, the
+    field error a run widens its corrections by: the largest of the submaps', training frames
+    and stamps of all)."""
 
     name = "submaps"
 
     def __init__(self, fields: list, submaps: list[Submap], settings: SubmapSettings | None = None):
         if not fields or len(fields) != len(submaps):
             raise ValueError(f"need one field per submap, got {len(fields)} fields for {len(submaps)} submaps")
-        self.fields, self.submaps = list(fields), list(submaps)
+        self.submaps = list(submaps)
         self.settings = settings or SubmapSettings()
-        self.meta = _merged_meta(self.fields)
+        self._loaders = [(lambda f=f: f) for f in fields]
+        self._loaded: OrderedDict[int, object] = OrderedDict()
+        self._bounds = [np.asarray(f.bounds, dtype=float) for f in fields]
+        self.meta = _merged_meta([getattr(f, "meta", {}) for f in fields], len(fields))
         self.last_submap: int | None = None
+        self.loads = 0
+
+    @classmethod
+    def lazy(cls, loaders: list, submaps: list[Submap], settings: SubmapSettings | None = None) -> "SubmapField":
+        """The map's field with each submap's field read by ``loaders[k]()`` when it is needed:
+        each is read once here for its record and bounds (one at a time), then again when a
+        render needs it and it is not among the ``resident`` kept."""
+        metas, bounds = [], []
+        for load in loaders:
+            field = load()
+            metas.append(dict(getattr(field, "meta", {}) or {}))
+            bounds.append(np.asarray(field.bounds, dtype=float))
+            del field
+        self = cls.__new__(cls)
+        if not loaders or len(loaders) != len(submaps):
+            raise ValueError(f"need one field per submap, got {len(loaders)} for {len(submaps)} submaps")
+        self.submaps, self.settings = list(submaps), settings or SubmapSettings()
+        self._loaders, self._loaded, self._bounds = list(loaders), OrderedDict(), bounds
+        self.meta, self.last_submap, self.loads = _merged_meta(metas, len(loaders)), None, 0
+        return self
+
+    def field_of(self, k: int):
+        """Submap ``k``'s field, read if it is not loaded; the least recently used one is let go
+        when more than ``settings.resident`` would be loaded."""
+        if k in self._loaded:
+            self._loaded.move_to_end(k)
+            return self._loaded[k]
+        field = self._loaders[k]()
+        self.loads += 1
+        self._loaded[k] = field
+        while len(self._loaded) > self.settings.resident:
+            self._loaded.popitem(last=False)
+        return field
+
+    @property
+    def fields(self) -> list:
+        """Every submap's field (reads each that is not loaded, keeping none of them resident)."""
+        return [self._loaded[k] if k in self._loaded else self._loaders[k]() for k in range(len(self.submaps))]
 
     @property
     def bounds(self) -> np.ndarray:
-        """(2, 3) the union of the submaps' fields' bounds (metres)."""
-        b = np.stack([np.asarray(f.bounds, dtype=float) for f in self.fields])
+        """(2, 3) the union of the submaps' fields' bounds (metres, map frame)."""
+        b = np.stack(self._bounds)
         return np.stack([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
 
     def submap_at(self, T_world_cam: np.ndarray) -> int:
@@ -140,17 +237,17 @@ class SubmapField:
         if k != self.last_submap and self.last_submap is not None:
             log.debug("rendering from submap %d (was %d)", k, self.last_submap)
         self.last_submap = k
-        return self.fields[k].render(T_world_cam, intrinsics)
+        return self.field_of(k).render(T_world_cam, intrinsics)
 
     def __repr__(self) -> str:
-        return f"SubmapField({len(self.fields)} submaps of {type(self.fields[0]).__name__})"
+        return f"SubmapField({len(self.submaps)} submaps)"
 
 
-def _merged_meta(fields: list) -> dict:
+def _merged_meta(metas: list[dict], submaps: int) -> dict:
     """One record for a run from the submaps' records: the first one's (model, timing, source),
     the largest field error (a run widens its corrections by it: the worst submap sets the
     caution), and every submap's training frames and stamps."""
-    metas = [dict(getattr(f, "meta", {}) or {}) for f in fields]
+    metas = [dict(m or {}) for m in metas]
     meta = dict(metas[0])
     errors = [m.get("field_error") for m in metas if m.get("field_error")]
     if errors:
@@ -161,7 +258,7 @@ def _merged_meta(fields: list) -> dict:
         if values:
             meta[key] = values
     meta.pop("pose_corrections", None)
-    meta["submaps"] = len(fields)
+    meta["submaps"] = submaps
     return meta
 
 
@@ -182,5 +279,12 @@ def load_submap_field(folder, load_field) -> SubmapField:
     if missing:
         raise FileNotFoundError(f"{folder}: the map's submap fields {', '.join(missing)} are missing (its 'nap3d-graph "
                                 "map' stopped in the field stage); run the same map command again to finish them")
-    fields = [load_field(folder / s.file) for s in submaps]
-    return SubmapField(fields, submaps, SubmapSettings(**index["settings"]))
+    settings = SubmapSettings(**index["settings"])
+
+    def loader(s: Submap):
+        def load():
+            field = load_field(folder / s.file)
+            return field if s.R_grid_map is None else FramedField(field, s.R_grid_map)
+        return load
+
+    return SubmapField.lazy([loader(s) for s in submaps], submaps, settings)

@@ -451,7 +451,7 @@ def _new_submaps(sequence, T_map_newcam: np.ndarray, unseen: np.ndarray, merged:
         # The unseen frames of this part and the new frames looking within the overlap of them.
         near = _within(T_map_newcam, part.frames, submap_settings.overlap_m) & posed
         submap = Submap(first + k, part.axis, part.core, np.flatnonzero(near), number,
-                        _look_points(T_map_newcam[part.frames], submap_settings.look_ahead_m))
+                        _look_points(T_map_newcam[part.frames], submap_settings.look_ahead_m), part.R_grid_map)
         submaps.append(submap)
         added.append(submap.index)
         jobs.append(submap)

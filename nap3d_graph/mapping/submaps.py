@@ -10,7 +10,30 @@ import numpy as np
 
 from nap3d_graph.fields.submaps import Submap, SubmapSettings
 
-__all__ = ["plan_submaps"]
+__all__ = ["plan_submaps", "level_frame"]
+
+
+def level_frame(T_map_cam: np.ndarray, axis: np.ndarray) -> np.ndarray:
+    """(3, 3) ``R_grid_map``: a frame whose ``y`` is the floor's down and ``x`` runs along ``axis``
+    (3,), for a submap's grid. T_map_cam (N, 4, 4) its cameras. Down is the direction most
+    orthogonal to every camera's ``x`` axis (a robot's or a hand's camera keeps its rows level
+    while it pans and tilts), signed like the cameras' own ``y`` (OpenCV: down); ``x`` is ``axis``
+    made level (the cameras' first level principal direction when ``axis`` is near vertical)."""
+    R = np.asarray(T_map_cam, dtype=float)[:, :3, :3]
+    x_cams = R[:, :, 0]
+    down = np.linalg.eigh(x_cams.T @ x_cams)[1][:, 0]
+    if float(down @ R[:, :, 1].sum(axis=0)) < 0:
+        down = -down
+    along = np.asarray(axis, dtype=float) - (np.asarray(axis, dtype=float) @ down) * down
+    if np.linalg.norm(along) < 0.3:
+        p = np.asarray(T_map_cam, dtype=float)[:, :3, 3]
+        p = p - p.mean(axis=0)
+        p = p - np.outer(p @ down, down)
+        along = np.linalg.svd(p, full_matrices=False)[2][0] if len(p) > 1 else np.cross(down, [0.0, 0.0, 1.0])
+        along = along - (along @ down) * down
+    x = along / np.linalg.norm(along)
+    z = np.cross(x, down)
+    return np.stack([x, down, z])
 
 
 def plan_submaps(T_map_cam: np.ndarray, settings: SubmapSettings | None = None) -> list[Submap]:
@@ -18,7 +41,8 @@ def plan_submaps(T_map_cam: np.ndarray, settings: SubmapSettings | None = None) 
     the posed cameras ordered along their principal direction (the map's frame is the first
     camera's, so no axis of it is known to be level or long) and cut into slabs of equal count,
     ``ceil(frames / max_frames)`` of them, each taking the frames within ``overlap_m`` of its
-    slab too; one submap of every posed frame when there are no more than ``max_frames``."""
+    slab too, and trains in a level frame along the floor (:func:`level_frame`); one submap of
+    every posed frame, in the map's frame, when there are no more than ``max_frames``."""
     s = settings or SubmapSettings()
     T = np.asarray(T_map_cam, dtype=float)
     posed = np.flatnonzero(np.all(np.isfinite(T.reshape(len(T), -1)), axis=1))
@@ -37,5 +61,6 @@ def plan_submaps(T_map_cam: np.ndarray, settings: SubmapSettings | None = None) 
     submaps = []
     for k in range(len(slabs)):
         near = (along >= edges[k] - s.overlap_m) & (along <= edges[k + 1] + s.overlap_m)
-        submaps.append(Submap(k, axis, np.array([edges[k], edges[k + 1]]), posed[near]))
+        submaps.append(Submap(k, axis, np.array([edges[k], edges[k + 1]]), posed[near],
+                              R_grid_map=level_frame(T[posed[near]], axis)))
     return submaps
