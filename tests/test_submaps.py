@@ -37,10 +37,9 @@ def test_a_long_survey_is_cut_into_slabs_of_about_max_frames_with_overlap():
     assert len(one) == 1 and len(one[0].frames) == 270 and np.all(np.isinf(one[0].core))
 
 
-def test_a_submap_trains_in_a_level_frame_along_the_floor_and_over_its_slab():
+def test_a_submap_trains_in_a_level_frame_along_the_floor():
     """Cameras that pan and tilt (never roll) on a floor, seen in a first camera's tilted frame:
-    the submap's grid frame is the floor's (down, along the cut), and its slab reaches
-    ``reach_m`` beyond its core."""
+    the submap's grid frame is the floor's (down, along the cut)."""
     from scipy.spatial.transform import Rotation
 
     rng = np.random.default_rng(0)
@@ -54,34 +53,13 @@ def test_a_submap_trains_in_a_level_frame_along_the_floor_and_over_its_slab():
     axis = T_map_floor[:3, 0]  # the floor's x in the map's frame
     R_grid_map = level_frame(T_map_cam, axis)
     np.testing.assert_allclose(R_grid_map @ T_map_floor[:3, :3], np.eye(3), atol=1e-9)
-    plan = plan_submaps(T_map_cam, SubmapSettings(max_frames=25, reach_m=1.5))
+    plan = plan_submaps(T_map_cam, SubmapSettings(max_frames=25))
     assert len(plan) == 3 and all(s.R_grid_map is not None for s in plan)
-    middle = plan[1]
-    ax, ay, az, lo, hi = middle.slab(1.5)
-    np.testing.assert_allclose(np.abs([ax, ay, az]), [1, 0, 0], atol=1e-6)
-    assert np.isclose(hi - lo, np.ptp(middle.core) + 3.0)
-    assert plan[0].slab(1.5)[3] < -1e5 and plan[2].slab(1.5)[4] > 1e5  # the floor's ends stay open
-    assert plan_submaps(T_map_cam[:20])[0].slab(1.5) is None  # one submap: the whole survey, as before
-
-
-def test_training_depth_beyond_a_fields_slab_is_left_out():
-    """A frame looking down +z from z = 0 at a wall 4 m away, and a slab ending at 3 m: none of its
-    depth trains the field; a slab ending at 5 m keeps all of it."""
-    import torch
-
-    from nap3d_graph.fields.training_data import TrainingRays
-    from nap3d_graph.sims.sequence import default_intrinsics
-
-    K = default_intrinsics(16, 12)
-    rays = TrainingRays(rgb=torch.zeros((1, 12, 16, 3), dtype=torch.uint8), depth=torch.full((1, 12, 16), 4.0),
-                        R_world_cam=torch.eye(3)[None], t_world_cam=np.zeros((1, 3)), num_valid=192, intrinsics=K)
-    assert rays.within_slab((0, 0, 1, -1, 5.0)).num_valid == 192
-    from nap3d_graph.fields.base import FieldError
-
-    with pytest.raises(FieldError, match="slab"):
-        rays.within_slab((0, 0, 1, -1, 3.0))
-    sideways = rays.within_slab((1, 0, 0, 0.0, 10.0))  # keeps the right half of the image (x >= 0)
-    assert 0.4 * 192 <= sideways.num_valid <= 0.6 * 192 and bool((sideways.depth[0, :, -1] > 0).all())
+    for s in plan:  # each level (its down the floor's), along the survey's principal direction
+        R_grid_floor = s.R_grid_map @ T_map_floor[:3, :3]
+        np.testing.assert_allclose(R_grid_floor[1], [0, 1, 0], atol=1e-6)
+        assert np.isclose(np.linalg.det(R_grid_floor), 1.0) and abs(R_grid_floor[0] @ (T_map_floor[:3, :3].T @ s.axis)) > 0.99
+    assert plan_submaps(T_map_cam[:20])[0].R_grid_map is None  # one submap: the map's frame, as before
 
 
 class _Flat:
@@ -209,7 +187,7 @@ def test_submap_fields_trained_side_by_side_equal_those_trained_one_after_anothe
     spans = [np.ptp(f.bounds, axis=0) for f in serial.fields]
     assert all(np.prod(s) < np.prod(np.ptp(serial.bounds, axis=0)) for s in spans)
     # Rendered in the map's frame from the submap each camera looks into (each field trained in
-    # its own frame, over its own slab): the room's true depth all along the survey.
+    # its own frame): the room's true depth all along the survey.
     from nap3d_graph.sims.sequence import default_intrinsics
 
     K = default_intrinsics(64, 48)

@@ -59,7 +59,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                 timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
                 device: str | None = None, progress: bool = True, measure_error: bool = True,
                 matcher: str = "sift", refine_poses: int = 0, refine_method: str = "depth",
-                error_growth: bool | str = "auto", depth_unit: str = "check", slab=None):
+                error_growth: bool | str = "auto", depth_unit: str = "check"):
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
@@ -83,8 +83,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     (:func:`error_growth_for`). ``depth_unit``: ``"check"`` (default) looks, before any
     work, whether the depth agrees across the posed frames only at another unit's scale
     (:mod:`~nap3d_graph.datasets.depth_unit`) and raises :class:`DepthUnitError` if so;
-    ``"trust"`` builds with the depth as read. ``slab``: a grid over part of the scene only
-    (:attr:`~nap3d_graph.fields.train_config.TrainConfig.slab`; a submap's part of a floor).
+    ``"trust"`` builds with the depth as read.
     """
     from .training_data import split_posed_frames
 
@@ -107,7 +106,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
         field, report = _build_views(sequence, train_idx, timing, render_size, progress)
     else:
         field, report = _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device,
-                                    progress, slab)
+                                    progress)
     stored_timing = None if timing is None else timing.to_dict()
     field.meta.update({"model": model, "timing": stored_timing, "source": str(getattr(sequence, "path", "")),
                        "frame_range": list(getattr(sequence, "frame_range", (0, len(sequence)))),
@@ -247,12 +246,11 @@ def _build_views(sequence, train_idx, timing, render_size, progress):
     return field, report
 
 
-def _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device, progress, slab=None):
+def _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device, progress):
     from .train_config import TrainConfig
     from .training import train_field
 
-    config = TrainConfig(every=every, eval_frames=0, seed=seed, device=device,
-                         slab=None if slab is None else tuple(float(v) for v in slab))
+    config = TrainConfig(every=every, eval_frames=0, seed=seed, device=device)
     if steps is not None:
         config.max_steps = int(steps)
     if minutes is not None:

@@ -38,6 +38,12 @@ log = logging.getLogger(__name__)
 
 #: The index of a map's submaps, in the map folder.
 SUBMAPS_INDEX = "submaps.json"
+#: A render that leaves more than this share of its pixels empty is filled from the submap
+#: further along the camera's view (a view down a row of rooms sees past its submap's field).
+EMPTY_SHARE_TO_FILL = 0.02
+#: How far along the empty pixels' mean ray the submap that fills them is looked for (metres:
+#: about where a room's far wall stands).
+FAR_M = 4.0
 
 
 @dataclass(frozen=True)
@@ -45,20 +51,17 @@ class SubmapSettings:
     """max_frames: survey frames per submap at most before the survey is cut (300: a room's
     survey, fr1/desk's 277 frames and the simulated room's 270 stay one submap); overlap_m: how
     far beyond its core a submap takes training frames; look_ahead_m: the point in front of the
-    camera whose submap renders; reach_m: how far beyond its core a submap's field reaches (what
-    its cameras see further away, through a doorway down a row of rooms, is the next submap's:
-    a field over all of it made one submap of the 3-room floor 7 x 9 x 15 m, a 1.6 GB grid);
-    resident: submap fields a run keeps loaded at once (the rest are read again when rendered)."""
+    camera whose submap renders; resident: submap fields a run keeps loaded at once (the rest
+    are read again when rendered)."""
 
     max_frames: int = 300
     overlap_m: float = 0.75
     look_ahead_m: float = 1.0
-    reach_m: float = 1.5
     resident: int = 2
 
     def __post_init__(self):
-        if self.max_frames < 2 or self.overlap_m < 0 or self.look_ahead_m < 0 or self.reach_m < 0 or self.resident < 1:
-            raise ValueError(f"submaps need max_frames >= 2, overlap_m, look_ahead_m, reach_m >= 0 and resident >= 1; "
+        if self.max_frames < 2 or self.overlap_m < 0 or self.look_ahead_m < 0 or self.resident < 1:
+            raise ValueError(f"submaps need max_frames >= 2, overlap_m >= 0, look_ahead_m >= 0 and resident >= 1; "
                              f"got {self}")
 
     def to_dict(self) -> dict:
@@ -75,7 +78,8 @@ class Submap:
     their optical axes, map frame), and ``survey``, the survey its frames index (0: the first).
     ``R_grid_map`` (3, 3): the rotation into the frame its field's grid is trained in (rows: the
     grid's axes in the map's frame; level and along the floor, so the grid's box holds its part of
-    the floor and not the tilt of the first camera's frame); None: the map's own frame."""
+    the floor and not the tilt of the first camera's frame: in that frame one submap of the
+    3-room floor was a 7 x 9 x 15 m grid, 1.6 GB, its worker 9.7 GB); None: the map's own frame."""
 
     index: int
     axis: np.ndarray
@@ -84,18 +88,6 @@ class Submap:
     survey: int = 0
     look_points: np.ndarray | None = None
     R_grid_map: np.ndarray | None = None
-
-    def slab(self, reach_m: float) -> tuple[float, ...] | None:
-        """The part of space its field covers, in its grid's frame: ``(ax, ay, az, lo, hi)``
-        (:attr:`~nap3d_graph.fields.train_config.TrainConfig.slab`), its core and ``reach_m``
-        beyond along its axis; None for an unbounded core (a one-submap map)."""
-        lo, hi = self.core[0] - reach_m, self.core[1] + reach_m
-        if not (np.isfinite(lo) or np.isfinite(hi)):
-            return None
-        R = np.eye(3) if self.R_grid_map is None else self.R_grid_map
-        a = R @ self.axis
-        big = 1e6  # an open end of the floor's first or last submap
-        return (*(float(v) for v in a), float(lo) if np.isfinite(lo) else -big, float(hi) if np.isfinite(hi) else big)
 
     @property
     def file(self) -> str:
@@ -222,22 +214,43 @@ class SubmapField:
         return np.stack([b[:, 0].min(axis=0), b[:, 1].max(axis=0)])
 
     def submap_at(self, T_world_cam: np.ndarray) -> int:
-        """The submap that renders a camera at ``T_world_cam`` (4, 4): the one whose core holds
-        the point ``look_ahead_m`` along its optical axis, else the nearest core; in a map of
-        several surveys (every submap with ``look_points``) the one whose training cameras looked
-        nearest to that point."""
+        """The submap that renders a camera at ``T_world_cam`` (4, 4): the one that holds the
+        point ``look_ahead_m`` along its optical axis (:meth:`submap_holding`)."""
         T = np.asarray(T_world_cam, dtype=float)
-        point = T[:3, 3] + T[:3, 2] * self.settings.look_ahead_m
+        return self.submap_holding(T[:3, 3] + T[:3, 2] * self.settings.look_ahead_m)
+
+    def submap_holding(self, point_map: np.ndarray) -> int:
+        """The submap whose core holds ``point_map`` (3,), else the nearest core; in a map of
+        several surveys (every submap with ``look_points``) the one whose training cameras looked
+        nearest to it."""
+        point = np.asarray(point_map, dtype=float)
         if all(s.look_points is not None and len(s.look_points) for s in self.submaps):
             return int(np.argmin([np.min(np.linalg.norm(s.look_points - point, axis=1)) for s in self.submaps]))
         return int(np.argmin([s.distance_m(point) for s in self.submaps]))
 
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
+        """The view from the submap the camera looks into; where that submap's field ends and the
+        camera sees further (through a doorway, down the floor), the pixels it left empty come
+        from the submap that holds the point ``FAR_M`` along their mean ray."""
         k = self.submap_at(T_world_cam)
         if k != self.last_submap and self.last_submap is not None:
             log.debug("rendering from submap %d (was %d)", k, self.last_submap)
         self.last_submap = k
-        return self.field_of(k).render(T_world_cam, intrinsics)
+        view = self.field_of(k).render(T_world_cam, intrinsics)
+        empty = view.opacity < 0.5
+        if len(self.submaps) < 2 or empty.mean() <= EMPTY_SHARE_TO_FILL:
+            return view
+        T = np.asarray(T_world_cam, dtype=float)
+        v, u = np.nonzero(empty)
+        ray_cam = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones(len(u))], 1)
+        ray_cam = (ray_cam / np.linalg.norm(ray_cam, axis=1, keepdims=True)).mean(axis=0)
+        beyond_k = self.submap_holding(T[:3, 3] + T[:3, :3] @ ray_cam * (FAR_M / np.linalg.norm(ray_cam)))
+        if beyond_k == k:
+            return view
+        beyond = self.field_of(beyond_k).render(T_world_cam, intrinsics)
+        fill = empty & (beyond.opacity >= 0.5)
+        return RenderedView(np.where(fill[..., None], beyond.rgb, view.rgb), np.where(fill, beyond.depth_m, view.depth_m),
+                            np.where(fill, beyond.opacity, view.opacity), view.intrinsics)
 
     def __repr__(self) -> str:
         return f"SubmapField({len(self.submaps)} submaps)"

@@ -22,9 +22,7 @@ class TrainConfig:
     Sampling: ``rays_per_step``, ``free_samples`` and ``window_samples`` per ray; the window
     half-width is ``max(window_min_m, window_sigmas * depth_sigma_z2 * z^2)``.
     ``threads``: torch CPU threads during training (1: see ``nap3d_graph.torch_threads``; None keeps
-    torch's setting). ``slab``: ``(ax, ay, az, lo, hi)``, the part of space the field covers: only
-    depth whose point ``p`` (training frame, metres) has ``lo <= a . p <= hi`` trains it and sets its
-    bounds (a submap's slab of the floor; None: all of it).
+    torch's setting).
     """
 
     voxel_size_m: float = 0.03
@@ -61,7 +59,6 @@ class TrainConfig:
     init_stride: int = 2
     device: str | None = None
     threads: int | None = 1
-    slab: tuple[float, float, float, float, float] | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -242,8 +242,6 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
     held_out = _held_out(sequence, config, held_idx, eval_sequence, eval_indices, oracle, timing)
     started = time.perf_counter()
     rays = TrainingRays.from_sequence(sequence, train_idx, config, device, progress=progress, timing=timing)
-    if config.slab is not None:
-        rays = rays.within_slab(config.slab)
     bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), ray_poses(rays),
                                      rays.intrinsics, margin_m=config.bounds_margin_m)
     load_seconds = time.perf_counter() - started

@@ -5,7 +5,7 @@ pose), the scene bounds their depth covers, and the field initialised from their
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
@@ -126,27 +126,6 @@ class TrainingRays:
     @property
     def num_frames(self) -> int:
         return self.rgb.shape[0]
-
-    def within_slab(self, slab) -> "TrainingRays":
-        """These rays with the depth of every pixel whose point lies outside ``slab`` (``(ax, ay,
-        az, lo, hi)``: ``lo <= a . p <= hi``, ``p`` in the training frame) set missing: a field over
-        part of a floor is not asked to end rays on surfaces beyond its box (outside the grid
-        they would read its faces and grow walls there)."""
-        axis = np.asarray(slab[:3], dtype=np.float64)
-        lo, hi = float(slab[3]), float(slab[4])
-        K = self.intrinsics
-        u, v = np.meshgrid(np.arange(K.width, dtype=np.float64), np.arange(K.height, dtype=np.float64))
-        rays_cam = np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u)], axis=-1)
-        depth = self.depth.cpu().numpy().copy()
-        R = self.R_world_cam.cpu().numpy().astype(np.float64)
-        for k in range(len(depth)):
-            # a . p = a . t + z * (R^T a) . ray_cam: one dot product per pixel.
-            along = float(axis @ self.t_world_cam[k]) + depth[k] * (rays_cam @ (R[k].T @ axis))
-            depth[k][(along < lo) | (along > hi)] = 0.0
-        num_valid = int(np.count_nonzero(depth))
-        if num_valid == 0:
-            raise FieldError(f"no training depth lies within the field's slab {lo:.2f}..{hi:.2f} m")
-        return replace(self, depth=torch.from_numpy(depth).to(self.depth.device), num_valid=num_valid)
 
 
 def split_posed_frames(sequence, every: int = 1, eval_frames: int = 8) -> tuple[np.ndarray, np.ndarray]:
