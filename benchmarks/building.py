@@ -199,14 +199,37 @@ def placement_part(args, work: Path) -> dict:
 
 
 def _timed(command: list[str], log: Path) -> dict:
-    """``command`` under ``/usr/bin/time``: its wall seconds and peak memory (GB)."""
+    """``command`` under ``/usr/bin/time``: its wall seconds, peak memory (GB: the largest one
+    process held, workers included) and the peak of all its processes together (sampled every
+    half second with psutil: two workers training side by side count twice)."""
+    import psutil
+
     timing = log.with_suffix(".time")
     t0 = time.perf_counter()
+    tree_peak = 0
     with open(log, "w") as out:
-        subprocess.run(["/usr/bin/time", "-f", "%M", "-o", str(timing), *command], check=True, stdout=out,
-                       stderr=subprocess.STDOUT)
+        process = subprocess.Popen(["/usr/bin/time", "-f", "%M", "-o", str(timing), *command], stdout=out,
+                                   stderr=subprocess.STDOUT)
+        root = psutil.Process(process.pid)
+        while process.poll() is None:
+            try:
+                tree = [root, *root.children(recursive=True)]
+                tree_peak = max(tree_peak, sum(_rss(p) for p in tree))
+            except psutil.Error:
+                pass
+            time.sleep(0.5)
+    if process.returncode:
+        raise subprocess.CalledProcessError(process.returncode, command)
     return {"wall_s": round(time.perf_counter() - t0, 1),
-            "peak_memory_gb": round(int(timing.read_text().split()[-1]) / 1024**2, 3)}
+            "peak_memory_gb": round(int(timing.read_text().split()[-1]) / 1024**2, 3),
+            "peak_memory_all_processes_gb": round(tree_peak / 1024**3, 3)}
+
+
+def _rss(process) -> int:
+    try:
+        return process.memory_info().rss
+    except Exception:  # a process that ended between the listing and the reading
+        return 0
 
 
 def per_room_psnr(floor, map_dir: Path, survey) -> dict:
