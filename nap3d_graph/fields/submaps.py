@@ -24,7 +24,7 @@ from __future__ import annotations
 import json
 import logging
 from collections import OrderedDict
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 import numpy as np
@@ -41,9 +41,9 @@ SUBMAPS_INDEX = "submaps.json"
 #: A render that leaves more than this share of its pixels empty is filled from the submap
 #: further along the camera's view (a view down a row of rooms sees past its submap's field).
 EMPTY_SHARE_TO_FILL = 0.02
-#: How far along the empty pixels' mean ray the submap that fills them is looked for (metres:
-#: about where a room's far wall stands).
-FAR_M = 4.0
+#: How far along the empty pixels' mean ray the submaps that fill them are looked for (metres:
+#: a room's far wall, the next room's, the one after; each submap rendered once).
+FILL_FROM_M = (4.0, 8.0, 12.0)
 
 
 @dataclass(frozen=True)
@@ -66,6 +66,11 @@ class SubmapSettings:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SubmapSettings":
+        """The settings an index holds (a key another version wrote and this one lacks ignored)."""
+        return cls(**{f.name: d[f.name] for f in fields(cls) if f.name in d})
 
 
 @dataclass
@@ -231,26 +236,32 @@ class SubmapField:
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
         """The view from the submap the camera looks into; where that submap's field ends and the
         camera sees further (through a doorway, down the floor), the pixels it left empty come
-        from the submap that holds the point ``FAR_M`` along their mean ray."""
+        from the submaps that hold the points ``FILL_FROM_M`` along their mean ray."""
         k = self.submap_at(T_world_cam)
         if k != self.last_submap and self.last_submap is not None:
             log.debug("rendering from submap %d (was %d)", k, self.last_submap)
         self.last_submap = k
         view = self.field_of(k).render(T_world_cam, intrinsics)
-        empty = view.opacity < 0.5
-        if len(self.submaps) < 2 or empty.mean() <= EMPTY_SHARE_TO_FILL:
+        if len(self.submaps) < 2:
             return view
         T = np.asarray(T_world_cam, dtype=float)
-        v, u = np.nonzero(empty)
-        ray_cam = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones(len(u))], 1)
-        ray_cam = (ray_cam / np.linalg.norm(ray_cam, axis=1, keepdims=True)).mean(axis=0)
-        beyond_k = self.submap_holding(T[:3, 3] + T[:3, :3] @ ray_cam * (FAR_M / np.linalg.norm(ray_cam)))
-        if beyond_k == k:
-            return view
-        beyond = self.field_of(beyond_k).render(T_world_cam, intrinsics)
-        fill = empty & (beyond.opacity >= 0.5)
-        return RenderedView(np.where(fill[..., None], beyond.rgb, view.rgb), np.where(fill, beyond.depth_m, view.depth_m),
-                            np.where(fill, beyond.opacity, view.opacity), view.intrinsics)
+        tried = {k}
+        for far_m in FILL_FROM_M:
+            empty = view.opacity < 0.5
+            if empty.mean() <= EMPTY_SHARE_TO_FILL:
+                break
+            v, u = np.nonzero(empty)
+            ray = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones(len(u))], 1)
+            ray = (ray / np.linalg.norm(ray, axis=1, keepdims=True)).mean(axis=0)
+            other = self.submap_holding(T[:3, 3] + T[:3, :3] @ ray * (far_m / np.linalg.norm(ray)))
+            if other in tried:
+                continue
+            tried.add(other)
+            beyond = self.field_of(other).render(T_world_cam, intrinsics)
+            fill = empty & (beyond.opacity >= 0.5)
+            view = RenderedView(np.where(fill[..., None], beyond.rgb, view.rgb), np.where(fill, beyond.depth_m, view.depth_m),
+                                np.where(fill, beyond.opacity, view.opacity), view.intrinsics)
+        return view
 
     def __repr__(self) -> str:
         return f"SubmapField({len(self.submaps)} submaps)"
@@ -292,7 +303,7 @@ def load_submap_field(folder, load_field) -> SubmapField:
     if missing:
         raise FileNotFoundError(f"{folder}: the map's submap fields {', '.join(missing)} are missing (its 'nap3d-graph "
                                 "map' stopped in the field stage); run the same map command again to finish them")
-    settings = SubmapSettings(**index["settings"])
+    settings = SubmapSettings.from_dict(index["settings"])
 
     def loader(s: Submap):
         def load():

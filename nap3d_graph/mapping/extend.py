@@ -528,7 +528,7 @@ def _write_extension(merged: MapFolder, new: MapFolder, sequence, T_map_newcam: 
         writer.writerow(CrossPair.CSV_HEADER)
         writer.writerows(p.csv_row() for p in pairs)
     old_index = json.loads((merged.root / SUBMAPS_INDEX).read_text()) if (merged.root / SUBMAPS_INDEX).is_file() else {}
-    kept = SubmapSettings(**old_index["settings"]) if "settings" in old_index else SubmapSettings()
+    kept = SubmapSettings.from_dict(old_index["settings"]) if "settings" in old_index else SubmapSettings()
     write_submaps_index(merged.root, submaps, kept,  # written atomically: a new file
                         {k: v for k, v in old_index.items() if k not in ("settings", "submaps")})
     mesh_record = _extension_mesh(sequence, T_map_newcam, folder / "map.ply", progress) if mesh else None
