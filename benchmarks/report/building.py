@@ -70,8 +70,8 @@ def floor_map_table() -> str:
     floors = read(MAP_FILE).get("floors") or {}
     one = floors.get("1") or {}
     rows = ["| rooms | survey frames | survey ATE, camera alone | map: s per frame (against one room); peak GB "
-            "of one process (against one room), of all together | held-out PSNR per room, dB (frames) | traverse "
-            "from its own start: ATE (max), odometry alone; placed at frame; peak GB |",
+            "(against one room) | held-out PSNR per room, dB (frames) | traverse from its own start: ATE (max), "
+            "odometry alone; placed at frame; peak GB |",
             "|---|---|---|---|---|---|"]
     for f in floors.values():  # time per frame from the stages' own seconds (a resumed map's wall is not its time)
         f["map"]["stage_seconds_per_frame"] = sum(f["map"]["stages_s"].values()) / f["survey_frames"]
@@ -90,8 +90,7 @@ def floor_map_table() -> str:
                    else f"**never placed** in its {f['traverse_frames']} frames ({f['traverse_m']:.1f} m): no tied ATE")
         rows.append(f"| {rooms} | {f['survey_frames']} | {cm(m.get('survey_ate_m'))} | "
                     f"{m['stage_seconds_per_frame']:.2f}{against('stage_seconds_per_frame')}; {m['peak_memory_gb']:.2f}"
-                    f"{against('peak_memory_gb')}, {_s(m.get('peak_memory_all_processes_gb'))}"
-                    f"{against('peak_memory_all_processes_gb')} | {psnr} | {crossed}; {run['peak_memory_gb']:.2f}"
+                    f"{against('peak_memory_gb')} | {psnr} | {crossed}; {run['peak_memory_gb']:.2f}"
                     f"{against('peak_memory_gb', 'run')} |")
     return "\n".join(rows)
 

@@ -79,11 +79,9 @@ class MapSettings:
     ``min_train_minutes``;
     ``refine_rounds``: the depth refinement of the training poses before the field;
     ``bundle``: refine the pose graph's keyframes by the bundle adjustment over every verified
-    match (:mod:`.bundle`); ``second_matcher``: what the survey's ``vo`` aligns the steps of a
-    stretch where it lost the camera with (``"auto"``: XFeat after SIFT, SIFT after XFeat; None:
-    no second try; :func:`~.survey.realign_lost`): on the simulated 3-room floor SIFT alone lost
-    the camera for its last 64 frames. Lone guessed steps stay guessed: every step XFeat took
-    over on the 1-room floor's survey made it worse (3.0 -> 4.8 cm)."""
+    match (:mod:`.bundle`); ``second_matcher``: what the survey's ``vo`` aligns a failed step with
+    (``"auto"``: XFeat after SIFT, SIFT after XFeat; None: no second try): on the simulated
+    3-room floor SIFT alone lost the camera for its last 64 frames, a stretch of plain wall."""
 
     odometry: str = "vo"
     matcher: str = "xfeat"
@@ -210,7 +208,7 @@ def _odometry_stage(sequence, folder: MapFolder, settings: MapSettings, progress
     else:
         t0 = time.perf_counter()
         survey = track(sequence, settings.odometry, settings.matcher, settings.width, progress,
-                       _second_matcher(settings), settings.max_guesses)
+                       _second_matcher(settings))
         survey.save(folder.odometry)
         start, stop = tracked_segment(survey.ok, settings.max_guesses)
         folder.done("odometry", time.perf_counter() - t0, guessed_steps=int((~survey.ok).sum()), segment=[start, stop],

@@ -5,11 +5,7 @@ The odometry is the run's own (:func:`~nap3d_graph.motion.odometry.make_odometry
 ``dense``), started at the identity: the map's frame is the first tracked frame's camera.
 A step the odometry guessed (``ok`` False: constant velocity) is kept when it is alone; after
 ``max_guesses`` guesses in a row the odometry has lost the camera, and the stretches either
-side are separate: the map keeps the longest one and says which frames it dropped. Before
-that, the steps of every such lost stretch are aligned again with a second matcher
-(:func:`realign_lost`): where one detector finds nothing (a plain wall, a fast turn) the
-other often does. Lone guesses stay guessed, so a survey that never lost the camera is the
-same with or without it.
+side are separate: the map keeps the longest one and says which frames it dropped.
 """
 
 from __future__ import annotations
@@ -21,7 +17,7 @@ import numpy as np
 
 from nap3d_graph.conventions import compose_covariance, inv_T
 
-__all__ = ["SurveyOdometry", "track", "tracked_segment", "keyframe_indices", "lost_steps", "realign_lost"]
+__all__ = ["SurveyOdometry", "track", "tracked_segment", "keyframe_indices"]
 
 log = logging.getLogger(__name__)
 
@@ -31,8 +27,8 @@ class SurveyOdometry:
     """``T_odom_cam`` (N, 4, 4): each frame in the first frame's camera by the chained steps;
     ``step_cov`` (N, 6, 6): each step's covariance (frame i-1 <- i; row 0 zero); ``ok`` (N,):
     the step was measured, not guessed (row 0 True); ``reasons``: why each guessed step was;
-    ``second``: the lost stretches' steps tried again with a second matcher, how many it
-    aligned (None: none tried; not saved)."""
+    ``second``: how often a second matcher was tried on a failed step and aligned it (None:
+    never tried; not saved)."""
 
     T_odom_cam: np.ndarray
     step_cov: np.ndarray
@@ -60,24 +56,18 @@ class SurveyOdometry:
         return T, cov
 
 
-#: A second matcher's step is believed only this close to the step before it (a camera walked or
-#: carried does not move half a metre or turn 30 degrees more than it did a frame ago; XFeat
-#: alone once put a step of a simulated room 2.8 m off).
-SECOND_MAX_JUMP_M = 0.5
-SECOND_MAX_TURN_DEG = 30.0
-
-
 def track(sequence, kind: str = "vo", matcher: str | None = None, width: int | None = None,
-          progress: bool = True, second_matcher: str | None = None, max_guesses: int = 3) -> SurveyOdometry:
+          progress: bool = True, second_matcher: str | None = None) -> SurveyOdometry:
     """Run the odometry over every frame of ``sequence`` from the identity. An unreadable
-    frame is a guessed step (the odometry restarts after it). With ``second_matcher`` (``vo``
-    only) the steps of every stretch of ``max_guesses`` or more guesses in a row are aligned
-    again with it (:func:`realign_lost`)."""
+    frame is a guessed step (the odometry restarts after it). ``second_matcher``: what ``vo``
+    aligns a failed step with (:class:`~nap3d_graph.motion.odometry.VisualOdometry`); how often
+    it was tried and aligned the step is in the result's ``second``."""
     from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.progress import progress_bar
 
     odometry = make_odometry(kind, sequence, initial_pose=np.eye(4), matcher=matcher,
-                             vo_width=width if kind == "vo" else None)
+                             vo_width=width if kind == "vo" else None,
+                             **({"second_matcher": second_matcher} if kind == "vo" else {}))
     n = len(sequence)
     T = np.repeat(np.eye(4)[None], n, axis=0)
     cov = np.zeros((n, 6, 6))
@@ -91,68 +81,10 @@ def track(sequence, kind: str = "vo", matcher: str | None = None, width: int | N
         ok[i] = increment.ok
         reasons[i] = increment.reason
     survey = SurveyOdometry(T, cov, ok, reasons)
-    if second_matcher is not None and kind == "vo":
-        survey = realign_lost(sequence, survey, second_matcher, width, max_guesses)
+    if getattr(odometry, "second_tries", 0):
+        survey.second = {"matcher": second_matcher, "tried": odometry.second_tries,
+                         "aligned": odometry.second_successes}
     return survey
-
-
-def lost_steps(ok: np.ndarray, max_guesses: int) -> list[int]:
-    """The guessed steps that belong to a run of ``max_guesses`` or more guesses in a row."""
-    steps, k, n = [], 1, len(ok)
-    while k < n:
-        if ok[k]:
-            k += 1
-            continue
-        j = k
-        while j < n and not ok[j]:
-            j += 1
-        if j - k >= max_guesses:
-            steps.extend(range(k, j))
-        k = j
-    return steps
-
-
-def realign_lost(sequence, survey: SurveyOdometry, matcher: str, width: int | None, max_guesses: int
-                 ) -> SurveyOdometry:
-    """``survey`` with the steps of its lost stretches (:func:`lost_steps`) aligned again by
-    ``matcher``'s odometry, each believed only within ``SECOND_MAX_JUMP_M`` /
-    ``SECOND_MAX_TURN_DEG`` of the step before it; the chain re-composed. An unavailable
-    matcher is said and changes nothing."""
-    from nap3d_graph.conventions import rotation_angle_deg
-    from nap3d_graph.motion.odometry import make_odometry
-    from nap3d_graph.nap3d.matching import MatcherUnavailable
-
-    lost = lost_steps(survey.ok, max_guesses)
-    if not lost:
-        return survey
-    T, cov, ok, reasons = survey.T_odom_cam.copy(), survey.step_cov.copy(), survey.ok.copy(), list(survey.reasons)
-    steps = np.stack([np.eye(4)] + [inv_T(T[i - 1]) @ T[i] for i in range(1, len(T))])
-    odometry = make_odometry("vo", sequence, initial_pose=np.eye(4), matcher=matcher, vo_width=width)
-    aligned = 0
-    for i in lost:
-        before, frame = _read(sequence, i - 1), _read(sequence, i)
-        if before is None or frame is None:
-            continue
-        try:
-            odometry.prime(before)
-            increment = odometry.increment(i, frame)
-        except MatcherUnavailable as exc:
-            log.warning("the survey's lost stretches stay lost: %s", exc)
-            return survey
-        if not increment.ok:
-            reasons[i] = f"{reasons[i]}; {matcher}: {increment.reason}"
-            continue
-        jump_m = float(np.linalg.norm(increment.T_prev_cur[:3, 3] - steps[i - 1][:3, 3]))
-        turn_deg = float(rotation_angle_deg(steps[i - 1][:3, :3].T @ increment.T_prev_cur[:3, :3]))
-        if jump_m > SECOND_MAX_JUMP_M or turn_deg > SECOND_MAX_TURN_DEG:
-            reasons[i] = f"{reasons[i]}; {matcher}'s step implausible ({jump_m:.2f} m, {turn_deg:.0f} deg from the last)"
-            continue
-        steps[i], cov[i], ok[i], reasons[i] = increment.T_prev_cur, increment.covariance, True, ""
-        aligned += 1
-    for i in range(1, len(T)):
-        T[i] = T[i - 1] @ steps[i]
-    log.info("the survey's odometry lost the camera for %d step(s); %s aligned %d of them", len(lost), matcher, aligned)
-    return SurveyOdometry(T, cov, ok, reasons, {"matcher": matcher, "tried": len(lost), "aligned": aligned})
 
 
 def _read(sequence, i: int):
