@@ -79,13 +79,10 @@ class MapSettings:
     ``min_train_minutes``;
     ``refine_rounds``: the depth refinement of the training poses before the field;
     ``bundle``: refine the pose graph's keyframes by the bundle adjustment over every verified
-    match (:mod:`.bundle`); ``second_matcher``: what the survey's ``vo`` aligns a failed step with
-    (``"auto"``: XFeat after SIFT, SIFT after XFeat; None: no second try): on the simulated
-    3-room floor SIFT alone lost the camera for its last 64 frames, a stretch of plain wall."""
+    match (:mod:`.bundle`)."""
 
     odometry: str = "vo"
     matcher: str = "xfeat"
-    second_matcher: str | None = "auto"
     width: int | None = None
     keyframe_every: int = 5
     keyframe_distance_m: float = 0.10
@@ -207,12 +204,10 @@ def _odometry_stage(sequence, folder: MapFolder, settings: MapSettings, progress
         _say(say, "odometry: finished before, reused")
     else:
         t0 = time.perf_counter()
-        survey = track(sequence, settings.odometry, settings.matcher, settings.width, progress,
-                       _second_matcher(settings))
+        survey = track(sequence, settings.odometry, settings.matcher, settings.width, progress)
         survey.save(folder.odometry)
         start, stop = tracked_segment(survey.ok, settings.max_guesses)
-        folder.done("odometry", time.perf_counter() - t0, guessed_steps=int((~survey.ok).sum()), segment=[start, stop],
-                    second_matcher=survey.second)
+        folder.done("odometry", time.perf_counter() - t0, guessed_steps=int((~survey.ok).sum()), segment=[start, stop])
     start, stop = tracked_segment(survey.ok, settings.max_guesses)
     dropped = len(survey.ok) - (stop - start)
     folder.info["segment"] = {"start": start, "stop": stop, "dropped_frames": dropped,
@@ -221,15 +216,6 @@ def _odometry_stage(sequence, folder: MapFolder, settings: MapSettings, progress
         _say(say, f"the odometry lost the camera: the map keeps frames {start}:{stop} (its longest tracked stretch) "
                   f"and drops {dropped} frames ({', '.join(_ranges(start, stop, len(survey.ok)))})")
     return survey, start, stop
-
-
-def _second_matcher(settings: MapSettings) -> str | None:
-    """The survey odometry's second matcher for a failed step (see :class:`MapSettings`)."""
-    if settings.odometry != "vo" or settings.second_matcher is None:
-        return None
-    if settings.second_matcher == "auto":
-        return "xfeat" if settings.matcher == "sift" else "sift"
-    return settings.second_matcher
 
 
 def _keyframe_stage(sequence, keys: np.ndarray, folder: MapFolder, settings: MapSettings, progress: bool

@@ -26,15 +26,12 @@ log = logging.getLogger(__name__)
 class SurveyOdometry:
     """``T_odom_cam`` (N, 4, 4): each frame in the first frame's camera by the chained steps;
     ``step_cov`` (N, 6, 6): each step's covariance (frame i-1 <- i; row 0 zero); ``ok`` (N,):
-    the step was measured, not guessed (row 0 True); ``reasons``: why each guessed step was;
-    ``second``: how often a second matcher was tried on a failed step and aligned it (None:
-    never tried; not saved)."""
+    the step was measured, not guessed (row 0 True); ``reasons``: why each guessed step was."""
 
     T_odom_cam: np.ndarray
     step_cov: np.ndarray
     ok: np.ndarray
     reasons: list
-    second: dict | None = None
 
     def save(self, path) -> None:
         np.savez_compressed(path, T_odom_cam=self.T_odom_cam, step_cov=self.step_cov, ok=self.ok,
@@ -57,17 +54,14 @@ class SurveyOdometry:
 
 
 def track(sequence, kind: str = "vo", matcher: str | None = None, width: int | None = None,
-          progress: bool = True, second_matcher: str | None = None) -> SurveyOdometry:
+          progress: bool = True) -> SurveyOdometry:
     """Run the odometry over every frame of ``sequence`` from the identity. An unreadable
-    frame is a guessed step (the odometry restarts after it). ``second_matcher``: what ``vo``
-    aligns a failed step with (:class:`~nap3d_graph.motion.odometry.VisualOdometry`); how often
-    it was tried and aligned the step is in the result's ``second``."""
+    frame is a guessed step (the odometry restarts after it)."""
     from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.progress import progress_bar
 
     odometry = make_odometry(kind, sequence, initial_pose=np.eye(4), matcher=matcher,
-                             vo_width=width if kind == "vo" else None,
-                             **({"second_matcher": second_matcher} if kind == "vo" else {}))
+                             vo_width=width if kind == "vo" else None)
     n = len(sequence)
     T = np.repeat(np.eye(4)[None], n, axis=0)
     cov = np.zeros((n, 6, 6))
@@ -80,11 +74,7 @@ def track(sequence, kind: str = "vo", matcher: str | None = None, width: int | N
         cov[i] = increment.covariance
         ok[i] = increment.ok
         reasons[i] = increment.reason
-    survey = SurveyOdometry(T, cov, ok, reasons)
-    if getattr(odometry, "second_tries", 0):
-        survey.second = {"matcher": second_matcher, "tried": odometry.second_tries,
-                         "aligned": odometry.second_successes}
-    return survey
+    return SurveyOdometry(T, cov, ok, reasons)
 
 
 def _read(sequence, i: int):

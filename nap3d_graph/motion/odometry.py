@@ -16,16 +16,16 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..camera import Intrinsics, RenderedView, RGBDFrame
-from ..conventions import inv_T, rotation_angle_deg
+from ..conventions import inv_T
 from ..nap3d.align import align_views
 from ..nap3d.config import AlignConfig
 from ..nap3d.correct import at_width, real_features
-from ..nap3d.matching import Features, MatcherUnavailable
+from ..nap3d.matching import Features
 
 __all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
            "bridge_pose_gaps"]
@@ -138,12 +138,6 @@ def bridge_pose_gaps(stamps: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.nd
     return T_world_cam, missing
 
 
-#: A second matcher's step is believed only this close to the constant-velocity step (a camera
-#: walked or carried does not move half a metre or turn 30 degrees more than it did a frame ago).
-SECOND_MAX_JUMP_M = 0.5
-SECOND_MAX_TURN_DEG = 30.0
-
-
 class VisualOdometry:
     """Frame-to-frame RGB-D odometry: NAP3D's matcher and alignment between frame i-1 (as
     the 'rendered' view, opaque where its depth is valid) and frame i.
@@ -162,12 +156,6 @@ class VisualOdometry:
     whole runs went 2.5x / 2.3x as fast; the odometry alone drifted more (10.2 / 14.5 against
     7.9 / 7.4 cm ATE), the corrected trajectories ended at 2.15 / 2.13 against 2.24 / 2.11 cm
     and their causal ones 4-14% worse (``benchmarks/results/vo_width_*.json``).
-
-    ``second_matcher``: a matcher (``"xfeat"``) that aligns a step again when the first one fails
-    (too few matches, too few inliers): a map's survey uses it so that a stretch where one
-    detector finds nothing (a plain wall, a fast turn) is not a lost camera. Steps that succeed
-    are never re-aligned. None: no second try (a run's default). An unavailable matcher is
-    said once and not tried again.
     """
 
     name = "vo"
@@ -175,8 +163,7 @@ class VisualOdometry:
 
     def __init__(self, initial_pose: np.ndarray | None = None, config: AlignConfig | None = None,
                  fallback_rot_sigma_rad: float = 0.05, fallback_trans_sigma_m: float = 0.05,
-                 min_good_inliers: int = 60, reuse_features: bool = True, width: int | None = None,
-                 second_matcher: str | None = None):
+                 min_good_inliers: int = 60, reuse_features: bool = True, width: int | None = None):
         if width is not None and int(width) < 16:
             raise ValueError(f"the odometry's width must be at least 16 pixels, got {width}")
         self._initial = np.eye(4) if initial_pose is None else np.asarray(initial_pose, dtype=float)
@@ -192,11 +179,6 @@ class VisualOdometry:
         self._fallback_cov = _diag_cov(fallback_rot_sigma_rad, fallback_trans_sigma_m)
         self.min_good_inliers = int(min_good_inliers)
         self.reuse_features = bool(reuse_features)
-        self.second = None
-        if second_matcher is not None and second_matcher != self.config.matcher:
-            self.second = replace(self.config, matcher=second_matcher)
-        #: Steps the second matcher aligned after the first failed.
-        self.second_tries = self.second_successes = 0
 
     def initial_pose(self) -> np.ndarray:
         return self._initial.copy()
@@ -242,8 +224,6 @@ class VisualOdometry:
             view_features = prev_features.where(opacity >= self.config.min_opacity)
         self._previous, self._previous_features, self._latest = frame, features, (i, features)
         a = align_views(frame, view, self.config, feats_real=features, feats_view=view_features)
-        if not a.success and self.second is not None:
-            a = self._second_try(i, frame, view, a)
         timings = dict(a.timings_s)
         timings["detect"] = timings.get("detect", 0.0) + detect_s
         if not a.success:
@@ -254,33 +234,6 @@ class VisualOdometry:
         covariance = self._step_covariance(a, T_prev_cur)
         self._last_good = T_prev_cur
         return Increment(T_prev_cur, covariance, timings_s=timings)
-
-    def _second_try(self, i: int, frame: RGBDFrame, view: RenderedView, first):
-        """The step aligned with the second matcher (its own features on both frames), or the
-        first attempt when that fails too, is no step a camera makes between two frames (more
-        than ``SECOND_MAX_JUMP_M`` / ``SECOND_MAX_TURN_DEG`` from the constant-velocity step:
-        on a simulated room XFeat alone once put a 6 Hz step 2.8 m off), or the matcher is
-        unavailable."""
-        self.second_tries += 1
-        try:
-            a = align_views(frame, view, self.second)
-        except MatcherUnavailable as exc:
-            log.warning("the odometry's second matcher is unavailable (%s); steps that fail stay failed", exc)
-            self.second = None
-            return first
-        if not a.success:
-            return first
-        T_prev_cur = inv_T(a.T_real_rendered)
-        jump_m = float(np.linalg.norm(T_prev_cur[:3, 3] - self._last_good[:3, 3]))
-        turn_deg = float(rotation_angle_deg(self._last_good[:3, :3].T @ T_prev_cur[:3, :3]))
-        if jump_m > SECOND_MAX_JUMP_M or turn_deg > SECOND_MAX_TURN_DEG:
-            log.info("VO frame %d: %s's step refused (%.2f m / %.0f deg from constant velocity)", i,
-                     self.second.matcher, jump_m, turn_deg)
-            first.reason = f"{first.reason}; {self.second.matcher}'s step implausible ({jump_m:.2f} m, {turn_deg:.0f} deg)"
-            return first
-        self.second_successes += 1
-        log.info("VO frame %d: %s failed (%s), %s aligned it", i, self.config.matcher, first.reason, self.second.matcher)
-        return a
 
     def _features_reusable(self) -> bool:
         """A frame's features serve it masked as the view (``reuse_features``): always for
@@ -421,15 +374,13 @@ class DenseVisualOdometry:
 
 
 def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-3, trans_sigma_m: float = 2e-3,
-                  initial_pose: np.ndarray | None = None, matcher: str | None = None, vo_width: int | None = None,
-                  second_matcher: str | None = None):
+                  initial_pose: np.ndarray | None = None, matcher: str | None = None, vo_width: int | None = None):
     """The odometry a run uses: ``recorded`` (the sequence's own drifting odometry, as the
     simulator writes it), ``noisy`` (noise injected on ground-truth increments), ``vo`` (SIFT
     frame-to-frame) or ``dense`` (:class:`DenseVisualOdometry`, at the camera's rate).
 
     ``matcher``: the feature matcher of ``vo`` (default ``AlignConfig``'s); ``vo_width``: the
-    width ``vo`` works at (:class:`VisualOdometry`'s ``width``; None: the frames' own);
-    ``second_matcher``: what ``vo`` tries a failed step with (:class:`VisualOdometry`).
+    width ``vo`` works at (:class:`VisualOdometry`'s ``width``; None: the frames' own).
     ``initial_pose`` (4, 4): where the camera starts in the field's frame, for ``vo`` (default
     the ground truth's first pose; required without one). Raises ``ValueError`` (one line,
     saying what to use instead) when the sequence cannot give that odometry."""
@@ -465,5 +416,5 @@ def make_odometry(kind: str, sequence, seed: int = 0, rot_sigma_rad: float = 2e-
         if kind == "dense":
             return DenseVisualOdometry(start)
         config = AlignConfig(min_opacity=0.5) if matcher is None else AlignConfig(min_opacity=0.5, matcher=matcher)
-        return VisualOdometry(start, config, width=vo_width, second_matcher=second_matcher)
+        return VisualOdometry(start, config, width=vo_width)
     raise ValueError(f"unknown odometry {kind!r}; use recorded, noisy, vo or dense")
