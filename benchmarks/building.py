@@ -273,6 +273,7 @@ def map_part(args, work: Path) -> dict:
                           stages_s={k: v["seconds"] for k, v in info["stages"].items()},
                           train_seconds=report.get("train_seconds"),
                           survey_ate_m=(info.get("survey_ate") or {}).get("map", {}).get("rmse_m"),
+                          kept_frames=(info.get("segment") or {}).get("stop", 0) - (info.get("segment") or {}).get("start", 0),
                           held_out_psnr_db=(report.get("held_out") or {}).get("psnr_db"),
                           held_out_psnr_per_room=per_room_psnr(floor, map_dir, survey))
         row["run"] = _timed([sys.executable, "-m", "nap3d_graph", "run", "--data", str(traverse.path), "--field",

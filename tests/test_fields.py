@@ -246,6 +246,23 @@ def test_checkpoint_round_trip_is_bit_identical(survey, quick, tmp_path):
     assert state["version"] == CHECKPOINT_VERSION and state["voxel_size_m"] == field.voxel_size
 
 
+def test_a_loaded_grid_holds_one_copy_of_its_colour_while_rendering(survey, quick, tmp_path):
+    """The compiled renderer reads the colour channel-last: a loaded grid moves its colour to that
+    layout once (no second copy beside the checkpoint's), renders as before, saves the same."""
+    field, _ = quick
+    path = field.save(tmp_path / "field.pt")
+    loaded = load_field(path)
+    T, K = survey.T_world_cam_gt[3], survey.intrinsics
+    before = field.render(T, K)
+    view = loaded.render(T, K)
+    colour_grid = loaded._numpy_grids()[2]
+    assert np.shares_memory(colour_grid, loaded.color.numpy())  # the renderer's colour is the field's own
+    np.testing.assert_array_equal(view.rgb, before.rgb)
+    np.testing.assert_array_equal(view.depth_m, before.depth_m)
+    again = load_field(loaded.save(tmp_path / "again.pt"))
+    assert torch.equal(again.color, field.color) and torch.equal(again.density, field.density)
+
+
 def test_corrupt_and_foreign_checkpoints_fail_clearly(quick, tmp_path):
     field, _ = quick
     good = field.save(tmp_path / "good.pt")

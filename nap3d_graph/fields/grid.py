@@ -285,9 +285,21 @@ class GridField(GridRenderer):
         if self._numpy is None:
             def view(t: torch.Tensor) -> np.ndarray:
                 return np.ascontiguousarray(t.detach().cpu().numpy())
+            if self.color.device.type == "cpu":
+                self.color_channels_last()
             # Colour channel-last: a pixel's three channels share a cache line.
             self._numpy = (view(self.density[0, 0]), view(self.occupancy()), view(self.color[0].permute(1, 2, 3, 0)))
         return self._numpy
+
+    def color_channels_last(self) -> torch.Tensor:
+        """The colour grid stored channel-last, (mz, my, mx, 3), and returned as that tensor;
+        ``color`` stays its (1, 3, mz, my, mx) view. What the compiled renderer and the trainer
+        read: one copy of the colour (most of a grid's memory) instead of one per layout."""
+        last = self.color[0].permute(1, 2, 3, 0)
+        if not last.is_contiguous():
+            last = last.contiguous()
+            self.color = last.permute(3, 0, 1, 2).unsqueeze(0)
+        return last
 
     # --- checkpoints --------------------------------------------------------------------------
 

@@ -66,9 +66,13 @@ class _Trainer:
         self.config = config
         self.generator = generator
         self.device = field.device
-        # Channels-last working copies: a vertex's values are one contiguous row.
+        # Channels-last tables: a vertex's values are one contiguous row. On a CPU the colour
+        # table is the field's own storage (the compiled renderer reads that layout too); on a
+        # GPU a working copy written back by sync_field (its renderer samples channel-first).
         self.density_table = field.density.view(-1, 1)
-        self.color_table = field.color.view(3, -1).T.contiguous()
+        self.shared_color = field.device.type == "cpu"
+        self.color_table = (field.color_channels_last().view(-1, 3) if self.shared_color
+                            else field.color.view(3, -1).T.contiguous())
         self.density_adam = LazyAdam(self.density_table, config.lr_density)
         self.color_adam = LazyAdam(self.color_table, config.lr_color)
         self.lr_scale = 1.0
@@ -81,8 +85,10 @@ class _Trainer:
         self.lr_scale = scale
 
     def sync_field(self) -> GridField:
-        """Write the channels-last colour back into the field (density is shared) and return it."""
-        self.field.color.view(3, -1).copy_(self.color_table.T)
+        """The field with the colour table written back (on a GPU; on a CPU it is the field's
+        own storage), told its grids changed."""
+        if not self.shared_color:
+            self.field.color.view(3, -1).copy_(self.color_table.T)
         self.field.mark_changed()
         return self.field
 
