@@ -218,8 +218,8 @@ def _sfm_posed_run(args, work: Path, survey, query, query_half: str, out: dict, 
 def _score_second(args, runs: dict, survey, query, second) -> None:
     """Each run against the second ground truth, through its map's alignment to it (the
     ground-truth-posed map's frame is the first ground truth's)."""
-    from nap3d_graph.datasets.association import interpolate_poses
     from nap3d_graph.evaluation.alignment import aligned_errors
+    from nap3d_graph.trajectory import interpolate_poses
 
     def second_at(stamps):
         return interpolate_poses(np.asarray(query.timestamps), second[0], stamps, max_gap=0.2)

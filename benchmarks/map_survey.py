@@ -337,8 +337,8 @@ def seed_suffix(seed: int) -> str:
 def score_against_second(runs: dict, survey, query, second: dict) -> None:
     """Each run's ATE against the second ground truth, moved there through its map's own
     alignment to it (the SfM-posed map is in its frame already)."""
-    from nap3d_graph.datasets.association import interpolate_poses
     from nap3d_graph.evaluation.alignment import aligned_errors
+    from nap3d_graph.trajectory import interpolate_poses
 
     def sfm_at(stamps):
         return interpolate_poses(np.asarray(query.timestamps), second["query"], stamps, max_gap=0.2)

@@ -10,8 +10,9 @@ from scipy.optimize import linear_sum_assignment
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.conventions import make_T
 from nap3d_graph.datasets import DatasetError
-from nap3d_graph.datasets.association import associate, interpolate_poses
+from nap3d_graph.datasets.association import associate
 from nap3d_graph.datasets.tum import read_file_list
+from nap3d_graph.trajectory import interpolate_poses
 
 FR1 = Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480)
 FR1_DISTORTION = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)

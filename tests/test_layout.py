@@ -225,3 +225,25 @@ def test_library_errors_name_settings_not_flags():
                 if flags:
                     found.append(f"{module}:{node.lineno} {sorted(flags)}")
     assert found == [], found
+
+
+#: Folders that still import each other (issue 63): a field's error is measured as a run measures
+#: a keyframe (``fields.field_error`` -> ``run.keyframe``), and a run's covariance reads the
+#: field's error model (``run.config`` -> ``fields``). Moving the keyframe measurement below both
+#: is what removes it.
+KNOWN_TIES = {("fields", "run")}
+
+
+def test_folders_import_each_other_one_way(graph):
+    """Between two folders of the package imports go one way (lazy ones inside functions
+    counted), but for the ties listed in ``KNOWN_TIES``: mapping, evaluation, motion and
+    datasets no longer reach back into what imports them."""
+    edges, _ = graph
+
+    def folder(module: str) -> str:
+        parts = module.split(".")
+        return parts[1] if len(parts) > 2 else parts[-1]
+
+    pairs = {(folder(a), folder(b)) for a, targets in edges.items() for b in targets if folder(a) != folder(b)}
+    ties = {tuple(sorted(p)) for p in pairs if (p[1], p[0]) in pairs}
+    assert ties == KNOWN_TIES, sorted(ties - KNOWN_TIES)

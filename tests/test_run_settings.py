@@ -15,9 +15,9 @@ from nap3d_graph.cli import build_parser, command_parsers, main
 from nap3d_graph.cli.binding import apply_settings, settings_from_args
 from nap3d_graph.cli.run_options import RUN_OPTIONS, SOURCE_OPTIONS
 from nap3d_graph.cli.study import STUDY_OPTIONS
-from nap3d_graph.evaluation.study import StudySettings
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.settings import SECTIONS, RunSettings, SettingsError, pipeline_name
+from nap3d_graph.sweep.study import StudySettings
 
 #: PipelineConfig fields no setting sets as it is: the run resolves them (from the render
 #: size, the timing switch, NAP3D's settings, the field, the camera's rate, the terminal).

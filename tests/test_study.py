@@ -64,8 +64,8 @@ def test_cross_recording_study_corrects_one_recording_with_anothers_map(tmp_path
     recording of the same room (a traversal, another day) corrected with it."""
     from nap3d_graph.cli import main
     from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.evaluation.study import StudyConfig, shared_world_check
     from nap3d_graph.fields import load_field
+    from nap3d_graph.sweep.study import StudyConfig, shared_world_check
 
     recording = simulate_sequence(tmp_path / "survey", SimConfig(frames=60, path="mapping", width=320, height=240,
                                                                  scene_seed=11, seed=7))

@@ -17,8 +17,8 @@ from conftest import TUM_FR1_DESK, TUM_FR1_XYZ
 from nap3d_graph.camera import Intrinsics, RGBDFrame, backproject_depth, project
 from nap3d_graph.conventions import inv_T, make_T, rotation_angle_deg, transform_points
 from nap3d_graph.datasets import SOURCES, DatasetError, TumSequence, read_tum_trajectory, write_tum_trajectory
-from nap3d_graph.datasets.association import interpolate_poses
 from nap3d_graph.datasets.tum import read_file_list
+from nap3d_graph.trajectory import interpolate_poses
 
 TUM_DIR = TUM_FR1_XYZ
 FR1 = Intrinsics(517.3, 516.5, 318.6, 255.3, 640, 480)

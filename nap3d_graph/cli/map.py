@@ -121,7 +121,7 @@ def run(args) -> int:
                            refine_rounds=args.refine_rounds, seed=args.seed,
                            submaps=SubmapSettings(max_frames=args.submap_frames))
     if args.viz is not None:
-        from nap3d_graph.run.viz import VizError, check_viz_target
+        from nap3d_graph.rerun_sdk import VizError, check_viz_target
 
         try:
             check_viz_target(args.viz)  # before the work: a bad target costs nothing

@@ -161,7 +161,7 @@ def _check_bag_path(path: Path) -> None:
 
 
 def _check_viz(target: str) -> None:
-    from nap3d_graph.run.viz import VizError, check_viz_target
+    from nap3d_graph.rerun_sdk import VizError, check_viz_target
 
     try:
         check_viz_target(target)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from nap3d_graph.evaluation.study import StudySettings
+from nap3d_graph.sweep.study import StudySettings
 
 from .binding import Option, add_options, settings_from_args
 from .common import RUN_MATCHER, TOPICS_OPTION, UsageError, empty_or_new_dir, matcher_option, positive_int
@@ -66,7 +66,7 @@ STUDY_OPTIONS: tuple[Option, ...] = (
 
 
 def run(args) -> int:
-    from nap3d_graph.evaluation.study import run_study
+    from nap3d_graph.sweep.study import run_study
 
     if args.config is not None:
         from .run_config import apply_config

@@ -12,15 +12,12 @@ import math
 from typing import Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
-from nap3d_graph.errors import DatasetError
+from nap3d_graph.trajectory import interpolate_poses
 
-__all__ = ["ASSOCIATION_METHODS", "GT_MAX_GAP_S", "associate", "estimate_stream_offset", "interpolate_poses", "pair_streams",
+__all__ = ["ASSOCIATION_METHODS", "associate", "estimate_stream_offset", "pair_streams",
            "GroundTruthLookup"]
 
-#: Ground truth runs at 100 Hz; a larger hole than this between two poses is a gap.
-GT_MAX_GAP_S = 0.1
 
 
 # --- association and interpolation ----------------------------------------------------------
@@ -170,53 +167,6 @@ def associate(
         return np.zeros((0, 2), dtype=int)
     pairs = np.asarray(pairs, dtype=int)
     return pairs[np.lexsort((pairs[:, 0], a[pairs[:, 0]]))]
-
-
-def interpolate_poses(
-    stamps_gt: np.ndarray,
-    T_world_cam_gt: np.ndarray,
-    query_stamps: np.ndarray,
-    max_gap: float = GT_MAX_GAP_S,
-) -> np.ndarray:
-    """Interpolate poses at query times: linear in translation, SLERP in rotation.
-
-    stamps_gt: (N,) seconds, any order, no duplicates. T_world_cam_gt: (N, 4, 4). query_stamps: (M,).
-    Returns (M, 4, 4); a query outside ``[stamps_gt.min(), stamps_gt.max()]`` or between two
-    poses more than ``max_gap`` seconds apart gets an all-NaN matrix.
-    """
-    stamps_gt = np.asarray(stamps_gt, dtype=float).reshape(-1)
-    T_world_cam_gt = np.asarray(T_world_cam_gt, dtype=float)
-    query = np.asarray(query_stamps, dtype=float).reshape(-1)
-    if T_world_cam_gt.shape != (len(stamps_gt), 4, 4):
-        raise DatasetError(f"need stamps (N,) and poses (N, 4, 4), got {stamps_gt.shape} and {T_world_cam_gt.shape}")
-    out = np.full((len(query), 4, 4), np.nan)
-    if len(stamps_gt) == 0 or len(query) == 0:
-        return out
-    order = np.argsort(stamps_gt, kind="stable")
-    stamps_gt, T_world_cam_gt = stamps_gt[order], T_world_cam_gt[order]
-    if np.any(np.diff(stamps_gt) <= 0):
-        raise DatasetError("ground-truth timestamps contain duplicates")
-    if len(stamps_gt) == 1:
-        exact = query == stamps_gt[0]
-        out[exact] = T_world_cam_gt[0]
-        return out
-    # Bracket [k, k+1] of each query; a query exactly at the last stamp uses the last bracket.
-    k = np.clip(np.searchsorted(stamps_gt, query, side="right") - 1, 0, len(stamps_gt) - 2)
-    t0, t1 = stamps_gt[k], stamps_gt[k + 1]
-    # A query exactly on a ground-truth stamp is valid even when that pose borders a gap.
-    on_stamp = (query == t0) | (query == t1)
-    ok = (query >= stamps_gt[0]) & (query <= stamps_gt[-1]) & ((t1 - t0 <= max_gap) | on_stamp)
-    if not np.any(ok):
-        return out
-    alpha = ((query[ok] - t0[ok]) / (t1[ok] - t0[ok]))[:, None]
-    p0, p1 = T_world_cam_gt[k[ok], :3, 3], T_world_cam_gt[k[ok] + 1, :3, 3]
-    slerp = Slerp(stamps_gt, Rotation.from_matrix(T_world_cam_gt[:, :3, :3]))
-    T = np.zeros((int(ok.sum()), 4, 4))
-    T[:, :3, :3] = slerp(query[ok]).as_matrix()
-    T[:, :3, 3] = (1.0 - alpha) * p0 + alpha * p1
-    T[:, 3, 3] = 1.0
-    out[ok] = T
-    return out
 
 
 def estimate_stream_offset(stamps_a, stamps_b, max_difference: float = 0.02) -> float:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .association import interpolate_poses
+from ..trajectory import interpolate_poses
 
 __all__ = ["PosedSequence", "ReframedSequence", "reframed"]
 

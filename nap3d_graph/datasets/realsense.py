@@ -244,7 +244,7 @@ class RealSenseRecording(GroundTruthLookup):
     def _attach_ground_truth(self, gt_path: Path) -> None:
         from nap3d_graph.trajectory import read_tum_trajectory
 
-        from .association import interpolate_poses
+        from ..trajectory import interpolate_poses
 
         if not gt_path.is_file():
             raise DatasetError(f"{gt_path}: no such ground-truth file")

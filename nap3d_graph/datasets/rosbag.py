@@ -389,7 +389,7 @@ class RosbagSequence(GroundTruthLookup):
 
     def _attach_ground_truth(self) -> None:
         """Camera poses from tf or from a pose topic, interpolated at the colour stamps."""
-        from .association import interpolate_poses
+        from ..trajectory import interpolate_poses
 
         raw = self._gt_from_tf() if self.topics.gt == "/tf" else self._gt_from_poses() if self._poses else None
         if raw is None:

@@ -14,10 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.datasets.association import interpolate_poses
 from nap3d_graph.datasets.tum import TumSequence
 from nap3d_graph.errors import DatasetError
-from nap3d_graph.trajectory import read_tum_trajectory
+from nap3d_graph.trajectory import interpolate_poses, read_tum_trajectory
 
 __all__ = ["SimSequence"]
 

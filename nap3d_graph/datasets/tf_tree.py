@@ -15,7 +15,7 @@ import numpy as np
 
 from nap3d_graph.errors import DatasetError
 
-from .association import GT_MAX_GAP_S, interpolate_poses
+from ..trajectory import GT_MAX_GAP_S, interpolate_poses
 
 __all__ = ["TfTree"]
 

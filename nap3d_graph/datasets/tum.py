@@ -28,14 +28,8 @@ from nap3d_graph.textfiles import data_lines, parse_float
 from nap3d_graph.trajectory import read_tum_trajectory
 
 from ..camera import CameraError, Intrinsics, RGBDFrame
-from .association import (
-    ASSOCIATION_METHODS,
-    GT_MAX_GAP_S,
-    GroundTruthLookup,
-    associate,
-    interpolate_poses,
-    pair_streams,
-)
+from ..trajectory import GT_MAX_GAP_S, interpolate_poses
+from .association import ASSOCIATION_METHODS, GroundTruthLookup, associate, pair_streams
 from .depth_unit import checked_depth_scale
 from .frames import frame_index, parse_frame_range
 

@@ -37,6 +37,7 @@ from nap3d_graph.camera import Intrinsics, RGBDFrame
 from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.rolling_shutter import at_one_instant
 
 from .folder import MapFolder, load_map_info
 from .retrieval import Vocabulary, shared_matches, similarities, vlad
@@ -403,11 +404,9 @@ class Relocaliser:
         return sorted(rivals, key=lambda r: -r["inliers"])
 
     def _at_one_instant(self, frame: RGBDFrame, twist: np.ndarray | None) -> tuple[RGBDFrame, object, np.ndarray]:
-        """``(frame, motion, shift)`` of :func:`~nap3d_graph.run.keyframe.at_one_instant` with
+        """``(frame, motion, shift)`` of :func:`~nap3d_graph.nap3d.rolling_shutter.at_one_instant` with
         the field's capture timing; the frame as it is, None and the identity without a twist
         or a capture timing."""
-        from nap3d_graph.run.keyframe import at_one_instant
-
         if twist is None or not np.all(np.isfinite(twist)) or self.timing is None:
             return frame, None, np.eye(4)
         return at_one_instant(frame, self.timing, np.asarray(twist, dtype=float), float(self.timing.readout_s), 1.0)

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.conventions import inv_T
-from nap3d_graph.run.report import FigureReport
+from nap3d_graph.figure_report import FigureReport
 from nap3d_graph.textfiles import write_json_atomic
 
 from .depth_check import DEPTH_OFFSET_BAD_PER_M, DEPTH_SHAPE_BAD

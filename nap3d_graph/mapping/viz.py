@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.fields.submaps import SUBMAPS_INDEX, Submap
-from nap3d_graph.run.viz import import_rerun
+from nap3d_graph.rerun_sdk import import_rerun
 from nap3d_graph.trajectory import read_tum_trajectory
 
 from .folder import MapFolder

@@ -21,11 +21,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..camera import Intrinsics, RenderedView, RGBDFrame
-from ..conventions import inv_T
+from ..conventions import exp_se3, inv_T, log_se3
 from ..nap3d.align import align_views
 from ..nap3d.config import AlignConfig
 from ..nap3d.correct import at_width, real_features
 from ..nap3d.matching import Features
+from ..trajectory import interpolate_poses
 
 __all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
            "bridge_pose_gaps"]
@@ -112,10 +113,6 @@ def bridge_pose_gaps(stamps: np.ndarray, T_world_cam: np.ndarray) -> tuple[np.nd
     at the constant velocity of the two nearest valid poses (held still when there is only
     one). Raises ``ValueError`` when no pose is valid.
     """
-    from nap3d_graph.datasets.association import interpolate_poses
-
-    from ..conventions import exp_se3, log_se3
-
     T_world_cam = np.array(T_world_cam, dtype=float)
     missing = ~np.all(np.isfinite(T_world_cam), axis=(1, 2))
     valid = np.flatnonzero(~missing)

@@ -16,13 +16,18 @@ points 2 cm against the top rows' over a 30 ms readout, which a rigid fit cannot
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..camera import Intrinsics, project
+from ..camera import Intrinsics, RGBDFrame, project, warp_depth
+from ..conventions import exp_se3
 from .correspondences import Correspondences
 
-__all__ = ["RowMotion", "to_mid_readout", "exp_apply"]
+if TYPE_CHECKING:
+    from ..datasets.depth_timing import CaptureTiming
+
+__all__ = ["RowMotion", "to_mid_readout", "exp_apply", "at_colour_time", "at_one_instant"]
 
 
 @dataclass(frozen=True)
@@ -73,3 +78,29 @@ def exp_apply(xi: np.ndarray, p: np.ndarray) -> np.ndarray:
     wv = np.cross(w, v)
     rotated = p + a[:, None] * wp + b[:, None] * np.cross(w, wp)
     return rotated + v + b[:, None] * wv + c[:, None] * np.cross(w, wv)
+
+
+def at_colour_time(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, depth_scale: float):
+    """``(frame, twist_used)``: the frame with its depth (scaled by ``depth_scale``) moved to
+    its colour's capture instant along ``twist``; as it is (only scaled) and ``None`` when the
+    capture timing, the twist or the depth stamp is unknown."""
+    if timing is None or twist is None or frame.depth_timestamp is None:
+        if depth_scale != 1.0:
+            frame = frame.with_depth(frame.depth_m * np.float32(depth_scale))
+        return frame, None
+    dt = (frame.depth_timestamp + timing.depth_offset_s) - (frame.timestamp + timing.colour_offset_s)
+    depth = warp_depth(frame.depth_m, frame.intrinsics, exp_se3(twist * dt), depth_scale)
+    return frame.with_depth(depth), twist
+
+
+def at_one_instant(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, readout_s: float,
+                   depth_scale: float) -> tuple[RGBDFrame, RowMotion | None, np.ndarray]:
+    """What aligning a moving camera's frame as one instant needs: ``(frame, motion, shift)``,
+    the frame with its depth at its colour's instant (:func:`at_colour_time`), the
+    :class:`RowMotion` its alignment undoes (None: a global shutter or no twist) and the (4, 4)
+    that moves a pose measured at the colour's instant to the frame's stamp (the identity when
+    the depth was not moved)."""
+    frame, used = at_colour_time(frame, timing, twist, depth_scale)
+    motion = RowMotion(twist, readout_s) if readout_s > 0 and twist is not None else None
+    shift = exp_se3(-used * timing.colour_offset_s) if used is not None and timing is not None else np.eye(4)
+    return frame, motion, shift

@@ -19,16 +19,16 @@ from typing import Any
 
 import numpy as np
 
-from nap3d_graph.camera import Intrinsics, RGBDFrame, warp_depth
-from nap3d_graph.conventions import exp_se3, pose_error
+from nap3d_graph.camera import Intrinsics, RGBDFrame
+from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.nap3d.correct import PreparedView, correct_pose, prepare_view, prepare_view_beside, real_features
-from nap3d_graph.nap3d.rolling_shutter import RowMotion
+from nap3d_graph.nap3d.rolling_shutter import at_one_instant
 from nap3d_graph.results import Correction
 
 log = logging.getLogger(__name__)
 
-__all__ = ["KeyframeJob", "measure_keyframe", "at_colour_time", "at_one_instant", "CorrectionWorker",
+__all__ = ["KeyframeJob", "measure_keyframe", "CorrectionWorker",
            "DepthScaleTracker"]
 
 
@@ -57,32 +57,6 @@ class KeyframeJob:
     prepared: Any = None
     feats_real: Any = None
     fit_intrinsics: bool = True
-
-
-def at_colour_time(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, depth_scale: float):
-    """``(frame, twist_used)``: the frame with its depth (scaled by ``depth_scale``) moved to
-    its colour's capture instant along ``twist``; as it is (only scaled) and ``None`` when the
-    capture timing, the twist or the depth stamp is unknown."""
-    if timing is None or twist is None or frame.depth_timestamp is None:
-        if depth_scale != 1.0:
-            frame = frame.with_depth(frame.depth_m * np.float32(depth_scale))
-        return frame, None
-    dt = (frame.depth_timestamp + timing.depth_offset_s) - (frame.timestamp + timing.colour_offset_s)
-    depth = warp_depth(frame.depth_m, frame.intrinsics, exp_se3(twist * dt), depth_scale)
-    return frame.with_depth(depth), twist
-
-
-def at_one_instant(frame: RGBDFrame, timing: CaptureTiming | None, twist: np.ndarray | None, readout_s: float,
-                   depth_scale: float) -> tuple[RGBDFrame, RowMotion | None, np.ndarray]:
-    """What aligning a moving camera's frame as one instant needs: ``(frame, motion, shift)``,
-    the frame with its depth at its colour's instant (:func:`at_colour_time`), the
-    :class:`RowMotion` its alignment undoes (None: a global shutter or no twist) and the (4, 4)
-    that moves a pose measured at the colour's instant to the frame's stamp (the identity when
-    the depth was not moved)."""
-    frame, used = at_colour_time(frame, timing, twist, depth_scale)
-    motion = RowMotion(twist, readout_s) if readout_s > 0 and twist is not None else None
-    shift = exp_se3(-used * timing.colour_offset_s) if used is not None and timing is not None else np.eye(4)
-    return frame, motion, shift
 
 
 def measure_keyframe(job: KeyframeJob, field, config) -> Correction:

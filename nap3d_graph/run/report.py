@@ -29,10 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.factors.gate import chi2_threshold
+from nap3d_graph.figure_report import FigureReport
 
 from .records import refusal_kind
 
-__all__ = ["FigureReport", "RunReport", "run_report", "write_run_report", "ACCEPTED_SHARE_BAD", "COVERAGE_BAD"]
+__all__ = ["RunReport", "run_report", "write_run_report", "ACCEPTED_SHARE_BAD", "COVERAGE_BAD"]
 
 log = logging.getLogger(__name__)
 
@@ -69,32 +70,6 @@ def consistency(d2: np.ndarray) -> tuple[str, str, bool | None]:
         value += (f": too confident, the covariances about {median / _median_chi2_6():.0f}x smaller than the "
                   "corrections' errors")
     return value, line, low <= median <= high
-
-
-class FigureReport:
-    """Figures against their bad lines (``rows``: figure, value, good when, verdict; ``bad``:
-    the figures past their line), written as ``report.md``. The map's report is one too."""
-
-    def __init__(self):
-        self.rows: list[tuple[str, str, str, str]] = []
-        self.bad: list[str] = []
-
-    def add(self, figure: str, value: str, good: str, ok: bool | None) -> None:
-        self.rows.append((figure, value, good, "n/a" if ok is None else ("good" if ok else "BAD")))
-        if ok is False:
-            self.bad.append(figure)
-
-    def write(self, path: Path, title: str, picture: str) -> None:
-        """``path`` (report.md): ``title``, the table, what to look at, then ``picture``
-        (a markdown image line)."""
-        lines = [f"# {title}", "",
-                 "Figures that need no ground truth (what each means and what a bad value looks like: "
-                 "docs/usage/7-own-camera.md, \"Reading the reports\").", "",
-                 "| figure | value | good when | verdict |", "|---|---|---|---|"]
-        lines += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in self.rows]
-        lines += ["", ("**Look at:** " + "; ".join(self.bad) + ".") if self.bad else "Nothing is past its bad line.",
-                  "", picture, ""]
-        Path(path).write_text("\n".join(lines))
 
 
 class RunReport(FigureReport):

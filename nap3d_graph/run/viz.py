@@ -18,13 +18,12 @@ At the end of the run, ``world/trajectory/{odometry,causal,smoothed,truth}`` as 
 from __future__ import annotations
 
 import logging
-import os
-import sys
-from pathlib import Path
 
 import numpy as np
 
-__all__ = ["RunRecorder", "VizError", "import_rerun", "check_viz_target", "keyframe_entries"]
+from nap3d_graph.rerun_sdk import import_rerun
+
+__all__ = ["RunRecorder", "keyframe_entries"]
 
 log = logging.getLogger(__name__)
 
@@ -32,35 +31,6 @@ COLOURS = {"odometry": (230, 159, 0), "causal": (0, 114, 178), "smoothed": (0, 1
            "accepted": (0, 158, 115), "refused": (213, 94, 0)}
 JPEG_QUALITY = 90
 SIGMAS = 3.0  # ellipsoids drawn at 3 sigma: a 1-sigma centimetre is invisible beside a room
-
-
-class VizError(RuntimeError):
-    """The visualisation cannot be made (no rerun-sdk, no display); one line."""
-
-
-def import_rerun():
-    try:
-        import rerun as rr
-    except ImportError:
-        raise VizError("`viz` needs rerun-sdk: pip install 'nap3d-graph[viz]' (or pip install rerun-sdk)") from None
-    return rr
-
-
-def check_viz_target(target: str) -> str:
-    """'spawn' (a display is needed) or a path ending in .rrd whose folder exists; checked
-    before the run, so a bad target costs nothing."""
-    import_rerun()
-    if target == "spawn":
-        if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-            raise VizError("`viz=spawn`: no display here ($DISPLAY unset); write `viz=run.rrd` and open it where "
-                           "there is one with: rerun run.rrd")
-        return target
-    path = Path(target)
-    if path.suffix != ".rrd":
-        raise VizError(f"`viz={target}`: a recording file ends in .rrd (or give 'spawn')")
-    if not path.parent.is_dir():
-        raise VizError(f"`viz={target}`: its folder {path.parent} does not exist")
-    return target
 
 
 class RunRecorder:

@@ -224,9 +224,8 @@ def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) ->
 
 def _eval_k(sequence, field, folder: Path, config: StudyConfig) -> dict:
     from nap3d_graph.datasets.depth_timing import resolve_capture_timing
+    from nap3d_graph.evaluation.eval_k import EvalKConfig, run_eval_k
     from nap3d_graph.nap3d.config import AlignConfig
-
-    from .eval_k import EvalKConfig, run_eval_k
 
     cells = {} if config.eval_k_full else {"blur_sigmas": (0.0,), "intrinsics_noise": {"CLEAN": (1.0, 0.0)}}
     k_config = EvalKConfig(scenarios=config.eval_k_scenarios, seed=config.seed, timing=resolve_capture_timing(field, sequence)[0],
