@@ -71,7 +71,7 @@ def workers_table() -> str:
 def floor_map_table() -> str:
     floors = read(MAP_FILE).get("floors") or {}
     one = floors.get("1") or {}
-    rows = ["| rooms | survey frames | survey ATE, camera alone | map: s per frame (against one "
+    rows = ["| rooms | survey frames (kept by the map: its odometry's longest tracked stretch) | survey ATE of the kept frames, camera alone | map: s per frame (against one "
             "room); peak GB of one process (against one room), of all together | held-out PSNR per room, dB "
             "(frames) | traverse from its own start: ATE (max), odometry alone; placed at frame; peak GB |",
             "|---|---|---|---|---|---|"]
@@ -92,7 +92,8 @@ def floor_map_table() -> str:
                    f"({cm(run.get('max_error_m'))}), {cm(run.get('odometry_ate_m'))}; "
                    f"{run.get('placed_at_frame')}" if run.get("placed_at_frame") is not None
                    else f"**never placed** in its {f['traverse_frames']} frames ({f['traverse_m']:.1f} m): no tied ATE")
-        rows.append(f"| {rooms} | {f['survey_frames']} | {cm(m.get('survey_ate_m'))} | "
+        kept = f" ({m['kept_frames']} kept)" if m.get("kept_frames") is not None else ""
+        rows.append(f"| {rooms} | {f['survey_frames']}{kept} | {cm(m.get('survey_ate_m'))} | "
                     f"{m['stage_seconds_per_frame']:.2f}{against('stage_seconds_per_frame')}; {m['peak_memory_gb']:.2f}"
                     f"{against('peak_memory_gb')}, {_s(m.get('peak_memory_all_processes_gb'))}"
                     f"{against('peak_memory_all_processes_gb')} | {psnr} | {crossed}; {run['peak_memory_gb']:.2f}"
