@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.camera import Intrinsics, RenderedView
+from nap3d_graph.camera import Intrinsics, RenderedView, backproject
 from nap3d_graph.textfiles import write_json_atomic
 
 __all__ = ["SubmapSettings", "Submap", "SubmapField", "FramedField", "SUBMAPS_INDEX", "load_submap_field", "write_submaps_index"]
@@ -164,16 +164,8 @@ class SubmapField:
     name = "submaps"
 
     def __init__(self, fields: list, submaps: list[Submap], settings: SubmapSettings | None = None):
-        if not fields or len(fields) != len(submaps):
-            raise ValueError(f"need one field per submap, got {len(fields)} fields for {len(submaps)} submaps")
-        self.submaps = list(submaps)
-        self.settings = settings or SubmapSettings()
-        self._loaders = [(lambda f=f: f) for f in fields]
-        self._loaded: OrderedDict[int, object] = OrderedDict()
-        self._bounds = [np.asarray(f.bounds, dtype=float) for f in fields]
-        self.meta = _merged_meta([getattr(f, "meta", {}) for f in fields], len(fields))
-        self.last_submap: int | None = None
-        self.loads = 0
+        self._set_up([(lambda f=f: f) for f in fields], [getattr(f, "meta", {}) for f in fields],
+                     [f.bounds for f in fields], submaps, settings)
 
     @classmethod
     def lazy(cls, loaders: list, submaps: list[Submap], settings: SubmapSettings | None = None) -> "SubmapField":
@@ -183,16 +175,21 @@ class SubmapField:
         metas, bounds = [], []
         for load in loaders:
             field = load()
-            metas.append(dict(getattr(field, "meta", {}) or {}))
-            bounds.append(np.asarray(field.bounds, dtype=float))
+            metas.append(getattr(field, "meta", {}))
+            bounds.append(field.bounds)
             del field
         self = cls.__new__(cls)
-        if not loaders or len(loaders) != len(submaps):
-            raise ValueError(f"need one field per submap, got {len(loaders)} for {len(submaps)} submaps")
-        self.submaps, self.settings = list(submaps), settings or SubmapSettings()
-        self._loaders, self._loaded, self._bounds = list(loaders), OrderedDict(), bounds
-        self.meta, self.last_submap, self.loads = _merged_meta(metas, len(loaders)), None, 0
+        self._set_up(loaders, metas, bounds, submaps, settings)
         return self
+
+    def _set_up(self, loaders: list, metas: list, bounds: list, submaps: list[Submap],
+                settings: SubmapSettings | None) -> None:
+        if not loaders or len(loaders) != len(submaps):
+            raise ValueError(f"need one field per submap, got {len(loaders)} fields for {len(submaps)} submaps")
+        self.submaps, self.settings = list(submaps), settings or SubmapSettings()
+        self._loaders, self._loaded = list(loaders), OrderedDict()
+        self._bounds = [np.asarray(b, dtype=float) for b in bounds]
+        self.meta, self.last_submap = _merged_meta(metas, len(loaders)), None
 
     def field_of(self, k: int):
         """Submap ``k``'s field, read if it is not loaded; the least recently used one is let go
@@ -201,7 +198,6 @@ class SubmapField:
             self._loaded.move_to_end(k)
             return self._loaded[k]
         field = self._loaders[k]()
-        self.loads += 1
         self._loaded[k] = field
         while len(self._loaded) > self.settings.resident:
             self._loaded.popitem(last=False)
@@ -251,7 +247,7 @@ class SubmapField:
             if empty.mean() <= EMPTY_SHARE_TO_FILL:
                 break
             v, u = np.nonzero(empty)
-            ray = np.stack([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, np.ones(len(u))], 1)
+            ray = backproject(np.stack([u, v], 1), np.ones(len(u)), intrinsics)
             ray = (ray / np.linalg.norm(ray, axis=1, keepdims=True)).mean(axis=0)
             other = self.submap_holding(T[:3, 3] + T[:3, :3] @ ray * (far_m / np.linalg.norm(ray)))
             if other in tried:

@@ -351,7 +351,7 @@ def load_edges(path: Path) -> tuple[list[Edge], list[Loop], list[PairMatches]]:
         # Each d[key] reads the whole array from the archive again: read each once (a slice of
         # a fresh read per pair kept every pair's own copy alive: 7 GB for a 3-room floor).
         uv_a, uv_b, z_a, z_b = (d[k] for k in ("pm_uv_a", "pm_uv_b", "pm_z_a", "pm_z_b"))
-        pairs = [PairMatches(int(a), int(b), uv_a[s:e].copy(), uv_b[s:e].copy(), z_a[s:e].copy(), z_b[s:e].copy())
+        pairs = [PairMatches(int(a), int(b), uv_a[s:e], uv_b[s:e], z_a[s:e], z_b[s:e])
                  for (a, b), s, e in zip(d["pm_ab"], bounds[:-1], bounds[1:])]
         owners = d["pm_owner"]
         chain = [Edge(int(a), int(b), T, c, str(k)) for (a, b), T, c, k in
