@@ -9,7 +9,14 @@ map score themselves in the ground truth's frame through that one alignment.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+from nap3d_graph.datasets import open_sequence
+from nap3d_graph.fields.submaps import SubmapSettings
+from nap3d_graph.mapping.viz import write_map_recording
+from nap3d_graph.pools import make_pool
+from nap3d_graph.rerun_sdk import VizError, check_viz_target
 
 from .common import (
     RUN_MATCHER,
@@ -98,8 +105,7 @@ def _add_floor_arguments(p) -> None:
 
 
 def run(args) -> int:
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.submaps import SubmapSettings
+    # Lazy: the map's stages import torch and GTSAM, which every command's --help would pay for.
     from nap3d_graph.mapping.build import MapSettings, build_map
 
     from .sources import chosen_matcher, warn_guessed_camera
@@ -121,8 +127,6 @@ def run(args) -> int:
                            refine_rounds=args.refine_rounds, seed=args.seed,
                            submaps=SubmapSettings(max_frames=args.submap_frames))
     if args.viz is not None:
-        from nap3d_graph.rerun_sdk import VizError, check_viz_target
-
         try:
             check_viz_target(args.viz)  # before the work: a bad target costs nothing
         except VizError as exc:
@@ -141,8 +145,6 @@ def run(args) -> int:
         pool.close()
     print(summary(result.info, args.out))
     if args.viz is not None:
-        from nap3d_graph.mapping.viz import write_map_recording
-
         print(f"rerun recording: {write_map_recording(args.out, args.viz)} (open it with: rerun {args.viz})")
     return 0
 
@@ -170,12 +172,6 @@ def _extend(args, sequence, settings, pool) -> int:
 def _pool(args):
     """Where submap fields train and many loop candidates are verified: Ray with --ray-address,
     else processes on this machine (started only when there is work for them)."""
-    import os
-
-    from nap3d_graph.pools import make_pool
-
-    from .common import UsageError
-
     workers = args.workers or max(1, os.cpu_count() or 1)
     try:
         return make_pool(workers, args.ray_address)

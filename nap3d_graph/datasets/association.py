@@ -75,32 +75,47 @@ def _optimal_pairs(a, b, ia, ib, diff, max_difference: float) -> list[tuple[int,
     """
     if len(ia) == 0:
         return []
-    # Rank b in time order; each a's candidates are a contiguous run of b ranks.
+    order_b, ia, rb, cost = _candidates_in_scan_order(a, b, ia, ib, diff, max_difference)
+    best, node, pair_a, pair_b, parent = _scan(ia.tolist(), rb.tolist(), cost.tolist(), len(b),
+                                               float(min(len(a), len(b)) + 1))
+    pairs, m = [], node[max(range(len(b) + 1), key=best.__getitem__)]
+    while m >= 0:  # back along the winning matching's pairs
+        pairs.append((pair_a[m], int(order_b[pair_b[m]])))
+        m = parent[m]
+    return pairs
+
+
+def _candidates_in_scan_order(a, b, ia, ib, diff, max_difference: float):
+    """``(order_b, ia, rb, cost)``: b's stamps in time order (``order_b``: rank -> index), and
+    the candidates with a in time order (ties in index order), each a's candidates by
+    increasing b rank ``rb``, their cost ``|a - b| / max_difference`` in [0, 1)."""
     order_b = np.argsort(b, kind="stable")
     rank_b = np.empty(len(b), dtype=int)
     rank_b[order_b] = np.arange(len(b))
     rb = rank_b[ib]
-    # Process a in time order (ties in index order), its candidates by increasing b rank.
     order = np.lexsort((rb, ia, a[ia]))
-    ia, rb, cost = ia[order], rb[order], diff[order] / max_difference  # cost in [0, 1)
-    # Score = pairs * big - total cost: with big above any total cost (< min(Na, Nb)),
-    # one more pair always wins, and among equally many pairs the cheaper total does.
-    big = float(min(len(a), len(b)) + 1)
-    # best[p]: score of the best matching so far whose last used b has rank p - 1 (p = 0:
-    # none used); node[p] its last pair. Pairs form a tree of (i_a, i_b, parent) nodes.
-    n_b = len(b)
+    return order_b, ia[order], rb[order], diff[order] / max_difference
+
+
+def _scan(ia: list, rb: list, cost: list, n_b: int, big: float):
+    """The order-preserving scan of :func:`_optimal_pairs` over the candidates (in scan order).
+    Score = pairs * ``big`` - total cost: with ``big`` above any total cost, one more pair always
+    wins, and among equally many pairs the cheaper total does. Returns ``best[p]`` (the best
+    score whose last used b has rank p - 1; p = 0: none), ``node[p]`` (its last pair) and the
+    pairs' tree: ``pair_a``, ``pair_b`` (b's rank), ``parent``."""
     best = [-math.inf] * (n_b + 1)
     node = [-1] * (n_b + 1)
     best[0] = 0.0
-    pair_a, pair_b, parent = [], [], []
+    pair_a: list[int] = []
+    pair_b: list[int] = []
+    parent: list[int] = []
     done, done_best, done_node = 0, -math.inf, -1  # running max over best[:done], final
-    ia_l, rb_l, cost_l = ia.tolist(), rb.tolist(), cost.tolist()
-    start, n = 0, len(ia_l)
+    start, n = 0, len(ia)
     while start < n:
         stop = start
-        while stop < n and ia_l[stop] == ia_l[start]:
+        while stop < n and ia[stop] == ia[start]:
             stop += 1
-        i, lo = ia_l[start], rb_l[start]
+        i, lo = ia[start], rb[start]
         # Later stamps only write at positions > lo, so best[:lo + 1] is final: fold it.
         while done <= lo:
             if best[done] > done_best:
@@ -111,26 +126,21 @@ def _optimal_pairs(a, b, ia, ib, diff, max_difference: float) -> list[tuple[int,
         run_best, run_node, p = done_best, done_node, done
         scored = []
         for t in range(start, stop):
-            k = rb_l[t]
+            k = rb[t]
             while p <= k:
                 if best[p] > run_best:
                     run_best, run_node = best[p], node[p]
                 p += 1
-            scored.append((k, run_best + big - cost_l[t], run_node))
+            scored.append((k, run_best + big - cost[t], run_node))
         for k, score, parent_node in scored:
             if score > best[k + 1]:
                 best[k + 1] = score
                 node[k + 1] = len(pair_a)
                 pair_a.append(i)
-                pair_b.append(int(order_b[k]))
+                pair_b.append(k)
                 parent.append(parent_node)
         start = stop
-    top = max(range(n_b + 1), key=best.__getitem__)
-    pairs, m = [], node[top]
-    while m >= 0:
-        pairs.append((pair_a[m], pair_b[m]))
-        m = parent[m]
-    return pairs
+    return best, node, pair_a, pair_b, parent
 
 
 def associate(
