@@ -74,9 +74,10 @@ def floor_survey(building: Building, rng: np.random.Generator, duration_s: float
         u = np.linspace(0.0, 1.0, n)
         loop = np.column_stack([centre[0] + rx * np.cos(a), centre[1] + ry * np.sin(a),
                                 heights[0] + (heights[1] - heights[0]) * 0.5 * (1 - np.cos(2 * np.pi * u)),
-                                # Outward, swinging +-80 deg; down to -35 deg so the floor is seen too.
+                                # Outward, swinging +-80 deg; down 2 to 34 deg (positive pitch is down)
+                                # so the floor and the furniture are seen, not the blank upper walls.
                                 a + np.radians(80.0) * np.array([sweep(3.0 * v) for v in a]),
-                                np.radians(-18.0) + np.radians(16.0) * np.sin(1.7 * a), np.zeros(n)])
+                                np.radians(18.0) + np.radians(16.0) * np.sin(1.7 * a), np.zeros(n)])
         parts.append(loop)
         if r + 1 < building.rooms:  # through the door into the next room, looking ahead
             nxt = building.room_design(r + 1).size_m[0]
@@ -86,7 +87,7 @@ def floor_survey(building: Building, rng: np.random.Generator, duration_s: float
             yaw_end = loop[-1, 3]
             # Ahead (+x) on the branch of the angle nearest to where the loop left it.
             ahead = 2 * np.pi * np.round(yaw_end / (2 * np.pi))
-            parts.append(np.column_stack([line, np.full(len(line), ahead), np.full(len(line), np.radians(-8.0)),
+            parts.append(np.column_stack([line, np.full(len(line), ahead), np.full(len(line), np.radians(8.0)),
                                           np.zeros(len(line))]))
     samples = np.concatenate(parts)
     samples[:, 3] = np.unwrap(samples[:, 3])

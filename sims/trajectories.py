@@ -27,11 +27,13 @@ _R_LEVEL = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 def R_world_cam_from_angles(yaw: float, pitch: float, roll: float) -> np.ndarray:
-    """Camera orientation: heading ``yaw`` about world +Z, ``pitch`` up (+) about the
-    camera's x axis, ``roll`` about its optical axis. Radians."""
+    """Camera orientation: heading ``yaw`` about world +Z, ``pitch`` about the camera's x axis
+    (positive tilts the optical axis *down*), ``roll`` about its optical axis. Radians."""
     cy, sy = np.cos(yaw), np.sin(yaw)
     Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
-    # Positive pitch tilts the optical axis up, i.e. a negative rotation about x_cam (y down).
+    # A rotation of -pitch about x_cam (y down): positive pitch tilts the optical axis down. (Its
+    # first docstring said up; the single-room paths were written to that and look up, see
+    # mapping_trajectory. Kept as it is: every simulated recording measured so far depends on it.)
     return Rz @ _R_LEVEL @ exp_so3(np.array([-pitch, 0.0, 0.0])) @ exp_so3(np.array([0.0, 0.0, roll]))
 
 
@@ -140,7 +142,8 @@ def mapping_trajectory(scene: Scene, rng: np.random.Generator, duration_s: float
         a = angle_of(t)
         # Outward, swinging +-80 deg so walls, furniture and the far side are all seen.
         yaw = a + np.radians(80.0) * sweep(3.0 * a)
-        # Down to -35 deg so the survey also sees the floor a traversal looks across.
+        # Up 2 to 34 deg (written to look down, with the sign the convention's first docstring
+        # gave; kept, since every single-room figure was measured on this path).
         pitch = np.radians(-18.0) + np.radians(16.0) * np.sin(1.7 * a)
         return (yaw, pitch, 0.0)
 
