@@ -6,8 +6,8 @@
   the next room, looking ahead. It comes back to places within a room (loops a map can close)
   but never to an earlier room.
 * ``traverse``: a walk through the middle of the rooms from ``start_room`` to ``end_room``
-  (either way along the row), through every door between, never coming back; it looks ahead
-  with a gentle yaw sweep. ``look_aside_deg``: it starts looking this far to its left at the
+  (either way along the row), through every door between, never coming back; it looks ahead,
+  10 deg down, with a gentle yaw sweep. ``look_aside_deg``: it starts looking this far to its left at the
   side wall and turns ahead over the first metre, so a start in a twin room first sees only
   what the twin has too.
 
@@ -122,6 +122,8 @@ def floor_traverse(building: Building, rng: np.random.Generator, duration_s: flo
     height = float(rng.uniform(1.2, 1.5))
     samples = np.column_stack([xs, y, height + 0.05 * np.array([bob(s) for s in travelled]),
                                heading + aside + np.radians(30.0) * np.array([yaw_sweep(0.8 * s) for s in travelled]),
-                               np.radians(6.0) * np.array([bob(0.9 * s + 1.0) for s in travelled]),
+                               # 10 deg down (positive pitch is down), as a hand-held or robot camera is
+                               # held to see the floor ahead, bobbing 6 deg.
+                               np.radians(10.0) + np.radians(6.0) * np.array([bob(0.9 * s + 1.0) for s in travelled]),
                                np.radians(3.0) * np.array([bob(0.5 * s + 2.0) for s in travelled])])
     return _timed(samples, duration_s, "traverse")

@@ -12,9 +12,10 @@ import pytest
 
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
 from nap3d_graph.mapping.build import MapSettings, build_map, place_frames
+from nap3d_graph.mapping.loops import LoopSettings
 from nap3d_graph.mapping.pose_graph import Edge, solve
 from nap3d_graph.mapping.start import PlacementSettings
-from nap3d_graph.mapping.survey import tracked_segment
+from nap3d_graph.mapping.survey import joined_run, lost_frames, tracked_segment, tracked_segments
 
 
 class _GroundTruthWatch:
@@ -333,6 +334,75 @@ def test_tracked_segment_keeps_the_longest_stretch():
     ok = np.ones(20, dtype=bool)
     ok[[2, 3, 4]] = False
     assert tracked_segment(ok, max_guesses=3) == (4, 20)
+
+
+def test_stretches_either_side_of_a_loss_join_only_when_loops_tie_them():
+    ok = np.ones(30, dtype=bool)
+    ok[[10, 11, 12]] = False  # lost: frames 10-11 in no stretch, the next starts at 12
+    ok[[20, 21, 22, 23]] = False
+    segments = tracked_segments(ok, max_guesses=3)
+    assert segments == [(0, 10), (12, 20), (23, 30)]
+    keys = np.array([0, 5, 9, 12, 16, 19, 23, 27, 29])  # three keyframes a stretch
+    assert joined_run(segments, keys, [], 2) == (0, 2)  # no loops: the longest stretch alone
+    # Two loops tie stretches 0 and 1: joined; one loop between 1 and 2 is not enough.
+    assert joined_run(segments, keys, [(1, 4), (2, 3), (5, 6)], 2) == (0, 5)
+    # A loop from stretch 0 to stretch 2 does not tie neighbours: what joins must stay joined
+    # once the other stretches are dropped (a resumed map keeps the same keyframes).
+    assert joined_run(segments, keys, [(0, 7), (1, 8), (3, 7)], 2) == (0, 2)
+    assert joined_run(segments, keys, [(1, 4), (2, 3), (4, 6), (5, 7)], 2) == (0, 8)
+    assert lost_frames(segments, 0, 30) == [(10, 12), (20, 23)]
+    assert lost_frames(segments, 12, 30) == [(20, 23)]
+
+
+class _CoveredFrames:
+    """A recording whose camera is covered (black colour, no depth) for ``frames``: the
+    odometry loses it there, as on a blank wall."""
+
+    def __init__(self, inner, frames: range):
+        self.inner, self.frames = inner, frames
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def __len__(self):
+        return len(self.inner)
+
+    def __getitem__(self, i):
+        from dataclasses import replace
+
+        frame = self.inner[i]
+        if i in self.frames:
+            frame = replace(frame, rgb=np.zeros_like(frame.rgb), depth_m=np.zeros_like(frame.depth_m))
+        return frame
+
+
+def test_a_survey_that_loses_the_camera_is_joined_again_by_its_loops(sim_walk, tmp_path):
+    """Issue 61: a survey covered for five frames in its middle is mapped whole: the stretches
+    either side are joined by the loops between them, the covered frames are never placed
+    and every other frame lies where the truth puts it."""
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    covered = range(20, 25)
+    survey = _CoveredFrames(open_sequence(sim_walk(48, fps=15.0, seed=0, width=320, height=240, path="mapping",
+                                                   scene_seed=3)), covered)
+    settings = MapSettings(matcher="sift", keyframe_every=2, model="splat")
+    result = build_map(survey, tmp_path / "map", settings, progress=False, build_field_stage=False, mesh=False)
+    segment = result.info["segment"]
+    assert segment["losses"] == 1 and (segment["start"], segment["stop"]) == (0, 48), segment
+    (gap_start, gap_stop), = segment["rejoined"]
+    assert gap_start <= covered.start and covered.stop - 1 <= gap_stop <= covered.stop, segment
+    stamps, _ = read_tum_trajectory(result.folder / "poses.txt")
+    assert len(stamps) == 48 - (gap_stop - gap_start)
+    assert not set(np.round(stamps, 6)) & {round(float(survey.timestamps[i]), 6) for i in range(gap_start, gap_stop)}
+    ate = json.loads((result.folder / "survey_ate.json").read_text())
+    assert ate["map"]["rmse_m"] < 0.01, ate
+    # Without loops enough to join them, the map keeps the longer stretch alone, as before.
+    alone = build_map(survey, tmp_path / "alone", MapSettings(matcher="sift", keyframe_every=2, model="splat",
+                                                               loops=LoopSettings(join_loops=10**6)),
+                      progress=False, build_field_stage=False, mesh=False)
+    kept = alone.info["segment"]
+    assert kept["rejoined"] == [] and kept["dropped_frames"] >= 20, kept
 
 
 @pytest.mark.slow

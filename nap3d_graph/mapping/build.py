@@ -5,11 +5,12 @@ stage resumes from the last finished one; ``map.json`` records the settings, and
 made with other settings is refused rather than mixed):
 
 1. ``odometry.npz``: frame-to-frame odometry from the first frame (:mod:`.survey`), and the
-   longest stretch it tracked.
+   stretches it tracked between its losses of the camera.
 2. ``keyframes.npz``: the keyframes, their global descriptors (VLAD over the matcher's local
    descriptors, :mod:`.retrieval`) and the vocabulary: what relocalisation retrieves from.
 3. ``loops.csv`` / ``edges.npz``: consecutive keyframes aligned real-vs-real, loop candidates
-   by appearance and proximity verified the same way (:mod:`.loops`).
+   by appearance and proximity verified the same way (:mod:`.loops`); the longest run of
+   stretches that verified loops join is kept (the keyframe files rewritten for it).
 4. ``poses.txt``: the robust pose graph (:mod:`.pose_graph`), every frame placed between its
    keyframes, gauge at the first keyframe, the metric scale from depth.
 5. ``field.pt`` and ``field.report.json``: the field of ``model`` trained at those poses
@@ -24,7 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -50,14 +51,23 @@ from .loops import (
     write_loops_csv,
 )
 from .pose_graph import Edge, GraphResult, floor_covariance, solve
-from .relocalise import save_keyframe_frames
+from .relocalise import load_keyframe_frames, save_keyframe_frames, write_keyframe_frames
 from .report import write_outputs
 from .retrieval import Vocabulary, vlad
 from .submap_fields import submap_minutes, train_submap_fields
 from .submaps import plan_submaps
-from .survey import SurveyOdometry, keyframe_indices, track, tracked_segment
+from .survey import (
+    SurveyOdometry,
+    joined_run,
+    keyframe_indices,
+    lost_frames,
+    segment_keyframes,
+    track,
+    tracked_segments,
+)
 
-__all__ = ["MapSettings", "MapResult", "build_map", "training_minutes", "place_frames", "index_posed_survey"]
+__all__ = ["MapSettings", "MapResult", "build_map", "training_minutes", "place_frames", "place_kept_frames",
+           "index_posed_survey"]
 
 log = logging.getLogger(__name__)
 
@@ -134,22 +144,23 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     settings = settings or MapSettings()
     started = time.perf_counter()
     folder = _open_folder(sequence, out, settings)
-    survey, start, stop = _odometry_stage(sequence, folder, settings, progress, say)
-    keys = keyframe_indices(survey.T_odom_cam, start, stop, settings.keyframe_every, settings.keyframe_distance_m,
-                            settings.keyframe_angle_deg)
-    keyframes, descriptors = _keyframe_stage(sequence, keys, folder, settings, progress)
-    chain, loops, chain_matches = _loop_stage(sequence, keys, keyframes, descriptors, survey, folder, settings,
-                                              progress, say, pool)
+    survey, segments = _odometry_stage(sequence, folder, settings, progress)
+    keys = segment_keyframes(survey.T_odom_cam, segments, every=settings.keyframe_every,
+                             distance_m=settings.keyframe_distance_m, angle_deg=settings.keyframe_angle_deg)
+    keys, keyframes, descriptors = _keyframe_stage(sequence, keys, folder, settings, progress)
+    keys, chain, loops, chain_matches = _loop_stage(sequence, keys, keyframes, descriptors, survey, segments, folder,
+                                                    settings, progress, say, pool)
     del keyframes  # the frames are not needed any more
+    start, stop, lost = _kept_frames(survey, segments, keys, folder, say)
     graph, T_map_key, verified = _graph_stage(sequence, keys, survey, chain, loops, chain_matches, folder, settings,
                                               say)
-    T_map_cam = place_frames(survey.T_odom_cam, keys, T_map_key, start, stop)
+    T_map_cam = place_kept_frames(survey, keys, T_map_key, start, stop, lost)
     _write_poses(sequence, survey, T_map_cam, T_map_key, start, stop, folder)
     if build_field_stage:
         _field_stage(sequence, T_map_cam, folder, settings, started, progress, say, device, pool)
     if mesh:
         _mesh_stage(sequence, T_map_cam, folder, progress, say)
-    T_graph_cam = place_frames(survey.T_odom_cam, keys, graph.T_map_key, start, stop) if settings.bundle else None
+    T_graph_cam = place_kept_frames(survey, keys, graph.T_map_key, start, stop, lost) if settings.bundle else None
     write_outputs(folder, sequence, survey, (start, stop), T_map_cam, T_map_key, T_graph_cam, loops, verified)
     return MapResult(folder.root, folder.info)
 
@@ -195,34 +206,57 @@ def _open_folder(sequence, out: Path, settings: MapSettings) -> MapFolder:
     return MapFolder.open(out, wanted, (*wanted, "depth_units_per_m", "registration"))
 
 
-def _odometry_stage(sequence, folder: MapFolder, settings: MapSettings, progress: bool, say
-                    ) -> tuple[SurveyOdometry, int, int]:
-    """Stage 1: the survey's odometry (reused when finished before) and the longest stretch
-    it tracked, ``(survey, start, stop)``; the dropped frames said."""
+def _odometry_stage(sequence, folder: MapFolder, settings: MapSettings, progress: bool
+                    ) -> tuple[SurveyOdometry, list[tuple[int, int]]]:
+    """Stage 1: the survey's odometry (reused when finished before) and the stretches it
+    tracked between its losses, ``(survey, [(start, stop), ...])``."""
     if folder.finished("odometry", folder.odometry):
         survey = SurveyOdometry.load(folder.odometry)
-        _say(say, "odometry: finished before, reused")
-    else:
-        t0 = time.perf_counter()
-        survey = track(sequence, settings.odometry, settings.matcher, settings.width, progress)
-        survey.save(folder.odometry)
-        start, stop = tracked_segment(survey.ok, settings.max_guesses)
-        folder.done("odometry", time.perf_counter() - t0, guessed_steps=int((~survey.ok).sum()), segment=[start, stop])
-    start, stop = tracked_segment(survey.ok, settings.max_guesses)
-    dropped = len(survey.ok) - (stop - start)
-    folder.info["segment"] = {"start": start, "stop": stop, "dropped_frames": dropped,
+        return survey, tracked_segments(survey.ok, settings.max_guesses)
+    t0 = time.perf_counter()
+    survey = track(sequence, settings.odometry, settings.matcher, settings.width, progress)
+    survey.save(folder.odometry)
+    segments = tracked_segments(survey.ok, settings.max_guesses)
+    folder.done("odometry", time.perf_counter() - t0, guessed_steps=int((~survey.ok).sum()),
+                segments=[list(s) for s in segments])
+    return survey, segments
+
+
+def _kept_frames(survey: SurveyOdometry, segments: list[tuple[int, int]], keys: np.ndarray, folder: MapFolder, say
+                 ) -> tuple[int, int, list[tuple[int, int]]]:
+    """The frames the map keeps, ``(start, stop, lost)``: from its first keyframe to its last,
+    but the ``lost`` stretches ``[(first, stop), ...]`` between them (rejoined by loops, never
+    placed); recorded in ``map.json`` and said when the odometry lost the camera."""
+    start, stop = int(keys[0]), int(keys[-1]) + 1
+    lost = lost_frames(segments, start, stop)
+    n = len(survey.ok)
+    unplaced = n - (stop - start) + sum(b - a for a, b in lost)
+    folder.info["segment"] = {"start": start, "stop": stop, "dropped_frames": unplaced,
+                              "rejoined": [list(g) for g in lost], "losses": len(segments) - 1,
                               "guessed_steps": int((~survey.ok[start + 1:stop]).sum())}
-    if dropped:
-        _say(say, f"the odometry lost the camera: the map keeps frames {start}:{stop} (its longest tracked stretch) "
-                  f"and drops {dropped} frames ({', '.join(_ranges(start, stop, len(survey.ok)))})")
-    return survey, start, stop
+    if len(segments) > 1:
+        _say(say, f"the odometry lost the camera {len(segments) - 1} time(s); {len(lost)} loss(es) rejoined by "
+                  f"verified loops: the map keeps frames {start}:{stop} and leaves {unplaced} unplaced "
+                  f"({', '.join(_ranges(start, stop, n) + [f'{a}:{b}' for a, b in lost]) or 'none'})")
+    return start, stop, lost
+
+
+def place_kept_frames(survey: SurveyOdometry, keys: np.ndarray, T_map_key: np.ndarray, start: int, stop: int,
+                      lost: list[tuple[int, int]]) -> np.ndarray:
+    """Every kept frame in the map (:func:`place_frames`); the frames of a loss NaN (their
+    odometry is a guess)."""
+    T_map_cam = place_frames(survey.T_odom_cam, keys, T_map_key, start, stop)
+    for a, b in lost:
+        T_map_cam[a:b] = np.nan
+    return T_map_cam
 
 
 def _keyframe_stage(sequence, keys: np.ndarray, folder: MapFolder, settings: MapSettings, progress: bool
-                    ) -> tuple[list[Keyframe] | None, np.ndarray]:
+                    ) -> tuple[np.ndarray, list[Keyframe] | None, np.ndarray]:
     """Stage 2: the keyframes read with their features, the vocabulary clustered from them and
     each one's descriptor, saved (with the keyframes' small images for relocalisation);
-    ``(keyframes, descriptors)``, the keyframes None when the stage finished before."""
+    ``(keys, keyframes, descriptors)``, the keys as saved (when the stage finished before, those
+    the loop stage kept) and the keyframes None when the stage finished before."""
     keyframes = None
     if not folder.finished("keyframes", folder.keyframes):
         t0 = time.perf_counter()
@@ -234,22 +268,25 @@ def _keyframe_stage(sequence, keys: np.ndarray, folder: MapFolder, settings: Map
                             centres=vocabulary.centres, matcher=settings.matcher,
                             width=-1 if settings.width is None else settings.width)
         folder.done("keyframes", time.perf_counter() - t0, keyframes=len(keys))
+    with np.load(folder.keyframes) as data:
+        keys, descriptors = data["indices"], data["descriptors"]
     if not folder.keyframe_frames.is_file():  # a map made before the relocaliser read them gets them now
         save_keyframe_frames(folder.keyframe_frames, keyframes or read_keyframes(sequence, keys, settings, progress))
-    with np.load(folder.keyframes) as data:
-        return keyframes, data["descriptors"]
+    return keys, keyframes, descriptors
 
 
 def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, descriptors: np.ndarray,
-                survey: SurveyOdometry, folder: MapFolder, settings: MapSettings, progress: bool, say, pool=None
-                ) -> tuple[list[Edge], list[Loop], list[PairMatches]]:
+                survey: SurveyOdometry, segments: list[tuple[int, int]], folder: MapFolder, settings: MapSettings,
+                progress: bool, say, pool=None) -> tuple[np.ndarray, list[Edge], list[Loop], list[PairMatches]]:
     """Stage 3: consecutive keyframes aligned, loop candidates proposed and verified (the
     keyframes read again when stage 2 ran before; the candidates on ``pool`` when there are
-    many, :func:`~.loops.verify_on_pool`), saved; reused when finished before. Returns the
-    chain's edges, the loops and the chain's matches."""
+    many, :func:`~.loops.verify_on_pool`); when the odometry lost the camera, only the longest
+    run of stretches joined by verified loops kept (:func:`~.survey.joined_run`,
+    :func:`_keep_keyframes`); saved; reused when finished before. Returns the keyframes kept,
+    the chain's edges, the loops and the chain's matches."""
     if folder.finished("loops", folder.edges):
         _say(say, "loops: finished before, reused")
-        return load_edges(folder.edges)
+        return (keys, *load_edges(folder.edges))
     t0 = time.perf_counter()
     if keyframes is None:
         keyframes = read_keyframes(sequence, keys, settings, progress)
@@ -259,17 +296,62 @@ def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, de
     chain, chain_kinds, chain_matches = consecutive_edges(keyframes, survey, config, settings.loops.min_inliers,
                                                           settings.gate_p, settings.edge_floor_rad,
                                                           settings.edge_floor_m)
+    chain = _loosen_across_losses(chain, segments, keys)
     pairs = candidates(survey.T_odom_cam[keys], descriptors, settings.loops)
     loops = verify_on_pool(keyframes, pairs, config, settings.loops, pool, progress)
     look_alikes = refuse_look_alikes(loops, survey.T_odom_cam[keys], settings.loops)
     if look_alikes:
         _say(say, f"loops: {look_alikes} verified loop(s) refused as look-alike places (a room or more from where the "
                   "odometry puts them)")
+    first, last = joined_run(segments, keys, [(lp.a, lp.b) for lp in loops if lp.status == "verified"],
+                             settings.loops.join_loops)
+    if (first, last) != (0, len(keys) - 1):
+        keys, chain, loops, chain_matches = _keep_keyframes(folder, keys, first, last, chain, loops, chain_matches)
     save_edges(folder.edges, chain, loops, chain_matches)
     folder.done("loops", time.perf_counter() - t0, candidates=len(pairs),
                 verified=sum(lp.status == "verified" for lp in loops), look_alikes=look_alikes,
                 consecutive_aligned=chain_kinds.count("alignment"), consecutive_odometry=chain_kinds.count("odometry"))
-    return chain, loops, chain_matches
+    return keys, chain, loops, chain_matches
+
+
+#: Sigmas (rad, m) of the odometry's edge across a loss of the camera: its steps there were
+#: constant-velocity guesses, wrong by tens of degrees when the camera swept while it saw nothing;
+#: the loops that join the stretches place them, not the guess.
+LOST_EDGE_SIGMA = (1.0, 3.0)
+
+
+def _loosen_across_losses(chain: list[Edge], segments: list[tuple[int, int]], keys: np.ndarray) -> list[Edge]:
+    """The chain with each odometry edge between two stretches (a loss of the camera) given
+    :data:`LOST_EDGE_SIGMA`."""
+    stretch = np.searchsorted([b for _, b in segments], keys, side="right")
+    lost_cov = np.diag([LOST_EDGE_SIGMA[0] ** 2] * 3 + [LOST_EDGE_SIGMA[1] ** 2] * 3)
+    return [replace(e, covariance=lost_cov) if e.kind == "odometry" and stretch[e.a] != stretch[e.b] else e
+            for e in chain]
+
+
+def _keep_keyframes(folder: MapFolder, keys: np.ndarray, first: int, last: int, chain: list[Edge], loops: list[Loop],
+                    chain_matches: list[PairMatches]) -> tuple[np.ndarray, list[Edge], list[Loop], list[PairMatches]]:
+    """Keyframe positions ``first..last`` kept, the rest dropped: the keyframe files rewritten
+    for them, and the chain, the loops and the matches between kept keyframes renumbered from
+    ``first``."""
+    def kept(a: int, b: int) -> bool:
+        return first <= a and b <= last
+
+    def moved(pm: PairMatches | None) -> PairMatches | None:
+        return None if pm is None else replace(pm, a=pm.a - first, b=pm.b - first)
+
+    with np.load(folder.keyframes) as data:
+        arrays = {name: data[name] for name in data.files}
+    arrays["indices"], arrays["descriptors"] = arrays["indices"][first:last + 1], arrays["descriptors"][first:last + 1]
+    np.savez_compressed(folder.keyframes, **arrays)
+    frames = load_keyframe_frames(folder.keyframe_frames)
+    if frames is not None:
+        write_keyframe_frames(folder.keyframe_frames, frames[first:last + 1])
+    chain = [replace(e, a=e.a - first, b=e.b - first) for e in chain if kept(e.a, e.b)]
+    loops = [replace(lp, a=lp.a - first, b=lp.b - first, matches_kept=moved(lp.matches_kept))
+             for lp in loops if kept(lp.a, lp.b)]
+    chain_matches = [moved(pm) for pm in chain_matches if kept(pm.a, pm.b)]
+    return keys[first:last + 1], chain, loops, chain_matches
 
 
 def _graph_stage(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list[Edge], loops: list[Loop],

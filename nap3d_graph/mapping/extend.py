@@ -49,7 +49,7 @@ from nap3d_graph.conventions import inv_T, rotation_angle_deg
 from nap3d_graph.fields.submaps import SUBMAPS_INDEX, Submap, SubmapSettings
 from nap3d_graph.pools import SerialPool
 
-from .build import MapResult, MapSettings, align_config, build_map, place_frames
+from .build import MapResult, MapSettings, align_config, build_map, place_kept_frames
 from .folder import MapFolder
 from .loops import Keyframe, load_edges, verified_loop
 from .pose_graph import Edge, floor_covariance, solve
@@ -200,7 +200,7 @@ def extend_map(sequence, map_dir: Path, out: Path | None = None, settings: MapSe
     survey_map = build_map(sequence, staging / "survey", settings, progress=progress, say=say,
                            build_field_stage=False, mesh=False)
     new = MapFolder.read(survey_map.folder)
-    keys, T_new_key, survey, (start, stop) = _new_survey(new)
+    keys, T_new_key, survey, (start, stop, lost) = _new_survey(new)
     _say(say, f"extend: the new survey posed on its own ({len(keys)} keyframes over frames {start}:{stop}); "
               "finding it in the map")
     try:
@@ -211,7 +211,7 @@ def extend_map(sequence, map_dir: Path, out: Path | None = None, settings: MapSe
         shutil.rmtree(staging, ignore_errors=True)  # nothing of the new survey is kept: it is not of this map
         raise
     T_map_newkey, graph_report = _solve_joint(index.T_map_key, T_new_key, anchor, pairs, new, settings)
-    T_map_newcam = place_frames(survey.T_odom_cam, keys, T_map_newkey, start, stop)
+    T_map_newcam = place_kept_frames(survey, keys, T_map_newkey, start, stop, lost)
     _say(say, f"extend: placed in the map by {graph_report['accepted']} verified pair(s) "
               f"({graph_report['rejected']} turned away by the graph)")
     merged = _merged_copy(map_dir, staging)
@@ -259,13 +259,15 @@ def _with_matcher(settings: MapSettings, matcher: str) -> MapSettings:
     return dataclasses.replace(settings, matcher=matcher)
 
 
-def _new_survey(new: MapFolder) -> tuple[np.ndarray, np.ndarray, SurveyOdometry, tuple[int, int]]:
+def _new_survey(new: MapFolder) -> tuple[np.ndarray, np.ndarray, SurveyOdometry, tuple[int, int, list]]:
     """The new survey's keyframe indices, their poses in its own frame (K1, 4, 4), its odometry
-    and kept segment, from its staging map."""
+    and kept frames (start, stop and the losses between, never placed), from its staging map."""
     with np.load(new.keyframes) as data:
         keys = data["indices"].astype(int)
     segment = new.info["segment"]
-    return keys, np.load(new.keyframe_poses), SurveyOdometry.load(new.odometry), (segment["start"], segment["stop"])
+    lost = [tuple(g) for g in segment.get("rejoined", [])]
+    return keys, np.load(new.keyframe_poses), SurveyOdometry.load(new.odometry), (segment["start"], segment["stop"],
+                                                                                  lost)
 
 
 def cross_pairs(views: _NewKeyframes, keys: np.ndarray, T_new_key: np.ndarray, index: _MapIndex,

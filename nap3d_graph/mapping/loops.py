@@ -64,7 +64,8 @@ class LoopSettings:
     2.5 m and 10%: twin rooms stand a room (4-6 m) apart and a floor's survey walks 10 m or more
     between them, while the tests' fast one-room surveys drift up to 2.3 m over a few metres;
     a survey whose odometry drifts more than that loses true loops (the report's loop row
-    shows it)."""
+    shows it). join_loops: two stretches of the survey either side of a loss of the camera
+    are one when this many verified loops tie them (:func:`~.survey.joined_run`)."""
 
     appearance_k: int = 4
     proximity_m: float = 0.6
@@ -76,6 +77,7 @@ class LoopSettings:
     max_sigma_deg: float = 1.5
     max_jump_m: float = 2.5
     drift_per_m: float = 0.1
+    join_loops: int = 3
 
     @property
     def verification(self) -> Verification:

@@ -4,8 +4,12 @@
 The odometry is the run's own (:func:`~nap3d_graph.motion.odometry.make_odometry`, ``vo`` or
 ``dense``), started at the identity: the map's frame is the first tracked frame's camera.
 A step the odometry guessed (``ok`` False: constant velocity) is kept when it is alone; after
-``max_guesses`` guesses in a row the odometry has lost the camera, and the stretches either
-side are separate: the map keeps the longest one and says which frames it dropped.
+``max_guesses`` guesses in a row the odometry has lost the camera (a blank wall, a dark
+doorway), and the stretches either side are separate (:func:`tracked_segments`). Each stretch
+gives keyframes; once loops are verified, two stretches either side of a loss are one when
+enough verified loops tie them (:func:`joined_run`: the camera came back to what it saw before
+the loss), and the map keeps the longest run of joined stretches. The frames of a loss itself
+are never placed: their poses would be the odometry's guess.
 """
 
 from __future__ import annotations
@@ -17,7 +21,8 @@ import numpy as np
 
 from nap3d_graph.conventions import compose_covariance, inv_T
 
-__all__ = ["SurveyOdometry", "track", "tracked_segment", "keyframe_indices"]
+__all__ = ["SurveyOdometry", "track", "tracked_segment", "tracked_segments", "segment_keyframes", "joined_run",
+           "lost_frames", "keyframe_indices"]
 
 log = logging.getLogger(__name__)
 
@@ -86,10 +91,11 @@ def _read(sequence, i: int):
         return None
 
 
-def tracked_segment(ok: np.ndarray, max_guesses: int = 3) -> tuple[int, int]:
-    """``(start, stop)``: the longest run of frames the odometry never lost, where lost means
-    ``max_guesses`` or more guessed steps in a row (a lone guess is bridged). Frames of the
-    lost stretch itself belong to neither side."""
+def tracked_segments(ok: np.ndarray, max_guesses: int = 3) -> list[tuple[int, int]]:
+    """``[(start, stop), ...]`` in order: the runs of frames the odometry never lost, where lost
+    means ``max_guesses`` or more guessed steps in a row (a lone guess is bridged). Frames of a
+    lost stretch belong to neither side; the stretch after it starts at its last guessed frame
+    (every step after it was measured)."""
     n = len(ok)
     breaks = []  # (first guessed step, last guessed step) of every loss
     k = 1
@@ -105,9 +111,53 @@ def tracked_segment(ok: np.ndarray, max_guesses: int = 3) -> tuple[int, int]:
             k += 1
     starts = [0] + [j for _, j in breaks]
     stops = [k for k, _ in breaks] + [n]
-    lengths = [b - a for a, b in zip(starts, stops)]
-    best = int(np.argmax(lengths))
-    return starts[best], stops[best]
+    return [(a, b) for a, b in zip(starts, stops) if b > a]
+
+
+def tracked_segment(ok: np.ndarray, max_guesses: int = 3) -> tuple[int, int]:
+    """``(start, stop)``: the longest of :func:`tracked_segments`."""
+    segments = tracked_segments(ok, max_guesses)
+    return max(segments, key=lambda s: s[1] - s[0])
+
+
+def segment_keyframes(T_odom_cam: np.ndarray, segments: list[tuple[int, int]], **keyframe_rules) -> np.ndarray:
+    """Every stretch's keyframes (:func:`keyframe_indices` of each, its first and last frame
+    among them), in frame order: none in a lost stretch."""
+    return np.concatenate([keyframe_indices(T_odom_cam, a, b, **keyframe_rules) for a, b in segments]).astype(int)
+
+
+def joined_run(segments: list[tuple[int, int]], keys: np.ndarray, loop_ends: list[tuple[int, int]],
+               min_loops: int) -> tuple[int, int]:
+    """``(first, last)`` keyframe positions (inclusive) of the longest run of stretches, in
+    frames, where every two neighbours are tied by at least ``min_loops`` verified loops
+    between them. ``keys`` (K,): keyframe frame indices; ``loop_ends``: each verified loop's
+    keyframe positions ``(a, b)``. Only neighbours count, so dropping the other stretches keeps
+    the same run (a map resumed from its kept keyframes joins them again)."""
+    owner = np.searchsorted([b for _, b in segments], keys, side="right")  # each keyframe's stretch
+    ties = np.zeros(len(segments), dtype=int)  # ties[s]: loops between stretch s and s + 1
+    for a, b in loop_ends:
+        sa, sb = sorted((int(owner[a]), int(owner[b])))
+        if sb == sa + 1:
+            ties[sa] += 1
+    runs, first = [], 0
+    for s in range(len(segments)):
+        if s == len(segments) - 1 or ties[s] < min_loops:
+            runs.append((first, s))
+            first = s + 1
+    held = [r for r in runs if np.any((owner >= r[0]) & (owner <= r[1]))]
+    best = max(held, key=lambda r: segments[r[1]][1] - segments[r[0]][0])
+    positions = np.flatnonzero((owner >= best[0]) & (owner <= best[1]))
+    return int(positions[0]), int(positions[-1])
+
+
+def lost_frames(segments: list[tuple[int, int]], start: int, stop: int) -> list[tuple[int, int]]:
+    """``[(first, stop), ...]``: the frames of ``start:stop`` in no stretch (the losses a
+    joined run spans)."""
+    gaps = []
+    for (_, b), (a, _) in zip(segments[:-1], segments[1:]):
+        if start < a and b < stop:
+            gaps.append((b, a))
+    return gaps
 
 
 def keyframe_indices(T_odom_cam: np.ndarray, start: int, stop: int, every: int = 5, distance_m: float = 0.1,
