@@ -273,7 +273,8 @@ def map_part(args, work: Path) -> dict:
                           stages_s={k: v["seconds"] for k, v in info["stages"].items()},
                           train_seconds=report.get("train_seconds"),
                           survey_ate_m=(info.get("survey_ate") or {}).get("map", {}).get("rmse_m"),
-                          kept_frames=(info.get("segment") or {}).get("stop", 0) - (info.get("segment") or {}).get("start", 0),
+                          # Frames placed: the survey's but those dropped or lost inside a rejoined run.
+                          kept_frames=len(survey) - (info.get("segment") or {}).get("dropped_frames", len(survey)),
                           held_out_psnr_db=(report.get("held_out") or {}).get("psnr_db"),
                           held_out_psnr_per_room=per_room_psnr(floor, map_dir, survey))
         row["run"] = _timed([sys.executable, "-m", "nap3d_graph", "run", "--data", str(traverse.path), "--field",

@@ -144,7 +144,7 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     settings = settings or MapSettings()
     started = time.perf_counter()
     folder = _open_folder(sequence, out, settings)
-    survey, segments = _odometry_stage(sequence, folder, settings, progress)
+    survey, segments = _odometry_stage(sequence, folder, settings, progress, say)
     keys = segment_keyframes(survey.T_odom_cam, segments, every=settings.keyframe_every,
                              distance_m=settings.keyframe_distance_m, angle_deg=settings.keyframe_angle_deg)
     keys, keyframes, descriptors = _keyframe_stage(sequence, keys, folder, settings, progress)
@@ -206,12 +206,13 @@ def _open_folder(sequence, out: Path, settings: MapSettings) -> MapFolder:
     return MapFolder.open(out, wanted, (*wanted, "depth_units_per_m", "registration"))
 
 
-def _odometry_stage(sequence, folder: MapFolder, settings: MapSettings, progress: bool
+def _odometry_stage(sequence, folder: MapFolder, settings: MapSettings, progress: bool, say
                     ) -> tuple[SurveyOdometry, list[tuple[int, int]]]:
     """Stage 1: the survey's odometry (reused when finished before) and the stretches it
     tracked between its losses, ``(survey, [(start, stop), ...])``."""
     if folder.finished("odometry", folder.odometry):
         survey = SurveyOdometry.load(folder.odometry)
+        _say(say, "odometry: finished before, reused")
         return survey, tracked_segments(survey.ok, settings.max_guesses)
     t0 = time.perf_counter()
     survey = track(sequence, settings.odometry, settings.matcher, settings.width, progress)
