@@ -353,6 +353,45 @@ def test_stretches_either_side_of_a_loss_join_only_when_loops_tie_them():
     assert lost_frames(segments, 12, 30) == [(20, 23)]
 
 
+def test_a_dropped_stretch_leaves_keyframe_files_and_edges_renumbered(tmp_path):
+    """The keyframes a joined run keeps (positions 4-9 of 12): the keyframe files rewritten for
+    them alone, and only the chain, loops and matches between kept keyframes, renumbered."""
+    from types import SimpleNamespace
+
+    from nap3d_graph.camera import Intrinsics, RGBDFrame
+    from nap3d_graph.mapping.build import _keep_keyframes
+    from nap3d_graph.mapping.bundle import PairMatches
+    from nap3d_graph.mapping.loops import Loop
+    from nap3d_graph.mapping.relocalise import load_keyframe_frames, write_keyframe_frames
+
+    folder = SimpleNamespace(keyframes=tmp_path / "keyframes.npz", keyframe_frames=tmp_path / "keyframe_frames.npz")
+    keys = np.arange(0, 60, 5)
+    np.savez_compressed(folder.keyframes, indices=keys, descriptors=np.arange(12.0)[:, None] * np.ones((1, 4)),
+                        centres=np.zeros((3, 2)), matcher="sift", width=-1)
+    K = Intrinsics(50.0, 50.0, 8.0, 6.0, 16, 12)
+    write_keyframe_frames(folder.keyframe_frames, [RGBDFrame(np.full((12, 16, 3), k, np.uint8),
+                                                             np.full((12, 16), 1.0, np.float32), K) for k in range(12)])
+
+    def matches(a, b):
+        return PairMatches(a, b, np.zeros((1, 2)), np.zeros((1, 2)), np.ones(1), np.ones(1))
+
+    chain = [Edge(a, a + 1, np.eye(4), np.eye(6), "alignment") for a in range(11)]
+    loops = [Loop(a, b, int(keys[a]), int(keys[b]), "appearance", status="verified", matches_kept=matches(a, b))
+             for a, b in ((1, 5), (4, 9), (5, 8), (8, 11))]
+    kept, chain, loops, chain_matches = _keep_keyframes(folder, keys, 4, 9, chain, loops,
+                                                        [matches(a, a + 1) for a in range(11)])
+    np.testing.assert_array_equal(kept, keys[4:10])
+    with np.load(folder.keyframes) as data:
+        np.testing.assert_array_equal(data["indices"], keys[4:10])
+        np.testing.assert_array_equal(data["descriptors"][:, 0], np.arange(4.0, 10.0))
+        assert str(data["matcher"]) == "sift"
+    assert [int(f.rgb[0, 0, 0]) for f in load_keyframe_frames(folder.keyframe_frames)] == list(range(4, 10))
+    assert [(e.a, e.b) for e in chain] == [(a, a + 1) for a in range(5)]
+    assert [(lp.a, lp.b, lp.i, lp.j) for lp in loops] == [(0, 5, 20, 45), (1, 4, 25, 40)]
+    assert [(lp.matches_kept.a, lp.matches_kept.b) for lp in loops] == [(0, 5), (1, 4)]
+    assert [(m.a, m.b) for m in chain_matches] == [(a, a + 1) for a in range(5)]
+
+
 class _CoveredFrames:
     """A recording whose camera is covered (black colour, no depth) for ``frames``: the
     odometry loses it there, as on a blank wall."""

@@ -344,7 +344,9 @@ def _keep_keyframes(folder: MapFolder, keys: np.ndarray, first: int, last: int, 
     with np.load(folder.keyframes) as data:
         arrays = {name: data[name] for name in data.files}
     arrays["indices"], arrays["descriptors"] = arrays["indices"][first:last + 1], arrays["descriptors"][first:last + 1]
-    np.savez_compressed(folder.keyframes, **arrays)
+    tmp = folder.keyframes.with_suffix(".tmp.npz")  # atomically: a map stopped here resumes from whole files
+    np.savez_compressed(tmp, **arrays)
+    tmp.replace(folder.keyframes)
     frames = load_keyframe_frames(folder.keyframe_frames)
     if frames is not None:
         write_keyframe_frames(folder.keyframe_frames, frames[first:last + 1])
