@@ -122,6 +122,41 @@ def test_a_placement_needs_the_travel_its_settings_ask_for():
         PlacementSettings(confirm_travel_m=-1.0)
 
 
+class _TwinRooms:
+    """A map along x from 0 to 20 m whose field shows a wall 2 m ahead everywhere but a
+    doorway (5 m of depth) seen from x in [1, 5): the place at x and its look-alike 11 m on
+    look the same until the doorway is in view."""
+
+    def render(self, T_map_cam, intrinsics):
+        from types import SimpleNamespace
+
+        x = T_map_cam[0, 3]
+        shape = (intrinsics.height, intrinsics.width)
+        depth = np.full(shape, 5.0 if 1.0 <= x < 5.0 else 2.0, np.float32)
+        return SimpleNamespace(depth_m=depth, opacity=np.full(shape, float(0.0 <= x < 20.0), np.float32))
+
+
+def test_after_a_rival_a_start_is_placed_only_once_the_camera_tells_the_look_alikes_apart():
+    from nap3d_graph.camera import Intrinsics, RGBDFrame
+
+    relocaliser = _Answers([_found(1.0, [12.0]), _found(0.0)])
+    relocaliser.field = _TwinRooms()
+    placement = MapPlacement(relocaliser, PlacementSettings(confirmations=1, confirm_travel_m=0.5))
+    assert placement.propose(0, 0, None, np.eye(4)) is None  # ambiguous: 11 m apart
+    assert [round(T[0, 3], 6) for T in placement.look_alike_offsets] == [11.0, -11.0]
+    assert placement.propose(1, 1, None, np.eye(4)) is not None  # no rival this time: a candidate
+    K = Intrinsics(80.0, 80.0, 80.0, 60.0, 160, 120)
+    verdicts = []
+    for k, x in enumerate((0.2, 0.6, 1.2)):
+        T = exp_se3(np.array([0, 0, 0, x, 0, 0.0]))
+        frame = RGBDFrame(np.zeros((120, 160, 3), np.uint8), _TwinRooms().render(T, K).depth_m, K)
+        verdicts.append(placement.confirm(k + 2, k + 2, _Correction(T), T, frame))
+    # 0.6 m of travel is enough, but both places explain the wall; the doorway tells them apart.
+    assert verdicts == ["agrees", "agrees", "confirmed"]
+    confirms = [e for e in placement.events if e["step"] == "confirm"]
+    assert [e["look_alikes_ruled_out"] for e in confirms] == ["1 of 2", "1 of 2", "2 of 2"]
+
+
 def test_a_survey_loop_between_twin_rooms_is_refused_and_a_revisit_kept():
     """Keyframes every 0.1 m along a 12 m walk. A revisit after 6 m of walking that the
     odometry put 20 cm off (it drifted) is kept; a loop between twin rooms 5.7 m apart, which

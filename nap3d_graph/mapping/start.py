@@ -20,6 +20,10 @@ places, the map does not say, or this run met a rival) a candidate is accepted o
 keyframes that confirmed it span ``confirm_travel_m`` of the run's own travel, each rendered where the candidate (re-anchored
 at the previous one) puts it and agreeing, so that what the camera sees along the way, not
 one view twice, decides: a twin found first is refuted when the camera turns to what differs.
+A rival met is remembered as the map's look-alike offset (the rigid move from one place to
+its look-alike); a candidate after it is confirmed only once a confirming keyframe's depth
+disagrees with the field rendered at each look-alike's place, i.e. the camera has seen what
+tells the places apart (identical rooms agree at both places however far the camera walks).
 
 The same steps recover a run that is placed but lost (keyframes refused in a row): the
 candidate then maps the lost estimate onto the map again. The odometry is the prior there: of
@@ -83,19 +87,22 @@ class Candidate:
     map's as this relocalisation puts it; ``frame``/``key``: the keyframe it was found at
     (frame index, graph key); ``found``: the :class:`~.relocalise.Relocalisation` (its pose
     ``T_map_cam``, a usable (6, 6) ``covariance``); ``confirmed``: (frame, key, correction) of
-    each keyframe that agreed so far."""
+    each keyframe that agreed so far; ``ruled_out``: the look-alike offsets (positions in
+    :attr:`MapPlacement.look_alike_offsets`) a confirming keyframe's depth has refuted."""
 
     frame: int
     key: int
     T_map_run: np.ndarray
     found: Relocalisation
     confirmed: list = field(default_factory=list)
+    ruled_out: set = field(default_factory=set)
 
 
 class MapPlacement:
     """Where a run stands in a map: ``placed`` once a candidate was confirmed (``T_map_run``
     then says how its provisional frame moved into the map's), the pending ``candidate``,
-    and ``events``: every attempt and its outcome (metrics.json's record)."""
+    ``look_alike_offsets``: (4, 4) map-frame moves from a place to a look-alike, one each way
+    for every rival met, and ``events``: every attempt and its outcome (metrics.json's record)."""
 
     def __init__(self, relocaliser, settings: PlacementSettings | None = None, placed: bool = False):
         self.relocaliser = relocaliser
@@ -104,6 +111,7 @@ class MapPlacement:
         self.T_map_run: np.ndarray | None = np.eye(4) if placed else None
         self.placed_at: int | None = None
         self.candidate: Candidate | None = None
+        self.look_alike_offsets: list[np.ndarray] = []
         self.events: list[dict] = []
 
     # --- the steps -------------------------------------------------------------------------
@@ -133,6 +141,8 @@ class MapPlacement:
             event.update(success=False, reason=refusal)
             if found.rivals:
                 event["rivals"] = [{k: v for k, v in r.items() if k != "T_map_cam"} for r in found.rivals]
+                if not self.placed:
+                    self._remember_look_alikes(found)
             self.events.append(event)
             return None
         T_map_run = found.T_map_cam @ inv_T(T_run_cam)
@@ -201,7 +211,8 @@ class MapPlacement:
                 # Travel is asked of a start only: a placed run that recovers has its odometry as the
                 # prior against a look-alike (max_jump_m), and needs its pose back while it moves.
                 travel_needed = 0.0 if self.placed or not self._may_alias() else s.confirm_travel_m
-                enough = len(cand.confirmed) >= s.confirmations and travel_m >= travel_needed
+                told_apart = self.placed or self._tells_apart(cand, frame, correction.T_world_cam_corrected, event)
+                enough = len(cand.confirmed) >= s.confirmations and travel_m >= travel_needed and told_apart
                 verdict = "confirmed" if enough else "agrees"
                 if not enough:
                     # The next keyframe is predicted from this one's correction: over a metre of travel
@@ -223,6 +234,34 @@ class MapPlacement:
         if getattr(self.relocaliser, "look_alikes", None) is not False:
             return True
         return any(str(e.get("reason", "")).startswith("ambiguous") for e in self.events)
+
+    def _remember_look_alikes(self, found: Relocalisation) -> None:
+        """Each rival of ``found`` as a look-alike offset, both ways (one per look-alike pair:
+        answers a few centimetres apart are the same offset)."""
+        for rival in found.rivals:
+            offset = np.asarray(rival["T_map_cam"]) @ inv_T(found.T_map_cam)
+            for T in (offset, inv_T(offset)):
+                if all(np.linalg.norm(T[:3, 3] - known[:3, 3]) > 1.0 for known in self.look_alike_offsets):
+                    self.look_alike_offsets.append(T)
+
+    def _tells_apart(self, cand: Candidate, frame, T_map_cam: np.ndarray, event: dict) -> bool:
+        """Whether every look-alike of the candidate is ruled out once keyframe ``frame``
+        (corrected to ``T_map_cam``) is seen: its depth disagrees with the field rendered at the
+        look-alike's place, or the map has nothing there. Without a frame or a field nothing is
+        ruled out."""
+        field_obj = getattr(self.relocaliser, "field", None)
+        if self.look_alike_offsets and frame is not None and field_obj is not None:
+            small = at_width(frame, 160)
+            if np.any(np.isfinite(small.depth_m) & (small.depth_m > 0)):
+                for n, offset in enumerate(self.look_alike_offsets):
+                    if n not in cand.ruled_out:
+                        view = field_obj.render(offset @ T_map_cam, small.intrinsics)
+                        # NaN: the map has nothing at the look-alike's place to explain the frame.
+                        if not depth_disagreement(small.depth_m, view.depth_m, view.opacity) <= DEPTH_DISAGREEMENT_BAD:
+                            cand.ruled_out.add(n)
+        if self.look_alike_offsets:
+            event["look_alikes_ruled_out"] = f"{len(cand.ruled_out)} of {len(self.look_alike_offsets)}"
+        return len(cand.ruled_out) == len(self.look_alike_offsets)
 
     def _depth_disagreement(self, frame, correction) -> float:
         """How much of ``frame``'s depth the map's field, rendered at the correction's pose at a
