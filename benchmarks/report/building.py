@@ -142,15 +142,16 @@ SECTIONS = [
             relocalisation_table,
             note="No survey or field error here: relocalisation alone. The floor (seed 1) was not used to choose "
                  "any setting; the rules were chosen on the tests' floor (seed 0). A wrong-room answer is "
-                 "what a run's placement rules must then refuse. Measured on the floors before their walls got "
-                 "pictures and boards (commit c81253c): not measured again since."),
+                 "what a run's placement rules must then refuse. Floors with pictures and boards on their walls, "
+                 "the survey looking down at the floor and furniture (as the map benchmark's)."),
     Section("A floor of a building, starts in a twin room: runs from their own start looking first at a side wall "
             "both twins have, placed by the rules before issue 61, by its rival check alone and by its defaults",
             (PLACEMENT_FILE,), "python benchmarks/building.py --part placement --rooms 1 3 6 --out ...",
             twin_starts_table,
             note="Drifting odometry of the simulator, the exact field. 'In the twin' is a placement 10 m or more "
-                 "from the truth: every pose of that run is in the wrong room. Floors before their walls got "
-                 "pictures and boards (commit c81253c); the placement tests pass on the new ones."),
+                 "from the truth: every pose of that run is in the wrong room. 'After' is the defaults with the "
+                 "look-alike rule of 61e669b (after a rival, placed only once a keyframe rules out the rival's "
+                 "place)."),
     Section("A floor of a building, the field stage side by side: the 3-room floor's submap fields (its survey at its "
             "true poses, fixed steps) trained one after another, on 2 processes and as 2 Ray tasks, on two cores",
             (WORKERS_FILE,), "python benchmarks/building.py --part workers --rooms 3 --frames-per-room 150 --out ...",
