@@ -424,7 +424,7 @@ def test_a_survey_that_loses_the_camera_is_joined_again_by_its_loops(sim_walk, t
     covered = range(20, 25)
     survey = _CoveredFrames(open_sequence(sim_walk(48, fps=15.0, seed=0, width=320, height=240, path="mapping",
                                                    scene_seed=3)), covered)
-    settings = MapSettings(matcher="sift", keyframe_every=2, model="splat")
+    settings = MapSettings(matcher="sift", keyframe_every=2, model="splat", bundle=False)  # the pose graph decides
     result = build_map(survey, tmp_path / "map", settings, progress=False, build_field_stage=False, mesh=False)
     segment = result.info["segment"]
     assert segment["losses"] == 1 and (segment["start"], segment["stop"]) == (0, 48), segment

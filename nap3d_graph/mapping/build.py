@@ -62,6 +62,7 @@ from .survey import (
     keyframe_indices,
     lost_frames,
     segment_keyframes,
+    stretch_of,
     track,
     tracked_segments,
 )
@@ -324,7 +325,7 @@ LOST_EDGE_SIGMA = (1.0, 3.0)
 def _loosen_across_losses(chain: list[Edge], segments: list[tuple[int, int]], keys: np.ndarray) -> list[Edge]:
     """The chain with each odometry edge between two stretches (a loss of the camera) given
     :data:`LOST_EDGE_SIGMA`."""
-    stretch = np.searchsorted([b for _, b in segments], keys, side="right")
+    stretch = stretch_of(segments, keys)
     lost_cov = np.diag([LOST_EDGE_SIGMA[0] ** 2] * 3 + [LOST_EDGE_SIGMA[1] ** 2] * 3)
     return [replace(e, covariance=lost_cov) if e.kind == "odometry" and stretch[e.a] != stretch[e.b] else e
             for e in chain]

@@ -21,8 +21,8 @@ import numpy as np
 
 from nap3d_graph.conventions import compose_covariance, inv_T
 
-__all__ = ["SurveyOdometry", "track", "tracked_segment", "tracked_segments", "segment_keyframes", "joined_run",
-           "lost_frames", "keyframe_indices"]
+__all__ = ["SurveyOdometry", "track", "tracked_segment", "tracked_segments", "segment_keyframes", "stretch_of",
+           "joined_run", "lost_frames", "keyframe_indices"]
 
 log = logging.getLogger(__name__)
 
@@ -126,6 +126,11 @@ def segment_keyframes(T_odom_cam: np.ndarray, segments: list[tuple[int, int]], *
     return np.concatenate([keyframe_indices(T_odom_cam, a, b, **keyframe_rules) for a, b in segments]).astype(int)
 
 
+def stretch_of(segments: list[tuple[int, int]], keys: np.ndarray) -> np.ndarray:
+    """(K,) the position in ``segments`` of the stretch each keyframe (frame index) lies in."""
+    return np.searchsorted([b for _, b in segments], keys, side="right")
+
+
 def joined_run(segments: list[tuple[int, int]], keys: np.ndarray, loop_ends: list[tuple[int, int]],
                min_loops: int) -> tuple[int, int]:
     """``(first, last)`` keyframe positions (inclusive) of the longest run of stretches, in
@@ -133,7 +138,7 @@ def joined_run(segments: list[tuple[int, int]], keys: np.ndarray, loop_ends: lis
     between them. ``keys`` (K,): keyframe frame indices; ``loop_ends``: each verified loop's
     keyframe positions ``(a, b)``. Only neighbours count, so dropping the other stretches keeps
     the same run (a map resumed from its kept keyframes joins them again)."""
-    owner = np.searchsorted([b for _, b in segments], keys, side="right")  # each keyframe's stretch
+    owner = stretch_of(segments, keys)
     ties = np.zeros(len(segments), dtype=int)  # ties[s]: loops between stretch s and s + 1
     for a, b in loop_ends:
         sa, sb = sorted((int(owner[a]), int(owner[b])))
