@@ -392,37 +392,16 @@ def test_a_dropped_stretch_leaves_keyframe_files_and_edges_renumbered(tmp_path):
     assert [(m.a, m.b) for m in chain_matches] == [(a, a + 1) for a in range(5)]
 
 
-class _CoveredFrames:
-    """A recording whose camera is covered (black colour, no depth) for ``frames``: the
-    odometry loses it there, as on a blank wall."""
-
-    def __init__(self, inner, frames: range):
-        self.inner, self.frames = inner, frames
-
-    def __getattr__(self, name):
-        return getattr(self.inner, name)
-
-    def __len__(self):
-        return len(self.inner)
-
-    def __getitem__(self, i):
-        from dataclasses import replace
-
-        frame = self.inner[i]
-        if i in self.frames:
-            frame = replace(frame, rgb=np.zeros_like(frame.rgb), depth_m=np.zeros_like(frame.depth_m))
-        return frame
-
-
 def test_a_survey_that_loses_the_camera_is_joined_again_by_its_loops(sim_walk, tmp_path):
     """Issue 61: a survey covered for five frames in its middle is mapped whole: the stretches
     either side are joined by the loops between them, the covered frames are never placed
     and every other frame lies where the truth puts it."""
     from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.sims.faults import CoveredFrames
     from nap3d_graph.trajectory import read_tum_trajectory
 
     covered = range(20, 25)
-    survey = _CoveredFrames(open_sequence(sim_walk(48, fps=15.0, seed=0, width=320, height=240, path="mapping",
+    survey = CoveredFrames(open_sequence(sim_walk(48, fps=15.0, seed=0, width=320, height=240, path="mapping",
                                                    scene_seed=3)), covered)
     settings = MapSettings(matcher="sift", keyframe_every=2, model="splat", bundle=False)  # the pose graph decides
     result = build_map(survey, tmp_path / "map", settings, progress=False, build_field_stage=False, mesh=False)

@@ -49,6 +49,10 @@ from .verification import DEPTH_DISAGREEMENT_BAD, depth_disagreement
 
 __all__ = ["PlacementSettings", "Candidate", "MapPlacement", "map_relocaliser"]
 
+#: Width in pixels at which a confirming keyframe's depth is checked against the field (a check of
+#: the frame's layout, not of its detail).
+CHECK_WIDTH = 160
+
 
 @dataclass(frozen=True)
 class PlacementSettings:
@@ -191,7 +195,8 @@ class MapPlacement:
         if cand is None:
             raise RuntimeError("no candidate to confirm: propose one first")
         event: dict = {"frame": int(i), "step": "confirm", "candidate_frame": cand.frame}
-        disagreement = self._depth_disagreement(frame, correction) if correction.success else float("nan")
+        small = None if frame is None else at_width(frame, CHECK_WIDTH)  # the depth checks' frame, sized once
+        disagreement = self._depth_disagreement(small, correction) if correction.success else float("nan")
         if np.isfinite(disagreement):
             event["depth_disagreement"] = round(disagreement, 4)
         if not correction.success:
@@ -211,7 +216,7 @@ class MapPlacement:
                 # Travel is asked of a start only: a placed run that recovers has its odometry as the
                 # prior against a look-alike (max_jump_m), and needs its pose back while it moves.
                 travel_needed = 0.0 if self.placed or not self._may_alias() else s.confirm_travel_m
-                told_apart = self.placed or self._tells_apart(cand, frame, correction.T_world_cam_corrected, event)
+                told_apart = self.placed or self._tells_apart(cand, small, correction.T_world_cam_corrected, event)
                 enough = len(cand.confirmed) >= s.confirmations and travel_m >= travel_needed and told_apart
                 verdict = "confirmed" if enough else "agrees"
                 if not enough:
@@ -244,14 +249,13 @@ class MapPlacement:
                 if all(np.linalg.norm(T[:3, 3] - known[:3, 3]) > 1.0 for known in self.look_alike_offsets):
                     self.look_alike_offsets.append(T)
 
-    def _tells_apart(self, cand: Candidate, frame, T_map_cam: np.ndarray, event: dict) -> bool:
-        """Whether every look-alike of the candidate is ruled out once keyframe ``frame``
-        (corrected to ``T_map_cam``) is seen: its depth disagrees with the field rendered at the
+    def _tells_apart(self, cand: Candidate, small, T_map_cam: np.ndarray, event: dict) -> bool:
+        """Whether every look-alike of the candidate is ruled out once the keyframe ``small``
+        (its RGBDFrame at :data:`CHECK_WIDTH`, corrected to ``T_map_cam``) is seen: its depth disagrees with the field rendered at the
         look-alike's place, or the map has nothing there. Without a frame or a field nothing is
         ruled out."""
         field_obj = getattr(self.relocaliser, "field", None)
-        if self.look_alike_offsets and frame is not None and field_obj is not None:
-            small = at_width(frame, 160)
+        if self.look_alike_offsets and small is not None and field_obj is not None:
             if np.any(np.isfinite(small.depth_m) & (small.depth_m > 0)):
                 for n, offset in enumerate(self.look_alike_offsets):
                     if n not in cand.ruled_out:
@@ -263,13 +267,12 @@ class MapPlacement:
             event["look_alikes_ruled_out"] = f"{len(cand.ruled_out)} of {len(self.look_alike_offsets)}"
         return len(cand.ruled_out) == len(self.look_alike_offsets)
 
-    def _depth_disagreement(self, frame, correction) -> float:
-        """How much of ``frame``'s depth the map's field, rendered at the correction's pose at a
-        small size, disagrees with (NaN without a frame or a field)."""
+    def _depth_disagreement(self, small, correction) -> float:
+        """How much of the keyframe's depth (``small``: at :data:`CHECK_WIDTH`, or None) the map's
+        field, rendered at the correction's pose, disagrees with (NaN without a frame or a field)."""
         field_obj = getattr(self.relocaliser, "field", None)
-        if frame is None or field_obj is None:
+        if small is None or field_obj is None:
             return float("nan")
-        small = at_width(frame, 160)
         view = field_obj.render(correction.T_world_cam_corrected, small.intrinsics)
         return depth_disagreement(small.depth_m, view.depth_m, view.opacity)
 
