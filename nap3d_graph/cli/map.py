@@ -14,6 +14,8 @@ from pathlib import Path
 
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields.submaps import SubmapSettings
+from nap3d_graph.mapping.build import MapSettings, build_map
+from nap3d_graph.mapping.extend import MapExtensionRefused, extend_map
 from nap3d_graph.mapping.viz import write_map_recording
 from nap3d_graph.pools import make_pool
 from nap3d_graph.rerun_sdk import VizError, check_viz_target
@@ -31,6 +33,7 @@ from .common import (
     positive_int,
     warn_depth_units,
 )
+from .sources import chosen_matcher, warn_guessed_camera
 
 
 def add_parser(sub) -> None:
@@ -105,11 +108,6 @@ def _add_floor_arguments(p) -> None:
 
 
 def run(args) -> int:
-    # Lazy: the map's stages import torch and GTSAM, which every command's --help would pay for.
-    from nap3d_graph.mapping.build import MapSettings, build_map
-
-    from .sources import chosen_matcher, warn_guessed_camera
-
     if args.out is None and args.extend is None:
         raise UsageError("--out is required (the map folder to make), or --extend MAP (the map to grow)")
     if args.out is not None and args.out.exists() and not args.out.is_dir():
@@ -151,8 +149,6 @@ def run(args) -> int:
 
 def _extend(args, sequence, settings, pool) -> int:
     """``map NEW --extend MAP``: the map grown by the survey (:mod:`nap3d_graph.mapping.extend`)."""
-    from nap3d_graph.mapping.extend import MapExtensionRefused, extend_map
-
     try:
         result = extend_map(sequence, args.extend, args.out, settings, progress=not args.quiet, say=print,
                             device=args.device, pool=pool, mesh=not args.no_mesh)

@@ -14,11 +14,16 @@ import sys
 import time
 from pathlib import Path
 
-from nap3d_graph.run.output import refusal_hint_for
+from nap3d_graph.datasets import DatasetError
+from nap3d_graph.rerun_sdk import VizError, check_viz_target
+from nap3d_graph.run.bag import check_bag_path, write_run_bag
+from nap3d_graph.run.output import RunWriter, refusal_hint_for
 from nap3d_graph.run.pacing import CameraPace
+from nap3d_graph.run.viz import RunRecorder
 
 from .binding import add_options
 from .common import StopOnSignal, UsageError, writable_dir
+from .run_config import apply_run_config
 from .run_options import RUN_OPTIONS
 from .sources import add_source_arguments, detected_source, prepare, validated_settings
 
@@ -60,8 +65,6 @@ def _check_options(args) -> None:
     """A ``--config`` applied, the source resolved and every option checked before anything is
     written or read (one-line errors)."""
     if args.config is not None:
-        from .run_config import apply_run_config
-
         apply_run_config(args, args.config)
     args.traj = detected_source(args)
     validated_settings(args)  # every flag combination refused in one line before anything is written
@@ -76,14 +79,10 @@ def _run(args, prepared):
     """The run, its keyframes written as they come (and recorded for rerun with ``--viz``),
     paced with ``--pace``, stopped cleanly on Ctrl-C; ``(pipeline, writer, result, pace,
     recorder)``."""
-    from nap3d_graph.run.output import RunWriter
-
     writer = RunWriter(args.out, prepared.name, prepared.record, getattr(prepared.sequence, "rgb_line_index", None))
     pipeline = prepared.pipeline()
     recorder, on_keyframe, pace = None, writer.add_keyframe, None
     if args.viz is not None:
-        from nap3d_graph.run.viz import RunRecorder
-
         recorder = RunRecorder(args.viz, prepared.name, getattr(prepared.sequence, "intrinsics", None))
 
         def on_keyframe(record):
@@ -143,17 +142,12 @@ def _say_pace(pace: float, metrics: dict, config) -> None:
 
 def _write_bag(path: Path, sequence, result) -> None:
     """The run's poses, paths and /tf into a ROS bag at ``path``."""
-    from nap3d_graph.run.bag import write_run_bag
-
     world = getattr(sequence, "world_frame", None) or "world"
     write_run_bag(path, result, world_frame=world)
     print(f"bag: {path} (/nap3d/causal/pose, /nap3d/smoothed/pose, paths and /tf in frame {world!r})")
 
 
 def _check_bag_path(path: Path) -> None:
-    from nap3d_graph.datasets import DatasetError
-    from nap3d_graph.run.bag import check_bag_path
-
     try:
         check_bag_path(path)
     except DatasetError as exc:
@@ -161,8 +155,6 @@ def _check_bag_path(path: Path) -> None:
 
 
 def _check_viz(target: str) -> None:
-    from nap3d_graph.rerun_sdk import VizError, check_viz_target
-
     try:
         check_viz_target(target)
     except VizError as exc:
