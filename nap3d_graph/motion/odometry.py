@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -27,11 +28,15 @@ from ..nap3d.config import AlignConfig
 from ..nap3d.correct import at_width, real_features
 from ..nap3d.matching import Features
 from ..trajectory import interpolate_poses
+from .depth_step import depth_step
 
 __all__ = ["Increment", "RecordedOdometry", "NoisyGroundTruthOdometry", "VisualOdometry", "make_odometry",
            "bridge_pose_gaps"]
 
 log = logging.getLogger(__name__)
+
+#: Measured steps whose mean translation a depth step holds as its heading (half a second at 10 Hz).
+STEADY_STEPS = 5
 
 
 @dataclass
@@ -144,7 +149,9 @@ class VisualOdometry:
     (``(min_good_inliers / inliers)^2``), and a step that disagrees with the constant-velocity
     prediction from the previous one gets at least that disagreement as its sigma (a hand-held
     camera does not change speed by a metre per second in one frame; a wrong match does).
-    A failed step falls back to constant velocity with a large covariance.
+    A step without features to match (a blank wall) is measured by the depths alone where they
+    agree, the constant-velocity guess holding what they cannot see (``depth_fallback``,
+    :mod:`.depth_step`); else it is that guess with a large covariance.
 
     ``width``: detect and align each frame resized to this many pixels wide (area for colour,
     nearest for depth; None: as read). At the keyframe render's size (320) a keyframe's
@@ -160,7 +167,8 @@ class VisualOdometry:
 
     def __init__(self, initial_pose: np.ndarray | None = None, config: AlignConfig | None = None,
                  fallback_rot_sigma_rad: float = 0.05, fallback_trans_sigma_m: float = 0.05,
-                 min_good_inliers: int = 60, reuse_features: bool = True, width: int | None = None):
+                 min_good_inliers: int = 60, reuse_features: bool = True, width: int | None = None,
+                 depth_fallback: bool = True):
         if width is not None and int(width) < 16:
             raise ValueError(f"the odometry's width must be at least 16 pixels, got {width}")
         self._initial = np.eye(4) if initial_pose is None else np.asarray(initial_pose, dtype=float)
@@ -176,6 +184,8 @@ class VisualOdometry:
         self._fallback_cov = _diag_cov(fallback_rot_sigma_rad, fallback_trans_sigma_m)
         self.min_good_inliers = int(min_good_inliers)
         self.reuse_features = bool(reuse_features)
+        self.depth_fallback = bool(depth_fallback)
+        self._recent_steps: deque[np.ndarray] = deque(maxlen=STEADY_STEPS)
 
     def initial_pose(self) -> np.ndarray:
         return self._initial.copy()
@@ -224,13 +234,39 @@ class VisualOdometry:
         timings = dict(a.timings_s)
         timings["detect"] = timings.get("detect", 0.0) + detect_s
         if not a.success:
-            log.info("VO failed at frame %d (%s); constant-velocity guess", i, a.reason)
-            return Increment(self._last_good.copy(), self._fallback_cov, False, a.reason, timings)
+            return self._without_features(i, prev, frame, a.reason, timings)
         # T_real_rendered maps frame i-1's camera into frame i's: T_cur_prev.
         T_prev_cur = inv_T(a.T_real_rendered)
         covariance = self._step_covariance(a, T_prev_cur)
         self._last_good = T_prev_cur
+        self._recent_steps.append(T_prev_cur[:3, 3].copy())
         return Increment(T_prev_cur, covariance, timings_s=timings)
+
+    def _without_features(self, i: int, prev: RGBDFrame, frame: RGBDFrame, reason: str, timings: dict) -> Increment:
+        """A step the features could not measure: by the depths alone where they agree
+        (:func:`~.depth_step.depth_step`, the constant-velocity guess holding what they cannot
+        see), else the guess. Either way ``ok`` is False: part of the step is guessed."""
+        t0 = time.perf_counter()
+        step = (depth_step(prev.depth_m, prev.intrinsics, frame.depth_m, frame.intrinsics, self._steady_guess())
+                if self.depth_fallback else None)
+        timings["depth_step"] = time.perf_counter() - t0
+        if step is None:
+            log.info("VO failed at frame %d (%s); constant-velocity guess", i, reason)
+            return Increment(self._last_good.copy(), self._fallback_cov, False, reason, timings)
+        log.info("VO failed at frame %d (%s); stepped by depth alone (%d points, median %.1f mm)", i, reason,
+                 step.points, step.residual_m * 1000)
+        # The guess stays the last step the features measured: a depth step's unseen directions
+        # are that guess already, and chaining them would let their noise wander step by step.
+        return Increment(step.T_prev_cur, step.covariance, False, f"{reason}; stepped by depth alone", timings)
+
+    def _steady_guess(self) -> np.ndarray:
+        """The constant-velocity guess with the mean translation of the last few measured steps
+        (``T_prev_cur`` (4, 4)): one step's direction is as noisy as its few inliers at a blank
+        wall, and a depth step keeps it for every step until features return."""
+        T = self._last_good.copy()
+        if self._recent_steps:
+            T[:3, 3] = np.mean(self._recent_steps, axis=0)
+        return T
 
     def _features_reusable(self) -> bool:
         """A frame's features serve it masked as the view (``reuse_features``): always for
