@@ -284,6 +284,13 @@ def test_corrupt_and_foreign_checkpoints_fail_clearly(quick, tmp_path):
     with pytest.raises(FieldError, match=rf"version {CHECKPOINT_VERSION + 98}.*retrain"):
         load_field(old)
 
+    # One NaN in the colour (checked a chunk at a time, the last chunk here) refuses the file.
+    state = torch.load(good, weights_only=True)
+    state["color_raw"].view(-1)[-1] = float("nan")
+    torch.save(state, tmp_path / "nan.pt")
+    with pytest.raises(FieldError, match="non-finite weights"):
+        load_field(tmp_path / "nan.pt")
+
     pickled = tmp_path / "pickled.pt"
     torch.save({"format": "nap3d-graph grid field", "config": argparse.Namespace(a=1)}, pickled)
     with pytest.raises(FieldError, match="pickled objects"):

@@ -103,7 +103,7 @@ def test_the_map_field_renders_from_the_submap_the_camera_looks_into():
 
 def test_a_run_keeps_only_the_resident_submap_fields_loaded():
     """Three submaps read when rendered: at most two in memory, the least recently used let go
-    and read again when the camera comes back; a field in its own frame answers in the map's."""
+    (before the next is read, so a read never holds three) and read again when the camera comes back; a field in its own frame answers in the map's."""
     from nap3d_graph.sims.sequence import default_intrinsics
 
     axis = np.array([1.0, 0.0, 0.0])
@@ -111,12 +111,16 @@ def test_a_run_keeps_only_the_resident_submap_fields_loaded():
                enumerate([(-np.inf, 5.0), (5.0, 10.0), (10.0, np.inf)])]
     reads = []
 
+    held_at_read = []  # fields in memory while one more is read: a read's peak
+
     def loader(k):
         def load():
             reads.append(k)
+            held_at_read.append(len(getattr(field, "_loaded", {})))
             return _Flat(k, 5 * k - 1, 5 * k + 6)
         return load
 
+    field = None
     field = SubmapField.lazy([loader(k) for k in range(3)], submaps, SubmapSettings(look_ahead_m=0.0, resident=2))
     assert reads == [0, 1, 2] and field.meta["train_frames"] == [0, 1, 2]  # read once for the records
     np.testing.assert_allclose(field.bounds, [[-1, -1, -1], [16, 1, 1]])
@@ -127,6 +131,7 @@ def test_a_run_keeps_only_the_resident_submap_fields_loaded():
         T[0, 3] = x
         levels.append(int(field.render(T, K).rgb[0, 0, 0]))
     assert levels == [0, 1, 2, 0, 1] and reads[3:] == [0, 1, 2, 0, 1] and len(field._loaded) == 2
+    assert max(held_at_read) == 1  # the least recently used is let go before the next is read
     T[0, 3] = 6.5  # still resident: not read again
     assert int(field.render(T, K).rgb[0, 0, 0]) == 1 and len(reads) == 8
 

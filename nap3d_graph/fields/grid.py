@@ -343,7 +343,7 @@ class GridField(GridRenderer):
         density, color = state["density_raw"], state["color_raw"]
         if not (isinstance(density, torch.Tensor) and isinstance(color, torch.Tensor)):
             raise FieldError(f"{source}: density_raw and color_raw must be tensors")
-        if not (torch.isfinite(density).all() and torch.isfinite(color).all()):
+        if not (_all_finite(density) and _all_finite(color)):
             raise FieldError(f"{source}: checkpoint holds non-finite weights")
         try:
             meta = json.loads(state.get("meta", "{}"))
@@ -370,3 +370,10 @@ class GridField(GridRenderer):
         nx, ny, nz = self.shape_xyz
         return (f"GridField({nx}x{ny}x{nz} vertices, voxel {self.voxel_size * 100:.1f} cm, colour voxel "
                 f"{self.color_voxel_size * 100:.1f} cm, device={self.device})")
+
+
+def _all_finite(tensor: torch.Tensor, chunk: int = 1 << 22) -> bool:
+    """Whether every value is finite, checked a chunk at a time: ``torch.isfinite`` of a whole
+    grid makes temporaries as large as the grid (a run's memory peaked at reading a submap)."""
+    flat = tensor.reshape(-1)
+    return all(bool(torch.isfinite(part).all()) for part in flat.split(chunk))

@@ -197,10 +197,11 @@ class SubmapField:
         if k in self._loaded:
             self._loaded.move_to_end(k)
             return self._loaded[k]
+        # Let go first: a field read while ``resident`` others are held would peak at one more.
+        while len(self._loaded) >= self.settings.resident:
+            self._loaded.popitem(last=False)
         field = self._loaders[k]()
         self._loaded[k] = field
-        while len(self._loaded) > self.settings.resident:
-            self._loaded.popitem(last=False)
         return field
 
     @property
