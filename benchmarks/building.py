@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -256,40 +257,63 @@ def per_room_psnr(floor, map_dir: Path, survey) -> dict:
     return {str(r): {"median_db": round(float(np.median(v)), 2), "frames": len(v)} for r, v in sorted(by_room.items())}
 
 
+def _traverse_run(traverse, map_dir: Path, run_dir: Path, log: Path) -> dict:
+    """``nap3d-graph run --odom vo`` of the traverse in the map from its own start: time, memory,
+    its ATE (and max) through the survey's alignment, the odometry's, where it was placed."""
+    row = _timed([sys.executable, "-m", "nap3d_graph", "run", "--data", str(traverse.path), "--field", str(map_dir),
+                  "--odom", "vo", "--out", str(run_dir)], log)
+    metrics = json.loads((run_dir / "latest" / "metrics.json").read_text())
+    placement = (metrics.get("map") or {}).get("placement") or {}
+    row.update(ate_m=((metrics["estimate"].get("ate_m") or {}).get("rmse")),
+               odometry_ate_m=((metrics["odometry"].get("ate_m") or {}).get("rmse")),
+               max_error_m=((metrics["estimate"].get("ate_m") or {}).get("max")),
+               placed_at_frame=placement.get("placed_at_frame"), accepted=metrics.get("corrections_accepted"))
+    return row
+
+
+def _map_row(args, floor, survey, map_dir: Path, log: Path) -> dict:
+    """``nap3d-graph map`` of the survey as a user runs it: time, memory, stages, the survey's
+    ATE, the field's held-out PSNR (whole and per room)."""
+    before = ["--submap-frames", str(10**6)] if args.one_field else []
+    row = _timed([sys.executable, "-m", "nap3d_graph", "map", str(survey.path), "--out", str(map_dir), "--quiet",
+                  *before], log)
+    info = json.loads((map_dir / "map.json").read_text())
+    report = json.loads((map_dir / "field.report.json").read_text())
+    row.update(seconds_per_frame=round(row["wall_s"] / len(survey), 3),
+               stages_s={k: v["seconds"] for k, v in info["stages"].items()},
+               train_seconds=report.get("train_seconds"),
+               survey_ate_m=(info.get("survey_ate") or {}).get("map", {}).get("rmse_m"),
+               # Frames placed: the survey's but those dropped or lost inside a rejoined run.
+               kept_frames=len(survey) - (info.get("segment") or {}).get("dropped_frames", len(survey)),
+               held_out_psnr_db=(report.get("held_out") or {}).get("psnr_db"),
+               held_out_psnr_per_room=per_room_psnr(floor, map_dir, survey))
+    return row
+
+
 def map_part(args, work: Path) -> dict:
+    """Each floor mapped, then crossed; with ``--runs-only`` the maps of an earlier map part (in
+    ``--work``, their figures in ``--out``) are kept and only the traverses are run again."""
     floors = {}
     label = "one_field" if args.one_field else "submaps"
+    earlier = json.loads(args.out.read_text()) if args.runs_only else None
     for rooms in args.rooms:
         floor, survey, traverse, length_m = _floor_data(args, rooms, work)
         name = f"floor{rooms}_{args.frames_per_room}f_{label}"
         map_dir, run_dir = work / f"{name}_map", work / f"{name}_run"
         row: dict = {"survey_frames": len(survey), "traverse_m": round(length_m, 2), "traverse_frames": len(traverse)}
-        before = ["--submap-frames", str(10**6)] if args.one_field else []
-        row["map"] = _timed([sys.executable, "-m", "nap3d_graph", "map", str(survey.path), "--out", str(map_dir),
-                             "--quiet", *before], work / f"{name}_map.log")
-        info = json.loads((map_dir / "map.json").read_text())
-        report = json.loads((map_dir / "field.report.json").read_text())
-        row["map"].update(seconds_per_frame=round(row["map"]["wall_s"] / len(survey), 3),
-                          stages_s={k: v["seconds"] for k, v in info["stages"].items()},
-                          train_seconds=report.get("train_seconds"),
-                          survey_ate_m=(info.get("survey_ate") or {}).get("map", {}).get("rmse_m"),
-                          # Frames placed: the survey's but those dropped or lost inside a rejoined run.
-                          kept_frames=len(survey) - (info.get("segment") or {}).get("dropped_frames", len(survey)),
-                          held_out_psnr_db=(report.get("held_out") or {}).get("psnr_db"),
-                          held_out_psnr_per_room=per_room_psnr(floor, map_dir, survey))
-        row["run"] = _timed([sys.executable, "-m", "nap3d_graph", "run", "--data", str(traverse.path), "--field",
-                             str(map_dir), "--odom", "vo", "--out", str(run_dir)], work / f"{name}_run.log")
-        metrics = json.loads((run_dir / "latest" / "metrics.json").read_text())
-        placement = (metrics.get("map") or {}).get("placement") or {}
-        row["run"].update(ate_m=((metrics["estimate"].get("ate_m") or {}).get("rmse")),
-                          odometry_ate_m=((metrics["odometry"].get("ate_m") or {}).get("rmse")),
-                          max_error_m=((metrics["estimate"].get("ate_m") or {}).get("max")),
-                          placed_at_frame=placement.get("placed_at_frame"),
-                          accepted=metrics.get("corrections_accepted"))
+        if earlier is not None:
+            row["map"] = earlier["floors"][str(rooms)]["map"]
+            shutil.rmtree(run_dir, ignore_errors=True)
+        else:
+            row["map"] = _map_row(args, floor, survey, map_dir, work / f"{name}_map.log")
+        row["run"] = _traverse_run(traverse, map_dir, run_dir, work / f"{name}_run.log")
         print(f"floor of {rooms} room(s): {json.dumps(row)}")
         floors[str(rooms)] = row
-    return {"floor_seed": FLOOR_SEED, "size": [args.width, args.height], "frames_per_room": args.frames_per_room,
-            "field": label, "floors": floors}
+    out = {"floor_seed": FLOOR_SEED, "size": [args.width, args.height], "frames_per_room": args.frames_per_room,
+           "field": label, "floors": floors}
+    if earlier is not None:  # the maps' own record: where their figures were measured
+        out["maps_provenance"] = earlier.get("maps_provenance") or earlier["provenance"]
+    return out
 
 
 # --- workers ------------------------------------------------------------------------------------
@@ -353,6 +377,9 @@ def main() -> None:
                         help="survey frames per room (the one-room survey's 270 at 3.75 Hz)")
     parser.add_argument("--one-field", action="store_true",
                         help="map part: one field for the whole floor (before submaps: --submap-frames beyond the survey)")
+    parser.add_argument("--runs-only", action="store_true",
+                        help="map part: keep the maps (in --work) and their figures (in --out) of an earlier map part "
+                             "and run the traverses in them again")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--work", type=Path, default=Path("/tmp/nap3d_building"))

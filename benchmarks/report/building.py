@@ -99,6 +99,10 @@ def floor_map_table() -> str:
                     f"{against('peak_memory_gb')}, {_s(m.get('peak_memory_all_processes_gb'))}"
                     f"{against('peak_memory_all_processes_gb')} | {psnr} | {crossed}; {run['peak_memory_gb']:.2f}"
                     f"{against('peak_memory_gb', 'run')} |")
+    maps = read(MAP_FILE).get("maps_provenance")
+    if maps:  # the runs were measured again in the same maps (--runs-only)
+        rows.append(f"\nThe maps (and their columns) at commit {maps['commit']}; the traverses run in them again at the "
+                    "file's commit.")
     return "\n".join(rows)
 
 
