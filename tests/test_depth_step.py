@@ -100,3 +100,16 @@ def test_a_walk_that_stops_at_a_blank_wall_is_not_carried_through_it(blank_wall_
     assert "depth alone" in first.reason and "depth alone" in last.reason
     assert np.sqrt(first.covariance[3, 3]) > 3 * np.sqrt(first.covariance[5, 5])
     assert np.linalg.norm((inv_T(poses[-2]) @ poses[-1])[:3, 3] - last.T_prev_cur[:3, 3]) < 0.01
+
+
+def test_a_step_far_from_the_guess_is_not_taken(monkeypatch):
+    """At a fast swing the guess is far off and the depths can settle anywhere: a step its guess's
+    covariance cannot reach (here 5 deg and 30 cm from it) falls back to the guess."""
+    import nap3d_graph.motion.depth_step as module
+
+    true = exp_se3(np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.05]))
+    guess = exp_se3(np.array([0.0, np.radians(5.0), 0.0, 0.0, 0.0, 0.35]))
+    wall, moved = _wall_depth(np.eye(4), 3.0), _wall_depth(true, 3.0)
+    assert depth_step(wall, K, moved, K, guess) is None
+    monkeypatch.setattr(module, "MAX_GUESS_D2", np.inf)
+    assert depth_step(wall, K, moved, K, guess) is not None

@@ -14,7 +14,6 @@ a plane, turning about its normal) the guess holds, and the covariance says whic
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,15 +23,17 @@ from ..conventions import exp_se3, log_se3
 
 __all__ = ["DepthStep", "depth_step", "heading_prior"]
 
-log = logging.getLogger(__name__)
-
 #: Depth noise of one point in the alignment (m): a structured-light or stereo camera's at 1-2 m.
 DEPTH_SIGMA_M = 0.01
-#: Neighbouring points of a surface farther apart than this share no plane (an object's edge).
+#: Points whose depths differ by more than this share of their depth per pixel between them
+#: share no plane (an object's edge): no normal there.
 EDGE_JUMP = 0.05
 #: Normals from points this many pixels apart: one pixel apart, a z^2 sensor's noise at 1.5 m
 #: (3 mm against 6 mm between the points) turns them by tens of degrees.
 NORMAL_REACH_PX = 4
+#: A step farther from the guess than this (Mahalanobis squared under the guess's covariance,
+#: chi-square 6 dof at 99.9%) is not taken: the depths may have settled in a wrong minimum.
+MAX_GUESS_D2 = 22.46
 #: The residuals of nearby points are not independent (the sensor's errors come in patches): the
 #: alignment's information is that of this many independent points, however many it used.
 INDEPENDENT_POINTS = 100
@@ -135,7 +136,8 @@ def depth_step(prev_depth_m: np.ndarray, prev_intrinsics: Intrinsics, cur_depth_
     ``start_residual_m`` from the previous frame's surface are left out at first (the guess can
     be off by a walking step), the bound halving each iteration down to ``max_residual_m``.
     None when the depths do not agree on a step (fewer than ``min_points`` associated within
-    ``max_residual_m``, or a median residual over ``max_median_residual_m``).
+    ``max_residual_m``, or a median residual over ``max_median_residual_m``) or find one farther
+    from the guess than the guess's covariance allows (``MAX_GUESS_D2``).
     """
     cur_points, _ = backproject_depth(cur_depth_m, cur_intrinsics, stride)
     if len(cur_points) < min_points:
@@ -145,16 +147,20 @@ def depth_step(prev_depth_m: np.ndarray, prev_intrinsics: Intrinsics, cur_depth_
     T_guess = np.asarray(T_prev_cur_guess, dtype=float)
     T_guess_inv = np.linalg.inv(T_guess)
     direction = T_guess[:3, 3] / max(float(np.linalg.norm(T_guess[:3, 3])), 1e-9)
+
+    def prior_info(T: np.ndarray) -> np.ndarray:  # the heading held at the speed T has along it
+        return np.linalg.inv(heading_prior(T_guess, abs(float(T[:3, 3] @ direction))))
+
     T = T_guess.copy()
     for k in range(iterations):
         bound = max(max_residual_m, start_residual_m / 2**k)
         J, r = _linearise(T, cur_points, grid, normals, prev_intrinsics, bound)
         if len(r) < min_points:
             return None
-        prior_info = np.linalg.inv(heading_prior(T_guess, abs(float(T[:3, 3] @ direction))))
+        prior = prior_info(T)
         offset = log_se3(T_guess_inv @ T)  # from the guess: the prior's residual
         weight = _point_weight(len(r))
-        dxi = -np.linalg.solve(weight * J.T @ J + prior_info, weight * J.T @ r + prior_info @ offset)
+        dxi = -np.linalg.solve(weight * J.T @ J + prior, weight * J.T @ r + prior @ offset)
         T = T @ exp_se3(dxi)
         if bound == max_residual_m and np.linalg.norm(dxi[:3]) < 1e-5 and np.linalg.norm(dxi[3:]) < 1e-5:
             break
@@ -162,8 +168,12 @@ def depth_step(prev_depth_m: np.ndarray, prev_intrinsics: Intrinsics, cur_depth_
     median = float(np.median(np.abs(r))) if len(r) else np.inf
     if len(r) < min_points or median > max_median_residual_m:
         return None
-    prior_info = np.linalg.inv(heading_prior(T_guess, abs(float(T[:3, 3] @ direction))))
-    return DepthStep(T, np.linalg.inv(_point_weight(len(r)) * J.T @ J + prior_info), len(r), median)
+    offset = log_se3(T_guess_inv @ T)
+    if float(offset @ prior_info(T) @ offset) > MAX_GUESS_D2:
+        # Farther from the guess than the guess's own doubt: at a fast swing the guess is wrong
+        # and the depths settle in a wrong minimum as tightly as in the right one.
+        return None
+    return DepthStep(T, np.linalg.inv(_point_weight(len(r)) * J.T @ J + prior_info(T)), len(r), median)
 
 
 def _point_weight(points: int) -> float:

@@ -3,7 +3,8 @@
 Each source gives, frame by frame, the increment ``T_prev_cur`` (4x4, previous camera <-
 current camera) with its 6x6 covariance (GTSAM order, right perturbation), and the pose it
 starts from. A failed increment (VO with too few matches) falls back to the constant
-velocity model with a large covariance, so the run continues.
+velocity model with a large covariance, so the run continues; the feature odometry first tries
+the depths alone (:mod:`.depth_step`: a blank wall still says how far away it is).
 
 * :class:`RecordedOdometry`: poses a source already has (the simulator's ``odometry.txt``).
 * :class:`NoisyGroundTruthOdometry`: seeded noise injected on ground-truth increments (with
