@@ -1,9 +1,10 @@
 """Which colour camera should a 7-Scenes survey be read through? Each half of a recording
-surveyed by ``map`` (field left out: it does not move the poses) through each registration
+surveyed by ``map`` (field left out unless ``--field``: it does not move the poses) through each registration
 :class:`~nap3d_graph.datasets.SevenScenesSequence` offers, with the figures a user has without
 ground truth (loops the graph kept, turned away and the bundle admitted; the bundle's pixel
 and disparity residuals, also as angles so cameras of different focal lengths compare; the
-readout it found) beside the ATE of the odometry, the pose graph and the survey against
+readout it found; with ``--field``, the field's figures on held-out survey frames: PSNR, depth
+error, and NAP3D of those frames against it) beside the ATE of the odometry, the pose graph and the survey against
 KinectFusion's poses and the SfM poses.
 
 ``poses`` reads the recording's pose files to fit the colour camera: it is here to show
@@ -12,6 +13,7 @@ where the fit lands with exact-as-tracked motion, not as something ``map`` may d
     python benchmarks/map_registration.py --data ../shared/data/7scenes/redkitchen \\
         --second-gt ../shared/data/7scenes/redkitchen/pseudo_gt_sfm.txt --work /tmp/map_registration \\
         --out benchmarks/results/map_registration_redkitchen.json
+    python benchmarks/map_registration.py ... --field --out benchmarks/results/map_registration_field_redkitchen.json
 """
 
 from __future__ import annotations
@@ -36,6 +38,9 @@ def _arguments() -> argparse.Namespace:
     parser.add_argument("--second-gt", type=Path, required=True)
     parser.add_argument("--work", type=Path, required=True)
     parser.add_argument("--registrations", nargs="+", default=list(REGISTRATIONS), choices=REGISTRATIONS)
+    parser.add_argument("--field", action="store_true",
+                        help="build each map's field too and record its held-out figures (what the images say of "
+                        "the camera they were read through: a wrong focal length puts colour and depth apart)")
     parser.add_argument("--out", type=Path, required=True)
     return parser.parse_args()
 
@@ -52,6 +57,14 @@ def _self_figures(info: dict, f_px: float) -> dict:
             "residual_disparity_mrad": 1000 * last["residual_disparity_px"] / f_px}
 
 
+def _field_figures(folder: Path) -> dict:
+    """The field's figures on held-out survey frames, as the map's report reads them."""
+    from nap3d_graph.mapping.report import map_report
+
+    values = map_report(folder).values
+    return {"held_out": values.get("held_out"), "held_out_nap3d": values.get("held_out_nap3d")}
+
+
 def _one(args, registration: str, frames: str, references) -> dict:
     from nap3d_graph.datasets import SevenScenesSequence
     from nap3d_graph.evaluation.alignment import aligned_errors
@@ -60,11 +73,14 @@ def _one(args, registration: str, frames: str, references) -> dict:
     sequence = SevenScenesSequence(args.data, registration=registration, frames=frames)
     folder = args.work / f"{registration}_{frames.replace(':', '-')}"
     t0 = time.perf_counter()
-    build_map(sequence, folder, MapSettings(), progress=False, build_field_stage=False)
+    build_map(sequence, folder, MapSettings(), progress=False, build_field_stage=args.field)
     refs = {name: make(sequence) for name, make in references.items()}
     row = {"registration": registration, "frames": frames, "colour": sequence.intrinsics.to_dict(),
            "seconds": round(time.perf_counter() - t0, 1),
            **_self_figures(json.loads((folder / "map.json").read_text()), sequence.intrinsics.fx)}
+    if args.field:
+        row["field"] = _field_figures(folder)
+        print(registration, frames, "field", row["field"])
     for stage, name in (("odometry", "odometry.txt"), ("survey", "poses.txt")):
         T = map_trajectory(folder, name, sequence)
         row[stage] = {ref: aligned_errors(sequence.timestamps, R, T).summary() for ref, R in refs.items()}
@@ -80,7 +96,7 @@ def main() -> None:
     references = {"KinectFusion": lambda s: np.asarray(s.T_world_cam_gt), "SfM": lambda s: second_gt_for(s, table)}
     rows = [_one(args, registration, frames, references) for registration in args.registrations for frames in HALVES]
     write_result(args.out, {"command": " ".join(sys.argv), "data": str(args.data), "halves": list(HALVES),
-                            "rows": rows}, args)
+                            "field": args.field, "rows": rows}, args)
 
 
 if __name__ == "__main__":
