@@ -361,23 +361,19 @@ def _keep_keyframes(folder: MapFolder, keys: np.ndarray, first: int, last: int, 
 def _graph_stage(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list[Edge], loops: list[Loop],
                  chain_matches: list[PairMatches], folder: MapFolder, settings: MapSettings, say
                  ) -> tuple[GraphResult, np.ndarray, list[Loop]]:
-    """Stage 4: the robust pose graph over the chain and every verified loop (each loop's
-    decision written to ``loops.csv``), then the bundle adjustment; ``(graph, T_map_key,
-    verified loops)``."""
+    """Stage 4: the robust pose graph over the chain and every verified loop, then the bundle
+    adjustment (:func:`graph_and_bundle`; each loop's decision written to ``loops.csv``);
+    ``(graph, T_map_key, verified loops)``."""
     t0 = time.perf_counter()
     verified = [lp for lp in loops if lp.status in ("verified", "accepted", "rejected")]
-    loop_edges = [Edge(lp.a, lp.b, lp.T_a_b, floor_covariance(lp.covariance, settings.edge_floor_rad,
-                                                              settings.edge_floor_m), "loop") for lp in verified]
-    graph = solve(survey.T_odom_cam[keys], chain, loop_edges, settings.gate_p)
-    for lp, kept, weight, d2 in zip(verified, graph.loop_kept, graph.loop_weights, graph.loop_d2):
-        lp.status = "accepted" if kept else "rejected"
-        lp.reason = "" if kept else (f"inconsistent with the graph (GNC weight {weight:.2f}, d2 {d2:.1f})")
+    graph, T_map_key, report = graph_and_bundle(sequence, keys, survey, chain, verified, chain_matches, settings)
     write_loops_csv(folder.loops_table, loops)
-    T_map_key = graph.T_map_key
-    if settings.bundle:
-        twists = keyframe_twists(survey.T_odom_cam, np.asarray(sequence.timestamps, dtype=float), keys)
-        T_map_key = _bundle_stage(sequence, graph, twists, chain_matches, verified, folder, settings, say)
-        write_loops_csv(folder.loops_table, loops)  # with the loops the bundle admitted
+    if report is not None:
+        folder.info["bundle"] = report
+        _say(say, f"bundle adjustment: {report.get('landmarks', 0)} landmarks, {report.get('observations', 0)} "
+                  f"observations, colour rows read in {report.get('readout_s', 0) * 1000:.0f} ms, "
+                  f"{report.get('loops_admitted', 0)} loop(s) the graph turned away admitted; keyframes moved "
+                  f"{report.get('median_keyframe_move_mm', 0):.1f} mm (median)")
     accepted = int(graph.loop_kept.sum())
     admitted = sum(lp.status == "admitted" for lp in verified)
     folder.done("graph", time.perf_counter() - t0, keyframes=len(keys), loops_verified=len(verified),
@@ -387,10 +383,23 @@ def _graph_stage(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list
     return graph, T_map_key, verified
 
 
-def _bundle_stage(sequence, graph: GraphResult, twists: np.ndarray, chain_matches: list[PairMatches],
-                  verified: list[Loop], folder: MapFolder, settings: MapSettings, say) -> np.ndarray:
-    """The bundle adjustment of the graph's keyframes (:func:`adjust_keyframes`); ``T_map_key``
-    (K, 4, 4), its report in ``map.json``."""
+def graph_and_bundle(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: list[Edge], verified: list[Loop],
+                     chain_matches: list[PairMatches], settings: MapSettings
+                     ) -> tuple[GraphResult, np.ndarray, dict | None]:
+    """The robust pose graph over ``chain`` and the ``verified`` loops from the odometry's
+    keyframe poses (each loop's ``status`` and ``reason`` set: accepted or rejected), then with
+    ``settings.bundle`` the bundle adjustment (:func:`adjust_keyframes`: rejected loops its
+    poses agree with become 'admitted'); ``(graph, T_map_key (K, 4, 4) final, the bundle's report
+    or None)``. What ``map`` solves, and what the fault benchmark solves again with a loop forced in."""
+    loop_edges = [Edge(lp.a, lp.b, lp.T_a_b, floor_covariance(lp.covariance, settings.edge_floor_rad,
+                                                              settings.edge_floor_m), "loop") for lp in verified]
+    graph = solve(survey.T_odom_cam[keys], chain, loop_edges, settings.gate_p)
+    for lp, kept, weight, d2 in zip(verified, graph.loop_kept, graph.loop_weights, graph.loop_d2):
+        lp.status = "accepted" if kept else "rejected"
+        lp.reason = "" if kept else (f"inconsistent with the graph (GNC weight {weight:.2f}, d2 {d2:.1f})")
+    if not settings.bundle:
+        return graph, graph.T_map_key, None
+    twists = keyframe_twists(survey.T_odom_cam, np.asarray(sequence.timestamps, dtype=float), keys)
     bundle_settings = _bundle_settings(sequence, settings)
     T_map_key, report = adjust_keyframes(graph.T_map_key, chain_matches, verified,
                                          _working_intrinsics(sequence, settings), bundle_settings, twists)
@@ -400,12 +409,7 @@ def _bundle_stage(sequence, graph: GraphResult, twists: np.ndarray, chain_matche
     used = chain_matches + [lp.matches_kept for lp in verified
                             if lp.status in ("accepted", "admitted") and lp.matches_kept is not None]
     report["depth_against_images"] = depth_against_images(used, T_map_key, _working_intrinsics(sequence, settings))
-    folder.info["bundle"] = report
-    _say(say, f"bundle adjustment: {report.get('landmarks', 0)} landmarks, {report.get('observations', 0)} "
-              f"observations, colour rows read in {report.get('readout_s', 0) * 1000:.0f} ms, "
-              f"{report.get('loops_admitted', 0)} loop(s) the graph turned away admitted; keyframes moved "
-              f"{report.get('median_keyframe_move_mm', 0):.1f} mm (median)")
-    return T_map_key
+    return graph, T_map_key, report
 
 
 def adjust_keyframes(T_graph_key: np.ndarray, chain_matches: list[PairMatches], verified: list[Loop],
