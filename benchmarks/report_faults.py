@@ -7,11 +7,12 @@ On fr1/desk at 15 Hz (shared data): the first half is the survey (its map, built
 - clean: the map's report, and the second half run in the map: nothing past a bad line;
 - blurred field: the map's splats' colours averaged over 12 cm cubes (a blurred field), its
   held-out PSNR and the run's corrections;
-- false loop forced in: the pose graph solved again with one wrong loop (two keyframes far
-  apart said to be 10 cm from where they are) as a non-robust edge, then the bundle adjustment
-  over the images as ``map`` runs it (the loops the bent graph turned away decided again); the
-  kept loops' residuals at the final poses, and the keyframes' ATE at the graph's and at the
-  final poses (scoring only);
+- false loops: the pose graph solved again with one wrong loop forced in as a non-robust edge,
+  then the bundle adjustment over the images as ``map`` runs it (the loops the bent graph turned
+  away decided again): two keyframes far apart said to be 10 cm from where they are (a pose
+  alone: the bundle never sees it), and a look-alike place's loop, its matches in the bundle
+  too (a kept loop moved 10 cm, its matches made to agree); the map's figures at the final
+  poses, and the keyframes' ATE at the graph's and at the final poses (scoring only);
 - covariances 10x too cautious and 10x too confident: the second half run in the clean map with
   NAP3D's covariance inflation and the field's error sigmas scaled (covariance x10, x0.1); the
   run's two-sided gate consistency;
@@ -146,18 +147,45 @@ def _by_stamp(sequence, stamps: np.ndarray, T: np.ndarray) -> np.ndarray:
     return out
 
 
-def false_loop_map(map_dir: Path, out: Path, error_m: float, survey) -> tuple[Path, dict]:
+def twin_loop(verified: list, intrinsics, error_m: float):
+    """A false loop as a look-alike place gives one: the kept loop with the most matches between
+    the keyframes farthest apart in the survey, its relative pose moved ``error_m`` (along x) and
+    its matches re-made to agree with the moved pose (keyframe a's matched points seen from b as
+    if b stood where the false pose puts it: identical structure, displaced). ``(loop, Edge,
+    PairMatches)``: the true loop it replaces, the false loop as a non-robust edge and its matches."""
+    from nap3d_graph.camera import backproject, project
+    from nap3d_graph.conventions import exp_se3, inv_T
+    from nap3d_graph.mapping.bundle import PairMatches
+    from nap3d_graph.mapping.pose_graph import Edge
+
+    candidates = [lp for lp in verified if lp.status == "accepted" and lp.matches_kept is not None
+                  and len(lp.matches_kept.z_a) >= 30]
+    true = max(candidates, key=lambda lp: (abs(lp.b - lp.a), len(lp.matches_kept.z_a)))
+    T_false = true.T_a_b @ exp_se3(np.array([0, 0, 0, error_m, 0, 0]))
+    m = true.matches_kept
+    points_a = backproject(m.uv_a, m.z_a, intrinsics)
+    points_b = points_a @ inv_T(T_false)[:3, :3].T + inv_T(T_false)[:3, 3]
+    uv_b, z_b = project(points_b, intrinsics)
+    seen = (z_b > 0) & (uv_b[:, 0] >= 0) & (uv_b[:, 0] < intrinsics.width) & (uv_b[:, 1] >= 0) & (
+        uv_b[:, 1] < intrinsics.height)
+    matches = PairMatches(true.a, true.b, m.uv_a[seen], uv_b[seen], m.z_a[seen], z_b[seen])
+    return true, Edge(true.a, true.b, T_false, np.diag([1e-6] * 6), "alignment"), matches
+
+
+def false_loop_map(map_dir: Path, out: Path, error_m: float, survey, matches: bool = False) -> tuple[Path, dict]:
     """A copy of ``map_dir`` whose keyframe poses were solved again as ``map`` solves them: the
-    pose graph with the loops it verified and, when ``error_m`` > 0, one false loop (the first
-    and the middle keyframe said to be ``error_m`` from where the map has them) forced in as a
-    non-robust edge, then (where the map had one) the bundle adjustment over the survey's images
-    (``error_m`` 0: the same solves without it, the reference). Also returns the keyframes' ATE
-    at the graph's and at the final poses against ``survey``'s ground truth (scoring only)."""
+    pose graph with the loops it verified and, when ``error_m`` > 0, one false loop forced in as
+    a non-robust edge, then (where the map had one) the bundle adjustment over the survey's
+    images (``error_m`` 0: the same solves without it, the reference). The false loop: without
+    ``matches``, the first and the middle keyframe said to be ``error_m`` from where the map has
+    them (the bundle never sees it); with ``matches``, a look-alike place's loop
+    (:func:`twin_loop`) whose matches enter the bundle too. Also returns the keyframes' ATE at the
+    graph's and at the final poses against ``survey``'s ground truth (scoring only)."""
     import csv
 
     from nap3d_graph.conventions import exp_se3, inv_T
     from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, graph_and_bundle
+    from nap3d_graph.mapping.build import MapSettings, _working_intrinsics, graph_and_bundle
     from nap3d_graph.mapping.loops import load_edges
     from nap3d_graph.mapping.pose_graph import Edge
     from nap3d_graph.mapping.survey import SurveyOdometry
@@ -170,25 +198,32 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey) -> tuple[Pa
     keys = np.load(out / "keyframes.npz")["indices"]
     info = json.loads((out / "map.json").read_text())
     with (out / "loops.csv").open(newline="") as f:
-        status = [row["status"] for row in csv.DictReader(f)]
-    verified = [lp for lp, st in zip(loops, status) if st in ("accepted", "rejected", "admitted")]
-    a, b = 0, len(T_key) // 2
-    T_ab = inv_T(T_key[a]) @ T_key[b] @ exp_se3(np.array([0, 0, 0, error_m, 0, 0]))
-    forced = [Edge(a, b, T_ab, np.diag([1e-6] * 3 + [1e-6] * 3), "alignment")] if error_m > 0 else []
+        rows = list(csv.DictReader(f))
+    for lp, row in zip(loops, rows):
+        lp.status = row["status"]
+    verified = [lp for lp in loops if lp.status in ("accepted", "rejected", "admitted")]
     settings = MapSettings(bundle="bundle" in info)
+    forced, forced_matches = [], []
+    if error_m > 0 and matches:
+        true, edge, pair = twin_loop(verified, _working_intrinsics(survey, settings), error_m)
+        verified.remove(true)
+        true.status, true.reason = "refused", "replaced by the fault benchmark's false loop"
+        forced, forced_matches = [edge], [pair]
+    elif error_m > 0:
+        a, b = 0, len(T_key) // 2
+        T_ab = inv_T(T_key[a]) @ T_key[b] @ exp_se3(np.array([0, 0, 0, error_m, 0, 0]))
+        forced = [Edge(a, b, T_ab, np.diag([1e-6] * 6), "alignment")]
     graph, T_final, bundle = graph_and_bundle(survey, keys, SurveyOdometry.load(out / "odometry.npz"),
-                                                [*chain, *forced], verified, chain_matches, settings)
+                                              [*chain, *forced], verified, [*chain_matches, *forced_matches],
+                                              settings)
     np.save(out / "keyframe_poses.npy", T_final)
     info["loops"].update(accepted=sum(lp.status == "accepted" for lp in verified),
                          admitted=sum(lp.status == "admitted" for lp in verified))
     if bundle is not None:
         info["bundle"] = bundle
     (out / "map.json").write_text(json.dumps(info, indent=1, default=float))
-    with (out / "loops.csv").open(newline="") as f:
-        rows = list(csv.DictReader(f))
-    by_pair = {(lp.a, lp.b): lp.status for lp in verified}
     for row, lp in zip(rows, loops):  # the loops' decisions as these solves took them
-        row["status"] = by_pair.get((lp.a, lp.b), row["status"])
+        row["status"] = lp.status
     with (out / "loops.csv").open("w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(rows[0]))
         writer.writeheader()
@@ -197,7 +232,8 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey) -> tuple[Pa
     scores = {"keyframes_ate_graph_m": aligned_errors(stamps, T_gt, graph.T_map_key).summary()["rmse_m"],
               "keyframes_ate_final_m": aligned_errors(stamps, T_gt, T_final).summary()["rmse_m"],
               "loops_kept": sum(lp.status == "accepted" for lp in verified),
-              "loops_admitted": sum(lp.status == "admitted" for lp in verified), "loops_verified": len(verified)}
+              "loops_admitted": sum(lp.status == "admitted" for lp in verified), "loops_verified": len(verified),
+              **({"twin_matches": len(forced_matches[0].z_a)} if forced_matches else {})}
     return out, scores
 
 
@@ -252,9 +288,11 @@ def main() -> None:
     blurred = blurred_map(map_dir, args.work / "map_blurred", args.blur_m)
     _held_out(blurred, survey)
     map_case("blurred field", blurred)
-    for name, error_m in (("graph and bundle solved again (reference for the false loop)", 0.0),
-                          ("false loop forced in", 0.10)):
-        folder, scores = false_loop_map(map_dir, args.work / f"map_false_loop_{error_m:g}", error_m, survey)
+    for name, error_m, matches in (("graph and bundle solved again (reference for the false loops)", 0.0, False),
+                                   ("false loop forced into the pose graph", 0.10, False),
+                                   ("false loop with a look-alike place's matches, in graph and bundle", 0.10, True)):
+        folder, scores = false_loop_map(map_dir, args.work / f"map_false_loop_{error_m:g}{'_matches' * matches}",
+                                        error_m, survey, matches)
         map_case(name, folder)
         result["map"][name]["scores"] = scores
         print(f"  {scores}")

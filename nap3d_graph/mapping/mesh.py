@@ -9,10 +9,14 @@ vertex colours that MeshLab, CloudCompare, Blender and rerun open. (Open3D 0.20'
 A survey that is wrong shows as doubled surfaces: a wall seen from one part of the survey sits
 a few centimetres from where another part saw it. The wall thickness measures that without
 ground truth: the largest planes of the fused cloud (walls, floor, large furniture faces) are
-found by RANSAC, and for each, every frame that sees enough of it gives the median signed
-distance of its own points to the plane. Within a frame the sensor's noise averages out, so the
-spread of those medians across frames (5th to 95th percentile) is how far apart the survey put
-the same surface: a few millimetres on a consistent map, the doubling itself on a bent one.
+found by RANSAC, each is cut into 10 cm cells, and every frame that sees enough of a cell
+gives the median signed distance of its points there. Two frames that see the same cells are
+compared there only: the median of their differences over the shared cells is how far apart
+they put the surface (within a frame the sensor's noise averages out; comparing cell by cell,
+what part of a not quite flat surface each frame sees does not enter, which moved whole-frame
+medians by several centimetres on fr1/desk at its ground-truth poses). The 90th percentile of
+those pairwise distances is the plane's thickness: a few millimetres on a consistent map, the
+doubling itself on a bent one (a part of the survey seen by one frame in twenty is enough).
 
 Why Open3D: TSDF integration, marching cubes and plane RANSAC are well kept there; writing
 them again here would only add bugs. The distance bookkeeping is the method's own.
@@ -52,9 +56,13 @@ class MeshSettings:
     """voxel_m: the TSDF's voxel (its truncation 4 voxels; 3 cm: a floor to look at, ~10 KB per
     20 cm block of surface); max_depth_m: depth beyond this is not fused (a structured-light
     sensor's far depth is its noisiest); every: fuse every so many frames; min_weight: a surface
-    is kept where at least this many fused frames saw it; planes: the largest planes the wall thickness looks at; plane_inlier_m: a point within
-    this of a plane belongs to it; min_points: a frame that sees fewer of a plane's points gives
-    it no median; stride: back-project every so many pixels for the thickness."""
+    is kept where at least this many fused frames saw it; planes: the largest planes the wall
+    thickness looks at; plane_inlier_m: a point within this of a plane belongs to it;
+    min_points: a frame that sees fewer of a plane's points gives it nothing; cell_m: the side of
+    the cells a plane is cut into; cell_points: a frame's cell with fewer points gives no median;
+    shared_cells: two frames are compared where they share at least this many cells; columns:
+    the thickness back-projects about so many columns of each frame (every ``width // columns``-th
+    pixel), so a cell holds as many points at 160 pixels across as at 640."""
 
     voxel_m: float = 0.03
     max_depth_m: float = 4.0
@@ -63,7 +71,10 @@ class MeshSettings:
     planes: int = 6
     plane_inlier_m: float = 0.06
     min_points: int = 150
-    stride: int = 4
+    cell_m: float = 0.10
+    cell_points: int = 8
+    shared_cells: int = 5
+    columns: int = 160
 
 
 @dataclass
@@ -135,7 +146,7 @@ def fuse_mesh(posed, out: Path, settings: MeshSettings | None = None, timing=Non
         extrinsic = o3c.Tensor(inv_T(T_map_cam), o3c.float64)
         blocks = grid.compute_unique_block_coordinates(depth_mm, intrinsic, extrinsic, 1000.0, s.max_depth_m)
         grid.integrate(blocks, depth_mm, colour, intrinsic, intrinsic, extrinsic, 1000.0, s.max_depth_m)
-        clouds.append(surface_points(depth_m, K, T_map_cam, s.stride, s.max_depth_m))
+        clouds.append(surface_points(depth_m, K, T_map_cam, max(1, K.width // s.columns), s.max_depth_m))
     mesh = grid.extract_triangle_mesh(weight_threshold=s.min_weight).to_legacy()
     if len(mesh.vertices) == 0:
         raise ValueError("the fused survey has no surface seen by enough frames: no mesh")
@@ -167,8 +178,8 @@ def surface_points(depth_m: np.ndarray, intrinsics, T_map_cam: np.ndarray, strid
 def wall_thickness(clouds: list[np.ndarray], settings: MeshSettings | None = None, seed: int = 0) -> dict:
     """How thick the largest planes are (see the module's text) from per-frame point sets
     ``clouds`` (each (P, 3), the map's frame): per plane its normal, the frames that saw it and
-    the 5-95% spread of their median offsets (metres); ``thickness_m`` the largest spread,
-    ``reason`` when none could be measured."""
+    the 90th percentile of the distances between frames that see the same cells of it (metres);
+    ``thickness_m`` the largest, ``reason`` when none could be measured."""
     o3d = import_open3d()
     s = settings or MeshSettings()
     usable = [c for c in clouds if len(c)]
@@ -207,15 +218,35 @@ def _refit(points: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def _plane_spread(clouds: list[np.ndarray], normal: np.ndarray, offset: float, s: MeshSettings) -> dict | None:
-    """One plane ``normal . p + offset = 0``: each frame's median signed distance of its points
-    near it, and the 5-95% spread of those medians (None when fewer than 5 frames see it)."""
-    medians = []
-    for points in clouds:
-        d = points @ normal + offset
-        near = np.abs(d) < s.plane_inlier_m
-        if near.sum() >= s.min_points:
-            medians.append(float(np.median(d[near])))
-    if len(medians) < 5:
+    """One plane ``normal . p + offset = 0``: each frame's offsets of the plane's cells
+    (:func:`_cell_offsets`), each pair of frames' distance over the cells both see, and the 90th
+    percentile of those distances (None when fewer than 5 frames or 10 pairs see it)."""
+    seen = [cells for cells in (_cell_offsets(points, normal, offset, s) for points in clouds) if cells]
+    distances = []
+    for i, cells_i in enumerate(seen):
+        for cells_j in seen[i + 1:]:
+            shared = cells_i.keys() & cells_j.keys()
+            if len(shared) >= s.shared_cells:
+                distances.append(abs(float(np.median([cells_i[k] - cells_j[k] for k in shared]))))
+    if len(seen) < 5 or len(distances) < 10:
         return None
-    lo, hi = np.percentile(medians, [5, 95])
-    return {"normal": np.round(normal, 3).tolist(), "frames": len(medians), "spread_m": round(float(hi - lo), 4)}
+    return {"normal": np.round(normal, 3).tolist(), "frames": len(seen), "pairs": len(distances),
+            "spread_m": round(float(np.percentile(distances, 90)), 4)}
+
+
+def _cell_offsets(points: np.ndarray, normal: np.ndarray, offset: float, s: MeshSettings) -> dict[int, float]:
+    """One frame's points (P, 3) near the plane: cell key -> the median signed distance of its
+    points in that ``s.cell_m`` cell of the plane; empty when the frame sees too little of it."""
+    d = points @ normal + offset
+    near = np.abs(d) < s.plane_inlier_m
+    if near.sum() < s.min_points:
+        return {}
+    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    cell = np.floor(np.stack([points[near] @ u, points[near] @ v], axis=1) / s.cell_m).astype(np.int64)
+    keys = cell[:, 0] * 1_000_003 + cell[:, 1]
+    order = np.argsort(keys, kind="stable")
+    keys, d = keys[order], d[near][order]
+    unique, first, count = np.unique(keys, return_index=True, return_counts=True)
+    return {int(k): float(np.median(d[a:a + n])) for k, a, n in zip(unique, first, count) if n >= s.cell_points}

@@ -26,9 +26,10 @@ The figures and the lines past which they say something went wrong:
   room); a median depth error beyond 3 cm or less than 70% covered, NAP3D has too little of
   the field to align with; more than half failing or a median beyond 3 cm, the field cannot
   correct a run.
-- **walls of the mesh**: where the frames that see each of the largest planes of the fused mesh
-  put it, the 5-95% spread of their median offsets (:mod:`.mesh`): millimetres on a consistent
-  survey; beyond 3 cm the survey put one surface in two places (a doubled wall).
+- **walls of the mesh**: how far apart frames that see the same part of one of the largest planes
+  of the fused mesh put it (90th percentile over pairs of frames, compared cell by cell:
+  :mod:`.mesh`): millimetres on a consistent survey; beyond 3 cm the survey put one surface in
+  two places (a doubled wall).
 """
 
 from __future__ import annotations
@@ -209,12 +210,12 @@ def _mesh(report: MapReport, info: dict) -> None:
     walls = mesh.get("wall_thickness") or {}
     thickness = walls.get("thickness_m")
     if thickness is None:
-        report.add("mesh walls: spread of where the frames put each large plane (worst)",
+        report.add("mesh walls: how far apart frames put each large plane (worst)",
                    f"not measured: {walls.get('reason', '')}", "measured", None)
         return
     report.values["wall_thickness_m"] = thickness
-    report.add(f"mesh walls: spread of where the frames put each of the {len(walls['planes'])} largest planes "
-               "(worst; median plane)", f"{thickness * 100:.1f} cm; {walls['median_plane_m'] * 100:.1f} cm",
+    report.add(f"mesh walls: how far apart frames that see the same part of each of the {len(walls['planes'])} "
+               "largest planes put it (p90 over pairs; worst plane, median plane)", f"{thickness * 100:.1f} cm; {walls['median_plane_m'] * 100:.1f} cm",
                f"within {WALL_THICKNESS_BAD_M * 100:.0f} cm", thickness <= WALL_THICKNESS_BAD_M)
 
 
