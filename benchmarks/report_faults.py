@@ -67,7 +67,7 @@ def run_case(data: Path, frames: str, map_dir: Path, out: Path, extra=()) -> dic
     keyframes = _records(out / "latest" / "corrections.csv")
     report = run_report(keyframes, metrics)
     entry.update({"past_bad_line": report.bad, "rows": [list(r) for r in report.rows],
-                  "ate_m": (metrics.get("estimate") or {}).get("ate_m", {}).get("rmse"),
+                  "ate_m": ((metrics.get("estimate") or {}).get("ate_m") or {}).get("rmse"),
                   "ate_se3_aligned_m": (metrics.get("estimate") or {}).get("ate_se3_aligned_m")})
     return entry
 
@@ -217,6 +217,9 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey, matches: bo
                                               [*chain, *forced], verified, [*chain_matches, *forced_matches],
                                               settings)
     np.save(out / "keyframe_poses.npy", T_final)
+    info["mesh"] = _mesh_at(out, survey, keys, T_final, info)
+    for name in ("field.pt", "field.report.json"):  # trained at the map's poses, not these: no stale figure
+        (out / name).unlink(missing_ok=True)
     info["loops"].update(accepted=sum(lp.status == "accepted" for lp in verified),
                          admitted=sum(lp.status == "admitted" for lp in verified))
     if bundle is not None:
@@ -235,6 +238,20 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey, matches: bo
               "loops_admitted": sum(lp.status == "admitted" for lp in verified), "loops_verified": len(verified),
               **({"twin_matches": len(forced_matches[0].z_a)} if forced_matches else {})}
     return out, scores
+
+
+def _mesh_at(folder: Path, survey, keys: np.ndarray, T_map_key: np.ndarray, info: dict) -> dict:
+    """The survey fused again at these keyframe poses (its frames placed as ``map`` places
+    them): ``map.ply`` and its walls, as ``map.json`` records them."""
+    from nap3d_graph.datasets.posed import PosedSequence
+    from nap3d_graph.mapping.build import place_kept_frames
+    from nap3d_graph.mapping.mesh import fuse_mesh
+    from nap3d_graph.mapping.survey import SurveyOdometry
+
+    segment = info["segment"]
+    T_map_cam = place_kept_frames(SurveyOdometry.load(folder / "odometry.npz"), keys, T_map_key, segment["start"],
+                                  segment["stop"], [tuple(g) for g in segment.get("rejoined", [])])
+    return fuse_mesh(PosedSequence(survey, T_map_cam, "map"), folder / "map.ply").to_dict()
 
 
 def scaled_covariance_config(map_dir: Path, factor: float, out: Path) -> Path:
