@@ -268,7 +268,7 @@ def scaled_covariance_config(map_dir: Path, factor: float, out: Path) -> Path:
     sigma_m, sigma_rad = field_sigmas(load_field(map_dir / "field.pt"))
     settings = {"alignment": {"matcher": "xfeat", "nap3d": noise, "field_sigma_m": sigma_m * factor**0.5,
                               "field_sigma_rad": sigma_rad * factor**0.5}}
-    out.write_text(yaml.safe_dump(settings))
+    out.write_text(yaml.safe_dump({"settings": settings}))  # a run's config.yaml holds its tree under 'settings'
     return out
 
 
