@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .conventions import inv_T
+
 __all__ = ["Alignment", "Correction"]
 
 
@@ -46,8 +48,6 @@ class Alignment:
 
     def corrected_pose(self, T_world_cam_est: np.ndarray) -> np.ndarray:
         """``T_world_cam_true = T_world_cam_est @ inv(T_real_rendered)``."""
-        from .conventions import inv_T
-
         return np.asarray(T_world_cam_est, dtype=float) @ inv_T(self.T_real_rendered)
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from nap3d_graph.camera import RenderedView
 from nap3d_graph.conventions import inv_T
 
 __all__ = ["SequenceInFrame", "FieldInFrame", "PartlyMappedField"]
@@ -60,8 +61,6 @@ class PartlyMappedField:
         self._positions, self._radius = np.asarray(sequence.T_world_cam_gt)[:mapped, :3, 3], radius
 
     def render(self, T_world_cam, intrinsics):
-        from nap3d_graph.camera import RenderedView
-
         view = self._field.render(T_world_cam, intrinsics)
         if np.min(np.linalg.norm(self._positions - T_world_cam[:3, 3], axis=1)) > self._radius:
             return RenderedView(view.rgb, view.depth_m, np.zeros_like(view.opacity), view.intrinsics)

@@ -9,7 +9,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M
+from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, RGBDFrame
 from nap3d_graph.conventions import exp_se3, inv_T
 
 from .trajectories import Trajectory
@@ -287,8 +287,6 @@ def sensor_frame(scene, T_world_cam: np.ndarray, intrinsics, rng: np.random.Gene
     """What the simulated RGB-D sensor sees at ``T_world_cam``: an :class:`RGBDFrame` with
     RGB noise, z^2 depth noise and holes, and depth quantised like TUM's PNGs
     (1/``depth_scale`` m). ``depth_noise=None`` gives exact depth."""
-    from nap3d_graph.camera import RGBDFrame
-
     rgb01, depth, _ = scene.render(T_world_cam, intrinsics)
     if depth_noise is not None:
         depth = np.round(add_depth_noise(depth, depth_noise, rng) * depth_scale) / depth_scale

@@ -25,6 +25,7 @@ from typing import Callable
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics
+from nap3d_graph.progress import progress_bar
 from nap3d_graph.trajectory import Trajectory
 
 from .building import make_building
@@ -273,8 +274,6 @@ def _render_frames(out: Path, config: SimConfig, scene, trajectory, intrinsics: 
                    gains: np.ndarray, image_rng: np.random.Generator, workers: int, progress: bool,
                    stop: Callable[[], bool] | None) -> None:
     """Every frame's colour and depth PNGs, on ``workers`` processes (see :func:`simulate_sequence`)."""
-    from nap3d_graph.progress import progress_bar
-
     t_rel, rgb_stamps, depth_capture_rel, depth_stamps = clocks
     # One noise seed per frame, so the images do not depend on which worker renders them.
     frame_seeds = image_rng.integers(0, 2**63 - 1, config.frames)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nap3d_graph.conventions import exp_so3, log_so3
+from nap3d_graph.conventions import exp_se3, exp_so3, log_so3
 
 from .scene import Scene
 
@@ -165,8 +165,6 @@ class ImagelessWalk:
     seconds. Reading a frame raises."""
 
     def __init__(self, n: int, fps: float = 30.0, seed: int = 0):
-        from nap3d_graph.conventions import exp_se3
-
         rng = np.random.default_rng(seed)
         self.timestamps = np.arange(n) / fps
         self.depth_timestamps = self.timestamps.copy()

@@ -247,3 +247,83 @@ def test_folders_import_each_other_one_way(graph):
     pairs = {(folder(a), folder(b)) for a, targets in edges.items() for b in targets if folder(a) != folder(b)}
     ties = {tuple(sorted(p)) for p in pairs if (p[1], p[0]) in pairs}
     assert ties == KNOWN_TIES, sorted(ties - KNOWN_TIES)
+
+
+#: Third-party packages that are optional extras (pyproject's ``full``, ``viz``, ``ray``, ``mesh``,
+#: ``nerfstudio``) or slow to load: the one list of what may keep a project import inside a
+#: function. Everything else in the package imports its own modules at the top.
+LAZY_PACKAGES = {"torch", "numba", "filterpy", "evo", "matplotlib", "tqdm", "yaml", "small_gicp", "xfeat",
+                 "rosbags", "threadpoolctl", "pyrealsense2", "rerun", "ray", "open3d", "nerfstudio"}
+
+
+def _top_level_imports(module: str) -> tuple[set[str], set[str]]:
+    """``(project modules, third-party top names)`` a module imports when it is loaded: the
+    imports of its body outside functions and ``if TYPE_CHECKING:`` blocks."""
+    project, third = set(), set()
+    stack = list(ast.parse(MODULES[module].read_text()).body)
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            continue
+        if isinstance(node, ast.If) and _is_type_checking(node):
+            stack.extend(node.orelse)
+            continue
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [_absolute(module, node)] + [f"{_absolute(module, node)}.{a.name}" for a in node.names])
+            project |= {n for n in names if n in MODULES}
+            third |= {n.split(".")[0] for n in names if n.split(".")[0] not in ("nap3d_graph", "")}
+            continue
+        stack.extend(ast.iter_child_nodes(node))
+    # A module is loaded with its packages: their __init__ runs first.
+    parts = module.split(".")
+    project |= {".".join(parts[:k]) for k in range(1, len(parts)) if ".".join(parts[:k]) in MODULES}
+    return project - {module}, third
+
+
+def _lazy_packages_loaded() -> dict[str, set[str]]:
+    """module -> the ``LAZY_PACKAGES`` that loading it loads (through its top-level imports,
+    each module's own reach walked afresh: a package and its modules load each other)."""
+    direct = {m: _top_level_imports(m) for m in MODULES}
+    loaded = {}
+    for module in MODULES:
+        seen, todo = {module}, [module]
+        while todo:
+            for other in direct[todo.pop()][0] - seen:
+                seen.add(other)
+                todo.append(other)
+        loaded[module] = set().union(*(direct[m][1] for m in seen)) & LAZY_PACKAGES
+    return loaded
+
+
+def _imports_inside_functions(module: str) -> list[tuple[int, str]]:
+    """``(line, project module)`` of each import of the project's own modules inside a function."""
+    out = []
+
+    def walk(node, inside: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and _is_type_checking(child):
+                continue
+            if inside and isinstance(child, (ast.Import, ast.ImportFrom)):
+                names = ([a.name for a in child.names] if isinstance(child, ast.Import)
+                         else [_absolute(module, child)])
+                out.extend((child.lineno, n) for n in names if n.split(".")[0] == "nap3d_graph")
+            walk(child, inside or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)))
+
+    walk(ast.parse(MODULES[module].read_text()), False)
+    return out
+
+
+def test_own_modules_are_imported_at_the_top_unless_they_load_an_optional_package():
+    """An import of the project's own module inside a function hides a tie between modules
+    from whoever reads the file's top; it stays there only when the module it imports loads a
+    package of ``LAZY_PACKAGES`` that the importing module does not load itself (an optional
+    extra a core command must not need, or a slow one)."""
+    loaded = _lazy_packages_loaded()
+    hidden = [f"{MODULES[m].relative_to(ROOT)}:{line} imports {target}"
+              for m in MODULES for line, target in _imports_inside_functions(m)
+              if target in MODULES and not (loaded[target] - loaded[m])]
+    assert hidden == []
+    # The reader sees what loading a module loads: the fields' training pulls torch, the
+    # command line's core does not.
+    assert "torch" in loaded["nap3d_graph.fields.training"] and "torch" not in loaded["nap3d_graph.cli.common"]

@@ -116,18 +116,18 @@ def test_a_run_on_a_map_reads_no_ground_truth_before_its_trajectories_are_writte
     ATE is computed then, in the map's frame through the survey's alignment); the odometries
     that would read the ground truth (its motion, its start, its velocity) are refused in one
     line before any touch."""
-    import nap3d_graph.datasets as datasets
+    import nap3d_graph.cli.sources as sources
     from nap3d_graph.cli import main
 
     _, result = xyz_map
     opened, out = [], tmp_path / "runs"
-    real_open = datasets.open_sequence
+    real_open = sources.open_sequence
 
     def watched_open(*args, **kwargs):
         opened.append(_GroundTruthWatch(real_open(*args, **kwargs), out, "*/estimate.txt"))
         return opened[-1]
 
-    monkeypatch.setattr(datasets, "open_sequence", watched_open)
+    monkeypatch.setattr(sources, "open_sequence", watched_open)  # where the run opens its recording
     code = main(["run", "--data", str(tum_path), "--frames", "6:12", "--field", str(result.folder), "--odom", odom,
                  "--matcher", "sift", "--out", str(out), "--config", str(_short_walk_config(tmp_path))])
     (sequence,) = opened

@@ -13,11 +13,17 @@ import time
 
 import numpy as np
 
+from nap3d_graph import correct_pose
+
 from ..camera import RenderedView, RGBDFrame
+from ..conventions import inv_T
+from ..nap3d.align import align_correspondences, prepare_correspondences
+from ..nap3d.config import AlignConfig
 from ..results import Alignment
 from .dense_rgbd import DenseRgbdConfig, dense_rgbd_align
 from .gicp import GicpConfig, gicp_align
 from .photometric import PhotometricConfig, photometric_align
+from .pnp import pnp_from_correspondences
 
 __all__ = ["PEERS", "run_peers", "gicp_align", "GicpConfig", "dense_rgbd_align", "DenseRgbdConfig",
            "photometric_align", "PhotometricConfig"]
@@ -41,10 +47,6 @@ def run_peers(real: RGBDFrame, view: RenderedView, methods=tuple(PEERS), field=N
     ``photometric`` need ``field`` and ``T_world_cam_est`` (they re-render; the photometric
     peer needs a differentiable :class:`~nap3d_graph.fields.grid.GridField`)."""
     from dataclasses import replace
-
-    from ..nap3d.align import align_correspondences, prepare_correspondences
-    from ..nap3d.config import AlignConfig
-    from .pnp import pnp_from_correspondences
 
     unknown = set(methods) - set(PEERS)
     if unknown:
@@ -93,10 +95,6 @@ def _safe(fn, name: str) -> Alignment:
 
 def _iterated(real, field, T_world_cam_est, align_config) -> Alignment:
     """``correct_pose`` as an alignment against the view at ``T_world_cam_est``."""
-    from nap3d_graph import correct_pose
-
-    from ..conventions import inv_T
-
     if field is None or T_world_cam_est is None:
         return Alignment.failure("nap3d-iter needs the field and the believed pose", method="nap3d-iter")
     c = correct_pose(real, field, T_world_cam_est, iterations=3, config=align_config)

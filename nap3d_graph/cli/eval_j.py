@@ -5,6 +5,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from nap3d_graph.fields import resolve_field
+from nap3d_graph.sims.scene import OracleField, Scene, make_scene
+from nap3d_graph.sims.sequence import default_intrinsics
+
 from .common import empty_or_new_dir, positive_int
 from .options import add_output_folder, add_seed
 
@@ -32,10 +36,6 @@ def add_parser(sub) -> None:
 
 def run(args) -> int:
     from nap3d_graph.evaluation.eval_j import EvalJConfig, run_eval_j
-    from nap3d_graph.fields import resolve_field
-    from nap3d_graph.sims.scene import OracleField, Scene, make_scene
-    from nap3d_graph.sims.sequence import default_intrinsics
-
     empty_or_new_dir(args.out, args.force)
 
     if args.data is not None:

@@ -4,6 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nap3d_graph.datasets import open_sequence
+from nap3d_graph.datasets.depth_timing import resolve_capture_timing
+from nap3d_graph.fields import resolve_field
+from nap3d_graph.nap3d.config import AlignConfig
+
 from .common import (
     add_frames_argument,
     add_matcher_argument,
@@ -55,12 +60,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
     from nap3d_graph.evaluation.eval_k import METHODS, EvalKConfig, run_eval_k
-    from nap3d_graph.fields import resolve_field
-    from nap3d_graph.nap3d.config import AlignConfig
-
     methods = parse_methods(args.methods, METHODS)
     empty_or_new_dir(args.out, args.force)
     if args.iterate and "nap3d-iter" not in methods:

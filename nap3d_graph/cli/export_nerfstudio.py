@@ -5,6 +5,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from nap3d_graph.datasets import open_sequence
+from nap3d_graph.fields.nerfstudio_export import export_nerfstudio
+
 from .common import add_frames_argument, empty_or_new_dir, positive_int
 from .options import add_force
 
@@ -29,9 +32,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.nerfstudio_export import export_nerfstudio
-
     empty_or_new_dir(args.out, args.force)
     sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses)
     path = export_nerfstudio(sequence, args.out, every=args.every, progress=True)

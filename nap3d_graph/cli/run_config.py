@@ -13,6 +13,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nap3d_graph.run.settings import RunSettings, SettingsError
+
+from .binding import apply_settings
 from .common import UsageError
 
 __all__ = ["apply_config", "apply_run_config", "load_config_file"]
@@ -52,10 +55,6 @@ def apply_config(args, path: Path, tree: type, command: str, older_section: str 
     """Set ``args`` from the settings tree (of class ``tree``) in ``command``'s config.yaml at
     ``path`` where the command line did not give an option; the whole tree goes to
     ``args.config_settings`` (the settings with no flag come from it)."""
-    from nap3d_graph.run.settings import SettingsError
-
-    from .binding import apply_settings
-
     config = load_config_file(path, "settings", command, older_section)
     try:
         settings = tree.from_dict(config["settings"])  # type: ignore[attr-defined]
@@ -67,6 +66,4 @@ def apply_config(args, path: Path, tree: type, command: str, older_section: str 
 def apply_run_config(args, path: Path) -> None:
     """``run --config``: the run's settings tree from ``path`` (a config.yaml from before the
     tree held a 'pipeline' section)."""
-    from nap3d_graph.run.settings import RunSettings
-
     apply_config(args, path, RunSettings, "run", older_section="pipeline")

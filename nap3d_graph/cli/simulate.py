@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .common import PartialOutput, StopOnSignal, empty_or_new_dir, positive_float, positive_int
+from nap3d_graph.datasets import SimSequence
+from nap3d_graph.datasets.realsense_io import import_pyrealsense2
+from nap3d_graph.datasets.realsense_sim import write_realsense_recording
+from nap3d_graph.datasets.rosbag_write import write_sequence_bag
+from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+from .common import PartialOutput, StopOnSignal, UsageError, empty_or_new_dir, positive_float, positive_int
 from .options import add_force
 
 
@@ -55,10 +61,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
-
-    from .common import UsageError
-
     if args.frames is not None:
         args.count = _deprecated_frames(args.frames)
     if args.count < 2:
@@ -68,7 +70,6 @@ def run(args) -> int:
             raise UsageError(f"--realsense must name a .db3 file (what pyrealsense2 writes), got {args.realsense}")
         if args.realsense.exists() and not args.force:
             raise UsageError(f"{args.realsense} exists; choose another name, or add --force to replace it")
-        from nap3d_graph.datasets.realsense_io import import_pyrealsense2
 
         import_pyrealsense2()  # a missing libusb is said now, not after the rendering
     if args.rosbag is not None and args.rosbag.exists():
@@ -91,15 +92,10 @@ def run(args) -> int:
     where = f"room {args.scene_seed}" if args.rooms is None else f"a floor of {args.rooms} rooms, floor {args.scene_seed}"
     print(f"wrote {args.count} frames ({args.path}, {where}, seed {args.seed}) to {out}")
     if args.realsense is not None:
-        from nap3d_graph.datasets.realsense_sim import write_realsense_recording
-
         recording = write_realsense_recording(out, args.realsense, seed=args.seed, progress=True)
         print(f"wrote the RealSense recording {recording} and {recording.with_suffix('.yaml')}; run it with: "
               f"nap3d-graph run --traj realsense --data {recording} --groundtruth {out}/groundtruth.txt --field {out}")
     if args.rosbag is not None:
-        from nap3d_graph.datasets import SimSequence
-        from nap3d_graph.datasets.rosbag_write import write_sequence_bag
-
         bag = write_sequence_bag(SimSequence(out), args.rosbag, ros=1 if args.rosbag.suffix == ".bag" else 2)
         print(f"wrote the ROS bag {bag}; run it with: nap3d-graph run --traj rosbag --data {bag} --field {out}")
     return 0
@@ -110,7 +106,6 @@ def _deprecated_frames(text: str) -> int:
     with a warning; a range (what ``--frames`` is everywhere else) is an error."""
     import sys
 
-    from .common import UsageError
 
     try:
         count = int(text)

@@ -8,6 +8,25 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.cache import default_cache_dir
+from nap3d_graph.conventions import inv_T
+from nap3d_graph.datasets import is_rosbag, is_sevenscenes_folder, open_sequence, source_of
+from nap3d_graph.datasets.depth_timing import resolve_capture_timing
+from nap3d_graph.datasets.posed import reframed
+from nap3d_graph.datasets.realsense import capture_live
+from nap3d_graph.fields import resolve_field
+from nap3d_graph.mapping.folder import load_map_info
+from nap3d_graph.mapping.start import map_relocaliser as relocaliser_of
+from nap3d_graph.motion.imu import ImuConfig, estimate_gravity, gravity_angle_deg
+from nap3d_graph.motion.odometry import DenseVisualOdometry, VisualOdometry, make_odometry
+from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.matching import choose_matcher
+from nap3d_graph.run.default import embedded_default_inputs
+from nap3d_graph.run.imu import ImuOdometry
+from nap3d_graph.run.keyframe import readout_of
+from nap3d_graph.run.pipeline import Pipeline
+from nap3d_graph.run.settings import SettingsError
+
 from .binding import add_options, settings_from_args
 from .common import UsageError, parse_pose, parse_size, warn_depth_units, warn_trained_frames
 from .run_options import LAND_WITHIN_FRAME_SHARE, SOURCE_OPTIONS
@@ -83,9 +102,6 @@ class Prepared:
 def _say_readout(config, field_obj) -> float:
     """The rolling-shutter readout (s) the run compensates, said in one line when it did not come
     from the command line."""
-    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
-    from nap3d_graph.run.keyframe import readout_of
-
     readout_s = readout_of(config, resolve_capture_timing(field_obj, given=config.timing,
                                                           compensate=config.compensate_timing)[0])
     if readout_s > 0 and config.rolling_shutter_s is None:
@@ -99,8 +115,6 @@ def _timing(args, field_obj, sequence):
     sequence's ground truth when the field records none (None: off, no field, nothing known,
     the field's own, which the pipeline takes itself, or a map's field: a run on a map reads
     no ground truth)."""
-    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
-
     if field_obj is None:
         return None
     if (getattr(field_obj, "meta", None) or {}).get("map") is not None:
@@ -118,7 +132,6 @@ def imu_config(args, base=None):
     own :class:`~nap3d_graph.motion.imu.ImuConfig`; default: the simulator's)."""
     import dataclasses
 
-    from nap3d_graph.motion.imu import ImuConfig
 
     magnitude = args.gravity if isinstance(args.gravity, float) else 9.81
     vector = tuple(float(v) for v in args.gravity) if isinstance(args.gravity, (list, tuple)) else None
@@ -142,11 +155,6 @@ def imu_config(args, base=None):
 
 def _inputs(args):
     """(sequence folder, field, field description, run name) from the arguments."""
-    from nap3d_graph.cache import default_cache_dir
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields import resolve_field
-    from nap3d_graph.run.default import embedded_default_inputs
-
     if args.data is None:
         if args.traj != "sim":
             raise UsageError(f"--traj {args.traj} needs --data PATH" + (" (a .bag/.db3 recording, or live)"
@@ -159,7 +167,6 @@ def _inputs(args):
         return data, field_obj, str(field_path), "default"
     if args.field is None:
         raise UsageError("--data needs --field (a checkpoint, 'oracle' for simulated data, or 'none')")
-    from nap3d_graph.datasets import is_rosbag
 
     if args.traj == "rosbag":
         if not args.data.exists():
@@ -174,7 +181,6 @@ def _inputs(args):
         return _realsense_data(args), None, args.field, args.traj
     if args.data.suffix.lower() in (".bag", ".db3"):
         raise UsageError(f"{args.data} is a RealSense recording: use --traj realsense")
-    from nap3d_graph.datasets import is_sevenscenes_folder
 
     if args.traj == "7scenes" and args.data.is_dir() and not is_sevenscenes_folder(args.data):
         raise UsageError(f"{args.data} is not a 7-Scenes folder (no frame-000000.pose.txt-like files, no "
@@ -185,8 +191,6 @@ def _inputs(args):
 def detected_source(args) -> str:
     """``--traj`` as given, or for ``auto`` the source ``--data``'s path says (a RealSense
     recording for 'live', sim without data)."""
-    from nap3d_graph.datasets import source_of
-
     if args.traj != "auto":
         return args.traj
     if args.data is None:
@@ -206,7 +210,6 @@ def _realsense_data(args) -> Path:
         return args.data
     import tempfile
 
-    from nap3d_graph.datasets.realsense import capture_live
 
     out = args.record or Path(tempfile.mkdtemp(prefix="nap3d_live_")) / "live.bag"
     print(f"capturing {args.seconds:.0f} s from the RealSense camera into {out} ...")
@@ -216,8 +219,6 @@ def _realsense_data(args) -> Path:
 def _odometry(args, sequence, initial_pose):
     """``(kind, odometry)``: the motion source the options and the data call for (the run's
     motion model follows from it: an IMU's preintegration, or a frame odometry's increments)."""
-    from nap3d_graph.motion.odometry import make_odometry
-
     if args.odom:
         odom_kind = args.odom
     elif args.traj == "realsense" or (getattr(sequence, "T_world_cam_odom", None) is None
@@ -230,8 +231,6 @@ def _odometry(args, sequence, initial_pose):
         raise UsageError(f"--vo-width is for --odom vo, not --odom {odom_kind}")
     try:
         if odom_kind == "imu":
-            from nap3d_graph.run.imu import ImuOdometry
-
             config = imu_config(args, getattr(sequence, "imu_config", None))
             odometry = ImuOdometry.from_sequence(sequence, config, initial_pose)
             config = _checked_gravity(args, odometry)
@@ -254,8 +253,6 @@ def _odometry(args, sequence, initial_pose):
 
 def chosen_matcher(name: str, sequence) -> str:
     """The matcher for this data (``--matcher auto``: said on the terminal, with why)."""
-    from nap3d_graph.nap3d.matching import choose_matcher
-
     chosen, why = choose_matcher(name, sequence)
     if chosen != name:
         print(f"matcher: {chosen} ({why}; --matcher sets it)")
@@ -264,9 +261,6 @@ def chosen_matcher(name: str, sequence) -> str:
 
 def _fallback_odometry(kind: str, matcher: str | None):
     """The frame odometry an IMU run falls back on (None for 'none')."""
-    from nap3d_graph.motion.odometry import DenseVisualOdometry, VisualOdometry
-    from nap3d_graph.nap3d.config import AlignConfig
-
     if kind == "none":
         return None
     if kind == "dense":
@@ -282,7 +276,6 @@ def _checked_gravity(args, odometry):
     import dataclasses
     import sys
 
-    from nap3d_graph.motion.imu import estimate_gravity, gravity_angle_deg
 
     config = odometry.stream.config
     try:
@@ -320,14 +313,10 @@ def _start_in_map(args, sequence, field_obj, initial_pose, auto_start: bool):
 
     import numpy as np
 
-    from nap3d_graph.conventions import inv_T
 
     map_dir = (getattr(field_obj, "meta", None) or {}).get("map")
     record: dict = {}
     if map_dir is not None:
-        from nap3d_graph.datasets.posed import reframed
-        from nap3d_graph.mapping.folder import load_map_info
-
         given_start = initial_pose is not None or args.initial_pose_file is not None
         if args.odom in GROUND_TRUTH_ODOMETRY and not (args.odom == "recorded" and given_start):
             raise UsageError(f"--odom {args.odom} on a map: {GROUND_TRUTH_ODOMETRY[args.odom]}, which a run on a map "
@@ -382,8 +371,6 @@ def _no_start(sequence) -> bool:
 def map_relocaliser(map_dir, field_obj, sequence, args):
     """A :class:`~nap3d_graph.mapping.relocalise.Relocaliser` of the map, rendering at the
     run's size with the run's matcher."""
-    from nap3d_graph.mapping.start import map_relocaliser as relocaliser_of
-
     width, height = parse_size(args.render_size)
     K = sequence.intrinsics
     render = K.scaled(width, height) if (K.width, K.height) != (width, height) else K
@@ -411,8 +398,6 @@ def prepare(args) -> Prepared:
 def validated_settings(args):
     """The run's settings tree from its options, validated (``RunSettings.validate``: every
     flag combination a run cannot honour), or a one-line usage error."""
-    from nap3d_graph.run.settings import SettingsError
-
     try:
         settings = settings_from_args(args)
         settings.validate()
@@ -434,9 +419,6 @@ def _checked_options(args) -> tuple[bool, object]:
 def _open_inputs(args):
     """``(data, sequence, field, field description, run name)``: the recording opened as
     the options say, and the field resolved against it."""
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields import resolve_field
-
     data, field_obj, field_desc, name = _inputs(args)
     extra = {"groundtruth": args.groundtruth, "realsense_config": args.realsense_config} if args.traj == "realsense" \
         else {"topics": args.topics} if args.traj == "rosbag" else {}
@@ -471,8 +453,6 @@ def _pipeline(args, settings, sequence, field_obj, odometry):
     """``(pipeline, readout_s)``: the run's :class:`~nap3d_graph.run.pipeline.Pipeline` (it
     resolves the field's error, once) and the rolling-shutter readout it compensates, with the
     lines a user reads about both."""
-    from nap3d_graph.run.pipeline import Pipeline
-
     config = settings.pipeline_config(land_within_s=land_within_s(_land_within_default(args), sequence),
                                       overlap=args.overlap, keyframe_when_idle=args.keyframe_when_idle,
                                       timing=_timing(args, field_obj, sequence))

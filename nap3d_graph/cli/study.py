@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from nap3d_graph.sweep.study import StudySettings
+from nap3d_graph.sweep.study import StudySettings, run_study
 
 from .binding import Option, add_options, settings_from_args
 from .common import RUN_MATCHER, TOPICS_OPTION, UsageError, empty_or_new_dir, matcher_option, positive_int
 from .options import add_force
+from .run_config import apply_config
 
 
 def add_parser(sub) -> None:
@@ -66,11 +67,7 @@ STUDY_OPTIONS: tuple[Option, ...] = (
 
 
 def run(args) -> int:
-    from nap3d_graph.sweep.study import run_study
-
     if args.config is not None:
-        from .run_config import apply_config
-
         apply_config(args, args.config, StudySettings, "study", older_section="study")
     if not 0.05 <= args.split <= 0.95:
         raise UsageError(f"--split must be in [0.05, 0.95], got {args.split}")

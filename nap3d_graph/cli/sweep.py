@@ -5,6 +5,12 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from nap3d_graph.pools import LocalPool, RayPool
+from nap3d_graph.sweep.report import write_report
+from nap3d_graph.sweep.run import SweepLocked, cell_status, run_sweep
+from nap3d_graph.sweep.spec import SweepError, SweepSpec
+
+from . import build_parser, main
 from .common import UsageError, positive_int
 
 __all__ = ["add_parser", "run"]
@@ -62,8 +68,6 @@ def _same_sweep(out: Path, spec_path: Path) -> None:
 def check_argv(argv: list[str]) -> None:
     """Parse ``argv`` with the command line's parser; a bad one raises ValueError (what a
     sweep file's grids are checked with)."""
-    from . import build_parser
-
     try:
         build_parser().parse_args(argv)
     except UsageError as exc:
@@ -71,13 +75,6 @@ def check_argv(argv: list[str]) -> None:
 
 
 def run(args) -> int:
-    from nap3d_graph.pools import LocalPool, RayPool
-    from nap3d_graph.sweep.report import write_report
-    from nap3d_graph.sweep.run import SweepLocked, cell_status, run_sweep
-    from nap3d_graph.sweep.spec import SweepError, SweepSpec
-
-    from . import main
-
     try:
         spec = SweepSpec.load(args.spec, check_argv)
     except SweepError as exc:

@@ -6,6 +6,9 @@ import json
 import sys
 from pathlib import Path
 
+from nap3d_graph.datasets import open_sequence
+from nap3d_graph.fields.build import DepthUnitError, build_field
+
 from .common import (
     RUN_MATCHER,
     UsageError,
@@ -19,6 +22,7 @@ from .common import (
     warn_depth_units,
     writable_file_parent,
 )
+from .sources import chosen_matcher, warn_guessed_camera
 
 
 def add_parser(sub) -> None:
@@ -111,9 +115,6 @@ def _refinement_and_check_arguments(p) -> None:
 def run(args) -> int:
     import torch
 
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.build import DepthUnitError, build_field
-
     if args.out.suffix != ".pt":
         raise UsageError(f"--out must name a .pt checkpoint, got {args.out}")
     writable_file_parent(args.out)  # before minutes of training, not after
@@ -124,7 +125,6 @@ def run(args) -> int:
     sequence = open_sequence(args.data, frames=args.frames, groundtruth=args.poses, topics=args.topics,
                              depth_scale=args.depth_scale, stamps=args.stamps, fps=args.fps)
     warn_depth_units(sequence)
-    from .sources import chosen_matcher, warn_guessed_camera
 
     warn_guessed_camera(sequence)
     args.matcher = chosen_matcher(args.matcher, sequence)

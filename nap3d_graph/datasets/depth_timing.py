@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from nap3d_graph.errors import DatasetError
+from nap3d_graph.nap3d.matching import detect_features, match_features
 
 from ..camera import backproject_depth, project
 from ..conventions import inv_T, transform_points
@@ -263,8 +264,6 @@ class _MatchedPairs:
     reprojection error (px) of frame i's keypoints in frame j for a colour timing."""
 
     def __init__(self, sequence, timing: DepthTiming, pairs: int, gap_s: tuple[float, float]):
-        from nap3d_graph.nap3d.matching import detect_features, match_features
-
         self.sequence = sequence
         chosen = frame_pairs(sequence.timestamps, pairs, gap_s)
         needed = sorted({i for pair in chosen for i in pair})

@@ -30,10 +30,17 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.camera import Intrinsics, RGBDFrame, warp_depth
+from nap3d_graph.conventions import T_to_tum, tum_to_T
 from nap3d_graph.errors import DatasetError
+from nap3d_graph.motion.imu import ImuConfig
+from nap3d_graph.trajectory import read_tum_trajectory
 
-from .association import GroundTruthLookup
+from ..trajectory import interpolate_poses
+from .association import GroundTruthLookup, associate
 from .frames import parse_frame_range
+from .identity import fingerprint_files
+from .realsense_io import import_pyrealsense2, read_recording
 
 __all__ = ["RealSenseRecording", "RealSenseConfig", "capture_live", "D435I_T_DEPTH_IMU"]
 
@@ -66,7 +73,6 @@ class RealSenseConfig:
         """From a YAML file (keys as the fields; ``T_depth_imu`` as ``[tx, ty, tz, qx, qy, qz, qw]``)."""
         import yaml
 
-        from nap3d_graph.conventions import tum_to_T
 
         path = Path(path)
         try:
@@ -88,7 +94,6 @@ class RealSenseConfig:
     def save(self, path) -> Path:
         import yaml
 
-        from nap3d_graph.conventions import T_to_tum
 
         values = {k: getattr(self, k) for k in self.__dataclass_fields__}
         values["T_depth_imu"] = [round(float(v), 9) for v in T_to_tum(self.T_depth_imu)]
@@ -98,8 +103,6 @@ class RealSenseConfig:
 
     def imu_config(self, T_colour_depth: np.ndarray):
         """The :class:`~nap3d_graph.motion.imu.ImuConfig` of the colour camera (the frames' camera)."""
-        from nap3d_graph.motion.imu import ImuConfig
-
         return ImuConfig(self.accel_noise_density, self.gyro_noise_density, self.accel_bias_rw, self.gyro_bias_rw,
                          self.gravity, T_cam_imu=np.asarray(T_colour_depth) @ self.T_depth_imu)
 
@@ -118,8 +121,6 @@ class RealSenseRecording(GroundTruthLookup):
     reads_concurrently = True
 
     def __init__(self, path, groundtruth=None, frames: str | None = None, config: RealSenseConfig | None = None):
-        from .realsense_io import read_recording
-
         self.path = Path(path)
         self.name = self.path.stem
         sidecar = self.path.with_suffix(".yaml")
@@ -153,14 +154,10 @@ class RealSenseRecording(GroundTruthLookup):
     @property
     def recording_id(self) -> str:
         """Content fingerprint of the recording file (the same for any ``frames`` range)."""
-        from .identity import fingerprint_files
-
         return fingerprint_files([self.path])
 
     @staticmethod
     def _intrinsics(K):
-        from nap3d_graph.camera import Intrinsics
-
         if any(abs(c) > 1e-9 for c in K.coeffs) and K.model not in ("none",):
             log.warning("stream distortion model %s %s is ignored (D400 colour and depth streams report none)",
                         K.model, K.coeffs)
@@ -171,8 +168,6 @@ class RealSenseRecording(GroundTruthLookup):
         not on one clock, by their arrival on the host (see :meth:`_pair_by_arrival`). Sets
         ``pairing_clock`` ("sensor" or "arrival") and ``depth_clock_offset`` (s, added to the
         depth stamps to put them on the colour stream's clock; 0 when paired by sensor)."""
-        from .association import associate
-
         c_stamps, d_stamps = raw.colour[0], raw.depth[0]
         tolerance = self.config.max_difference
         pairs = associate(c_stamps, d_stamps, tolerance)
@@ -215,8 +210,6 @@ class RealSenseRecording(GroundTruthLookup):
         gets at most its nearest depth frame. The depth stamps' offset onto the colour clock is
         the difference of the two streams' median (arrival - own stamp): a depth frame stamped
         d arrived about when a colour frame stamped d + offset did."""
-        from .association import associate
-
         c_arrival, d_arrival = raw.arrival.get("colour"), raw.arrival.get("depth")
         if c_arrival is None or d_arrival is None or len(c_arrival) != len(raw.colour[0]) \
                 or len(d_arrival) != len(raw.depth[0]) or not len(c_arrival) or not len(d_arrival) \
@@ -242,10 +235,6 @@ class RealSenseRecording(GroundTruthLookup):
         return {"stamps": g_t[inside], "accel": accel, "gyro": g_xyz[inside].astype(float)}
 
     def _attach_ground_truth(self, gt_path: Path) -> None:
-        from nap3d_graph.trajectory import read_tum_trajectory
-
-        from ..trajectory import interpolate_poses
-
         if not gt_path.is_file():
             raise DatasetError(f"{gt_path}: no such ground-truth file")
         stamps, T = read_tum_trajectory(gt_path)
@@ -274,8 +263,6 @@ class RealSenseRecording(GroundTruthLookup):
 
     def registered_depth(self, i: int) -> np.ndarray:
         """Frame i's depth (H, W) float32 metres in the colour camera (0 where none)."""
-        from nap3d_graph.camera import warp_depth
-
         depth_m = self.raw.depth[2][self._depth_index[i]].astype(np.float32) * np.float32(self.raw.depth_units)
         return warp_depth(depth_m, self.depth_intrinsics, self.T_colour_depth, dst_intrinsics=self.intrinsics,
                           iterations=3)
@@ -283,7 +270,6 @@ class RealSenseRecording(GroundTruthLookup):
     def __getitem__(self, index):
         import operator
 
-        from nap3d_graph.camera import RGBDFrame
 
         i = operator.index(index)
         if i < 0:
@@ -308,7 +294,6 @@ def capture_live(out_path, seconds: float, width: int = 640, height: int = 480, 
     (``.bag``); a clear :class:`DatasetError` when no camera is connected."""
     import time
 
-    from .realsense_io import import_pyrealsense2
 
     rs = import_pyrealsense2()
     if len(rs.context().query_devices()) == 0:

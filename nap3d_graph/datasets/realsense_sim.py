@@ -16,20 +16,20 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.camera import Intrinsics
+from nap3d_graph.datasets import SimSequence
+from nap3d_graph.datasets.realsense import RealSenseConfig
+from nap3d_graph.datasets.realsense_io import RecordingWriter, StreamIntrinsics
+from nap3d_graph.motion.imu import ImuConfig
+from nap3d_graph.progress import progress_bar
+from nap3d_graph.sims.sensors import DepthNoise, add_depth_noise
+
 __all__ = ["write_realsense_recording"]
 
 
 def write_realsense_recording(sim_dir, out_path, baseline_m: float = 0.015, depth_units: float = 0.001,
                               depth_noise: bool = True, seed: int = 0, progress: bool = False) -> Path:
     """Write ``out_path`` (``.db3``) and its ``.yaml`` from the simulated folder ``sim_dir``."""
-    from nap3d_graph.camera import Intrinsics
-    from nap3d_graph.datasets import SimSequence
-    from nap3d_graph.datasets.realsense import RealSenseConfig
-    from nap3d_graph.datasets.realsense_io import RecordingWriter, StreamIntrinsics
-    from nap3d_graph.motion.imu import ImuConfig
-    from nap3d_graph.progress import progress_bar
-    from nap3d_graph.sims.sensors import DepthNoise, add_depth_noise
-
     seq = SimSequence(sim_dir)
     K: Intrinsics = seq.intrinsics
     stream_K = StreamIntrinsics(K.width, K.height, K.fx, K.fy, K.cx, K.cy)

@@ -34,8 +34,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..camera import Intrinsics, project
-from ..conventions import inv_T, transform_points
+from ..camera import Intrinsics, project, warp_depth
+from ..conventions import inv_T, pose_error, transform_points
+from ..nap3d.matching import detect_features, match_features
 
 __all__ = ["DepthColourRegistration", "estimate_registration", "register_depth_to_colour"]
 
@@ -83,8 +84,6 @@ def register_depth_to_colour(depth_m: np.ndarray, depth_intrinsics: Intrinsics,
     """A depth image (H, W) of the depth camera seen from the colour camera: float32 metres
     on the colour camera's pixel grid, 0 where nothing was seen (z-buffered, no depth
     interpolated across edges; see :func:`nap3d_graph.camera.warp_depth`)."""
-    from ..camera import warp_depth
-
     if np.allclose(registration.T_colour_depth, np.eye(4)) and registration.colour == depth_intrinsics:
         return np.nan_to_num(np.asarray(depth_m, dtype=np.float32), nan=0.0)
     return warp_depth(depth_m, depth_intrinsics, registration.T_colour_depth,
@@ -175,8 +174,6 @@ def estimate_registration(frames_a, frames_b, T_world_depth_a, T_world_depth_b, 
     camera's poses. ``nominal``: where the fit starts, and the extrinsics it keeps (and what it
     returns, with its residual, when too few keypoints match). Pairs should be 0.2-1 s apart on a hand-held camera.
     """
-    from ..nap3d.matching import detect_features, match_features
-
     pairs = []
     for (rgb_a, depth_a), (rgb_b, _), T_a, T_b in zip(frames_a, frames_b, T_world_depth_a, T_world_depth_b):
         if not (np.all(np.isfinite(T_a)) and np.all(np.isfinite(T_b))):
@@ -268,8 +265,6 @@ def depth_chain(depths: list[np.ndarray], K_depth: Intrinsics, width: int = 320,
     ``depths`` (metres), by depth-only ICP step by step, then refined directly between the
     first and the last from that start; None when a step fails or the refinement moves
     further than ``agree`` (metres, degrees) from the chain (ICP slid along a surface)."""
-    from ..conventions import pose_error
-
     chained = np.eye(4)
     for a, b in zip(depths[:-1], depths[1:]):
         step = depth_icp_step(a, b, K_depth, width)

@@ -33,10 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.camera import CameraError, Intrinsics, RGBDFrame, warp_depth
 from nap3d_graph.errors import DatasetError
+from nap3d_graph.motion.imu import ImuConfig
 
+from ..trajectory import interpolate_poses
 from .association import GroundTruthLookup, pair_streams
 from .frames import frame_index, parse_frame_range
+from .identity import fingerprint_files
 from .rosbag_msgs import camera_info_arrays, decode_colour, decode_depth_m, pose_to_T, stamp_s, transform_to_T
 from .tf_tree import TfTree
 
@@ -319,8 +323,6 @@ class RosbagSequence(GroundTruthLookup):
     # --- camera and pairing -----------------------------------------------------------------
 
     def _camera(self, undistort: bool) -> None:
-        from nap3d_graph.camera import CameraError, Intrinsics
-
         K, D, model, width, height = camera_info_arrays(self._info)
         if self._rgb.first != (height, width):
             raise DatasetError(f"{self.path}: {self.topics.rgb} images are {self._rgb.first[1]}x{self._rgb.first[0]} "
@@ -343,8 +345,6 @@ class RosbagSequence(GroundTruthLookup):
         """``(depth intrinsics, T_colour_depth)`` when depth must be warped into the colour
         camera, else None (depth already registered: the same frame, the colour camera's
         intrinsics, or no tf between the two frames)."""
-        from nap3d_graph.camera import Intrinsics
-
         colour, depth = self._rgb.frame_id, self._depth.frame_id
         # A driver that registers depth to colour publishes the colour camera's intrinsics with
         # it (OpenNI's depth_registered, RealSense's aligned_depth_to_color), whatever frame id
@@ -389,8 +389,6 @@ class RosbagSequence(GroundTruthLookup):
 
     def _attach_ground_truth(self) -> None:
         """Camera poses from tf or from a pose topic, interpolated at the colour stamps."""
-        from ..trajectory import interpolate_poses
-
         raw = self._gt_from_tf() if self.topics.gt == "/tf" else self._gt_from_poses() if self._poses else None
         if raw is None:
             return
@@ -431,8 +429,6 @@ class RosbagSequence(GroundTruthLookup):
         return stamps[order], T[order]
 
     def _attach_imu(self) -> None:
-        from nap3d_graph.motion.imu import ImuConfig
-
         self.imu, self.imu_config = None, None
         if not self._imu_rows:
             return
@@ -484,7 +480,6 @@ class RosbagSequence(GroundTruthLookup):
     def __getitem__(self, index):
         import cv2
 
-        from nap3d_graph.camera import RGBDFrame, warp_depth
 
         i = frame_index(index, len(self), self.name)
         rgb = decode_colour(self._message(self.topics.rgb, self._rgb, int(self._colour_index[i])),
@@ -513,8 +508,6 @@ class RosbagSequence(GroundTruthLookup):
     @property
     def recording_id(self) -> str:
         """Content fingerprint of the bag (the same for any ``frames`` range)."""
-        from .identity import fingerprint_files
-
         files = [self.path] if self.path.is_file() else sorted(
             p for p in self.path.iterdir() if p.suffix in (".yaml", ".db3", ".mcap"))
         return fingerprint_files(files)

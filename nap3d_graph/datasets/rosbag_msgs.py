@@ -17,6 +17,7 @@ import math
 import cv2
 import numpy as np
 
+from nap3d_graph.conventions import T_to_tum, tum_to_T
 from nap3d_graph.errors import DatasetError
 
 __all__ = [
@@ -142,8 +143,6 @@ def camera_info_arrays(msg) -> tuple[np.ndarray, tuple[float, ...], str, int, in
 
 
 def _T(translation, rotation) -> np.ndarray:
-    from nap3d_graph.conventions import tum_to_T
-
     q = [rotation.x, rotation.y, rotation.z, rotation.w]
     if np.linalg.norm(q) < 1e-9:
         raise DatasetError("a transform in the bag has a zero quaternion")
@@ -194,8 +193,6 @@ def header(store, t_s: float, frame_id: str, seq: int = 0):
 
 def _geometry(store, T: np.ndarray):
     """(translation Vector3, rotation Quaternion, position Point) of a (4, 4) pose."""
-    from nap3d_graph.conventions import T_to_tum
-
     tx, ty, tz, qx, qy, qz, qw = (float(v) for v in T_to_tum(np.asarray(T, dtype=float)[None])[0])
     types = store.types
     rotation = types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)

@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from nap3d_graph.conventions import inv_T
 from nap3d_graph.errors import DatasetError
 
 from .rosbag_msgs import camera_info_msg, header, image_msg, make_typestore, stamp_ns, transform_msg
@@ -71,8 +72,6 @@ def _imu_msg(store, t_s: float, accel, gyro, seq: int):
 
 def _small_messages(bag: _Bag, sequence):
     """(t, order, topic, msgtype, msg) of the tf and IMU messages, in time order."""
-    from nap3d_graph.conventions import inv_T
-
     store, out = bag.store, []
     tf_type = "tf2_msgs/msg/TFMessage"
     TF = store.types[tf_type]

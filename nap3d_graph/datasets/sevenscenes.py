@@ -32,13 +32,16 @@ from typing import Iterator
 import cv2
 import numpy as np
 
+from nap3d_graph.cache import default_cache_dir
 from nap3d_graph.errors import DatasetError
 
 from ..camera import Intrinsics, RGBDFrame
 from .association import GroundTruthLookup
+from .depth_timing import frame_pairs
 from .depth_unit import checked_depth_scale
 from .frames import frame_index, parse_frame_range
-from .registration import DepthColourRegistration, estimate_registration, register_depth_to_colour
+from .identity import fingerprint_files
+from .registration import DepthColourRegistration, depth_chain, estimate_registration, register_depth_to_colour
 
 __all__ = ["SevenScenesSequence", "NOMINAL_DEPTH_CAMERA", "NOMINAL_COLOUR_CAMERA", "SEVENSCENES_FPS",
            "is_sevenscenes_folder", "write_sevenscenes_frame"]
@@ -251,7 +254,6 @@ class SevenScenesSequence(GroundTruthLookup):
     def _registration_cache(self, poses: str) -> Path | None:
         if self.cache_dir is False:
             return None
-        from nap3d_graph.cache import default_cache_dir
 
         base = Path(self.cache_dir) if self.cache_dir else default_cache_dir()
         return base / "registration" / f"7scenes_{self.recording_id}_{poses}_v{_REGISTRATION_VERSION}.json"
@@ -262,8 +264,6 @@ class SevenScenesSequence(GroundTruthLookup):
         how each pair's relative motion is known: ``"images"`` (default) from the depth images
         alone (:func:`~nap3d_graph.datasets.registration.depth_chain`: no pose file is read, so
         a map of the recording reads no ground truth), ``"recording"`` from its pose files."""
-        from .depth_timing import frame_pairs
-
         if poses not in ("images", "recording"):
             raise DatasetError(f"{self.path}: registration poses must be 'images' or 'recording', got {poses!r}")
         stamps = self._all_numbers / SEVENSCENES_FPS
@@ -284,8 +284,6 @@ class SevenScenesSequence(GroundTruthLookup):
         """(P, 4, 4) twice: each pair's first depth camera at the identity and its second where
         depth-only ICP over the frames between puts it (NaN where ICP failed: the pair is
         skipped)."""
-        from .registration import depth_chain
-
         T_a = np.repeat(np.eye(4)[None], len(chosen), axis=0)
         T_b = np.full((len(chosen), 4, 4), np.nan)
         for p, (i, j) in enumerate(chosen):
@@ -322,8 +320,6 @@ class SevenScenesSequence(GroundTruthLookup):
     def recording_id(self) -> str:
         """Content fingerprint of the whole recording (first and last frames, first pose)."""
         if self._recording_id is None:
-            from .identity import fingerprint_files
-
             first, last = int(self._all_numbers[0]), int(self._all_numbers[-1])
             self._recording_id = fingerprint_files([
                 self._colour_paths[first], self._colour_paths[last], self.path / f"frame-{first:06d}.depth.png",

@@ -16,6 +16,8 @@ import numpy as np
 
 from nap3d_graph.datasets.tum import TumSequence
 from nap3d_graph.errors import DatasetError
+from nap3d_graph.sims.scene import OracleField
+from nap3d_graph.sims.scene_file import load_scene
 from nap3d_graph.trajectory import interpolate_poses, read_tum_trajectory
 
 __all__ = ["SimSequence"]
@@ -41,7 +43,6 @@ class SimSequence(TumSequence):
             )
         super().__init__(path, *args, **kwargs)
 
-        from nap3d_graph.sims.scene_file import load_scene  # numpy only, but keep the package import light
 
         try:
             self.scene = load_scene(scene_path)
@@ -53,8 +54,6 @@ class SimSequence(TumSequence):
 
     def oracle_field(self):
         """The exact radiance field of the simulated room (``OracleField(scene)``)."""
-        from nap3d_graph.sims.scene import OracleField
-
         return OracleField(self.scene)
 
     def __repr__(self) -> str:

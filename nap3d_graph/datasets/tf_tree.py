@@ -13,6 +13,7 @@ from collections import defaultdict
 
 import numpy as np
 
+from nap3d_graph.conventions import inv_T
 from nap3d_graph.errors import DatasetError
 
 from ..trajectory import GT_MAX_GAP_S, interpolate_poses
@@ -130,7 +131,6 @@ class TfTree:
         stamps (M,) seconds; NaN where a moving edge has no sample near."""
         stamps = np.asarray(stamps, dtype=float).reshape(-1)
         _, _, common = self._common(target, source)
-        from nap3d_graph.conventions import inv_T
 
         T_common_target = self._to_ancestor(target, common, stamps)
         T_common_source = self._to_ancestor(source, common, stamps)

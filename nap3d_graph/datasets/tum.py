@@ -32,6 +32,7 @@ from ..trajectory import GT_MAX_GAP_S, interpolate_poses
 from .association import ASSOCIATION_METHODS, GroundTruthLookup, associate, pair_streams
 from .depth_unit import checked_depth_scale
 from .frames import frame_index, parse_frame_range
+from .identity import fingerprint_files
 
 __all__ = [
     "TumSequence",
@@ -508,8 +509,6 @@ class TumSequence(GroundTruthLookup):
         colour image): the same for any ``frames`` range, different for another recording
         with the same stamps (see :mod:`nap3d_graph.datasets.identity`)."""
         if self._recording_id is None:
-            from .identity import fingerprint_files
-
             self._recording_id = fingerprint_files(self._identity_files)
         return self._recording_id
 

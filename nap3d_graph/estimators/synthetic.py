@@ -12,6 +12,9 @@ from __future__ import annotations
 import numpy as np
 
 from nap3d_graph.conventions import compose_covariance, exp_se3, inv_T
+from nap3d_graph.motion.imu import ImuStream
+from nap3d_graph.sims.sensors import ImuNoise, simulate_imu
+from nap3d_graph.sims.trajectories import Trajectory
 
 from .base import MeasurementStream
 
@@ -19,8 +22,6 @@ __all__ = ["synthetic_stream"]
 
 
 def _trajectory(duration_s: float, rotate: bool):
-    from nap3d_graph.sims.trajectories import Trajectory
-
     w = 2 * np.pi / 40.0  # one figure of eight every 40 s
 
     def position(t: float) -> np.ndarray:
@@ -74,9 +75,6 @@ def synthetic_stream(n_frames: int, fps: float = 15.0, keyframe_every: int = 5, 
 
 
 def _add_imu(stream: MeasurementStream, trajectory, rng) -> None:
-    from nap3d_graph.motion.imu import ImuStream
-    from nap3d_graph.sims.sensors import ImuNoise, simulate_imu
-
     stamps = stream.timestamps
     samples = simulate_imu(trajectory, float(stamps[0]) - 0.05, float(stamps[-1]) + 0.05, ImuNoise(), rng)
     stream.imu = ImuStream(samples["stamps"], samples["accel"], samples["gyro"])

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nap3d_graph.conventions import make_T
+
 __all__ = ["AlignedErrors", "aligned_errors"]
 
 
@@ -66,7 +68,6 @@ def aligned_errors(stamps: np.ndarray, T_ref: np.ndarray, T_est: np.ndarray, ori
     from evo.core.geometry import umeyama_alignment
     from scipy.spatial.transform import Rotation
 
-    from nap3d_graph.conventions import make_T
 
     T_ref, T_est = np.asarray(T_ref, dtype=float), np.asarray(T_est, dtype=float)
     both = np.all(np.isfinite(T_ref), axis=(1, 2)) & np.all(np.isfinite(T_est), axis=(1, 2))

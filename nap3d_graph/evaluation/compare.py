@@ -21,6 +21,7 @@ import numpy as np
 
 from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.factors.gate import chi2_threshold
+from nap3d_graph.plots import plot_errors, plot_trajectories
 from nap3d_graph.provenance import provenance
 from nap3d_graph.trajectory import Trajectory
 
@@ -150,8 +151,6 @@ def _json_default(value):
 
 
 def _plot(out: Path, stamps, T_world_cam_gt, trajectories: dict) -> None:
-    from nap3d_graph.plots import plot_errors, plot_trajectories
-
     plot_trajectories(out / "trajectories.png", trajectories, T_world_cam_gt, title="estimators")
     plot_errors(out / "errors.png", stamps - stamps[0], trajectories, T_world_cam_gt, title="error over time")
 

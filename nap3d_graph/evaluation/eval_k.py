@@ -49,13 +49,14 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.baselines.pnp import pnp_from_correspondences
-from nap3d_graph.camera import RenderedView, RGBDFrame, backproject_depth
+from nap3d_graph.camera import RenderedView, RGBDFrame, backproject_depth, warp_depth
 from nap3d_graph.conventions import inv_T, log_se3, pose_error, transform_points
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences, view_features
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correct import correct_pose, render_safely
 from nap3d_graph.nap3d.matching import detect_features
+from nap3d_graph.progress import progress_bar
 from nap3d_graph.provenance import provenance
 from nap3d_graph.results import Alignment
 
@@ -201,8 +202,6 @@ def run_eval_k(sequence, field_obj, out_dir: str | Path, config: EvalKConfig | N
     """Run Evaluation K on ``sequence`` (with ground truth) and ``field_obj``; write
     ``results.csv``, ``summary.json``, ``table.md`` and heatmaps into ``out_dir``; return
     the summary."""
-    from nap3d_graph.progress import progress_bar
-
     config = config or EvalKConfig()
     if sequence.T_world_cam_gt is None:
         raise ValueError(f"{sequence.path}: Evaluation K needs ground-truth poses (groundtruth.txt)")
@@ -268,7 +267,6 @@ def at_colour_instant(sequence, index: int, timing: CaptureTiming | None) -> RGB
     the ground-truth motion between the two instants; as it is without ``timing``, without a
     depth stamp, or where the ground truth does not cover both instants."""
     timing = CaptureTiming.of(timing)
-    from nap3d_graph.camera import warp_depth
 
     frame = sequence[index]
     if not timing or frame.depth_timestamp is None or getattr(sequence, "ground_truth_at", None) is None:

@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from nap3d_graph.trajectory import Trajectory
+
+from .alignment import aligned_errors
+
 __all__ = ["to_evo", "ate", "rpe", "trajectory_metrics"]
 
 
 def to_evo(timestamps: np.ndarray, T_world_cam: np.ndarray):
     """An evo ``PoseTrajectory3D`` from stamps (N,) and poses (N, 4, 4) (:meth:`Trajectory.to_evo`)."""
-    from nap3d_graph.trajectory import Trajectory
-
     return Trajectory(timestamps, T_world_cam).to_evo()
 
 
@@ -71,7 +73,5 @@ def trajectory_metrics(timestamps, T_world_cam_gt, trajectories: dict[str, np.nd
 def _aligned_rmse(timestamps, T_ref, T_est) -> float | None:
     """ATE RMSE (m) after the run's own SE(3) alignment (evo's Umeyama fit): beside the
     unaligned ATE, it says how much of the error is one rigid offset of the whole run."""
-    from .alignment import aligned_errors
-
     aligned = aligned_errors(timestamps, T_ref, T_est)
     return None if aligned is None else aligned.rmse_m

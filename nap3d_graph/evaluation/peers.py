@@ -23,8 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.conventions import inv_T, pose_error
+from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
 from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.correct import render_safely, resize_frame
+from nap3d_graph.nap3d.correspondences import subset
+from nap3d_graph.progress import progress_bar
 from nap3d_graph.provenance import provenance
+
+from .perturb import random_perturbation
 
 log = logging.getLogger(__name__)
 
@@ -47,14 +55,8 @@ class PeersConfig:
 def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None, progress: bool = False) -> dict:
     """Run the comparison; write the files into ``out_dir``; return the summary."""
     from nap3d_graph.baselines import run_peers
-    from nap3d_graph.conventions import inv_T, pose_error
-    from nap3d_graph.crb import bound_sigmas, cramer_rao_bound
-    from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.nap3d.correct import render_safely, resize_frame
-    from nap3d_graph.progress import progress_bar
 
     from .eval_k import at_colour_instant
-    from .perturb import random_perturbation
 
     config = config or PeersConfig()
     if sequence.T_world_cam_gt is None:
@@ -85,8 +87,6 @@ def run_bench_peers(sequence, field, out_dir, config: PeersConfig | None = None,
         bound_r = bound_t = float("nan")
         refined = results.get("nap3d-refined")
         if corr is not None and refined is not None and refined.success and refined.inlier_mask is not None:
-            from nap3d_graph.nap3d.correspondences import subset
-
             # The bound for the noise these inliers carry (their residuals at the true pose).
             bound = cramer_rao_bound(inv_T(T_world_cam_gt) @ T_world_cam_est, subset(corr, refined.inlier_mask), frame.intrinsics,
                                      noise="measured")

@@ -6,7 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.sims.scene_file import oracle_from_file
+
 from .base import FieldError, RadianceField
+from .checkpoint import load_state
+from .nerfstudio import load_nerfstudio_field
+from .submaps import SUBMAPS_INDEX, load_submap_field
 
 __all__ = ["RadianceField", "FieldError", "load_field", "resolve_field", "frames_seen_in_training"]
 
@@ -24,14 +29,11 @@ def load_field(path: str | Path):
     if not path.exists():
         raise FieldError(f"{path}: no such field checkpoint, config or scene")
     if path.name == "scene.json":
-        from nap3d_graph.sims.scene_file import oracle_from_file
-
         try:
             return oracle_from_file(path)
         except ValueError as exc:
             raise FieldError(str(exc)) from None
     if path.suffix == ".pt":
-        from .checkpoint import load_state
         from .grid import CHECKPOINT_FORMAT, GridField
         from .splat import SPLAT_FORMAT, SplatField
         from .views import VIEW_FORMAT, ViewField
@@ -46,8 +48,6 @@ def load_field(path: str | Path):
             return ViewField.from_state_dict(state, source=str(path))
         raise FieldError(f"{path}: not a nap3d-graph field checkpoint (format {kind!r})")
     if path.suffix in (".yml", ".yaml"):
-        from .nerfstudio import load_nerfstudio_field
-
         return load_nerfstudio_field(path)
     raise FieldError(f"{path}: not a field (expected a .pt checkpoint, a nerfstudio config.yml or a scene.json)")
 
@@ -68,7 +68,6 @@ def resolve_field(field_arg: str, sequence=None):
 
     folder = Path(field_arg)
     if folder.is_dir() and (folder / "map.json").is_file():  # a map from 'nap3d-graph map'
-        from .submaps import SUBMAPS_INDEX, load_submap_field
 
         if (folder / SUBMAPS_INDEX).is_file():  # a map cut into submaps: their fields, one protocol
             try:

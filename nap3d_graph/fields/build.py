@@ -23,10 +23,17 @@ import logging
 import time
 
 from nap3d_graph.camera import colour_coverage
-from nap3d_graph.datasets.depth_timing import CaptureTiming, estimate_timing
+from nap3d_graph.datasets.depth_timing import CaptureTiming, estimate_timing, multiview_agreement_mm
+from nap3d_graph.datasets.depth_unit import check_depth_unit
+from nap3d_graph.nap3d.config import AlignConfig
 
 from .base import FieldError
+from .depth_refinement import DepthRefinementConfig, refine_poses_by_depth
+from .error_growth import measure_error_growth
 from .evaluation import evaluate_field, oracle_for
+from .field_error import measure_error_by_view, measure_field_error
+from .pose_refinement import PoseCorrectedSequence, PoseRefinementConfig, refine_training_poses
+from .train_config import TrainConfig
 
 __all__ = ["MODELS", "DEFAULT_MODEL", "REFINE_METHODS", "build_field", "error_growth_for"]
 
@@ -146,8 +153,6 @@ class DepthUnitError(FieldError):
 def _check_depth_unit(sequence, depth_unit: str) -> dict | None:
     """The unit check's figures for the report (None when trusted or not checkable); raises
     :class:`DepthUnitError` when the depth agrees across views only at another unit's scale."""
-    from nap3d_graph.datasets.depth_unit import check_depth_unit
-
     if depth_unit not in ("check", "trust"):
         raise FieldError(f"depth_unit must be 'check' or 'trust', got {depth_unit!r}")
     if depth_unit == "trust":
@@ -167,11 +172,6 @@ REFINE_METHODS = ("depth", "map")
 def _refined(sequence, train_idx, timing, rounds, method, matcher, render_size, progress):
     """The sequence with its training frames' poses refined (a PoseCorrectedSequence) and the
     refinement's report, with the multi-view depth agreement before and after."""
-    from nap3d_graph.datasets.depth_timing import multiview_agreement_mm
-
-    from .depth_refinement import DepthRefinementConfig, refine_poses_by_depth
-    from .pose_refinement import PoseCorrectedSequence, PoseRefinementConfig, refine_training_poses
-
     if method not in REFINE_METHODS:
         raise FieldError(f"unknown pose refinement {method!r}; choose from {', '.join(REFINE_METHODS)}")
     started = time.perf_counter()
@@ -196,22 +196,17 @@ ERROR_FRAMES = 40
 
 
 def _field_error(field, sequence, every, timing, render_size, matcher, growth_train_idx=None) -> dict:
-    from nap3d_graph.nap3d.config import AlignConfig
-
-    from .field_error import measure_field_error
     from .training_data import split_posed_frames
 
     _, error_idx = split_posed_frames(sequence, every, ERROR_FRAMES)
     started = time.perf_counter()
     error = measure_field_error(field, sequence, error_idx, timing, AlignConfig(matcher=matcher), render_size)
     if hasattr(field, "hiding_near"):  # a view field: also how its error grows away from its views
-        from .field_error import measure_error_by_view
 
         by_view = measure_error_by_view(field, sequence, error_idx, timing, AlignConfig(matcher=matcher), render_size)
         if by_view is not None:
             error["by_view"] = by_view
     elif growth_train_idx is not None and error.get("sigma_m"):  # a grid or splat: its growth, from its frames' views
-        from .error_growth import measure_error_growth
 
         grown = measure_error_growth(error, sequence, growth_train_idx, error_idx, timing, AlignConfig(matcher=matcher),
                                      render_size)
@@ -247,7 +242,6 @@ def _build_views(sequence, train_idx, timing, render_size, progress):
 
 
 def _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device, progress):
-    from .train_config import TrainConfig
     from .training import train_field
 
     config = TrainConfig(every=every, eval_frames=0, seed=seed, device=device)

@@ -30,9 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.factors import odometry_factor, pose_prior_factor
+from nap3d_graph.progress import progress_bar
 
-from ..camera import Intrinsics, warp_depth
-from ..conventions import inv_T, pose_error, rigid_transform_problem
+from ..camera import Intrinsics, backproject_depth, warp_depth
+from ..conventions import T_to_pose3, inv_T, pose3_to_T, pose_error, rigid_transform_problem
 
 __all__ = ["DepthRefinementConfig", "refine_poses_by_depth"]
 
@@ -121,8 +123,6 @@ def _surface_normals(depth: np.ndarray, intrinsics: Intrinsics, stride: int = 4)
     """Points (M, 3) and unit normals (M, 3) of a depth image (camera frame), every
     ``stride``-th pixel where the surface is continuous (central differences; depth jumps of
     more than 5% left out)."""
-    from ..camera import backproject_depth
-
     h, w = depth.shape
     points, _ = backproject_depth(depth, intrinsics, 1)  # every valid pixel, row-major
     grid = np.full((h, w, 3), np.nan)
@@ -162,8 +162,6 @@ def _pair_covariance(depth_dst: np.ndarray, intrinsics: Intrinsics, config: Dept
 def _measure_pairs(frames, T_world, depths, covariances, aligner, config, progress) -> tuple[list, int]:
     """``[(a, b, T_a_b measured, covariance)]`` for each neighbour pair whose alignment held
     (``covariances``: each frame's as a pair's destination), and how many pairs were tried."""
-    from nap3d_graph.progress import progress_bar
-
     pairs, tried = [], 0
     for a in progress_bar(range(len(frames)), desc="align depth pairs", unit="frame", disable=not progress):
         for k in config.neighbours:
@@ -187,9 +185,7 @@ def _solve(T_in: np.ndarray, T_start: np.ndarray, pairs: list, config: DepthRefi
     import gtsam
     from gtsam.symbol_shorthand import X
 
-    from nap3d_graph.factors import odometry_factor, pose_prior_factor
 
-    from ..conventions import T_to_pose3, pose3_to_T
 
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     for a, T in enumerate(T_in):

@@ -30,6 +30,10 @@ import logging
 
 import numpy as np
 
+from nap3d_graph.datasets.depth_timing import CaptureTiming
+
+from .field_error import measure_error_by_view
+
 __all__ = ["measure_error_growth", "combined_by_view", "views_geometry"]
 
 log = logging.getLogger(__name__)
@@ -67,9 +71,6 @@ def measure_error_growth(error: dict, sequence, train_idx, error_idx, timing=Non
     held-out frames ``error_idx`` with its views near each hidden. Returns the combined model
     (:func:`combined_by_view`, to store as ``meta["field_error"]["by_view"]``), or None when the
     growth could not be measured."""
-    from nap3d_graph.datasets.depth_timing import CaptureTiming
-
-    from .field_error import measure_error_by_view
     from .views import ViewFieldConfig, build_view_field
 
     if not error.get("sigma_m"):

@@ -32,6 +32,7 @@ import numpy as np
 
 from nap3d_graph.camera import colour_coverage
 from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.sims.scene_file import oracle_from_file
 
 __all__ = ["evaluate_field", "psnr", "oracle_for", "affine_fit_psnr"]
 
@@ -61,8 +62,6 @@ def oracle_for(sequence):
             return None
     folder = getattr(sequence, "path", None)
     if folder is not None and (Path(folder) / "scene.json").is_file():
-        from nap3d_graph.sims.scene_file import oracle_from_file
-
         try:
             return oracle_from_file(Path(folder) / "scene.json")
         except ValueError as exc:

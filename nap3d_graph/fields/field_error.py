@@ -25,8 +25,10 @@ from functools import partial
 import numpy as np
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.keyframe import KeyframeJob, measure_keyframe
 
-from ..conventions import inv_T, log_se3
+from ..conventions import exp_se3, inv_T, log_se3
 
 __all__ = ["measure_field_error", "measure_error_by_view", "measure_frame", "sigma_for_median_nees", "twist_at",
            "VIEW_GAP_RADII_M"]
@@ -57,7 +59,6 @@ def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, tim
     at ``render_size`` (the frame's own when None or larger); ``with_twist``: move depth to the
     colour's instant with the ground truth's motion (when ``timing`` says how)."""
     timing = CaptureTiming.of(timing)
-    from nap3d_graph.run.keyframe import KeyframeJob, measure_keyframe
 
     frame = sequence[int(i)]
     K = frame.intrinsics
@@ -75,10 +76,6 @@ def _perturbed_errors(sequence, indices, field_for, align, timing, render_size, 
     to measure frame i with, or None to skip it. Returns the errors (N, 6) of the successful
     corrections against the truth (GTSAM order), their covariances (N, 6, 6), how many failed,
     and the ``extra`` of each."""
-    from nap3d_graph.run.config import PipelineConfig
-
-    from ..conventions import exp_se3
-
     config = PipelineConfig(field_sigma_m=0.0, **({"align": align} if align is not None else {}))
     rng = np.random.default_rng(seed)
     sigmas = np.array([perturbation[1]] * 3 + [perturbation[0]] * 3)

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.camera import Intrinsics, colour_coverage
+from nap3d_graph.progress import progress_bar
 
 from .base import FieldError
 from .nerfstudio import (
@@ -42,7 +43,6 @@ def export_nerfstudio(sequence, out_dir, every: int = 1, progress: bool = False)
     """
     import cv2
 
-    from nap3d_graph.progress import progress_bar
 
     every = int(every)
     if every < 1:

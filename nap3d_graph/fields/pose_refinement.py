@@ -27,8 +27,11 @@ import numpy as np
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.datasets.posed import PosedSequence
+from nap3d_graph.run.config import PipelineConfig
 
 from ..conventions import exp_se3, inv_T, log_se3
+from ..nap3d.config import AlignConfig
+from .field_error import measure_frame, sigma_for_median_nees
 
 __all__ = ["PoseRefinementConfig", "refine_training_poses", "PoseCorrectedSequence"]
 
@@ -82,8 +85,6 @@ class PoseCorrectedSequence(PosedSequence):
 def _spread_sigma(residuals: np.ndarray, covariances: np.ndarray, prior_var: float) -> float:
     """Isotropic sigma of the measurements' error beyond their covariance and the input's:
     median-based per 3-dof block (0 when covariance and input explain the spread)."""
-    from .field_error import sigma_for_median_nees
-
     return sigma_for_median_nees(residuals, covariances + prior_var * np.eye(3))
 
 
@@ -94,10 +95,7 @@ def refine_training_poses(sequence, train_idx, timing: CaptureTiming | None = No
     :class:`PoseCorrectedSequence` to build with them) and a report of each round (median
     correction, frames measured, the measurements' extra sigma)."""
     timing = CaptureTiming.of(timing)
-    from nap3d_graph.run.config import PipelineConfig
 
-    from ..nap3d.config import AlignConfig
-    from .field_error import measure_frame
     from .splat import build_splat_field
 
     config = config or PoseRefinementConfig()

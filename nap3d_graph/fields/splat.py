@@ -42,6 +42,8 @@ import torch
 from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics, RenderedView, colour_coverage
 from nap3d_graph.camera import sharpness as image_sharpness
 from nap3d_graph.conventions import inv_T
+from nap3d_graph.progress import progress_bar
+from nap3d_graph.torch_threads import torch_threads
 
 from .base import FieldError
 from .checkpoint import check_state, load_state, meta_json, save_state
@@ -126,8 +128,6 @@ class SplatField:
     def render(self, T_world_cam: np.ndarray, intrinsics: Intrinsics) -> RenderedView:
         """RGB, z-depth (m, 0 where nothing is seen) and opacity at ``T_world_cam`` (4x4,
         world <- OpenCV camera)."""
-        from nap3d_graph.torch_threads import torch_threads
-
         T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
         if T_world_cam.shape != (4, 4) or not np.all(np.isfinite(T_world_cam)):
             raise FieldError(f"T_world_cam must be a finite 4x4 matrix, got shape {T_world_cam.shape}")
@@ -362,8 +362,6 @@ def _frames_points(sequence, indices, T_depth, T_colour, depth_scale: float, con
     """Every posed frame's back-projected points, concatenated: ``(frame_of (P,) position in
     ``indices``, points (P, 3) world metres, colours (P, 3), weights (P,) float64, has_colour
     (P,), sharpness (len(indices),) of each frame, frames used)``."""
-    from nap3d_graph.progress import progress_bar
-
     chunks, sharpness = [], np.ones(len(indices))
     coverage = colour_coverage(sequence)
     for k, i in enumerate(progress_bar(indices, desc="fuse frames", unit="frame", disable=not progress, leave=False)):

@@ -41,6 +41,7 @@ import torch.nn.functional as F
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.fields.grid import CHECKPOINT_VERSION, GridField, default_device, trilinear_corners
 from nap3d_graph.fields.grid_render import DENSITY_SHIFT
+from nap3d_graph.progress import progress_bar
 from nap3d_graph.torch_threads import torch_threads
 
 from .base import FieldError
@@ -340,8 +341,6 @@ class _TrainingLoop:
 
     def run(self, field: GridField, progress: bool) -> GridField:
         """Train ``field`` (resampled at each stage); returns it frozen."""
-        from nap3d_graph.progress import progress_bar
-
         config = self.config
         bar = progress_bar(total=round(self.budget_s) if not config.max_steps else config.max_steps,
                            desc="train field", unit="s" if not config.max_steps else "step", disable=not progress,

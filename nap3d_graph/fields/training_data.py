@@ -11,11 +11,12 @@ from typing import TYPE_CHECKING, Sequence
 import numpy as np
 import torch
 
-from nap3d_graph.camera import Intrinsics, backproject_depth, colour_coverage, valid_depth_mask
-from nap3d_graph.conventions import transform_points
+from nap3d_graph.camera import Intrinsics, backproject_depth, colour_coverage, valid_depth_mask, warp_depth
+from nap3d_graph.conventions import inv_T, transform_points
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.fields.grid import GridField, trilinear_corners
 from nap3d_graph.fields.grid_render import pixel_directions
+from nap3d_graph.progress import progress_bar
 
 from .base import FieldError
 
@@ -80,10 +81,6 @@ class TrainingRays:
         each frame's depth is scaled and moved from the pose at its capture time to the pose
         at the colour's, so both images of a ray see the same instant."""
         timing = CaptureTiming.of(timing)
-        from nap3d_graph.camera import warp_depth
-        from nap3d_graph.conventions import inv_T
-        from nap3d_graph.progress import progress_bar
-
         poses = _poses_of(sequence)
         T_colour = T_depth = poses[np.asarray(indices, dtype=int)]
         if timing is not None and getattr(sequence, "ground_truth_at", None) is not None:

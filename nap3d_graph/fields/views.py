@@ -49,10 +49,13 @@ import torch
 from nap3d_graph.camera import Intrinsics, RenderedView, backproject_depth, colour_coverage, warp_depth
 from nap3d_graph.camera import sharpness as image_sharpness
 from nap3d_graph.conventions import inv_T
+from nap3d_graph.progress import progress_bar
+from nap3d_graph.torch_threads import torch_threads
 
 from .base import FieldError
 from .checkpoint import check_state, load_state, meta_json, save_state
 from .gap_error import sigmas_at_gap, view_gap_m
+from .splat import capture_poses
 
 __all__ = ["ViewFieldConfig", "ViewField", "build_view_field", "VIEW_FORMAT", "VIEW_VERSION"]
 
@@ -203,8 +206,6 @@ class ViewField:
         """RGB, z-depth (m, 0 where no view sees) and opacity at ``T_world_cam`` (4x4,
         world <- OpenCV camera). Above the stored size the render is made at the stored size
         and enlarged (no texture is invented)."""
-        from nap3d_graph.torch_threads import torch_threads
-
         T_world_cam = np.asarray(T_world_cam, dtype=np.float64)
         if T_world_cam.shape != (4, 4) or not np.all(np.isfinite(T_world_cam)):
             raise FieldError(f"T_world_cam must be a finite 4x4 matrix, got shape {T_world_cam.shape}")
@@ -400,10 +401,6 @@ def build_view_field(sequence, indices, config: ViewFieldConfig | None = None, d
     :mod:`nap3d_graph.datasets.depth_timing`); a sequence with poses at its frame stamps only
     uses them for both.
     """
-    from nap3d_graph.progress import progress_bar
-
-    from .splat import capture_poses
-
     config = config or ViewFieldConfig()
     indices = np.asarray(indices, dtype=int)
     if indices.size == 0:

@@ -31,9 +31,17 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
+from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.datasets.posed import PosedSequence
+from nap3d_graph.fields.build import build_field
 from nap3d_graph.fields.submaps import SubmapSettings
+from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.correct import at_width
+from nap3d_graph.nap3d.matching import detect_features
 from nap3d_graph.pools import SerialPool
+from nap3d_graph.progress import progress_bar
 from nap3d_graph.textfiles import write_json_atomic
+from nap3d_graph.trajectory import write_tum_trajectory
 
 from .bundle import BundleSettings, PairMatches, agreeing_pairs, bundle_adjust, keyframe_twists
 from .depth_check import depth_against_images
@@ -50,6 +58,7 @@ from .loops import (
     verify_on_pool,
     write_loops_csv,
 )
+from .mesh import fuse_mesh
 from .pose_graph import Edge, GraphResult, floor_covariance, solve
 from .relocalise import load_keyframe_frames, save_keyframe_frames, write_keyframe_frames
 from .report import write_outputs
@@ -460,8 +469,6 @@ def adjust_keyframes(T_graph_key: np.ndarray, chain_matches: list[PairMatches], 
 def _write_poses(sequence, survey: SurveyOdometry, T_map_cam: np.ndarray, T_map_key: np.ndarray, start: int,
                  stop: int, folder: MapFolder) -> None:
     """The survey's poses in the map, the odometry's alone and the keyframes' poses, written."""
-    from nap3d_graph.trajectory import write_tum_trajectory
-
     stamps = np.asarray(sequence.timestamps, dtype=float)
     posed = np.all(np.isfinite(T_map_cam), axis=(1, 2))
     write_tum_trajectory(folder.poses, stamps[posed], T_map_cam[posed])
@@ -474,8 +481,6 @@ def _field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: M
     """Stage 5: the field of ``settings.model`` trained at the map's poses (kept when one with
     the same field settings finished before): one ``field.pt`` for a survey of one submap's size,
     else a field per submap (:mod:`.submap_fields`), as jobs on ``pool`` (None: one process)."""
-    from nap3d_graph.datasets.posed import PosedSequence
-
     # As map.json holds them; how a survey is cut matters only once it is cut (a one-field map
     # made before submaps resumes as it was).
     field_settings = {k: v for k, v in settings.to_dict().items() if k in FIELD_SETTINGS and k != "submaps"}
@@ -487,7 +492,6 @@ def _field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: M
     if folder.info["stages"].get("field", {}).get("settings") == field_settings and folder.field.is_file():
         return
     t0 = time.perf_counter()
-    from nap3d_graph.fields.build import build_field
 
     minutes = training_minutes(settings, t0 - started)
     if settings.model == "grid" and settings.steps is None and settings.minutes is None and minutes is not None:
@@ -535,11 +539,6 @@ def _mesh_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, progress: bo
     instant by the field's timing, when there is a field), and its walls' thickness in
     ``map.json``. Never fails the map: without Open3D, or when nothing could be fused, the
     reason is recorded instead."""
-    from nap3d_graph.datasets.depth_timing import CaptureTiming
-    from nap3d_graph.datasets.posed import PosedSequence
-
-    from .mesh import fuse_mesh
-
     if folder.finished("mesh", folder.mesh):
         return
     timing = None
@@ -586,8 +585,6 @@ def _ranges(start: int, stop: int, n: int) -> list[str]:
 
 
 def align_config(settings: MapSettings):
-    from nap3d_graph.nap3d.config import AlignConfig
-
     # Both sides are the same camera: no self-calibration of the intrinsics between them, and
     # no depth-scale estimate (nothing in the map reads it).
     return AlignConfig(matcher=settings.matcher, min_opacity=0.5, estimate_intrinsics=False, estimate_scale=False)
@@ -614,10 +611,6 @@ def _working_intrinsics(sequence, settings: MapSettings):
 
 def read_keyframes(sequence, keys: np.ndarray, settings: MapSettings, progress: bool) -> list[Keyframe]:
     """The keyframes read, at the working width, with their local features."""
-    from nap3d_graph.nap3d.correct import at_width
-    from nap3d_graph.nap3d.matching import detect_features
-    from nap3d_graph.progress import progress_bar
-
     config = align_config(settings)
     out = []
     for i in progress_bar(keys, desc="keyframes", unit="frame", disable=not progress, mininterval=2.0):

@@ -46,12 +46,19 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.conventions import inv_T, rotation_angle_deg
-from nap3d_graph.fields.submaps import SUBMAPS_INDEX, Submap, SubmapSettings
+from nap3d_graph.datasets.depth_timing import estimate_timing
+from nap3d_graph.datasets.posed import PosedSequence
+from nap3d_graph.fields.submaps import SUBMAPS_INDEX, Submap, SubmapSettings, write_submaps_index
+from nap3d_graph.nap3d.correct import at_width
+from nap3d_graph.nap3d.matching import detect_features
 from nap3d_graph.pools import SerialPool
+from nap3d_graph.progress import progress_bar
+from nap3d_graph.trajectory import write_tum_trajectory
 
 from .build import MapResult, MapSettings, align_config, build_map, place_kept_frames
 from .folder import MapFolder
 from .loops import Keyframe, load_edges, verified_loop
+from .mesh import fuse_mesh
 from .pose_graph import Edge, floor_covariance, solve
 from .relocalise import KEYFRAME_WIDTH, RelocaliseSettings, load_keyframe_frames, pose_gap, write_keyframe_frames
 from .retrieval import Vocabulary, similarities, vlad
@@ -157,10 +164,6 @@ class _NewKeyframes:
 
     @classmethod
     def read(cls, sequence, keys: np.ndarray, index: _MapIndex, config, progress: bool = False) -> "_NewKeyframes":
-        from nap3d_graph.nap3d.correct import at_width
-        from nap3d_graph.nap3d.matching import detect_features
-        from nap3d_graph.progress import progress_bar
-
         width = None if index.width < 0 else index.width
         kept = index.frames[0].intrinsics
         descriptors, frames, features = [], [], []
@@ -275,9 +278,6 @@ def cross_pairs(views: _NewKeyframes, keys: np.ndarray, T_new_key: np.ndarray, i
     """Every new keyframe against its ``appearance_k`` most similar map keyframes (descriptors in
     the map's vocabulary), aligned at the map's kept width under the relocaliser's rule; each
     verified pair with its anchor ``T_map_newframe`` (where it puts the new survey's frame in the map)."""
-    from nap3d_graph.nap3d.matching import detect_features
-    from nap3d_graph.progress import progress_bar
-
     config = align_config(settings)
     rule = RelocaliseSettings().verification
     features: dict[int, object] = {}
@@ -434,9 +434,6 @@ def _new_submaps(sequence, T_map_newcam: np.ndarray, unseen: np.ndarray, merged:
                  device: str | None, pool, say) -> tuple[list[Submap], list[int]]:
     """The merged map's submaps: the map's, then new ones over the unseen space when there is
     enough of it (their fields trained on ``pool``). Returns all submaps and the new ones' indices."""
-    from nap3d_graph.datasets.depth_timing import estimate_timing
-    from nap3d_graph.datasets.posed import PosedSequence
-
     submap_settings = settings.submaps
     submaps = _old_submaps(merged, old, index, submap_settings.look_ahead_m)
     if len(unseen) < extend.min_new_frames:
@@ -516,9 +513,6 @@ def _write_extension(merged: MapFolder, new: MapFolder, sequence, T_map_newcam: 
                      mesh: bool, progress: bool, say, started: float) -> dict:
     """``extensions/NN/``: the new survey's own map, its frames in the map's frame, its cross
     pairs and mesh; ``submaps.json`` of the merged map. Returns the record for ``map.json``."""
-    from nap3d_graph.fields.submaps import write_submaps_index
-    from nap3d_graph.trajectory import write_tum_trajectory
-
     folder = merged.root / "extensions" / f"{number:02d}"
     folder.parent.mkdir(exist_ok=True)
     shutil.copytree(new.root, folder)
@@ -545,10 +539,6 @@ def _write_extension(merged: MapFolder, new: MapFolder, sequence, T_map_newcam: 
 def _extension_mesh(sequence, T_map_cam: np.ndarray, path: Path, progress: bool) -> dict | None:
     """The new survey fused at its poses in the map (``map.ply`` of the extension); None, with a
     log line, without Open3D or when nothing fused."""
-    from nap3d_graph.datasets.posed import PosedSequence
-
-    from .mesh import fuse_mesh
-
     try:
         result = fuse_mesh(PosedSequence(sequence, T_map_cam, "map"), path, progress=progress)
     except (ImportError, ValueError, OSError, RuntimeError) as exc:

@@ -20,11 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.camera import RenderedView, RGBDFrame
-from nap3d_graph.conventions import inv_T, rotation_angle_deg
+from nap3d_graph.camera import RenderedView, RGBDFrame, project
+from nap3d_graph.conventions import adjoint, inv_T, rotation_angle_deg
 from nap3d_graph.factors.gate import chi2_threshold
+from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.matching import Features
+from nap3d_graph.progress import progress_bar
+from nap3d_graph.results import Alignment
+from nap3d_graph.torch_threads import torch_threads
 
 from .bundle import PairMatches
 from .pose_graph import Edge, floor_covariance, mahalanobis_sq
@@ -158,11 +162,6 @@ def verify_pair(key_a: Keyframe, key_b: Keyframe, config: AlignConfig, a: int = 
     ``alignment.diagnostics["matches"]`` holds the inlier pixel pairs (a
     :class:`~nap3d_graph.mapping.bundle.PairMatches` of positions ``a``, ``b``) for the bundle
     adjustment."""
-    from nap3d_graph.camera import project
-    from nap3d_graph.conventions import adjoint
-    from nap3d_graph.nap3d.align import align_correspondences, prepare_correspondences
-    from nap3d_graph.results import Alignment
-
 
     view = as_view(key_b.frame)
     try:
@@ -189,8 +188,6 @@ def verify_pair(key_a: Keyframe, key_b: Keyframe, config: AlignConfig, a: int = 
 def verify(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]], config: AlignConfig,
            settings: LoopSettings, progress: bool = True) -> list[Loop]:
     """Every candidate pair aligned and checked; returns each with its status and reason."""
-    from nap3d_graph.progress import progress_bar
-
     return [verified_loop(keyframes[a], keyframes[b], a, b, source, config, settings.verification)
             for a, b, source in progress_bar(pairs, desc="loop verification", unit="pair", disable=not progress,
                                              mininterval=2.0)]
@@ -223,8 +220,6 @@ POOL_MIN_PAIRS = 200
 def verify_chunk(job: dict) -> list[Loop]:
     """One job of :func:`verify_on_pool` (runs in a worker): ``job`` holds the keyframes its
     pairs name (by position), the pairs, the aligner's config and the loop settings."""
-    from nap3d_graph.torch_threads import torch_threads
-
     keyframes = job["keyframes"]
     with torch_threads(1):
         return [verified_loop(keyframes[a], keyframes[b], a, b, source, job["config"], job["settings"].verification)
@@ -238,8 +233,6 @@ def verify_on_pool(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]],
     or Ray tasks), four per worker, each carrying the keyframes its pairs name; the loops in the
     pairs' order, the same as :func:`verify`'s (each pair's alignment is seeded, not shared).
     One process (:func:`verify`) without a pool of two or more workers, or under ``min_pairs``."""
-    from nap3d_graph.progress import progress_bar
-
     workers = getattr(pool, "workers", 1)
     if pool is None or workers < 2 or len(pairs) < min_pairs:
         return verify(keyframes, pairs, config, settings, progress)

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from nap3d_graph.conventions import inv_T
+from nap3d_graph.progress import progress_bar
 
 __all__ = ["MeshSettings", "MeshResult", "fuse_mesh", "wall_thickness", "surface_points", "import_open3d",
            "WALL_THICKNESS_BAD_M"]
@@ -119,7 +120,6 @@ def fuse_mesh(posed, out: Path, settings: MeshSettings | None = None, timing=Non
     by ``timing`` (a :class:`~nap3d_graph.datasets.depth_timing.CaptureTiming`, or None: at the
     colour's pose); its wall thickness measured on the same frames. ``ImportError`` without Open3D."""
     o3d = import_open3d()
-    from nap3d_graph.progress import progress_bar
 
     s = settings or MeshSettings()
     frames = _posed_frames(np.asarray(posed.T_world_cam_gt), s.every)

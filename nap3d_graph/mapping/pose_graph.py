@@ -18,6 +18,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from nap3d_graph.conventions import T_to_pose3, pose3_to_T
+from nap3d_graph.factors import mahalanobis_sq as factor_mahalanobis_sq
+from nap3d_graph.factors import noise_model
 from nap3d_graph.factors.gate import chi2_threshold
 
 __all__ = ["Edge", "GraphResult", "solve", "floor_covariance", "mahalanobis_sq"]
@@ -61,7 +63,6 @@ def mahalanobis_sq(T_a: np.ndarray, T_b: np.ndarray, edge: Edge) -> float:
     import gtsam
     from gtsam.symbol_shorthand import X
 
-    from nap3d_graph.factors import mahalanobis_sq as factor_mahalanobis_sq
 
     values = gtsam.Values()
     values.insert(X(edge.a), T_to_pose3(T_a))
@@ -74,7 +75,6 @@ def _between(edge: Edge):
     import gtsam
     from gtsam.symbol_shorthand import X
 
-    from nap3d_graph.factors import noise_model
 
     return gtsam.BetweenFactorPose3(X(edge.a), X(edge.b), T_to_pose3(edge.T_a_b), noise_model(covariance=edge.covariance))
 
@@ -85,7 +85,6 @@ def _graph(num_keys: int, edges: list[Edge], held: np.ndarray | None = None):
     import gtsam
     from gtsam.symbol_shorthand import X
 
-    from nap3d_graph.factors import noise_model
 
     graph = gtsam.NonlinearFactorGraph()
     pin = noise_model(rot_sigma_rad=1e-6, trans_sigma_m=1e-6)

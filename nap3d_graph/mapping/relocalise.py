@@ -37,9 +37,12 @@ from nap3d_graph.camera import Intrinsics, RGBDFrame
 from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.correct import at_width, correct_pose, real_features
+from nap3d_graph.nap3d.matching import detect_features
 from nap3d_graph.nap3d.rolling_shutter import at_one_instant
 
 from .folder import MapFolder, load_map_info
+from .loops import Keyframe, verify_pair
 from .retrieval import Vocabulary, shared_matches, similarities, vlad
 from .verification import Verification, worst_sigmas
 
@@ -55,8 +58,6 @@ KEYFRAME_WIDTH = 320
 def save_keyframe_frames(path: Path, keyframes) -> None:
     """The survey keyframes' colour and depth at ``KEYFRAME_WIDTH``, in one compressed file
     (:func:`write_keyframe_frames`)."""
-    from nap3d_graph.nap3d.correct import at_width
-
     write_keyframe_frames(path, [at_width(k.frame, KEYFRAME_WIDTH) for k in keyframes])
 
 
@@ -235,9 +236,6 @@ class Relocaliser:
 
     def descriptor(self, frame: RGBDFrame) -> np.ndarray:
         """The frame's global descriptor, its features detected as the map's keyframes' were."""
-        from nap3d_graph.nap3d.correct import at_width
-        from nap3d_graph.nap3d.matching import detect_features
-
         features = detect_features(at_width(frame, self.width).rgb, 0, matcher=self.matcher)
         return vlad(features.descriptors, self.vocabulary)
 
@@ -245,8 +243,6 @@ class Relocaliser:
         """``(T_map_cam, wide)``: where to render for candidate keyframe ``k``: the query
         aligned real-vs-real with the keyframe's own image (``wide`` True), else the keyframe's
         pose. ``query``: the query frame at the kept images' width with its features."""
-        from .loops import Keyframe, verify_pair
-
         if self.keyframe_frames is None or query is None:
             return self.T_map_key[k], False
         survey = Keyframe(int(self.indices[k]), self.keyframe_frames[k], self._features(k))
@@ -258,8 +254,6 @@ class Relocaliser:
     def _features(self, k: int):
         """Kept keyframe ``k``'s local features, detected once (all of them when the
         relocaliser is made, unless the ranking is off)."""
-        from nap3d_graph.nap3d.matching import detect_features
-
         if k not in self._keyframe_features:
             rgb = self.keyframe_frames[k].rgb  # type: ignore[index]
             self._keyframe_features[k] = detect_features(rgb, self.config.max_features, matcher=self.config.matcher)
@@ -282,11 +276,6 @@ class Relocaliser:
     def _query(self, frame: RGBDFrame, detected=None):
         """The query at the kept images' width with its features (None without kept images);
         ``detected``: ``(shape, features)`` of the frame already detected at that shape."""
-        from nap3d_graph.nap3d.correct import at_width
-        from nap3d_graph.nap3d.matching import detect_features
-
-        from .loops import Keyframe
-
         if self.keyframe_frames is None:
             return None
         small = at_width(frame, self.keyframe_frames[0].intrinsics.width)
@@ -321,8 +310,6 @@ class Relocaliser:
         """Where ``frame`` is in the map; never raises on data (``success`` False, ``reason``).
         ``twist``: (6,) the camera's body twist per second (GTSAM order) while it took the frame,
         or None (see the module's text)."""
-        from nap3d_graph.nap3d.correct import real_features
-
         started = time.perf_counter()
         s = self.settings
         frame, motion, shift = self._at_one_instant(frame, twist)
@@ -418,8 +405,6 @@ class Relocaliser:
         real-vs-real); ``verified``: ``(sigma_m,
         k, T_map_cam, covariance, inliers, sigma_deg)`` when the correction passes the
         verification, else None with ``refusal`` saying why."""
-        from nap3d_graph.nap3d.correct import correct_pose
-
         s = self.settings
         T_start, wide = start if start is not None else self._start_pose(query, k)
         correction = correct_pose(frame, self.field, T_start, iterations=s.iterations, config=self.config,
@@ -436,8 +421,6 @@ class Relocaliser:
     def _tightest_again(self, frame: RGBDFrame, found: list, feats_real, motion=None) -> tuple:
         """The tightest of the agreeing candidates ``found`` after one more round from where it
         landed (a nearer render), or as it was when that round is no tighter than the rule."""
-        from nap3d_graph.nap3d.correct import correct_pose
-
         s = self.settings
         sigma_m, k, T, cov, inliers, sigma_deg = min(found, key=lambda f: f[0])
         again = correct_pose(frame, self.field, T, iterations=1, config=self.config,

@@ -40,7 +40,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nap3d_graph.conventions import inv_T
+from nap3d_graph.conventions import inv_T, pose_error
+from nap3d_graph.evaluation.alignment import aligned_errors
+from nap3d_graph.fields.submaps import SUBMAPS_INDEX, Submap
 from nap3d_graph.figure_report import FigureReport
 from nap3d_graph.textfiles import write_json_atomic
 
@@ -82,7 +84,6 @@ def loop_residuals(folder: Path) -> np.ndarray:
     ``loops.csv``, in the same order; poses in ``keyframe_poses.npy``); (0, 2) when none."""
     import csv
 
-    from nap3d_graph.conventions import inv_T, pose_error
 
     files = MapFolder(Path(folder))
     edges, poses, table = files.edges, files.keyframe_poses, files.loops_table
@@ -280,7 +281,6 @@ def _survey_ate(folder: MapFolder, sequence, T_map_cam: np.ndarray, survey, star
     T_gt = getattr(sequence, "T_world_cam_gt", None)
     if T_gt is None:
         return None
-    from nap3d_graph.evaluation.alignment import aligned_errors
 
     stamps = np.asarray(sequence.timestamps, dtype=float)
     T_odom = np.full_like(T_map_cam, np.nan)
@@ -306,8 +306,6 @@ def _survey_ate(folder: MapFolder, sequence, T_map_cam: np.ndarray, survey, star
 
 def _submaps_of(root: Path) -> list:
     """The map's submaps (:mod:`nap3d_graph.fields.submaps`) from its index, or none."""
-    from nap3d_graph.fields.submaps import SUBMAPS_INDEX, Submap
-
     index = Path(root) / SUBMAPS_INDEX
     if not index.is_file():
         return []

@@ -42,9 +42,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from nap3d_graph.conventions import inv_T, pose_error
+from nap3d_graph.fields import resolve_field
+from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correct import at_width
 
-from .relocalise import Relocalisation
+from .relocalise import Relocalisation, Relocaliser
 from .verification import DEPTH_DISAGREEMENT_BAD, depth_disagreement
 
 __all__ = ["PlacementSettings", "Candidate", "MapPlacement", "map_relocaliser"]
@@ -318,13 +320,7 @@ def map_relocaliser(map_dir, field_obj=None, matcher: str | None = None, render_
     map``), with its own field unless ``field_obj`` is given, its keyframes' matcher unless
     ``matcher`` is, rendering at ``render_intrinsics`` (None: each frame's own camera). What
     ``Pipeline.start_in_map`` and ``DriftCorrector(relocaliser=...)`` take."""
-    from nap3d_graph.nap3d.config import AlignConfig
-
-    from .relocalise import Relocaliser
-
     if field_obj is None:
-        from nap3d_graph.fields import resolve_field
-
         field_obj = resolve_field(str(map_dir))
     config = AlignConfig(matcher=matcher) if matcher is not None else None
     return Relocaliser(map_dir, field_obj, config, render_intrinsics)

@@ -18,8 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.datasets.depth_timing import estimate_timing
+from nap3d_graph.datasets.posed import PosedSequence
+from nap3d_graph.fields.build import build_field
 from nap3d_graph.fields.submaps import Submap, SubmapSettings, write_submaps_index
 from nap3d_graph.textfiles import write_json_atomic
+from nap3d_graph.torch_threads import torch_threads
 
 __all__ = ["train_submap_fields", "train_one_submap", "submap_job", "submap_minutes"]
 
@@ -52,10 +56,6 @@ def submap_job(sequence, T_map_cam: np.ndarray, submap: Submap, settings, minute
 def train_one_submap(job: dict) -> dict:
     """One submap's field (runs in a worker): ``job`` holds the survey, the map's poses, the
     submap's frames, the build's settings and the file to write. Returns its report."""
-    from nap3d_graph.datasets.posed import PosedSequence
-    from nap3d_graph.fields.build import build_field
-    from nap3d_graph.torch_threads import torch_threads
-
     t0 = time.perf_counter()
     T = np.full_like(job["T_map_cam"], np.nan)
     frames = np.asarray(job["frames"], dtype=int)
@@ -81,9 +81,6 @@ def train_submap_fields(sequence, T_map_cam: np.ndarray, folder, submaps: list[S
                         device: str | None, say=None) -> dict:
     """Every submap's field not already trained with ``field_settings``, as jobs on ``pool``;
     ``submaps.json`` and the merged ``field.report.json`` written. Returns the merged report."""
-    from nap3d_graph.datasets.depth_timing import estimate_timing
-    from nap3d_graph.datasets.posed import PosedSequence
-
     done = folder.info["stages"].get("field", {}).get("submaps", {})
     timing = estimate_timing(PosedSequence(sequence, T_map_cam, "map"))
     timing_dict = None if timing is None else timing.to_dict()

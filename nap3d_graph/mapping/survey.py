@@ -19,7 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nap3d_graph.conventions import compose_covariance, inv_T
+from nap3d_graph.conventions import compose_covariance, inv_T, rotation_angle_deg
+from nap3d_graph.motion.odometry import make_odometry
+from nap3d_graph.progress import progress_bar
 
 __all__ = ["SurveyOdometry", "track", "tracked_segment", "tracked_segments", "segment_keyframes", "stretch_of",
            "joined_run", "lost_frames", "keyframe_indices"]
@@ -62,9 +64,6 @@ def track(sequence, kind: str = "vo", matcher: str | None = None, width: int | N
           progress: bool = True) -> SurveyOdometry:
     """Run the odometry over every frame of ``sequence`` from the identity. An unreadable
     frame is a guessed step (the odometry restarts after it)."""
-    from nap3d_graph.motion.odometry import make_odometry
-    from nap3d_graph.progress import progress_bar
-
     odometry = make_odometry(kind, sequence, initial_pose=np.eye(4), matcher=matcher,
                              vo_width=width if kind == "vo" else None)
     n = len(sequence)
@@ -170,8 +169,6 @@ def keyframe_indices(T_odom_cam: np.ndarray, start: int, stop: int, every: int =
     """Keyframes of frames ``start:stop``: the first, then every ``every`` frames, or sooner
     after ``distance_m`` metres or ``angle_deg`` degrees of motion since the last (so a fast
     stretch still overlaps its neighbours), and the last."""
-    from nap3d_graph.conventions import rotation_angle_deg
-
     keys = [start]
     for i in range(start + 1, stop):
         T_rel = inv_T(T_odom_cam[keys[-1]]) @ T_odom_cam[i]

@@ -26,6 +26,7 @@ from nap3d_graph.rerun_sdk import import_rerun
 from nap3d_graph.trajectory import read_tum_trajectory
 
 from .folder import MapFolder
+from .mesh import import_open3d
 
 __all__ = ["write_map_recording"]
 
@@ -92,8 +93,6 @@ def _loops(folder: MapFolder, T_map_key: np.ndarray) -> dict[str, list]:
 
 def _log_mesh(stream, rr, path: Path) -> None:
     """``map.ply`` as a coloured triangle mesh (Open3D reads it; without Open3D it is left out)."""
-    from .mesh import import_open3d
-
     try:
         o3d = import_open3d()
     except ImportError as exc:

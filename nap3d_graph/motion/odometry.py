@@ -22,7 +22,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..camera import Intrinsics, RenderedView, RGBDFrame
+from nap3d_graph.sims.sensors import OdometryNoise, drifting_odometry
+
+from ..camera import Intrinsics, RenderedView, RGBDFrame, backproject_depth, project
 from ..conventions import exp_se3, inv_T, log_se3
 from ..nap3d.align import align_views
 from ..nap3d.config import AlignConfig
@@ -90,8 +92,6 @@ class NoisyGroundTruthOdometry(RecordedOdometry):
                  trans_sigma_m: float = 2e-3, bias=(0.0, 0.0, 0.004, 0.01, 0.0, 0.0), bias_walk: float = 1e-3,
                  heading_bias_rad_s: float = 0.004, seed: int = 0, fallback_rot_sigma_rad: float = 0.05,
                  fallback_trans_sigma_m: float = 0.05):
-        from nap3d_graph.sims.sensors import OdometryNoise, drifting_odometry
-
         T_world_cam_bridged, self.bridged = bridge_pose_gaps(np.asarray(stamps, dtype=float),
                                                              np.asarray(T_world_cam_gt, dtype=float))
         noise = OdometryNoise(rot_sigma_rad=rot_sigma_rad, trans_sigma_m=trans_sigma_m, bias_init=tuple(bias),
@@ -276,8 +276,6 @@ class VisualOdometry:
         return self.reuse_features and (self.config.matcher != "sift" or self.config.max_features == 0)
 
     def _step_covariance(self, alignment, T_prev_cur: np.ndarray) -> np.ndarray:
-        from ..conventions import log_se3
-
         cov = alignment.covariance * max(1.0, (self.min_good_inliers / max(alignment.num_inliers, 1)) ** 2)
         surprise = log_se3(inv_T(self._last_good) @ T_prev_cur)  # against constant velocity
         return cov + np.diag(surprise**2)
@@ -341,8 +339,6 @@ class DenseVisualOdometry:
     def _depth_residual(prev, cur, T_cur_prev: np.ndarray, stride: int = 4) -> float:
         """Median |z| difference (m) between the previous depth moved by ``T_cur_prev`` and
         the current depth where it lands (inf when almost nothing lands)."""
-        from ..camera import backproject_depth, project
-
         (_, depth_prev, K), (_, depth_cur, _) = prev, cur
         points, _ = backproject_depth(depth_prev, K, stride)
         uv, z = project(points @ T_cur_prev[:3, :3].T + T_cur_prev[:3, 3], K)
@@ -362,7 +358,6 @@ class DenseVisualOdometry:
     def increment(self, i: int, frame: RGBDFrame | None = None) -> Increment:
         import cv2
 
-        from ..conventions import log_se3
 
         if frame is None or self._previous is None:
             self._previous = None if frame is None else self._frame(frame)

@@ -7,7 +7,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming
+from nap3d_graph.fields.base import field_sigmas
+from nap3d_graph.fields.gap_error import error_sigmas_at, has_error_by_view
 from nap3d_graph.nap3d.config import AlignConfig
 
 __all__ = ["PipelineConfig", "with_field_error"]
@@ -229,8 +232,6 @@ class PipelineConfig:
         s_r = self.field_sigma_rad if self.field_sigma_rad is not None else s_t / self.field_sigma_depth_m
         local = None
         if self.field_error_by_view and field is not None and T_field_cam is not None:
-            from nap3d_graph.fields.gap_error import error_sigmas_at
-
             local = error_sigmas_at(field, T_field_cam)
         if local is not None:
             s_t, s_r = max(s_t, local[0]), max(s_r, local[1])
@@ -241,8 +242,6 @@ class PipelineConfig:
     def drift_covariance(self, T_prev_cur: np.ndarray, dt_s: float) -> np.ndarray:
         """Diagonal covariance (6, 6) of the odometry's bias-like drift over one keyframe
         interval: sigmas growing with the distance, the angle and the time (``dt_s`` seconds)."""
-        from nap3d_graph.conventions import pose_error
-
         distance_m, angle_deg = pose_error(T_prev_cur, np.eye(4))
         rot = self.odom_drift_rad_per_m * distance_m + self.odom_drift_rad_per_rad * np.radians(angle_deg)
         trans = self.odom_drift_fraction * distance_m
@@ -258,11 +257,9 @@ def with_field_error(config: PipelineConfig, field) -> PipelineConfig:
 
     if config.field_sigma_m is not None:
         return config
-    from nap3d_graph.fields.base import field_sigmas
 
     sigma_m, sigma_rad = field_sigmas(field) if field is not None else (0.0, 0.0)
     rad = config.field_sigma_rad if config.field_sigma_rad is not None else sigma_rad
-    from nap3d_graph.fields.gap_error import has_error_by_view
 
     by_view = field is not None and has_error_by_view(field)
     return dataclasses.replace(config, field_sigma_m=sigma_m, field_sigma_rad=rad, field_error_by_view=by_view)

@@ -15,6 +15,11 @@ import json
 import logging
 from pathlib import Path
 
+from nap3d_graph.datasets import open_sequence
+from nap3d_graph.fields import load_field
+from nap3d_graph.fields.build import build_field
+from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
 __all__ = ["DEFAULT_SCENE_SEED", "DEFAULT_MAPPING", "DEFAULT_TRAVERSE", "DEFAULT_TRAIN_STEPS",
            "embedded_default_inputs"]
 
@@ -33,8 +38,6 @@ def _key(d: dict) -> str:
 
 def _cached_sequence(cache: Path, settings: dict, progress: bool, say) -> Path:
     """Simulate once per settings; a ``.complete`` marker guards against half-written data."""
-    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
-
     folder = cache / "data" / f"room{settings['scene_seed']}_{settings['path']}_{_key(settings)}"
     if (folder / ".complete").exists():
         log.info("reusing simulated %s", folder)
@@ -46,10 +49,6 @@ def _cached_sequence(cache: Path, settings: dict, progress: bool, say) -> Path:
 
 
 def _cached_field(cache: Path, mapping: Path, steps: int, progress: bool, settings: dict, say):
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields import load_field
-    from nap3d_graph.fields.build import build_field
-
     key = _key({"mapping": settings, "steps": steps})
     path = cache / "fields" / f"room{settings['scene_seed']}_{key}.pt"
     if path.exists():

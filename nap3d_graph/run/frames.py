@@ -11,6 +11,7 @@ import logging
 from typing import Callable
 
 from nap3d_graph.camera import Intrinsics
+from nap3d_graph.datasets import DatasetError
 from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.run.read_ahead import FrameReadAhead, reads_concurrently
 
@@ -53,8 +54,6 @@ class FrameReader:
 
     def read(self, i: int):
         """Frame i, or None when it cannot be read (the reason logged and kept in ``error``)."""
-        from nap3d_graph.datasets import DatasetError
-
         try:
             frame = self.source[i]
         except (DatasetError, OSError) as exc:

@@ -20,11 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.conventions import inv_T
+from nap3d_graph.evaluation.alignment import aligned_errors
 from nap3d_graph.evaluation.metrics import trajectory_metrics
 from nap3d_graph.motion.imu import gravity_angle_deg
 from nap3d_graph.plots import plot_error_over_time, plot_top_view
 
 from .records import refusal_kind
+from .report import write_run_report
 
 __all__ = ["RunWriter", "write_results", "new_run_dir", "keyframe_timing_summary", "CORRECTION_COLUMNS",
            "refusal_reasons"]
@@ -197,7 +200,6 @@ class RunWriter:
         if "scored" in metrics and result.T_world_cam_gt is not None:
             untie_metrics(metrics, trajectories, str(metrics["scored"]))
             plotted = _ground_truth_in_run_frame(result)
-        from .report import write_run_report
 
         report = write_run_report(run, result.keyframes, metrics)
         metrics["report"] = {"file": "report.md", "past_bad_line": report.bad}
@@ -247,9 +249,6 @@ def _ground_truth_in_run_frame(result):
     """The result with its ground truth moved into the run's frame by the estimate's own SE(3)
     alignment (for the plots of an untied run: the paths are drawn as the aligned ATE scores them)."""
     import copy
-
-    from nap3d_graph.conventions import inv_T
-    from nap3d_graph.evaluation.alignment import aligned_errors
 
     aligned = aligned_errors(result.timestamps, result.T_world_cam_gt, result.T_world_cam_estimate)
     if aligned is None:

@@ -33,7 +33,9 @@ from gtsam.symbol_shorthand import M, X
 from nap3d_graph.conventions import pose3_to_T
 from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
+from nap3d_graph.fields import frames_seen_in_training
 from nap3d_graph.mapping.start import MapPlacement, PlacementSettings
+from nap3d_graph.progress import progress_bar
 from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig, with_field_error
 from nap3d_graph.run.corrections import CorrectionGate
@@ -179,8 +181,6 @@ class Pipeline:
         return result
 
     def _run_frames(self, on_keyframe, stop) -> RunResult:
-        from nap3d_graph.progress import progress_bar
-
         n = len(self.sequence) if self.config.max_frames is None else min(len(self.sequence), self.config.max_frames)
         done, partial = n, False
         worker = CorrectionWorker(self.field, self.config) if self.overlaps() else None
@@ -386,6 +386,4 @@ class Pipeline:
 
 def trained_frames(field, sequence) -> np.ndarray:
     """(N,) bool: which frames of ``sequence`` ``field`` was trained on (none without a field)."""
-    from nap3d_graph.fields import frames_seen_in_training
-
     return frames_seen_in_training(field, sequence) if field is not None else np.zeros(len(sequence), dtype=bool)

@@ -8,6 +8,8 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from nap3d_graph.trajectory import Trajectory
+
 if TYPE_CHECKING:
     from nap3d_graph.trajectory import Trajectory
 
@@ -117,8 +119,6 @@ class RunResult:
         """The run's trajectories as :class:`~nap3d_graph.trajectory.Trajectory`:
         ``estimate`` (smoothed), ``estimate_online`` (causal), ``odometry`` and, when there is
         one and ``with_ground_truth``, ``groundtruth`` (NaN where the frames have none)."""
-        from nap3d_graph.trajectory import Trajectory
-
         out = {"estimate": Trajectory(self.timestamps, self.T_world_cam_estimate),
                "odometry": Trajectory(self.timestamps, self.T_world_cam_odometry)}
         if self.T_world_cam_online is not None:

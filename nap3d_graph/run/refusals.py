@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import logging
 
-from nap3d_graph.run.records import KeyframeRecord
+from nap3d_graph.run.output import refusal_hint_for
+from nap3d_graph.run.records import KeyframeRecord, refusal_kind
 
 __all__ = ["RefusalWatch"]
 
@@ -26,9 +27,6 @@ class RefusalWatch:
 
     def observe(self, record: KeyframeRecord) -> None:
         """One finished keyframe's verdict."""
-        from nap3d_graph.run.output import refusal_hint_for
-        from nap3d_graph.run.records import refusal_kind
-
         if record.accepted:
             self.kind, self.count = None, 0
             return

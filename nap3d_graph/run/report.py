@@ -30,6 +30,7 @@ import numpy as np
 
 from nap3d_graph.factors.gate import chi2_threshold
 from nap3d_graph.figure_report import FigureReport
+from nap3d_graph.plots import pyplot
 
 from .records import refusal_kind
 
@@ -132,8 +133,6 @@ def run_report(keyframes, metrics: dict) -> RunReport:
 def _plot(path: Path, keyframes) -> None:
     """Corrections over the run: accepted sizes, refused keyframes by kind, and d2 against
     the chi-square's 99% line."""
-    from nap3d_graph.plots import pyplot
-
     plt = pyplot()
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(8, 5.5), sharex=True)
     frames = np.array([k.frame_index for k in keyframes])

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from nap3d_graph.camera import sharpness
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.run.config import PipelineConfig
 
@@ -93,7 +94,6 @@ class KeyframeSelector:
         """The frame's sharpness (NaN without a frame or a window), kept for the reference."""
         if frame is None or self.config.keyframe_window <= 1:
             return float("nan")
-        from nap3d_graph.camera import sharpness
 
         value = sharpness(frame.rgb)
         self._sharpness_since_kf.append(value)

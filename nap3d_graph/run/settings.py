@@ -23,6 +23,8 @@ import typing
 from dataclasses import dataclass
 from typing import Any
 
+from nap3d_graph.nap3d.config import AlignConfig
+
 from .config import PipelineConfig
 from .default import DEFAULT_TRAIN_STEPS
 
@@ -300,8 +302,6 @@ class RunSettings(SettingsTree):
         (``pipeline`` metadata) as it is; the render size, the timing switch and NAP3D's
         settings converted; the settings the run resolves given (``land_within_s`` seconds,
         ``overlap``, ``keyframe_when_idle``, ``timing``: a capture timing beyond the field's)."""
-        from nap3d_graph.nap3d.config import AlignConfig
-
         values: dict[str, Any] = {}
         for name in SECTIONS:
             section = getattr(self, name)

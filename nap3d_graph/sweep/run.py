@@ -35,6 +35,7 @@ import traceback
 from pathlib import Path
 
 from nap3d_graph.pools import THREAD_ENV
+from nap3d_graph.progress import progress_bar
 from nap3d_graph.textfiles import write_json_atomic
 
 __all__ = ["run_sweep", "SweepLocked", "cell_status"]
@@ -209,8 +210,6 @@ def run_sweep(spec, folder, pool, command, progress: bool = True, retry_failed: 
     ``{"ran": n, "skipped": n, "failed": n, "fields_trained": n}``. ``command``: the command
     line's entry point, ``command(argv) -> exit code`` (``nap3d_graph.cli.main``; a module-level
     function, so a process or Ray worker can be handed it), which each field and cell runs."""
-    from nap3d_graph.progress import progress_bar
-
     folder = Path(folder)
     (folder / "fields").mkdir(parents=True, exist_ok=True)
     (folder / "cells").mkdir(parents=True, exist_ok=True)

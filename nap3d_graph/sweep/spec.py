@@ -37,6 +37,8 @@ import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nap3d_graph.datasets import source_of
+
 __all__ = ["SweepError", "SweepSpec", "FieldTask", "Cell", "Recording"]
 
 #: Options the sweep sets for each cell itself.
@@ -135,7 +137,6 @@ class Cell:
 
     def argv(self, field_path: Path | None, out_dir: Path) -> list[str]:
         data = self.recording.query_data
-        from nap3d_graph.datasets import source_of
 
         argv = ["run", "--traj", source_of(data), "--data", data, "--field",
                 self.field.run_field or str(field_path), "--seed", str(self.seed), "--out", str(out_dir)]

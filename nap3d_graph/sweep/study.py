@@ -25,8 +25,18 @@ import numpy as np
 
 __all__ = ["StudyConfig", "StudyRecordings", "StudySettings", "run_study", "summary_markdown"]
 
+from nap3d_graph.conventions import pose_error
+from nap3d_graph.datasets import open_sequence
+from nap3d_graph.datasets.depth_timing import resolve_capture_timing
+from nap3d_graph.fields.build import build_field
+from nap3d_graph.fields.field_error import measure_frame
+from nap3d_graph.motion.odometry import make_odometry
+from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.matching import choose_matcher
 from nap3d_graph.provenance import provenance
+from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.run.output import write_results
+from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.run.settings import SettingsTree
 
 log = logging.getLogger(__name__)
@@ -99,9 +109,6 @@ def run_study(data: str | Path, out: str | Path, config: StudyConfig | None = No
     ``query`` (its ``query_frames``) is corrected: a map made yesterday, a robot today. The
     two must share a world frame: checked on a few query frames aligned at their
     ground-truth pose (``summary["shared_world"]``), with a warning when they do not."""
-    from nap3d_graph.datasets import open_sequence
-    from nap3d_graph.fields.build import build_field
-
     config = config or StudyConfig()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -154,11 +161,6 @@ def shared_world_check(field, sequence, config: StudyConfig, frames: int = 6) ->
     it, are aligned with the map's render at their own ground-truth pose: in a shared frame
     the corrections are centimetres at most; in another frame they fail (the view is not
     where the field has anything) or are large. Logs a warning when they do not agree."""
-    from nap3d_graph.conventions import pose_error
-    from nap3d_graph.fields.field_error import measure_frame
-    from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.run.config import PipelineConfig
-
     run_config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=choose_matcher(config.matcher, sequence)[0]))
     T_world_cam_gt = sequence.T_world_cam_gt
     if T_world_cam_gt is None:
@@ -194,12 +196,6 @@ def _field_summary(report: dict) -> dict:
 
 
 def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) -> dict:
-    from nap3d_graph.motion.odometry import make_odometry
-    from nap3d_graph.nap3d.config import AlignConfig
-    from nap3d_graph.run.config import PipelineConfig
-    from nap3d_graph.run.output import write_results
-    from nap3d_graph.run.pipeline import Pipeline
-
     odometry = make_odometry(odom, sequence, config.seed, matcher=config.matcher)
     pipeline_config = PipelineConfig(keyframe_every=config.keyframe_every, progress=config.progress,
                                      align=AlignConfig(matcher=config.matcher))
@@ -223,9 +219,7 @@ def _drift_run(sequence, field, odom: str, folder: Path, config: StudyConfig) ->
 
 
 def _eval_k(sequence, field, folder: Path, config: StudyConfig) -> dict:
-    from nap3d_graph.datasets.depth_timing import resolve_capture_timing
     from nap3d_graph.evaluation.eval_k import EvalKConfig, run_eval_k
-    from nap3d_graph.nap3d.config import AlignConfig
 
     cells = {} if config.eval_k_full else {"blur_sigmas": (0.0,), "intrinsics_noise": {"CLEAN": (1.0, 0.0)}}
     k_config = EvalKConfig(scenarios=config.eval_k_scenarios, seed=config.seed, timing=resolve_capture_timing(field, sequence)[0],
