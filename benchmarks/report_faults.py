@@ -243,6 +243,7 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey, matches: bo
 def _mesh_at(folder: Path, survey, keys: np.ndarray, T_map_key: np.ndarray, info: dict) -> dict:
     """The survey fused again at these keyframe poses (its frames placed as ``map`` places
     them): ``map.ply`` and its walls, as ``map.json`` records them."""
+    from nap3d_graph.datasets.depth_timing import CaptureTiming
     from nap3d_graph.datasets.posed import PosedSequence
     from nap3d_graph.mapping.build import place_kept_frames
     from nap3d_graph.mapping.mesh import fuse_mesh
@@ -251,7 +252,9 @@ def _mesh_at(folder: Path, survey, keys: np.ndarray, T_map_key: np.ndarray, info
     segment = info["segment"]
     T_map_cam = place_kept_frames(SurveyOdometry.load(folder / "odometry.npz"), keys, T_map_key, segment["start"],
                                   segment["stop"], [tuple(g) for g in segment.get("rejoined", [])])
-    return fuse_mesh(PosedSequence(survey, T_map_cam, "map"), folder / "map.ply").to_dict()
+    report = folder / "field.report.json"  # the depth moved to the colour's instant as map fuses it
+    timing = CaptureTiming.of(json.loads(report.read_text()).get("timing")) if report.is_file() else None
+    return fuse_mesh(PosedSequence(survey, T_map_cam, "map"), folder / "map.ply", timing=timing).to_dict()
 
 
 def scaled_covariance_config(map_dir: Path, factor: float, out: Path) -> Path:
