@@ -222,16 +222,32 @@ def _plane_spread(clouds: list[np.ndarray], normal: np.ndarray, offset: float, s
     (:func:`_cell_offsets`), each pair of frames' distance over the cells both see, and the 90th
     percentile of those distances (None when fewer than 5 frames or 10 pairs see it)."""
     seen = [cells for cells in (_cell_offsets(points, normal, offset, s) for points in clouds) if cells]
-    distances = []
-    for i, cells_i in enumerate(seen):
-        for cells_j in seen[i + 1:]:
-            shared = cells_i.keys() & cells_j.keys()
-            if len(shared) >= s.shared_cells:
-                distances.append(abs(float(np.median([cells_i[k] - cells_j[k] for k in shared]))))
-    if len(seen) < 5 or len(distances) < 10:
+    if len(seen) < 5:
+        return None
+    distances = _pair_distances(seen, s.shared_cells)
+    if len(distances) < 10:
         return None
     return {"normal": np.round(normal, 3).tolist(), "frames": len(seen), "pairs": len(distances),
             "spread_m": round(float(np.percentile(distances, 90)), 4)}
+
+
+def _pair_distances(seen: list[dict[int, float]], shared_cells: int) -> np.ndarray:
+    """For each pair of frames (their cell -> offset) sharing at least ``shared_cells`` cells,
+    the absolute median of their offset differences over those cells. One frame against all
+    later ones at a time, over the cells it sees (a table frames x cells, NaN where unseen):
+    800 frames of a floor's wall are 300 000 pairs."""
+    columns = {k: c for c, k in enumerate(sorted(set().union(*seen)))}
+    table = np.full((len(seen), len(columns)), np.nan)
+    for row, cells in enumerate(seen):
+        table[row, [columns[k] for k in cells]] = list(cells.values())
+    out = []
+    for i in range(len(seen) - 1):
+        mine = np.flatnonzero(np.isfinite(table[i]))
+        later = table[i + 1:, mine]
+        enough = np.isfinite(later).sum(axis=1) >= shared_cells
+        if enough.any():
+            out.append(np.abs(np.nanmedian(table[i, mine] - later[enough], axis=1)))
+    return np.concatenate(out) if out else np.zeros(0)
 
 
 def _cell_offsets(points: np.ndarray, normal: np.ndarray, offset: float, s: MeshSettings) -> dict[int, float]:
