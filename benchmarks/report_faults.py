@@ -183,11 +183,9 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey, matches: bo
     graph's and at the final poses against ``survey``'s ground truth (scoring only)."""
     import csv
 
-    from nap3d_graph.conventions import exp_se3, inv_T
     from nap3d_graph.evaluation.alignment import aligned_errors
-    from nap3d_graph.mapping.build import MapSettings, _working_intrinsics, graph_and_bundle
+    from nap3d_graph.mapping.build import MapSettings, graph_and_bundle
     from nap3d_graph.mapping.loops import load_edges
-    from nap3d_graph.mapping.pose_graph import Edge
     from nap3d_graph.mapping.survey import SurveyOdometry
 
     if out.exists():
@@ -203,16 +201,7 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey, matches: bo
         lp.status = row["status"]
     verified = [lp for lp in loops if lp.status in ("accepted", "rejected", "admitted")]
     settings = MapSettings(bundle="bundle" in info)
-    forced, forced_matches = [], []
-    if error_m > 0 and matches:
-        true, edge, pair = twin_loop(verified, _working_intrinsics(survey, settings), error_m)
-        verified.remove(true)
-        true.status, true.reason = "refused", "replaced by the fault benchmark's false loop"
-        forced, forced_matches = [edge], [pair]
-    elif error_m > 0:
-        a, b = 0, len(T_key) // 2
-        T_ab = inv_T(T_key[a]) @ T_key[b] @ exp_se3(np.array([0, 0, 0, error_m, 0, 0]))
-        forced = [Edge(a, b, T_ab, np.diag([1e-6] * 6), "alignment")]
+    forced, forced_matches = _false_loop(verified, T_key, survey, settings, error_m, matches)
     graph, T_final, bundle = graph_and_bundle(survey, keys, SurveyOdometry.load(out / "odometry.npz"),
                                               [*chain, *forced], verified, [*chain_matches, *forced_matches],
                                               settings)
@@ -225,12 +214,7 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey, matches: bo
     if bundle is not None:
         info["bundle"] = bundle
     (out / "map.json").write_text(json.dumps(info, indent=1, default=float))
-    for row, lp in zip(rows, loops):  # the loops' decisions as these solves took them
-        row["status"] = lp.status
-    with (out / "loops.csv").open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    _write_statuses(out / "loops.csv", rows, loops)
     stamps, T_gt = np.asarray(survey.timestamps)[keys], np.asarray(survey.T_world_cam_gt)[keys]
     scores = {"keyframes_ate_graph_m": aligned_errors(stamps, T_gt, graph.T_map_key).summary()["rmse_m"],
               "keyframes_ate_final_m": aligned_errors(stamps, T_gt, T_final).summary()["rmse_m"],
@@ -238,6 +222,18 @@ def false_loop_map(map_dir: Path, out: Path, error_m: float, survey, matches: bo
               "loops_admitted": sum(lp.status == "admitted" for lp in verified), "loops_verified": len(verified),
               **({"twin_matches": len(forced_matches[0].z_a)} if forced_matches else {})}
     return out, scores
+
+
+def _write_statuses(path: Path, rows: list[dict], loops: list) -> None:
+    """``loops.csv`` again with each loop's decision as these solves took them."""
+    import csv
+
+    for row, lp in zip(rows, loops):
+        row["status"] = lp.status
+    with path.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 def _mesh_at(folder: Path, survey, keys: np.ndarray, T_map_key: np.ndarray, info: dict) -> dict:
@@ -255,6 +251,27 @@ def _mesh_at(folder: Path, survey, keys: np.ndarray, T_map_key: np.ndarray, info
     report = folder / "field.report.json"  # the depth moved to the colour's instant as map fuses it
     timing = CaptureTiming.of(json.loads(report.read_text()).get("timing")) if report.is_file() else None
     return fuse_mesh(PosedSequence(survey, T_map_cam, "map"), folder / "map.ply", timing=timing).to_dict()
+
+
+def _false_loop(verified: list, T_key: np.ndarray, survey, settings, error_m: float, matches: bool
+                ) -> tuple[list, list]:
+    """The false loop's edges and matches to force in (none for ``error_m`` 0): a look-alike
+    place's loop replacing the true one it copies (taken out of ``verified``), or without
+    ``matches`` the first and the middle keyframe said to be ``error_m`` apart from the map."""
+    from nap3d_graph.conventions import exp_se3, inv_T
+    from nap3d_graph.mapping.build import _working_intrinsics
+    from nap3d_graph.mapping.pose_graph import Edge
+
+    if error_m <= 0:
+        return [], []
+    if matches:
+        true, edge, pair = twin_loop(verified, _working_intrinsics(survey, settings), error_m)
+        verified.remove(true)
+        true.status, true.reason = "refused", "replaced by the fault benchmark's false loop"
+        return [edge], [pair]
+    a, b = 0, len(T_key) // 2
+    T_ab = inv_T(T_key[a]) @ T_key[b] @ exp_se3(np.array([0, 0, 0, error_m, 0, 0]))
+    return [Edge(a, b, T_ab, np.diag([1e-6] * 6), "alignment")], []
 
 
 def scaled_covariance_config(map_dir: Path, factor: float, out: Path) -> Path:
