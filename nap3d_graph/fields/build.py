@@ -115,20 +115,14 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
         field, report = _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device,
                                     progress)
     stored_timing = None if timing is None else timing.to_dict()
-    field.meta.update({"model": model, "timing": stored_timing, "source": str(getattr(sequence, "path", "")),
-                       "frame_range": list(getattr(sequence, "frame_range", (0, len(sequence)))),
-                       "train_frames": [int(i) for i in train_idx],
-                       "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx],
-                       "train_recording": getattr(sequence, "recording_id", None)})
+    field.meta.update(_provenance_meta(sequence, model, stored_timing, train_idx))
     K = sequence.intrinsics
     if render_size is not None and (render_size[0] > K.width or render_size[1] > K.height):
         render_size = None  # never evaluate above the frames' own resolution
     held = evaluate_field(field, sequence, held_idx, oracle, size=render_size, timing=timing) if len(held_idx) else None
     report.update({"model": model, "timing": stored_timing, "timing_seconds": round(timing_seconds, 2),
                    "train_frames": int(len(train_idx)), "held_out": held, "depth_unit": unit_check})
-    coverage = colour_coverage(sequence)
-    if coverage is not None:  # the undistortion's black corners: no colour target, not scored
-        report["colour_without_data"] = round(float(1.0 - coverage.mean()), 4)
+    _add_colour_coverage(report, sequence)
     if refinement is not None:
         report["pose_refinement"] = refinement
         field.meta["pose_corrections"] = {int(i): D.tolist() for i, D in sequence.corrections.items()}
@@ -139,6 +133,24 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                                                                          matcher, train_idx if error_growth else None)
     report["total_seconds"] = round(time.perf_counter() - started, 2)
     return field, report
+
+
+def _provenance_meta(sequence, model: str, stored_timing: dict | None, train_idx) -> dict:
+    """What a field records of where it came from: its model, capture timing, recording, frame
+    range and training frames (indices and stamps)."""
+    return {"model": model, "timing": stored_timing, "source": str(getattr(sequence, "path", "")),
+            "frame_range": list(getattr(sequence, "frame_range", (0, len(sequence)))),
+            "train_frames": [int(i) for i in train_idx],
+            "train_timestamps": [float(sequence.timestamps[int(i)]) for i in train_idx],
+            "train_recording": getattr(sequence, "recording_id", None)}
+
+
+def _add_colour_coverage(report: dict, sequence) -> None:
+    """The share of the frame without colour (an undistortion's black corners: no colour target,
+    not scored), where the sequence has such corners."""
+    coverage = colour_coverage(sequence)
+    if coverage is not None:
+        report["colour_without_data"] = round(float(1.0 - coverage.mean()), 4)
 
 
 class DepthUnitError(FieldError):
