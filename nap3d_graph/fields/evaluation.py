@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+import cv2
 import numpy as np
 
 from nap3d_graph.camera import colour_coverage
@@ -107,8 +108,6 @@ def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: t
     Returns a dict (see the module docstring) with a ``per_frame`` list.
     """
     timing = CaptureTiming.of(timing)
-    import cv2
-
     if getattr(sequence, "T_world_cam_gt", None) is None:
         raise ValueError("evaluating a field needs ground-truth poses")
     K_full = sequence.intrinsics.without_distortion()
@@ -122,12 +121,7 @@ def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: t
     for k, i in enumerate(indices):
         if not (np.all(np.isfinite(T_colour[k])) and np.all(np.isfinite(T_depth[k]))):
             continue
-        frame = sequence[int(i)]
-        rgb_real = frame.rgb if size is None else cv2.resize(frame.rgb, (K.width, K.height),
-                                                              interpolation=cv2.INTER_AREA)
-        sensor = np.nan_to_num(frame.depth_m, nan=0.0) * scale
-        if size is not None:
-            sensor = cv2.resize(sensor, (K.width, K.height), interpolation=cv2.INTER_NEAREST)
+        rgb_real, sensor = _frame_at(sequence[int(i)], K, size, scale)
         started = time.perf_counter()
         view = field.render(T_colour[k], K)
         secs.append(time.perf_counter() - started)
@@ -174,6 +168,16 @@ def evaluate_field(field, sequence, indices: Sequence[int], oracle=None, size: t
         "timing": None if timing is None else timing.to_dict(),
         "per_frame": per_frame,
     }
+
+
+def _frame_at(frame, K, size: tuple[int, int] | None, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """One held-out frame at the render's size ``K`` (``size`` None: as it is): its colour
+    (area-averaged) and its depth (nearest, missing as 0) times ``scale``."""
+    rgb = frame.rgb if size is None else cv2.resize(frame.rgb, (K.width, K.height), interpolation=cv2.INTER_AREA)
+    sensor = np.nan_to_num(frame.depth_m, nan=0.0) * scale
+    if size is not None:
+        sensor = cv2.resize(sensor, (K.width, K.height), interpolation=cv2.INTER_NEAREST)
+    return rgb, sensor
 
 
 def _unit_check(x: np.ndarray, y: np.ndarray) -> dict:
