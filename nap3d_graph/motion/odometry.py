@@ -186,7 +186,11 @@ class VisualOdometry:
         self.min_good_inliers = int(min_good_inliers)
         self.reuse_features = bool(reuse_features)
         self.depth_fallback = bool(depth_fallback)
-        self._recent_steps: deque[np.ndarray] = deque(maxlen=STEADY_STEPS)
+        # The last measured steps' translations in the odometry's own frame, and the previous
+        # camera's rotation in it: the walker's heading is held there, not in the camera, which
+        # turns its head while the walker walks on.
+        self._recent_steps: deque[tuple[np.ndarray, np.ndarray]] = deque(maxlen=STEADY_STEPS)
+        self._R_odom_prev = np.eye(3)
 
     def initial_pose(self) -> np.ndarray:
         return self._initial.copy()
@@ -194,6 +198,7 @@ class VisualOdometry:
     def prime(self, frame: RGBDFrame) -> None:
         """Give the first frame (the pipeline calls this before any increment)."""
         self._previous, self._previous_features, self._latest = self._sized(frame), None, None
+        self._R_odom_prev = np.eye(3)
 
     def _sized(self, frame: RGBDFrame | None) -> RGBDFrame | None:
         """The frame at the odometry's width (as it is without one, or when it is narrower)."""
@@ -222,7 +227,7 @@ class VisualOdometry:
         if frame is None or self._previous is None:
             # An unreadable frame: guess with constant velocity, restart from the next one.
             self._previous, self._previous_features, self._latest = frame, None, None
-            return Increment(self._last_good.copy(), self._fallback_cov, False, "no frame")
+            return self._stepped(Increment(self._last_good.copy(), self._fallback_cov, False, "no frame"))
         prev, prev_features = self._previous, self._previous_features
         opacity = np.isfinite(prev.depth_m) & (prev.depth_m > 0)
         view = RenderedView(prev.rgb, np.nan_to_num(prev.depth_m), opacity.astype(np.float32), prev.intrinsics)
@@ -235,13 +240,19 @@ class VisualOdometry:
         timings = dict(a.timings_s)
         timings["detect"] = timings.get("detect", 0.0) + detect_s
         if not a.success:
-            return self._without_features(i, prev, frame, a.reason, timings)
+            return self._stepped(self._without_features(i, prev, frame, a.reason, timings))
         # T_real_rendered maps frame i-1's camera into frame i's: T_cur_prev.
         T_prev_cur = inv_T(a.T_real_rendered)
         covariance = self._step_covariance(a, T_prev_cur)
         self._last_good = T_prev_cur
-        self._recent_steps.append(T_prev_cur[:3, 3].copy())
-        return Increment(T_prev_cur, covariance, timings_s=timings)
+        R = self._R_odom_prev
+        self._recent_steps.append((R @ T_prev_cur[:3, 3], np.linalg.inv(R @ covariance[3:, 3:] @ R.T)))
+        return self._stepped(Increment(T_prev_cur, covariance, timings_s=timings))
+
+    def _stepped(self, increment: Increment) -> Increment:
+        """``increment``, after turning the previous camera's rotation in the odometry's frame by it."""
+        self._R_odom_prev = self._R_odom_prev @ increment.T_prev_cur[:3, :3]
+        return increment
 
     def _without_features(self, i: int, prev: RGBDFrame, frame: RGBDFrame, reason: str, timings: dict) -> Increment:
         """A step the features could not measure: by the depths alone where they agree
@@ -263,10 +274,17 @@ class VisualOdometry:
     def _steady_guess(self) -> np.ndarray:
         """The constant-velocity guess with the mean translation of the last few measured steps
         (``T_prev_cur`` (4, 4)): one step's direction is as noisy as its few inliers at a blank
-        wall, and a depth step keeps it for every step until features return."""
+        wall, and a depth step keeps it for every step until features return. The mean is taken
+        in the odometry's frame and seen from the previous camera: a walker keeps walking the
+        same way while the camera sweeps left and right (held in the camera, the heading would
+        turn with every sweep of the head)."""
         T = self._last_good.copy()
         if self._recent_steps:
-            T[:3, 3] = np.mean(self._recent_steps, axis=0)
+            # Weighted by their information: the last steps before the features run out rest on
+            # a few inliers, and their covariance says so.
+            info = sum(w for _, w in self._recent_steps)
+            t_odom = np.linalg.solve(info, sum(w @ t for t, w in self._recent_steps))
+            T[:3, 3] = self._R_odom_prev.T @ t_odom
         return T
 
     def _features_reusable(self) -> bool:
