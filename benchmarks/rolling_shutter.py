@@ -35,9 +35,9 @@ def run_one(data: Path, field, odom: str, readout_s: float | None, frames: str) 
     from nap3d_graph.evaluation.metrics import ate
     from nap3d_graph.motion.odometry import make_odometry
     from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.nap3d.keyframe import readout_of
     from nap3d_graph.nap3d.matching import choose_matcher
     from nap3d_graph.run.config import PipelineConfig
-    from nap3d_graph.run.keyframe import readout_of
     from nap3d_graph.run.pipeline import Pipeline
 
     sequence = open_sequence(data, frames=frames)

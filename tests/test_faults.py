@@ -130,7 +130,7 @@ def test_a_frame_whose_metre_is_off_is_aligned_in_one_pass(walk):
     own pass: the same correction as aligning the frame with its depth divided by the scale
     from scratch (what runs did before, repeating the render and the matching), once."""
     from nap3d_graph import correct_pose
-    from nap3d_graph.run.keyframe import KeyframeJob, measure_keyframe
+    from nap3d_graph.nap3d.keyframe import KeyframeJob, measure_keyframe
 
     i = 12
     frame = ScaledDepth(walk, {i: 1.035})[i]

@@ -9,9 +9,9 @@ from nap3d_graph.conventions import exp_se3, pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming, DepthTiming, estimate_colour_timing
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correspondences import Correspondences
+from nap3d_graph.nap3d.keyframe import KeyframeJob, measure_keyframe
 from nap3d_graph.nap3d.rolling_shutter import RowMotion, to_mid_readout
 from nap3d_graph.run.config import PipelineConfig
-from nap3d_graph.run.keyframe import KeyframeJob, measure_keyframe
 from nap3d_graph.sims.sensors import sensor_frame
 from nap3d_graph.sims.sequence import default_intrinsics
 from nap3d_graph.sims.trajectories import make_trajectory

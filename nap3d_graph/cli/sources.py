@@ -20,10 +20,10 @@ from nap3d_graph.mapping.start import map_relocaliser as relocaliser_of
 from nap3d_graph.motion.imu import ImuConfig, estimate_gravity, gravity_angle_deg
 from nap3d_graph.motion.odometry import DenseVisualOdometry, VisualOdometry, make_odometry
 from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.keyframe import readout_of
 from nap3d_graph.nap3d.matching import choose_matcher
 from nap3d_graph.run.default import embedded_default_inputs
 from nap3d_graph.run.imu import ImuOdometry
-from nap3d_graph.run.keyframe import readout_of
 from nap3d_graph.run.pipeline import Pipeline
 from nap3d_graph.run.settings import SettingsError
 

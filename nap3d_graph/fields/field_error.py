@@ -25,8 +25,7 @@ from functools import partial
 import numpy as np
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
-from nap3d_graph.run.config import PipelineConfig
-from nap3d_graph.run.keyframe import KeyframeJob, measure_keyframe
+from nap3d_graph.nap3d.keyframe import KeyframeJob, MeasureSettings, measure_keyframe
 
 from ..conventions import exp_se3, inv_T, log_se3
 
@@ -53,8 +52,8 @@ def twist_at(sequence, i: int) -> np.ndarray | None:
 def measure_frame(sequence, i: int, field, T_render: np.ndarray, run_config, timing: CaptureTiming | None = None,
                   render_size: tuple[int, int] | None = (320, 240), with_twist: bool = True):
     """Frame ``i`` of a posed ``sequence`` measured as a run measures a keyframe
-    (:func:`~nap3d_graph.run.keyframe.measure_keyframe`, ``run_config`` a
-    PipelineConfig) from a render at ``T_render``: the field's error, a training pose's
+    (:func:`~nap3d_graph.nap3d.keyframe.measure_keyframe`, ``run_config`` a
+    PipelineConfig or :class:`~nap3d_graph.nap3d.keyframe.MeasureSettings`) from a render at ``T_render``: the field's error, a training pose's
     refinement and a recording's shared world frame are all checked this way. The render is
     at ``render_size`` (the frame's own when None or larger); ``with_twist``: move depth to the
     colour's instant with the ground truth's motion (when ``timing`` says how)."""
@@ -76,7 +75,7 @@ def _perturbed_errors(sequence, indices, field_for, align, timing, render_size, 
     to measure frame i with, or None to skip it. Returns the errors (N, 6) of the successful
     corrections against the truth (GTSAM order), their covariances (N, 6, 6), how many failed,
     and the ``extra`` of each."""
-    config = PipelineConfig(field_sigma_m=0.0, **({"align": align} if align is not None else {}))
+    config = MeasureSettings(**({"align": align} if align is not None else {}))  # the field as exact
     rng = np.random.default_rng(seed)
     sigmas = np.array([perturbation[1]] * 3 + [perturbation[0]] * 3)
     errors, covariances, extras, failed = [], [], [], 0

@@ -27,7 +27,7 @@ import numpy as np
 
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.datasets.posed import PosedSequence
-from nap3d_graph.run.config import PipelineConfig
+from nap3d_graph.nap3d.keyframe import MeasureSettings
 
 from ..conventions import exp_se3, inv_T, log_se3
 from ..nap3d.config import AlignConfig
@@ -104,7 +104,7 @@ def refine_training_poses(sequence, train_idx, timing: CaptureTiming | None = No
     folds = [train_idx[0::2], train_idx[1::2]]
     T_in = np.asarray(sequence.T_world_cam_gt, dtype=float)
     prior = np.diag([config.input_sigma_rad**2] * 3 + [config.input_sigma_m**2] * 3)
-    run_config = PipelineConfig(field_sigma_m=0.0, align=AlignConfig(matcher=config.matcher))
+    run_config = MeasureSettings(align=AlignConfig(matcher=config.matcher))  # the field as exact
     corrections = {int(i): np.eye(4) for i in train_idx}
     rounds = []
     for r in range(config.rounds):

@@ -12,6 +12,7 @@ from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.fields.base import field_sigmas
 from nap3d_graph.fields.gap_error import error_sigmas_at, has_error_by_view
 from nap3d_graph.nap3d.config import AlignConfig
+from nap3d_graph.nap3d.keyframe import MeasureSettings
 
 __all__ = ["PipelineConfig", "with_field_error"]
 
@@ -146,7 +147,7 @@ class PipelineConfig:
     keyframe_sharpness_fraction: float = 0.8
     keyframe_on_doubt: bool = False
     keyframe_when_idle: int = 0
-    correction_iterations: int = 1
+    correction_iterations: int = MeasureSettings.correction_iterations
     render_width: int | None = 320
     render_height: int | None = 240
     robust: str | None = "huber"
@@ -158,11 +159,11 @@ class PipelineConfig:
     prior_trans_sigma_m: float = 1e-3
     relinearize_threshold: float = 1e-3
     compensate_timing: bool = True
-    rolling_shutter_s: float | None = None
+    rolling_shutter_s: float | None = MeasureSettings.rolling_shutter_s
     timing: CaptureTiming | dict | None = None
     final_gnc: bool = True
     gnc_p: float = 0.997
-    depth_scale_check: bool = True
+    depth_scale_check: bool = MeasureSettings.depth_scale_check
     depth_scale_tolerance: float = 0.02
     depth_scale_sigmas: float = 4.0
     depth_scale_window: int = 15
@@ -179,8 +180,8 @@ class PipelineConfig:
     overlap: bool = False
     detect_ahead: bool = True
     render_ahead: bool = False
-    render_ahead_m: float = 0.05
-    render_ahead_deg: float = 3.0
+    render_ahead_m: float = MeasureSettings.render_ahead_m
+    render_ahead_deg: float = MeasureSettings.render_ahead_deg
     land_within_s: float = 0.0
     read_ahead: int = 2
     library_threads: int | None = 1

@@ -1,5 +1,5 @@
 """What measuring one keyframe needs, gathered from a run as it stands
-(:class:`~nap3d_graph.run.keyframe.KeyframeJob`): the frame, where to render the field, the
+(:class:`~nap3d_graph.nap3d.keyframe.KeyframeJob`): the frame, where to render the field, the
 camera's motion, the capture timing and the depth scale the run believes."""
 
 from __future__ import annotations
@@ -9,14 +9,14 @@ import numpy as np
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.conventions import inv_T
 from nap3d_graph.datasets.depth_timing import CaptureTiming, resolve_capture_timing
-from nap3d_graph.run.keyframe import KeyframeJob
+from nap3d_graph.nap3d.keyframe import KeyframeJob
 from nap3d_graph.run.records import KeyframeRecord
 
 __all__ = ["KeyframeJobs"]
 
 
 class KeyframeJobs:
-    """Makes each keyframe's :class:`~nap3d_graph.run.keyframe.KeyframeJob` for ``run`` (a
+    """Makes each keyframe's :class:`~nap3d_graph.nap3d.keyframe.KeyframeJob` for ``run`` (a
     :class:`~nap3d_graph.run.pipeline.Pipeline`: its field, config, odometry, motion model,
     graph and prediction as they are when asked)."""
 

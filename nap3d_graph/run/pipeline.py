@@ -35,6 +35,7 @@ from nap3d_graph.datasets.protocol import FrameSource
 from nap3d_graph.factors import anchor_prior_factor
 from nap3d_graph.fields import frames_seen_in_training
 from nap3d_graph.mapping.start import MapPlacement, PlacementSettings
+from nap3d_graph.nap3d.keyframe import measure_keyframe
 from nap3d_graph.progress import progress_bar
 from nap3d_graph.results import Correction
 from nap3d_graph.run.config import PipelineConfig, with_field_error
@@ -45,7 +46,7 @@ from nap3d_graph.run.history import FrameLog
 from nap3d_graph.run.imu import ImuMotion, ImuOdometry
 from nap3d_graph.run.intrinsics_model import IntrinsicsModelTracker
 from nap3d_graph.run.jobs import KeyframeJobs
-from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker, measure_keyframe
+from nap3d_graph.run.keyframe import CorrectionWorker, DepthScaleTracker
 from nap3d_graph.run.library_threads import library_threads
 from nap3d_graph.run.motion import MotionModel, OdometryMotion
 from nap3d_graph.run.overlapped import OverlappedSteps

@@ -16,8 +16,8 @@ import numpy as np
 
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.mapping.start import MapPlacement
+from nap3d_graph.nap3d.keyframe import measure_keyframe
 from nap3d_graph.results import Alignment, Correction
-from nap3d_graph.run.keyframe import measure_keyframe
 from nap3d_graph.run.records import KeyframeRecord
 
 __all__ = ["MapRecovery"]
