@@ -1,0 +1,96 @@
+"""Is the visual odometry's covariance consistent over a keyframe interval? (issue 62)
+
+The run's gate compares each correction with the graph's prediction, whose covariance is the
+odometry's over the interval since the last keyframe: its steps' covariances chained
+(``conventions.compose_covariance``, as ``run.motion`` does) plus the drift model
+(``PipelineConfig.drift_covariance``). The fault benchmark's clean fr1/desk run reads "too
+cautious" (median d2 0.36 against a chi-square band from 0.87). This measures, on recordings
+with ground truth, the NEES (e^T C^-1 e, 6 dof: median 5.35 when consistent) of the odometry
+against the ground truth over intervals of 1, 2, 3, 5 (the default keyframe interval) and 10
+frames, for the chained step covariances alone and with the drift model, with spread.
+
+    python benchmarks/odometry_consistency.py --data ../shared/data/tum/rgbd_dataset_freiburg1_desk \
+        ../shared/data/7scenes/redkitchen ../shared/data/tum/rgbd_dataset_freiburg1_xyz \
+        --out benchmarks/results/odometry_consistency.json
+
+No setting is chosen from it: it says where the prediction's covariance is too large.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from provenance import write_result
+
+from nap3d_graph.conventions import compose_covariance, inv_T, log_se3
+from nap3d_graph.datasets import open_sequence
+from nap3d_graph.motion.odometry import VisualOdometry
+from nap3d_graph.run.config import PipelineConfig
+
+INTERVALS = (1, 2, 3, 5, 10)
+CHI2_6_MEDIAN = 5.348
+
+
+def _spread(values) -> dict:
+    v = np.asarray(values, dtype=float)
+    return {"n": int(v.size), "median": round(float(np.median(v)), 3), "p10": round(float(np.percentile(v, 10)), 3),
+            "p90": round(float(np.percentile(v, 90)), 3)}
+
+
+def odometry_steps(sequence, width: int) -> list:
+    """The feature odometry's increments over the whole recording (frame i-1 -> i)."""
+    odometry = VisualOdometry(width=width)
+    odometry.prime(sequence[0])
+    return [odometry.increment(i, sequence[i]) for i in range(1, len(sequence))]
+
+
+def interval_nees(sequence, steps, n: int, config: PipelineConfig) -> dict:
+    """NEES over non-overlapping intervals of ``n`` frames: chained step covariances alone and
+    with the drift model; the error's norm (mm, mrad) against the covariance's per-axis sigma."""
+    T_gt, stamps = np.asarray(sequence.T_world_cam_gt), np.asarray(sequence.timestamps)
+    alone, with_drift, err_mm, sigma_mm, err_mrad, sigma_mrad = [], [], [], [], [], []
+    for a in range(0, len(steps) - n + 1, n):
+        if not (np.isfinite(T_gt[a]).all() and np.isfinite(T_gt[a + n]).all()):
+            continue
+        T, C = np.eye(4), np.zeros((6, 6))
+        for step in steps[a:a + n]:
+            T, C = T @ step.T_prev_cur, compose_covariance(C, step.T_prev_cur, step.covariance)
+        D = C + config.drift_covariance(T, float(stamps[a + n] - stamps[a]))
+        e = log_se3(inv_T(inv_T(T_gt[a]) @ T_gt[a + n]) @ T)
+        alone.append(float(e @ np.linalg.solve(C, e)))
+        with_drift.append(float(e @ np.linalg.solve(D, e)))
+        err_mm.append(1e3 * float(np.linalg.norm(e[3:])) / np.sqrt(3))
+        sigma_mm.append(1e3 * float(np.sqrt(np.trace(D[3:, 3:]) / 3)))
+        err_mrad.append(1e3 * float(np.linalg.norm(e[:3])) / np.sqrt(3))
+        sigma_mrad.append(1e3 * float(np.sqrt(np.trace(D[:3, :3]) / 3)))
+    return {"frames": n, "nees_steps_alone": _spread(alone), "nees_with_drift": _spread(with_drift),
+            "error_mm_per_axis": _spread(err_mm), "sigma_mm_per_axis": _spread(sigma_mm),
+            "error_mrad_per_axis": _spread(err_mrad), "sigma_mrad_per_axis": _spread(sigma_mrad)}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", type=Path, nargs="+", required=True, help="recordings with ground truth")
+    ap.add_argument("--width", type=int, default=320, help="the odometry's width (the run's --vo-width at pace)")
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    config = PipelineConfig()
+    recordings = {}
+    for path in args.data:
+        sequence = open_sequence(path)
+        steps = odometry_steps(sequence, args.width)
+        rows = [interval_nees(sequence, steps, n, config) for n in INTERVALS if n < len(steps)]
+        recordings[path.name] = {"frames": len(sequence), "steps_without_features": sum(not s.ok for s in steps),
+                                 "intervals": rows}
+        for r in rows:
+            print(f"{path.name} {r['frames']:2d} frames: NEES alone {r['nees_steps_alone']['median']:.2f}, "
+                  f"with drift {r['nees_with_drift']['median']:.2f} (consistent: {CHI2_6_MEDIAN}); error "
+                  f"{r['error_mm_per_axis']['median']:.1f} mm against sigma {r['sigma_mm_per_axis']['median']:.1f}")
+    write_result(args.out, {"width": args.width, "keyframe_every": config.keyframe_every,
+                            "chi2_6_median": CHI2_6_MEDIAN, "recordings": recordings}, args)
+
+
+if __name__ == "__main__":
+    main()
