@@ -411,7 +411,8 @@ def graph_and_bundle(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: 
     twists = keyframe_twists(survey.T_odom_cam, np.asarray(sequence.timestamps, dtype=float), keys)
     bundle_settings = _bundle_settings(sequence, settings)
     T_map_key, report = adjust_keyframes(graph.T_map_key, chain_matches, verified,
-                                         _working_intrinsics(sequence, settings), bundle_settings, twists)
+                                         _working_intrinsics(sequence, settings), bundle_settings, twists,
+                                         odometry=[e for e in chain if e.kind == "odometry"])
     report["baseline_from"] = ("the recording's calibration" if bundle_settings is not settings.bundle_settings
                                else "the settings")
     # The depth against the images, at the final poses over every pair the adjustment used.
@@ -422,13 +423,14 @@ def graph_and_bundle(sequence, keys: np.ndarray, survey: SurveyOdometry, chain: 
 
 
 def adjust_keyframes(T_graph_key: np.ndarray, chain_matches: list[PairMatches], verified: list[Loop],
-                     intrinsics, bundle_settings: BundleSettings, twists: np.ndarray | None
-                     ) -> tuple[np.ndarray, dict]:
+                     intrinsics, bundle_settings: BundleSettings, twists: np.ndarray | None,
+                     odometry: list[Edge] | None = None) -> tuple[np.ndarray, dict]:
     """The graph's keyframes (K, 4, 4) adjusted over the chain's matches and every kept loop's,
     each keyframe's observations moved to its middle row along ``twists`` (K, 6); then the
     loops the graph turned away (status 'rejected') whose matches agree with the adjusted
     poses as well as the kept loops' (:func:`~.bundle.agreeing_pairs`) are admitted (status
     'admitted', the reason saying by how much) and the adjustment solved again with them.
+    ``odometry``: the chain's edges no keyframe matches measured, held in both solves.
 
     Why: the graph judged each loop by its relative pose, measured as if the colour camera
     had a global shutter; where the survey turned fast that pose is off by more than its
@@ -437,7 +439,8 @@ def adjust_keyframes(T_graph_key: np.ndarray, chain_matches: list[PairMatches], 
     same lands tens of pixels off or more and stays out."""
     kept = [lp for lp in verified if lp.status == "accepted" and lp.matches_kept is not None]
     pairs = chain_matches + [lp.matches_kept for lp in kept]
-    T_map_key, report = bundle_adjust(T_graph_key, pairs, intrinsics, bundle_settings, twists)
+    odometry = odometry or []
+    T_map_key, report = bundle_adjust(T_graph_key, pairs, intrinsics, bundle_settings, twists, odometry)
     report["loops_admitted"] = 0
     turned_away = [lp for lp in verified if lp.status == "rejected" and lp.matches_kept is not None]
     if "reason" in report or not turned_away:
@@ -454,7 +457,7 @@ def adjust_keyframes(T_graph_key: np.ndarray, chain_matches: list[PairMatches], 
             lp.reason += (f"; admitted by the bundle adjustment: its matches land {value:.1f} px from theirs "
                           f"(gate {gate:.1f} px)")
     T_admitted, second = bundle_adjust(T_map_key, pairs + [lp.matches_kept for lp in admitted], intrinsics,
-                                       bundle_settings, twists)
+                                       bundle_settings, twists, odometry)
     if "reason" in second:  # the second solve failed: the first one's poses stand, nothing admitted
         for lp in admitted:
             lp.status = "rejected"

@@ -22,6 +22,7 @@ pixels agree best (no ground truth; a global-shutter camera's is 0).
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -29,6 +30,8 @@ import numpy as np
 from nap3d_graph.camera import DEPTH_SIGMA_Z2_PER_M, Intrinsics, backproject, project
 from nap3d_graph.conventions import T_to_pose3, inv_T, pose3_to_T
 from nap3d_graph.nap3d.rolling_shutter import exp_apply
+
+from .pose_graph import Edge, between_factor
 
 __all__ = ["PairMatches", "BundleSettings", "tracks_of", "bundle_adjust", "keyframe_twists", "pair_reprojection_px"]
 
@@ -221,14 +224,18 @@ def agreeing_pairs(candidates: list[PairMatches], kept: list[PairMatches], T_map
 
 
 def bundle_adjust(T_map_key: np.ndarray, pairs: list[PairMatches], intrinsics: Intrinsics,
-                  settings: BundleSettings | None = None, twists: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, dict]:
+                  settings: BundleSettings | None = None, twists: np.ndarray | None = None,
+                  odometry: Sequence[Edge] = ()) -> tuple[np.ndarray, dict]:
     """Refined keyframe poses (K, 4, 4) and a report (landmarks, observations, the pixel noise
     estimated from the residuals and the disparity's beside it, the rolling shutter's readout
     and its search, pose changes). Solved with the starting sigma, then again ``vce_rounds``
     times with the pixels' robust residual spread as their sigma (the disparity's following
     it). ``twists`` (K, 6): each keyframe's body twist per second
-    (:func:`keyframe_twists`); without them the camera is taken as a global shutter."""
+    (:func:`keyframe_twists`); without them the camera is taken as a global shutter.
+    ``odometry``: the chain's edges the keyframes' own matches did not measure (kind
+    'odometry': the frames between them did), as between factors with their covariances:
+    without them a keyframe that sees little (a blank wall, the edge of a loss) is held by a
+    few tracks alone and can float far from where its neighbours and its odometry put it."""
     import gtsam
     from gtsam.symbol_shorthand import L, X
 
@@ -248,7 +255,7 @@ def bundle_adjust(T_map_key: np.ndarray, pairs: list[PairMatches], intrinsics: I
 
     def solve(readout_s: float):
         return _solve(T_map_key, values, _at_mid_readout(measured, twists, readout_s, K, settings.baseline_m)
-                      if twists is not None else measured, calibration, settings)
+                      if twists is not None else measured, calibration, settings, odometry)
 
     search: list = []
     if twists is None or settings.readout_s == 0.0:
@@ -299,10 +306,11 @@ def _readout_search(solve, grid_s: tuple[float, ...]):
     return best, solved[best][0], solved[best][1], search
 
 
-def _solve(T_map_key: np.ndarray, landmarks, measured: list, calibration, settings: BundleSettings):
-    """``(values, history)`` of the adjustment over ``measured`` from the keyframes' poses and
-    ``landmarks``; ``(None, reason)`` when GTSAM fails (a cheirality failure or an
-    indeterminate system)."""
+def _solve(T_map_key: np.ndarray, landmarks, measured: list, calibration, settings: BundleSettings,
+           odometry: Sequence[Edge] = ()):
+    """``(values, history)`` of the adjustment over ``measured`` (and the ``odometry`` edges)
+    from the keyframes' poses and ``landmarks``; ``(None, reason)`` when GTSAM fails (a
+    cheirality failure or an indeterminate system)."""
     import gtsam
     from gtsam.symbol_shorthand import L, X
 
@@ -321,6 +329,8 @@ def _solve(T_map_key: np.ndarray, landmarks, measured: list, calibration, settin
         graph.add(gtsam.PriorFactorPose3(X(0), T_to_pose3(T_map_key[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
         for k, t, u, ur, v in measured:
             graph.add(gtsam.GenericStereoFactor3D(gtsam.StereoPoint2(u, ur, v), noise, X(k), L(t), calibration))
+        for edge in odometry:
+            graph.add(between_factor(edge))
         try:
             result = gtsam.LevenbergMarquardtOptimizer(graph, result, params).optimize()
         except RuntimeError as exc:

@@ -22,7 +22,7 @@ from nap3d_graph.factors import mahalanobis_sq as factor_mahalanobis_sq
 from nap3d_graph.factors import noise_model
 from nap3d_graph.factors.gate import chi2_threshold
 
-__all__ = ["Edge", "GraphResult", "solve", "floor_covariance", "mahalanobis_sq"]
+__all__ = ["Edge", "GraphResult", "solve", "floor_covariance", "mahalanobis_sq", "between_factor"]
 
 log = logging.getLogger(__name__)
 
@@ -67,10 +67,10 @@ def mahalanobis_sq(T_a: np.ndarray, T_b: np.ndarray, edge: Edge) -> float:
     values = gtsam.Values()
     values.insert(X(edge.a), T_to_pose3(T_a))
     values.insert(X(edge.b), T_to_pose3(T_b))
-    return factor_mahalanobis_sq(_between(edge), values)
+    return factor_mahalanobis_sq(between_factor(edge), values)
 
 
-def _between(edge: Edge):
+def between_factor(edge: Edge):
     """The edge as a GTSAM between factor of keys X(a), X(b), weighted by its covariance."""
     import gtsam
     from gtsam.symbol_shorthand import X
@@ -91,7 +91,7 @@ def _graph(num_keys: int, edges: list[Edge], held: np.ndarray | None = None):
     for k, T in enumerate([np.eye(4)] if held is None else held):
         graph.add(gtsam.PriorFactorPose3(X(k), T_to_pose3(T), pin))
     for edge in edges:
-        graph.add(_between(edge))
+        graph.add(between_factor(edge))
     return graph
 
 
