@@ -101,6 +101,36 @@ def test_the_map_field_renders_from_the_submap_the_camera_looks_into():
         SubmapField([_Flat(0, 0, 1)], submaps)
 
 
+def test_what_a_submap_leaves_empty_is_rendered_from_the_one_further_along_the_view():
+    """The camera in submap 0 looking along +x; its field holds only the left half of the view
+    (the rest lies past its grid, through a door): the right half comes from submap 1, which
+    holds the point 4 m along the empty pixels' mean ray."""
+    from nap3d_graph.sims.sequence import default_intrinsics
+
+    class _LeftHalf(_Flat):
+        def render(self, T_world_cam, intrinsics):
+            view = super().render(T_world_cam, intrinsics)
+            view.opacity[:, intrinsics.width // 2:] = 0.0
+            view.depth_m[:, intrinsics.width // 2:] = 0.0
+            return view
+
+    axis = np.array([1.0, 0.0, 0.0])
+    submaps = [Submap(0, axis, np.array([-np.inf, 5.0]), np.arange(3)),
+               Submap(1, axis, np.array([5.0, 9.0]), np.arange(3, 6)),
+               Submap(2, axis, np.array([9.0, np.inf]), np.arange(6, 9))]
+    field = SubmapField([_LeftHalf(10, -1, 6), _Flat(20, 4, 10), _Flat(30, 8, 14)], submaps,
+                        SubmapSettings(look_ahead_m=1.0))
+    K = default_intrinsics(8, 6)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0.0]])  # OpenCV z forward = world +x
+    T[0, 3] = 2.5
+    view = field.render(T, K)
+    assert np.all(view.rgb[:, :4, 0] == 10) and np.all(view.rgb[:, 4:, 0] == 20) and np.all(view.opacity == 1.0)
+    # A view its own submap fills leaves the others unread.
+    T[0, 3] = 6.0
+    assert np.all(field.render(T, K).rgb[..., 0] == 20) and set(field._loaded) == {0, 1}
+
+
 def test_a_run_keeps_only_the_resident_submap_fields_loaded():
     """Three submaps read when rendered: at most two in memory, the least recently used let go
     (before the next is read, so a read never holds three) and read again when the camera comes back; a field in its own frame answers in the map's."""
@@ -260,3 +290,61 @@ def test_loop_candidates_verified_on_two_workers_equal_those_verified_in_one_pro
     assert summary(pooled) == summary(serial) and sum(lp.status == "verified" for lp in serial) >= 5
     for p, s in zip(pooled, serial):
         np.testing.assert_allclose(p.T_a_b, s.T_a_b, atol=1e-9)
+
+
+def test_a_slab_keeps_the_depth_points_of_its_part_of_the_floor():
+    """A camera 2 m before a wall across x at 5 m, looking along +x: every pixel's point has
+    x = 5 m; a slab to 4.5 m drops them all, one to 5.5 m none, an open end none."""
+    from nap3d_graph.fields.training_data import outside_slab
+    from nap3d_graph.sims.sequence import default_intrinsics
+
+    K = default_intrinsics(16, 12)
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0.0]])  # OpenCV z forward = world +x
+    T[0, 3] = 3.0
+    depth = np.full((12, 16), 2.0)  # a plane 2 m ahead: z-depth 2 at every pixel
+    depth[0, 0] = 0.0  # no depth: not outside
+    assert outside_slab(depth, K, T, (1.0, 0.0, 0.0, 0.0, 4.5)).sum() == depth.size - 1
+    assert not outside_slab(depth, K, T, (1.0, 0.0, 0.0, 0.0, 5.5)).any()
+    assert not outside_slab(depth, K, T, (1.0, 0.0, 0.0, None, None)).any()
+    # Along y the wall spans the frustum: the pixels left of the optical axis (world +y) are out.
+    left = outside_slab(depth, K, T, (0.0, 1.0, 0.0, None, 0.0))
+    assert left[1:, : int(K.cx) - 1].all() and not left[:, int(K.cx) + 1:].any()
+
+
+def test_a_submap_of_a_floor_keeps_its_grid_to_its_part_of_the_floor(tmp_path):
+    """A three-room floor cut into three submaps: each grid ends ``reach_m`` beyond its core,
+    the middle one is its part of the floor (before, a middle room's grid ran down the floor:
+    its cameras see through the doors)."""
+    import dataclasses
+
+    from nap3d_graph.datasets import open_sequence
+    from nap3d_graph.fields import resolve_field
+    from nap3d_graph.mapping.build import MapSettings
+    from nap3d_graph.mapping.folder import MapFolder
+    from nap3d_graph.mapping.submap_fields import train_submap_fields
+    from nap3d_graph.pools import SerialPool
+    from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
+
+    survey = open_sequence(simulate_sequence(tmp_path / "survey", SimConfig(
+        frames=120, path="mapping", rooms=3, width=80, height=60, fps=0.56, seed=1)))
+    T = np.asarray(survey.T_world_cam_gt)
+    settings = dataclasses.replace(MapSettings(matcher="sift", steps=10), submaps=SubmapSettings(max_frames=40))
+    plan = plan_submaps(T, settings.submaps)
+    assert len(plan) == 3
+    folder = MapFolder.open(tmp_path / "map", {"data": "survey"}, ("data",))
+    (folder.root / "map.json").write_text('{"data": "survey", "stages": {}}')
+    folder = MapFolder.read(folder.root)
+    train_submap_fields(survey, T, folder, plan, settings, settings.submaps, {"steps": 10}, None, SerialPool(), "cpu")
+    field = resolve_field(str(folder.root))
+    floor = survey.oracle_field().scene
+    reach_m = settings.submaps.reach_m
+    for s, f in zip(plan, field.fields):
+        lo, hi = np.asarray(f.field.bounds, dtype=float)  # its grid's box, in its grid's frame
+        ax, ay, az, start, end = s.slab_m(reach_m)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        along = corners @ np.array([ax, ay, az])
+        assert (start is None or along.min() > start - 0.5) and (end is None or along.max() < end + 0.5), (s.core, along)
+    middle = np.ptp(field.fields[1].field.bounds, axis=0)  # in its grid's frame: x along the floor
+    length_m = floor.walls_x[-1] - floor.walls_x[0]
+    assert middle[0] < np.ptp(plan[1].core) + 2 * reach_m + 0.5 < length_m - 3.0, middle

@@ -66,7 +66,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
                 timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
                 device: str | None = None, progress: bool = True, measure_error: bool = True,
                 matcher: str = "sift", refine_poses: int = 0, refine_method: str = "depth",
-                error_growth: bool | str = "auto", depth_unit: str = "check"):
+                error_growth: bool | str = "auto", depth_unit: str = "check", slab_m: tuple | None = None):
     """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
 
     ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
@@ -90,7 +90,9 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
     (:func:`error_growth_for`). ``depth_unit``: ``"check"`` (default) looks, before any
     work, whether the depth agrees across the posed frames only at another unit's scale
     (:mod:`~nap3d_graph.datasets.depth_unit`) and raises :class:`DepthUnitError` if so;
-    ``"trust"`` builds with the depth as read.
+    ``"trust"`` builds with the depth as read. ``slab_m``: a grid trains only on the depth points
+    within this slab of the sequence's frame (:class:`~nap3d_graph.fields.train_config.TrainConfig`;
+    a submap's part of a floor); the other models ignore it.
     """
     from .training_data import split_posed_frames
 
@@ -113,7 +115,7 @@ def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = Non
         field, report = _build_views(sequence, train_idx, timing, render_size, progress)
     else:
         field, report = _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device,
-                                    progress)
+                                    progress, slab_m)
     stored_timing = None if timing is None else timing.to_dict()
     field.meta.update(_provenance_meta(sequence, model, stored_timing, train_idx))
     K = sequence.intrinsics
@@ -253,10 +255,10 @@ def _build_views(sequence, train_idx, timing, render_size, progress):
     return field, report
 
 
-def _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device, progress):
+def _train_grid(sequence, steps, minutes, every, eval_frames, seed, voxel_size_m, timing, device, progress, slab_m):
     from .training import train_field
 
-    config = TrainConfig(every=every, eval_frames=0, seed=seed, device=device)
+    config = TrainConfig(every=every, eval_frames=0, seed=seed, device=device, slab_m=slab_m)
     if steps is not None:
         config.max_steps = int(steps)
     if minutes is not None:

@@ -22,7 +22,9 @@ class TrainConfig:
     Sampling: ``rays_per_step``, ``free_samples`` and ``window_samples`` per ray; the window
     half-width is ``max(window_min_m, window_sigmas * depth_sigma_z2 * z^2)``.
     ``threads``: torch CPU threads during training (1: see ``nap3d_graph.torch_threads``; None keeps
-    torch's setting).
+    torch's setting). ``slab_m``: ``(ax, ay, az, from_m, to_m)`` or None: only depth points ``p``
+    (training frame, metres) with ``from_m <= a . p <= to_m`` train the grid and set its bounds
+    (a submap's part of a floor; ``from_m`` / ``to_m`` None: unbounded on that side).
     """
 
     voxel_size_m: float = 0.03
@@ -59,6 +61,7 @@ class TrainConfig:
     init_stride: int = 2
     device: str | None = None
     threads: int | None = 1
+    slab_m: tuple | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -23,7 +23,7 @@ from .base import FieldError
 if TYPE_CHECKING:
     from .train_config import TrainConfig
 
-__all__ = ["TrainingRays", "ray_poses", "split_frames", "split_posed_frames", "scene_bounds_from_depth", "splat_init"]
+__all__ = ["TrainingRays", "outside_slab", "ray_poses", "split_frames", "split_posed_frames", "scene_bounds_from_depth", "splat_init"]
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +105,8 @@ class TrainingRays:
             if timing is not None:
                 d = warp_depth(d, intrinsics, inv_T(T_colour[k]) @ T_depth[k], timing.depth_scale)
             d[~valid_depth_mask(d, config.min_depth_m, config.max_depth_m)] = 0.0
+            if config.slab_m is not None:
+                d[outside_slab(d, intrinsics, T_colour[k], config.slab_m)] = 0.0
             depth[k] = d
         T = np.asarray(T_colour)
         num_valid = int(np.count_nonzero(depth))
@@ -123,6 +125,22 @@ class TrainingRays:
     @property
     def num_frames(self) -> int:
         return self.rgb.shape[0]
+
+
+def outside_slab(depth_m: np.ndarray, intrinsics: Intrinsics, T_world_cam: np.ndarray, slab_m: tuple) -> np.ndarray:
+    """(H, W) bool: the pixels of ``depth_m`` (H, W, z-depth metres) whose point, at
+    ``T_world_cam`` (4, 4), lies outside ``slab_m`` (``(ax, ay, az, from_m, to_m)``, world frame;
+    a None end is open). Pixels without depth are not outside."""
+    a = np.asarray(slab_m[:3], dtype=float)
+    lo = -np.inf if slab_m[3] is None else float(slab_m[3])
+    hi = np.inf if slab_m[4] is None else float(slab_m[4])
+    h, w = depth_m.shape
+    v, u = np.mgrid[0:h, 0:w]
+    # a . (R p_cam + t) with p_cam = z ((u - cx) / fx, (v - cy) / fy, 1): linear in each pixel's z.
+    a_cam = np.asarray(T_world_cam, dtype=float)[:3, :3].T @ a
+    per_z = a_cam[0] * (u - intrinsics.cx) / intrinsics.fx + a_cam[1] * (v - intrinsics.cy) / intrinsics.fy + a_cam[2]
+    along = depth_m * per_z + float(a @ np.asarray(T_world_cam, dtype=float)[:3, 3])
+    return (depth_m > 0) & ((along < lo) | (along > hi))
 
 
 def split_posed_frames(sequence, every: int = 1, eval_frames: int = 8) -> tuple[np.ndarray, np.ndarray]:

@@ -47,7 +47,7 @@ def submap_job(sequence, T_map_cam: np.ndarray, submap: Submap, settings, minute
     its frames of ``sequence`` at ``T_map_cam``, in its grid's frame) into ``out``, as one
     picklable job."""
     return {"sequence": sequence, "T_map_cam": np.asarray(T_map_cam, dtype=float), "frames": submap.frames,
-            "R_grid_map": submap.R_grid_map,
+            "R_grid_map": submap.R_grid_map, "slab_m": submap.slab_m(settings.submaps.reach_m),
             "index": submap.index, "model": settings.model, "steps": settings.steps, "minutes": minutes,
             "seed": settings.seed, "device": device, "matcher": settings.matcher,
             "refine_rounds": settings.refine_rounds, "timing": timing, "out": str(out)}
@@ -67,7 +67,7 @@ def train_one_submap(job: dict) -> dict:
         field, report = build_field(PosedSequence(job["sequence"], T, "grid"), job["model"], steps=job["steps"],
                                     minutes=job["minutes"], seed=job["seed"], device=job["device"], progress=False,
                                     matcher=job["matcher"], refine_poses=job["refine_rounds"], refine_method="depth",
-                                    timing=job["timing"])
+                                    timing=job["timing"], slab_m=job["slab_m"])
     field.meta["submap"] = int(job["index"])
     out = Path(job["out"])
     out.parent.mkdir(parents=True, exist_ok=True)
