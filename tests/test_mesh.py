@@ -42,6 +42,36 @@ def test_a_right_survey_has_thin_walls_and_a_doubled_one_says_how_far(room_surve
     assert bent.thickness["thickness_m"] > WALL_THICKNESS_BAD_M > walls["thickness_m"]
 
 
+def test_a_survey_cut_into_submaps_is_fused_a_submap_at_a_time_into_one_mesh(room_survey, tmp_path):
+    """The room's survey cut in two: each half fused alone keeps its core's triangles; the mesh
+    is the whole survey's (every vertex on it), not doubled where the halves overlap, and the
+    walls measure the same."""
+    import open3d as o3d
+    from scipy.spatial import cKDTree
+
+    from nap3d_graph.datasets.posed import PosedSequence
+    from nap3d_graph.fields.submaps import SubmapSettings
+    from nap3d_graph.mapping.mesh import fuse_mesh
+    from nap3d_graph.mapping.submaps import plan_submaps
+
+    T = np.asarray(room_survey.T_world_cam_gt)
+    posed = PosedSequence(room_survey, T, "truth")
+    whole = fuse_mesh(posed, tmp_path / "whole.ply")
+    plan = plan_submaps(T, SubmapSettings(max_frames=30))
+    assert len(plan) == 2
+    cut = fuse_mesh(posed, tmp_path / "cut.ply", submaps=plan)
+    v_whole = np.asarray(o3d.io.read_triangle_mesh(str(tmp_path / "whole.ply")).vertices)
+    v_cut = np.asarray(o3d.io.read_triangle_mesh(str(tmp_path / "cut.ply")).vertices)
+    assert 0.85 * whole.vertices < cut.vertices < 1.05 * whole.vertices, (whole.vertices, cut.vertices)
+    assert np.percentile(cKDTree(v_whole).query(v_cut)[0], 99) < 0.02
+    # Around the cut (both halves fused it): as many vertices as the whole survey's, not twice.
+    along_whole, along_cut = v_whole @ plan[0].axis, v_cut @ plan[0].axis
+    cut_at = plan[0].core[1]
+    band = [np.sum(np.abs(a - cut_at) < 0.3) for a in (along_whole, along_cut)]
+    assert band[0] > 500 and band[1] < 1.15 * band[0], band
+    assert cut.thickness["thickness_m"] == whole.thickness["thickness_m"]
+
+
 def _desk_views(shift_m: float, rng) -> list[np.ndarray]:
     """Twenty views (points (P, 3), metres) of a 2 x 2 m desk top at z = 0 with books 4 cm tall on
     a quarter of it, each view a different 1 m window; the second half of the views put ``shift_m``

@@ -169,7 +169,7 @@ def build_map(sequence, out: Path, settings: MapSettings | None = None, *, progr
     if build_field_stage:
         _field_stage(sequence, T_map_cam, folder, settings, started, progress, say, device, pool)
     if mesh:
-        _mesh_stage(sequence, T_map_cam, folder, progress, say)
+        _mesh_stage(sequence, T_map_cam, folder, settings, progress, say)
     T_graph_cam = place_kept_frames(survey, keys, graph.T_map_key, start, stop, lost) if settings.bundle else None
     write_outputs(folder, sequence, survey, (start, stop), T_map_cam, T_map_key, T_graph_cam, loops, verified)
     return MapResult(folder.root, folder.info)
@@ -537,11 +537,12 @@ def _submap_field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, sett
     folder.save()
 
 
-def _mesh_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, progress: bool, say) -> None:
+def _mesh_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: MapSettings, progress: bool,
+                say) -> None:
     """Stage 6: ``map.ply``, the survey fused at the map's poses (each depth at its capture
-    instant by the field's timing, when there is a field), and its walls' thickness in
-    ``map.json``. Never fails the map: without Open3D, or when nothing could be fused, the
-    reason is recorded instead."""
+    instant by the field's timing, when there is a field) a submap at a time, and its walls'
+    thickness in ``map.json``. Never fails the map: without Open3D, or when nothing could be
+    fused, the reason is recorded instead."""
     if folder.finished("mesh", folder.mesh):
         return
     timing = None
@@ -549,7 +550,8 @@ def _mesh_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, progress: bo
         timing = CaptureTiming.of(json.loads(folder.field_report.read_text()).get("timing"))
     t0 = time.perf_counter()
     try:
-        result = fuse_mesh(PosedSequence(sequence, T_map_cam, "map"), folder.mesh, timing=timing, progress=progress)
+        result = fuse_mesh(PosedSequence(sequence, T_map_cam, "map"), folder.mesh, timing=timing, progress=progress,
+                           submaps=plan_submaps(T_map_cam, settings.submaps))
     except ImportError as exc:
         folder.info["mesh"] = {"file": None, "reason": str(exc)}
         folder.save()

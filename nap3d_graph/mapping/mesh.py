@@ -113,29 +113,56 @@ def _depth_poses(posed, frames: list[int], timing) -> np.ndarray:
 
 
 def fuse_mesh(posed, out: Path, settings: MeshSettings | None = None, timing=None,
-              progress: bool = False) -> MeshResult:
+              progress: bool = False, submaps: list | None = None) -> MeshResult:
     """Fuse the depth and colour of ``posed`` (a sequence whose ``T_world_cam_gt`` (N, 4, 4) are
     the map's poses, NaN where a frame has none: a :class:`~nap3d_graph.datasets.posed.PosedSequence`)
     into a coloured triangle mesh written to ``out`` (``.ply``), each depth at its capture instant
     by ``timing`` (a :class:`~nap3d_graph.datasets.depth_timing.CaptureTiming`, or None: at the
-    colour's pose); its wall thickness measured on the same frames. ``ImportError`` without Open3D."""
+    colour's pose); its wall thickness measured on the same frames. ``submaps``: the map's
+    :class:`~nap3d_graph.fields.submaps.Submap` list; with more than one, each is fused from its
+    own frames alone and keeps the triangles in its core (the voxel grid of one room at a time,
+    not of the floor: 0.7 GB for the 6-room floor's, 0.4 for a room's). ``ImportError`` without
+    Open3D."""
     o3d = import_open3d()
 
     s = settings or MeshSettings()
     frames = _posed_frames(np.asarray(posed.T_world_cam_gt), s.every)
     if not frames:
         raise ValueError("no frame of the survey has a pose: nothing to fuse")
-    T_map_depth = _depth_poses(posed, frames, timing)
+    T_map_depth = dict(zip(frames, _depth_poses(posed, frames, timing)))
+    parts = [(frames, None)]
+    if submaps is not None and len(submaps) > 1:
+        parts = [([i for i in frames if i in set(int(k) for k in sm.frames)], sm) for sm in submaps]
+    mesh, clouds = o3d.geometry.TriangleMesh(), {}
+    with progress_bar(total=sum(len(f) for f, _ in parts), desc="mesh", unit="frame", disable=not progress,
+                      mininterval=2.0) as bar:
+        for part_frames, submap in parts:
+            part = _fuse(o3d, posed, part_frames, T_map_depth, s, clouds, bar)
+            mesh += part if submap is None else _in_core(part, submap)
+    if len(mesh.vertices) == 0:
+        raise ValueError("the fused survey has no surface seen by enough frames: no mesh")
+    mesh.compute_vertex_normals()
+    out = Path(out)
+    tmp = out.with_name(out.stem + ".tmp.ply")
+    if not o3d.io.write_triangle_mesh(str(tmp), mesh):
+        raise OSError(f"could not write {tmp}")
+    tmp.replace(out)
+    thickness = wall_thickness([clouds[i] for i in sorted(clouds)], s)
+    log.info("mesh: %d frames fused into %d vertices (%s)", len(frames), len(mesh.vertices), out)
+    return MeshResult(out, len(mesh.vertices), len(mesh.triangles), len(frames), thickness)
+
+
+def _fuse(o3d, posed, frames: list[int], T_map_depth: dict, s: MeshSettings, clouds: dict, bar):
+    """The legacy triangle mesh of ``frames`` of ``posed`` fused at ``T_map_depth[i]`` (4, 4);
+    each frame's surface points (float32: the thickness needs millimetres, not more) added to
+    ``clouds`` the first time it is read."""
     o3c = o3d.core
-    cpu = o3c.Device("CPU:0")
     grid = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight", "color"),
                                          attr_dtypes=(o3c.float32, o3c.float32, o3c.float32),
                                          attr_channels=((1), (1), (3)), voxel_size=s.voxel_m, block_resolution=8,
-                                         block_count=20000, device=cpu)
-    clouds = []
-    for i, T_map_cam in zip(progress_bar(frames, desc="mesh", unit="frame", disable=not progress, mininterval=2.0),
-                            T_map_depth):
-        frame = posed[i]
+                                         block_count=20000, device=o3c.Device("CPU:0"))
+    for i in frames:
+        frame, T_map_cam = posed[i], T_map_depth[i]
         K = frame.intrinsics
         depth_m = np.nan_to_num(np.asarray(frame.depth_m, dtype=np.float32), nan=0.0)
         # The voxel grid takes depth as uint16 (here millimetres) with uint8 colour.
@@ -146,19 +173,23 @@ def fuse_mesh(posed, out: Path, settings: MeshSettings | None = None, timing=Non
         extrinsic = o3c.Tensor(inv_T(T_map_cam), o3c.float64)
         blocks = grid.compute_unique_block_coordinates(depth_mm, intrinsic, extrinsic, 1000.0, s.max_depth_m)
         grid.integrate(blocks, depth_mm, colour, intrinsic, intrinsic, extrinsic, 1000.0, s.max_depth_m)
-        clouds.append(surface_points(depth_m, K, T_map_cam, max(1, K.width // s.columns), s.max_depth_m))
-    mesh = grid.extract_triangle_mesh(weight_threshold=s.min_weight).to_legacy()
-    if len(mesh.vertices) == 0:
-        raise ValueError("the fused survey has no surface seen by enough frames: no mesh")
-    mesh.compute_vertex_normals()
-    out = Path(out)
-    tmp = out.with_name(out.stem + ".tmp.ply")
-    if not o3d.io.write_triangle_mesh(str(tmp), mesh):
-        raise OSError(f"could not write {tmp}")
-    tmp.replace(out)
-    thickness = wall_thickness(clouds, s)
-    log.info("mesh: %d frames fused into %d vertices (%s)", len(frames), len(mesh.vertices), out)
-    return MeshResult(out, len(mesh.vertices), len(mesh.triangles), len(frames), thickness)
+        if i not in clouds:
+            clouds[i] = surface_points(depth_m, K, T_map_cam, max(1, K.width // s.columns),
+                                       s.max_depth_m).astype(np.float32)
+        bar.update(1)
+    return grid.extract_triangle_mesh(weight_threshold=s.min_weight).to_legacy()
+
+
+def _in_core(mesh, submap):
+    """``mesh`` (legacy) without the triangles whose centre lies outside ``submap``'s core (metres
+    along its axis, the map's frame): neighbouring submaps' meshes meet there without overlapping."""
+    triangles = np.asarray(mesh.triangles)
+    if len(triangles) == 0:
+        return mesh
+    along = np.asarray(mesh.vertices)[triangles].mean(axis=1) @ np.asarray(submap.axis, dtype=float)
+    mesh.remove_triangles_by_mask((along < submap.core[0]) | (along >= submap.core[1]))
+    mesh.remove_unreferenced_vertices()
+    return mesh
 
 
 def surface_points(depth_m: np.ndarray, intrinsics, T_map_cam: np.ndarray, stride: int = 4,
@@ -187,7 +218,7 @@ def wall_thickness(clouds: list[np.ndarray], settings: MeshSettings | None = Non
         return {"thickness_m": None, "planes": [], "reason": "fewer than 5 frames with depth"}
     everything = np.concatenate(usable)
     rng = np.random.default_rng(seed)
-    sample = everything[rng.choice(len(everything), min(len(everything), 200_000), replace=False)]
+    sample = everything[rng.choice(len(everything), min(len(everything), 200_000), replace=False)].astype(float)
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(sample))
     o3d.utility.random.seed(seed)  # plane RANSAC repeatable
     planes = []
