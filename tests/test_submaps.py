@@ -335,9 +335,15 @@ def test_a_submap_of_a_floor_keeps_its_grid_to_its_part_of_the_floor(tmp_path):
     folder = MapFolder.open(tmp_path / "map", {"data": "survey"}, ("data",))
     (folder.root / "map.json").write_text('{"data": "survey", "stages": {}}')
     folder = MapFolder.read(folder.root)
-    train_submap_fields(survey, T, folder, plan, settings, settings.submaps, {"steps": 10}, None, SerialPool(), "cpu")
+    merged = train_submap_fields(survey, T, folder, plan, settings, settings.submaps, {"steps": 10}, None,
+                                 SerialPool(), "cpu")
     field = resolve_field(str(folder.root))
     floor = survey.oracle_field().scene
+    # The map's held-out figures are its field's as a run renders it, on frames no submap trained on.
+    held = merged["held_out"]
+    assert held["frames"] and not set(held["frames"]) & set(field.meta["train_frames"])
+    own = [s["held_out"]["opaque_fraction"] for s in merged["submaps"]]
+    assert held["opaque_fraction"] > min(own) and held["psnr_db"] > 5.0, (held, own)
     reach_m = settings.submaps.reach_m
     for s, f in zip(plan, field.fields):
         lo, hi = np.asarray(f.field.bounds, dtype=float)  # its grid's box, in its grid's frame

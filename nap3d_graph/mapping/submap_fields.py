@@ -6,8 +6,11 @@ estimated once for the whole survey, and each gets the training time a one-room 
 gets: what the map's per-room budget leaves once its share of the stages before the field ran.
 The submaps are independent jobs on a pool (:mod:`nap3d_graph.pools`): processes on this
 machine, or Ray tasks on this machine or a cluster. A map interrupted here resumes with the
-submaps already trained. ``field.report.json`` then holds the submaps' reports and their
-held-out figures merged, for the map's report.
+submaps already trained. ``field.report.json`` then holds the submaps' reports and, for the
+map's report, the held-out figures of the map's field: the submaps' held-out frames that no
+submap trained on, each rendered as a run renders it (from the submap it looks into, what lies
+past that submap's grid from the next ones). A submap's own held-out figures score its field
+alone, so what its views see past its part of the floor is empty there.
 """
 
 from __future__ import annotations
@@ -20,8 +23,10 @@ import numpy as np
 
 from nap3d_graph.datasets.depth_timing import estimate_timing
 from nap3d_graph.datasets.posed import PosedSequence
+from nap3d_graph.fields import load_field
 from nap3d_graph.fields.build import build_field
-from nap3d_graph.fields.submaps import Submap, SubmapSettings, write_submaps_index
+from nap3d_graph.fields.evaluation import evaluate_field, oracle_for
+from nap3d_graph.fields.submaps import Submap, SubmapSettings, load_submap_field, write_submaps_index
 from nap3d_graph.textfiles import write_json_atomic
 from nap3d_graph.torch_threads import torch_threads
 
@@ -109,15 +114,38 @@ def train_submap_fields(sequence, T_map_cam: np.ndarray, folder, submaps: list[S
     write_submaps_index(folder.root, submaps, submap_settings,
                         {"timing": timing_dict, "wall_seconds": round(time.perf_counter() - started, 2)})
     merged = _merged_report(submaps, reports, timing_dict)
+    merged["held_out"] = _held_out_of_map(sequence, T_map_cam, folder.root, (merged["held_out"] or {}).get("frames"),
+                                          timing)
     write_json_atomic(folder.field_report, merged, default=float)
     return merged
+
+
+#: What the map keeps of a held-out evaluation (:func:`~nap3d_graph.fields.evaluation.evaluate_field`).
+HELD_OUT_KEYS = ("frames", "psnr_db", "psnr_affine_db", "depth_abs_err_m", "opaque_fraction")
+
+
+def _held_out_of_map(sequence, T_map_cam: np.ndarray, root: Path, frames, timing) -> dict | None:
+    """The map's field (:func:`~nap3d_graph.fields.submaps.load_submap_field` of ``root``) on
+    ``frames`` of ``sequence`` at ``T_map_cam`` that no submap trained on, rendered at the
+    pipeline's 320 x 240 (the frames' size when smaller), as ``build_field`` scores a field: None
+    without such frames."""
+    field = load_submap_field(root, load_field)
+    trained = set(int(i) for i in field.meta.get("train_frames", []))
+    held = sorted(int(i) for i in frames or () if int(i) not in trained)
+    if not held:
+        return None
+    K = sequence.intrinsics
+    size = (320, 240) if K.width >= 320 and K.height >= 240 else None
+    posed = PosedSequence(sequence, T_map_cam, "map")
+    result = evaluate_field(field, posed, held, oracle_for(posed), size=size, timing=timing)
+    return {k: result.get(k) for k in HELD_OUT_KEYS}
 
 
 def _summary(report: dict) -> dict:
     """What the map keeps of a submap's report: its held-out figures (without the per-frame
     rows' images), its field error and its times."""
     held = dict(report.get("held_out") or {})
-    keep = {k: held.get(k) for k in ("frames", "psnr_db", "psnr_affine_db", "depth_abs_err_m", "opaque_fraction")}
+    keep = {k: held.get(k) for k in HELD_OUT_KEYS}
     error = {k: v for k, v in (report.get("field_error") or {}).items() if k != "by_view"}
     return {"held_out": keep, "field_error": error, "train_seconds": report.get("train_seconds"),
             "total_seconds": report.get("total_seconds"), "submap_seconds": report.get("submap_seconds"),
