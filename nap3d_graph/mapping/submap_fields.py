@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -130,10 +131,14 @@ def _held_out_of_map(sequence, T_map_cam: np.ndarray, root: Path, frames, timing
     pipeline's 320 x 240 (the frames' size when smaller), as ``build_field`` scores a field: None
     without such frames."""
     field = load_submap_field(root, load_field)
+    # One field loaded at a time (the frames taken submap by submap): the map's process holds
+    # the survey too, and two floor-sized fields here were its peak.
+    field.settings = replace(field.settings, resident=1)
     trained = set(int(i) for i in field.meta.get("train_frames", []))
-    held = sorted(int(i) for i in frames or () if int(i) not in trained)
+    held = [int(i) for i in frames or () if int(i) not in trained]
     if not held:
         return None
+    held.sort(key=lambda i: (field.submap_at(T_map_cam[i]), i))
     K = sequence.intrinsics
     size = (320, 240) if K.width >= 320 and K.height >= 240 else None
     posed = PosedSequence(sequence, T_map_cam, "map")
