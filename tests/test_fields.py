@@ -286,7 +286,7 @@ def test_corrupt_and_foreign_checkpoints_fail_clearly(quick, tmp_path):
 
     # One NaN in the colour (checked a chunk at a time, the last chunk here) refuses the file.
     state = torch.load(good, weights_only=True)
-    state["color_raw"].view(-1)[-1] = float("nan")
+    state["color_raw"][-1, -1, -1, -1] = float("nan")
     torch.save(state, tmp_path / "nan.pt")
     with pytest.raises(FieldError, match="non-finite weights"):
         load_field(tmp_path / "nan.pt")

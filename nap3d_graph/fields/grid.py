@@ -309,7 +309,9 @@ class GridField(GridRenderer):
             "format": CHECKPOINT_FORMAT,
             "version": CHECKPOINT_VERSION,
             "density_raw": self.density[0, 0].detach().cpu().contiguous(),
-            "color_raw": self.color[0].detach().cpu().contiguous(),
+            # Saved as the channel-last storage it renders from, seen as (3, mz, my, mx): the file's
+            # shape is the same for every reader, and loading it needs no second copy of the colour.
+            "color_raw": self.color_channels_last().detach().cpu().permute(3, 0, 1, 2),
             "grid_min_m": torch.as_tensor(self.grid_min, dtype=torch.float64),
             "voxel_size_m": float(self.voxel_size),
             "color_voxel_size_m": float(self.color_voxel_size),
@@ -375,5 +377,7 @@ class GridField(GridRenderer):
 def _all_finite(tensor: torch.Tensor, chunk: int = 1 << 22) -> bool:
     """Whether every value is finite, checked a chunk at a time: ``torch.isfinite`` of a whole
     grid makes temporaries as large as the grid (a run's memory peaked at reading a submap)."""
-    flat = tensor.reshape(-1)
+    # In its storage's order (a channel-last colour grid too): a view, never a copy of the grid.
+    in_storage = tensor.permute(sorted(range(tensor.ndim), key=lambda d: -tensor.stride(d)))
+    flat = in_storage.reshape(-1)
     return all(bool(torch.isfinite(part).all()) for part in flat.split(chunk))
