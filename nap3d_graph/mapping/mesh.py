@@ -132,7 +132,7 @@ def fuse_mesh(posed, out: Path, settings: MeshSettings | None = None, timing=Non
     T_map_depth = dict(zip(frames, _depth_poses(posed, frames, timing)))
     parts = [(frames, None)]
     if submaps is not None and len(submaps) > 1:
-        parts = [([i for i in frames if i in set(int(k) for k in sm.frames)], sm) for sm in submaps]
+        parts = [(np.asarray(frames)[np.isin(frames, sm.frames)].tolist(), sm) for sm in submaps]
     mesh, clouds = o3d.geometry.TriangleMesh(), {}
     with progress_bar(total=sum(len(f) for f, _ in parts), desc="mesh", unit="frame", disable=not progress,
                       mininterval=2.0) as bar:
