@@ -11,11 +11,20 @@ started with ``ray start --head``.
 from __future__ import annotations
 
 import os
+import resource
+import sys
 
-__all__ = ["THREAD_ENV", "LocalPool", "RayPool", "SerialPool", "make_pool"]
+__all__ = ["THREAD_ENV", "LocalPool", "RayPool", "SerialPool", "make_pool", "peak_memory_gb"]
 
 #: Each job's threads: one (see the module's text).
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"}
+
+
+def peak_memory_gb() -> float:
+    """The most memory (resident, GB of 1024^3 bytes, as the benchmarks count) this process has
+    held so far: read where a stage or a job ends, how much of the machine it needed."""
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / (1024 if sys.platform == "darwin" else 1)
+    return round(peak_kib / 1024**2, 3)  # macOS counts bytes, Linux KiB
 
 
 class SerialPool:

@@ -392,6 +392,33 @@ def test_a_dropped_stretch_leaves_keyframe_files_and_edges_renumbered(tmp_path):
     assert [(m.a, m.b) for m in chain_matches] == [(a, a + 1) for a in range(5)]
 
 
+def test_kept_keyframe_images_read_back_as_written_and_are_made_frames_when_asked(tmp_path):
+    """The relocaliser's keyframe images stay as stored (colour uint8, depth uint16 mm): each
+    frame is made when it is asked for, with its depth in metres to the millimetre, missing depth
+    0; a slice is a list of frames; an item replaced is read back as given."""
+    from nap3d_graph.camera import Intrinsics, RGBDFrame
+    from nap3d_graph.mapping.relocalise import load_keyframe_frames, write_keyframe_frames
+
+    K = Intrinsics(50.0, 50.0, 8.0, 6.0, 16, 12)
+    rng = np.random.default_rng(0)
+    depths = rng.uniform(0.3, 6.0, (5, 12, 16)).astype(np.float32)
+    depths[:, 0, 0] = np.nan  # missing
+    written = [RGBDFrame(rng.integers(0, 255, (12, 16, 3), dtype=np.uint8), d, K) for d in depths]
+    path = tmp_path / "keyframe_frames.npz"
+    write_keyframe_frames(path, written)
+    kept = load_keyframe_frames(path)
+    assert len(kept) == 5 and kept.rgb.dtype == np.uint8 and kept.depth_mm.dtype == np.uint16
+    for a, b in zip(written, kept):
+        np.testing.assert_array_equal(b.rgb, a.rgb)
+        assert b.depth_m.dtype == np.float32 and b.depth_m[0, 0] == 0.0 and b.intrinsics == K
+        np.testing.assert_allclose(b.depth_m[1:], a.depth_m[1:], atol=5e-4)
+    assert [f.rgb[0, 0, 0] for f in kept[1:4]] == [f.rgb[0, 0, 0] for f in written[1:4]]
+    kept[2] = written[4]
+    np.testing.assert_array_equal(kept[2].rgb, written[4].rgb)
+    np.testing.assert_allclose(kept[2].depth_m[1:], written[4].depth_m[1:], atol=5e-4)
+    assert load_keyframe_frames(tmp_path / "none.npz") is None
+
+
 def test_a_survey_that_loses_the_camera_is_joined_again_by_its_loops(sim_walk, tmp_path):
     """Issue 61: a survey covered for five frames in its middle is mapped whole: the stretches
     either side are joined by the loops between them, the covered frames are never placed

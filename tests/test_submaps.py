@@ -23,7 +23,7 @@ def _walk_along_x(n: int, length_m: float) -> np.ndarray:
 def test_a_long_survey_is_cut_into_slabs_of_about_max_frames_with_overlap():
     T = _walk_along_x(700, 21.0)
     T[5] = np.nan  # an unposed frame belongs to no submap
-    plan = plan_submaps(T, SubmapSettings(max_frames=300, overlap_m=0.75))
+    plan = plan_submaps(T, SubmapSettings(max_frames=300, overlap_m=0.75, max_length_m=10.0))
     assert len(plan) == 3 and all(abs(abs(s.axis[0]) - 1.0) < 1e-3 for s in plan)
     sign = np.sign(plan[0].axis[0])
     cores = [sorted(sign * s.core) for s in plan]
@@ -35,6 +35,39 @@ def test_a_long_survey_is_cut_into_slabs_of_about_max_frames_with_overlap():
     # A survey of one submap's size is one submap of every posed frame, unbounded: as before submaps.
     one = plan_submaps(_walk_along_x(270, 5.0))
     assert len(one) == 1 and len(one[0].frames) == 270 and np.all(np.isinf(one[0].core))
+
+
+def test_a_survey_that_crosses_rooms_quickly_is_cut_by_length_too():
+    """Two rooms surveyed 300 frames each, 12 m apart, and the 100 frames of the walk between
+    them: cut by count alone, the middle part runs 10 m (a grid twice a room's); with parts of
+    at most 4 m, every core is within 4 m of floor, the cores tile the survey, and every part
+    trains on the frames in its core and within its overlap."""
+    room = np.linspace(0.0, 3.0, 300)
+    x = np.concatenate([room, np.linspace(3.0, 12.0, 100), 12.0 + room])
+    T = np.tile(np.eye(4), (len(x), 1, 1))
+    T[:, 0, 3], T[:, 1, 3] = x, 0.2 * np.sin(np.arange(len(x)))
+    by_count = plan_submaps(T, SubmapSettings(max_frames=300, max_length_m=100.0))
+    plan = plan_submaps(T, SubmapSettings(max_frames=300, max_length_m=4.0))
+    sign = np.sign(plan[0].axis[0])
+    spans = [np.ptp(sign * x[s.frames]) for s in by_count]
+    assert len(by_count) == 3 and max(spans) > 9.0
+    assert len(plan) == 5
+    edges = [sorted(sign * s.core) for s in plan]
+    inner = [(max(lo, x.min()), min(hi, x.max())) for lo, hi in edges]
+    assert all(hi - lo <= 4.0 + 1e-9 for lo, hi in inner)
+    assert all(np.isclose(a[1], b[0]) for a, b in zip(edges, edges[1:]))
+    for s, (lo, hi) in zip(plan, edges):
+        along = sign * x
+        want = np.flatnonzero((along >= lo - 0.75) & (along <= hi + 0.75))
+        np.testing.assert_array_equal(np.sort(s.frames), want)
+    # A stretch no camera stood in is no part of its own: 30 m of nothing between two rooms (its
+    # parts join the next part a camera stood in; that part's grid still holds only what its
+    # frames saw).
+    T[300:400, 0, 3] = np.linspace(3.0, 33.0, 100)[[0] * 50 + [99] * 50]
+    T[400:, 0, 3] = 33.0 + room
+    gap = plan_submaps(T, SubmapSettings(max_frames=300, max_length_m=4.0))
+    assert len(gap) == 4 and all(len(s.frames) >= 150 for s in gap)
+    assert max(np.ptp(s.core) for s in gap[1:-1]) > 25.0
 
 
 def test_a_submap_trains_in_a_level_frame_along_the_floor():
@@ -329,7 +362,9 @@ def test_a_submap_of_a_floor_keeps_its_grid_to_its_part_of_the_floor(tmp_path):
     survey = open_sequence(simulate_sequence(tmp_path / "survey", SimConfig(
         frames=120, path="mapping", rooms=3, width=80, height=60, fps=0.56, seed=1)))
     T = np.asarray(survey.T_world_cam_gt)
-    settings = dataclasses.replace(MapSettings(matcher="sift", steps=10), submaps=SubmapSettings(max_frames=40))
+    # Cut by count alone (the length's cut has its own test): a middle part longer than a room.
+    settings = dataclasses.replace(MapSettings(matcher="sift", steps=10),
+                                   submaps=SubmapSettings(max_frames=40, max_length_m=100.0))
     plan = plan_submaps(T, settings.submaps)
     assert len(plan) == 3
     folder = MapFolder.open(tmp_path / "map", {"data": "survey"}, ("data",))

@@ -93,6 +93,9 @@ def _add_floor_arguments(p) -> None:
                    help="a survey of more than N frames is cut by space into submaps of about N frames, each its own "
                    "field over its own part of the floor and its own training budget, under the one pose graph "
                    "(default %(default)s: a room's survey stays one field)")
+    p.add_argument("--submap-length", type=positive_float, default=SubmapSettings.max_length_m, metavar="M",
+                   help="a cut survey's submaps are at most M metres along the floor, however few frames lie there "
+                   "(default %(default)s: a room; a field's memory grows with the space it covers)")
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="submap fields trained, and the loop candidates of a long survey (200 pairs or more) verified, "
                    "side by side on N workers (default: this machine's cores; 1: one after another in this process)")
@@ -123,7 +126,8 @@ def run(args) -> int:
                            model=args.model, minutes=None if args.steps else args.minutes, steps=args.steps,
                            budget_minutes=args.budget_minutes or None,
                            refine_rounds=args.refine_rounds, seed=args.seed,
-                           submaps=SubmapSettings(max_frames=args.submap_frames))
+                           submaps=SubmapSettings(max_frames=args.submap_frames,
+                                                  max_length_m=args.submap_length))
     if args.viz is not None:
         try:
             check_viz_target(args.viz)  # before the work: a bad target costs nothing

@@ -55,19 +55,24 @@ class SubmapSettings:
     are read again when rendered); reach_m: how far beyond its core a submap's field reaches
     (what a camera up to ``look_ahead_m`` outside the core sees in front of it): its grid covers
     its part of the floor, not the next rooms its cameras saw through the doors, which would
-    stretch it down the floor (a middle room's grid of the 6-room floor ran 22 m, 620 MB)."""
+    stretch it down the floor (a middle room's grid of the 6-room floor ran 22 m, 620 MB);
+    max_length_m: a cut survey's submap cores no longer than this along the floor (a one-room
+    field's span: the simulated room's grid is 5.7 m along it): where the survey crossed rooms
+    quickly, as many frames lay along 10 m and that submap's grid, twice a room's, was the map's
+    and the run's peak memory."""
 
     max_frames: int = 300
     overlap_m: float = 0.75
     look_ahead_m: float = 1.0
     resident: int = 2
     reach_m: float = 1.5
+    max_length_m: float = 6.0
 
     def __post_init__(self):
         if (self.max_frames < 2 or self.overlap_m < 0 or self.look_ahead_m < 0 or self.resident < 1
-                or self.reach_m < 0):
-            raise ValueError(f"submaps need max_frames >= 2, overlap_m >= 0, look_ahead_m >= 0, resident >= 1 and "
-                             f"reach_m >= 0; got {self}")
+                or self.reach_m < 0 or not self.max_length_m > 0):
+            raise ValueError(f"submaps need max_frames >= 2, overlap_m >= 0, look_ahead_m >= 0, resident >= 1, "
+                             f"reach_m >= 0 and max_length_m > 0; got {self}")
 
     def to_dict(self) -> dict:
         return asdict(self)

@@ -38,7 +38,7 @@ from nap3d_graph.fields.submaps import SubmapSettings
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correct import at_width
 from nap3d_graph.nap3d.matching import detect_features
-from nap3d_graph.pools import SerialPool
+from nap3d_graph.pools import SerialPool, peak_memory_gb
 from nap3d_graph.progress import progress_bar
 from nap3d_graph.textfiles import write_json_atomic
 from nap3d_graph.trajectory import write_tum_trajectory
@@ -526,14 +526,15 @@ def _submap_field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, sett
         minutes = submap_minutes(settings.budget_minutes, settings.min_train_minutes, settings.budget_reserve_s,
                                  t0 - started, len(plan))
     _say(say, f"field: the survey is cut into {len(plan)} submaps of at most {settings.submaps.max_frames} frames "
-              "(each its own field)")
+              f"and {settings.submaps.max_length_m:g} m along the floor (each its own field)")
     if folder.field.is_file():
         folder.field.unlink()  # a one-field map of these poses made before: the submaps replace it
     train_submap_fields(sequence, T_map_cam, folder, plan, settings, settings.submaps, field_settings, minutes,
                         pool or SerialPool(), device, say)
     folder.info["stages"].setdefault("field", {}).update(seconds=round(time.perf_counter() - t0, 2), model=settings.model,
                                           settings=field_settings, done=True, submap_count=len(plan),
-                                          **({"train_minutes": round(minutes, 2)} if minutes is not None else {}))
+                                          **({"train_minutes": round(minutes, 2)} if minutes is not None else {}),
+                                          peak_memory_gb=peak_memory_gb())
     folder.save()
 
 

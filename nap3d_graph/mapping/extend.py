@@ -60,7 +60,14 @@ from .folder import MapFolder
 from .loops import Keyframe, load_edges, verified_loop
 from .mesh import fuse_mesh
 from .pose_graph import Edge, floor_covariance, solve
-from .relocalise import KEYFRAME_WIDTH, RelocaliseSettings, load_keyframe_frames, pose_gap, write_keyframe_frames
+from .relocalise import (
+    KEYFRAME_WIDTH,
+    KeptFrames,
+    RelocaliseSettings,
+    load_keyframe_frames,
+    pose_gap,
+    write_keyframe_frames,
+)
 from .retrieval import Vocabulary, similarities, vlad
 from .submap_fields import submap_job, submap_minutes, train_one_submap
 from .submaps import plan_submaps
@@ -137,7 +144,7 @@ class _MapIndex:
     matcher: str
     width: int
     T_map_key: np.ndarray
-    frames: list
+    frames: KeptFrames
 
     @classmethod
     def read(cls, folder: MapFolder) -> "_MapIndex":
@@ -497,7 +504,7 @@ def _write_index(merged: MapFolder, index: _MapIndex, views: _NewKeyframes, keys
         surveys=np.concatenate([index.surveys, np.full(len(keys), number)]),
         descriptors=np.concatenate([index.descriptors, views.descriptors]), centres=index.vocabulary.centres,
         matcher=index.matcher, width=index.width))
-    _replace(merged.keyframe_frames, lambda p: write_keyframe_frames(p, index.frames + views.frames))
+    _replace(merged.keyframe_frames, lambda p: write_keyframe_frames(p, [*index.frames, *views.frames]))
     _replace(merged.keyframe_poses, lambda p: np.save(p, np.concatenate([index.T_map_key, T_map_newkey])))
 
 

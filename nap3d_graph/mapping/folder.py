@@ -11,6 +11,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from nap3d_graph.pools import peak_memory_gb
 from nap3d_graph.textfiles import write_json_atomic
 
 __all__ = ["MapFolder", "MAP_INFO", "load_map_info"]
@@ -133,8 +134,10 @@ class MapFolder:
         write_json_atomic(self.info_path, self.info, default=float)
 
     def done(self, stage: str, seconds: float, **extra) -> None:
-        """``stage`` recorded as finished, with its seconds and ``extra`` figures."""
-        self.info["stages"][stage] = {"seconds": round(seconds, 2), **extra}
+        """``stage`` recorded as finished, with its seconds, ``extra`` figures and the most memory
+        this process had held by its end (``peak_memory_gb``: the stage that raised it is where a
+        map's memory went)."""
+        self.info["stages"][stage] = {"seconds": round(seconds, 2), **extra, "peak_memory_gb": peak_memory_gb()}
         self.save()
 
     def finished(self, stage: str, path: Path) -> bool:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,8 +47,8 @@ from .loops import Keyframe, verify_pair
 from .retrieval import Vocabulary, shared_matches, similarities, vlad
 from .verification import Verification, worst_sigmas
 
-__all__ = ["Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames", "write_keyframe_frames",
-           "load_keyframe_frames", "pose_gap"]
+__all__ = ["KeptFrames", "Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames",
+           "write_keyframe_frames", "load_keyframe_frames", "pose_gap"]
 
 log = logging.getLogger(__name__)
 
@@ -65,14 +66,41 @@ def write_keyframe_frames(path: Path, frames: list[RGBDFrame]) -> None:
     """Frames already at the kept width, one camera: colour (K, H, W, 3) uint8 and depth (K, H, W)
     uint16 millimetres (0: none), with the camera, in one compressed file (atomically)."""
     K = frames[0].intrinsics
-    depth_mm = [np.rint(np.clip(np.nan_to_num(f.depth_m), 0, 65.535) * 1000).astype(np.uint16) for f in frames]
+    depth_mm = [_depth_mm(f.depth_m) for f in frames]
     tmp = path.with_suffix(".tmp.npz")
     np.savez_compressed(tmp, rgb=np.stack([f.rgb for f in frames]), depth_mm=np.stack(depth_mm),
                         camera=np.array([K.fx, K.fy, K.cx, K.cy, K.width, K.height], dtype=float))
     tmp.replace(path)
 
 
-def load_keyframe_frames(path: Path) -> list[RGBDFrame] | None:
+class KeptFrames(Sequence):
+    """The kept keyframe images as :func:`write_keyframe_frames` stores them, colour (K, H, W, 3)
+    uint8 and depth (K, H, W) uint16 millimetres, each :class:`RGBDFrame` (float depth in
+    metres) made when it is asked for: a float depth image of every keyframe held at once was
+    190 MB of a run on a 6-room floor's map. A slice gives a list of frames; an item can be
+    replaced by a frame of the same camera."""
+
+    def __init__(self, rgb: np.ndarray, depth_mm: np.ndarray, intrinsics: Intrinsics):
+        self.rgb, self.depth_mm, self.intrinsics = rgb, depth_mm, intrinsics
+
+    def __len__(self) -> int:
+        return len(self.rgb)
+
+    def __getitem__(self, k):
+        if isinstance(k, slice):
+            return [self[i] for i in range(len(self))[k]]
+        return RGBDFrame(self.rgb[k], self.depth_mm[k].astype(np.float32) / np.float32(1000.0), self.intrinsics)
+
+    def __setitem__(self, k: int, frame: RGBDFrame) -> None:
+        self.rgb[k], self.depth_mm[k] = frame.rgb, _depth_mm(frame.depth_m)
+
+
+def _depth_mm(depth_m: np.ndarray) -> np.ndarray:
+    """Depth (H, W) in metres (0 or NaN where missing) as uint16 millimetres (0: none)."""
+    return np.rint(np.clip(np.nan_to_num(depth_m), 0, 65.535) * 1000).astype(np.uint16)
+
+
+def load_keyframe_frames(path: Path) -> KeptFrames | None:
     """The frames :func:`write_keyframe_frames` kept, or None when the map has none or the
     file cannot be read (relocalisation then renders at the keyframes' poses alone)."""
     if not path.is_file():
@@ -81,7 +109,7 @@ def load_keyframe_frames(path: Path) -> list[RGBDFrame] | None:
         with np.load(path) as data:
             fx, fy, cx, cy, w, h = data["camera"]
             K = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
-            return [RGBDFrame(rgb, (d.astype(np.float32) / 1000.0), K) for rgb, d in zip(data["rgb"], data["depth_mm"])]
+            return KeptFrames(data["rgb"], data["depth_mm"], K)
     except (OSError, ValueError, KeyError) as exc:
         log.warning("%s unreadable (%s): relocalising from renders at the keyframes' poses alone", path, exc)
         return None

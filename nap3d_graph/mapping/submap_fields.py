@@ -28,6 +28,7 @@ from nap3d_graph.fields import load_field
 from nap3d_graph.fields.build import build_field
 from nap3d_graph.fields.evaluation import evaluate_field, oracle_for
 from nap3d_graph.fields.submaps import Submap, SubmapSettings, load_submap_field, write_submaps_index
+from nap3d_graph.pools import peak_memory_gb
 from nap3d_graph.textfiles import write_json_atomic
 from nap3d_graph.torch_threads import torch_threads
 
@@ -79,6 +80,7 @@ def train_one_submap(job: dict) -> dict:
     out.parent.mkdir(parents=True, exist_ok=True)
     field.save(out)
     report["submap_seconds"] = round(time.perf_counter() - t0, 2)
+    report["peak_memory_gb"] = peak_memory_gb()  # of the worker, by the end of this submap
     return report
 
 
@@ -154,7 +156,8 @@ def _summary(report: dict) -> dict:
     error = {k: v for k, v in (report.get("field_error") or {}).items() if k != "by_view"}
     return {"held_out": keep, "field_error": error, "train_seconds": report.get("train_seconds"),
             "total_seconds": report.get("total_seconds"), "submap_seconds": report.get("submap_seconds"),
-            "train_frames": report.get("train_frames"), "model": report.get("model")}
+            "train_frames": report.get("train_frames"), "model": report.get("model"),
+            "peak_memory_gb": report.get("peak_memory_gb")}
 
 
 def _merged_report(submaps: list[Submap], reports: dict, timing: dict | None) -> dict:

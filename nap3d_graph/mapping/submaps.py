@@ -36,13 +36,27 @@ def level_frame(T_map_cam: np.ndarray, axis: np.ndarray) -> np.ndarray:
     return np.stack([x, down, z])
 
 
+def _shorter_cores(cuts: list[float], lo: float, hi: float, s: SubmapSettings) -> list[float]:
+    """``cuts`` (increasing, metres along the axis) with every core between the survey's ends
+    ``lo`` and ``hi`` longer than ``s.max_length_m`` cut into equal parts."""
+    ends = [lo, *cuts, hi]
+    out: list[float] = []
+    for k, (a, b) in enumerate(zip(ends[:-1], ends[1:])):
+        n = math.ceil((b - a) / s.max_length_m)
+        out.extend(float(a + (b - a) * i / n) for i in range(1, n))
+        if k < len(cuts):
+            out.append(cuts[k])
+    return out
+
+
 def plan_submaps(T_map_cam: np.ndarray, settings: SubmapSettings | None = None) -> list[Submap]:
     """The submaps of a survey posed at ``T_map_cam`` (N, 4, 4; NaN where a frame has no pose):
     the posed cameras ordered along their principal direction (the map's frame is the first
     camera's, so no axis of it is known to be level or long) and cut into slabs of equal count,
-    ``ceil(frames / max_frames)`` of them, each taking the frames within ``overlap_m`` of its
-    slab too, and trains in a level frame along the floor (:func:`level_frame`); one submap of
-    every posed frame, in the map's frame, when there are no more than ``max_frames``."""
+    ``ceil(frames / max_frames)`` of them, a slab longer than ``max_length_m`` cut again into
+    equal lengths, each taking the frames within ``overlap_m`` of its slab too, and trains in a
+    level frame along the floor (:func:`level_frame`); one submap of every posed frame, in the
+    map's frame, when there are no more than ``max_frames``."""
     s = settings or SubmapSettings()
     T = np.asarray(T_map_cam, dtype=float)
     posed = np.flatnonzero(np.all(np.isfinite(T.reshape(len(T), -1)), axis=1))
@@ -57,10 +71,13 @@ def plan_submaps(T_map_cam: np.ndarray, settings: SubmapSettings | None = None) 
     slabs = np.array_split(order, math.ceil(len(posed) / s.max_frames))
     # Cut halfway between neighbouring slabs: every point of the floor has one core.
     cuts = [(along[a[-1]] + along[b[0]]) / 2 for a, b in zip(slabs[:-1], slabs[1:])]
-    edges = [-np.inf, *cuts, np.inf]
-    submaps = []
-    for k in range(len(slabs)):
-        near = (along >= edges[k] - s.overlap_m) & (along <= edges[k + 1] + s.overlap_m)
-        submaps.append(Submap(k, axis, np.array([edges[k], edges[k + 1]]), posed[near],
+    edges = [-np.inf, *_shorter_cores(cuts, float(along.min()), float(along.max()), s), np.inf]
+    submaps, lo = [], edges[0]
+    for hi in edges[1:]:
+        near = (along >= lo - s.overlap_m) & (along <= hi + s.overlap_m)
+        if not near.any():  # a stretch of a long core no camera stood in: part of the next one
+            continue
+        submaps.append(Submap(len(submaps), axis, np.array([lo, hi]), posed[near],
                               R_grid_map=level_frame(T[posed[near]], axis)))
+        lo = hi
     return submaps
