@@ -286,7 +286,13 @@ def _map_row(args, floor, survey, map_dir: Path, log: Path) -> dict:
                # Frames placed: the survey's but those dropped or lost inside a rejoined run.
                kept_frames=len(survey) - (info.get("segment") or {}).get("dropped_frames", len(survey)),
                held_out_psnr_db=(report.get("held_out") or {}).get("psnr_db"),
-               held_out_psnr_per_room=per_room_psnr(floor, map_dir, survey))
+               held_out_psnr_per_room=per_room_psnr(floor, map_dir, survey),
+               # Where the memory went: the map process's peak by each stage's end, each submap
+               # worker's by the end of its submap (a worker may have trained one before it).
+               stages_peak_memory_gb={k: v.get("peak_memory_gb") for k, v in info["stages"].items()},
+               submap_peak_memory_gb={k: v["report"].get("peak_memory_gb")
+                                      for k, v in info["stages"].get("field", {}).get("submaps", {}).items()},
+               submaps=info["stages"].get("field", {}).get("submap_count", 1))
     return row
 
 
