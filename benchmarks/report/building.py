@@ -99,11 +99,24 @@ def floor_map_table() -> str:
                     f"{against('peak_memory_gb')}, {_s(m.get('peak_memory_all_processes_gb'))}"
                     f"{against('peak_memory_all_processes_gb')} | {psnr} | {crossed}; {run['peak_memory_gb']:.2f}"
                     f"{against('peak_memory_gb', 'run')} |")
+    peaks = [_peak_line(rooms, f["map"]) for rooms, f in floors.items() if f["map"].get("stages_peak_memory_gb")]
+    if peaks:
+        rows.append("\nWhere each map's peak memory was (GB): " + "; ".join(peaks) + ".")
     maps = read(MAP_FILE).get("maps_provenance")
     if maps:  # the runs were measured again in the same maps (--runs-only)
         rows.append(f"\nThe maps (and their columns) at commit {maps['commit']}; the traverses run in them again at the "
                     "file's commit.")
     return "\n".join(rows)
+
+
+def _peak_line(rooms: str, m: dict) -> str:
+    """One floor's map: its process's peak by the stage that raised it most, its largest submap
+    worker's, the submap count."""
+    stages = {k: v for k, v in m["stages_peak_memory_gb"].items() if v is not None}
+    by, peak = max(stages.items(), key=lambda kv: kv[1]) if stages else ("-", None)
+    workers = [v for v in (m.get("submap_peak_memory_gb") or {}).values() if v is not None]
+    line = f"{rooms} room(s), {m.get('submaps', 1)} submap(s): the map process {_s(peak)} (by its {by} stage)"
+    return line + (f", the largest submap worker {max(workers):.2f}" if workers else "")
 
 
 def extend_table() -> str:
