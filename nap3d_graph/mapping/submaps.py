@@ -36,13 +36,13 @@ def level_frame(T_map_cam: np.ndarray, axis: np.ndarray) -> np.ndarray:
     return np.stack([x, down, z])
 
 
-def _shorter_cores(cuts: list[float], lo: float, hi: float, s: SubmapSettings) -> list[float]:
+def _shorter_cores(cuts: list[float], lo: float, hi: float, max_length_m: float) -> list[float]:
     """``cuts`` (increasing, metres along the axis) with every core between the survey's ends
-    ``lo`` and ``hi`` longer than ``s.max_length_m`` cut into equal parts."""
+    ``lo`` and ``hi`` longer than ``max_length_m`` cut into equal parts."""
     ends = [lo, *cuts, hi]
     out: list[float] = []
     for k, (a, b) in enumerate(zip(ends[:-1], ends[1:])):
-        n = math.ceil((b - a) / s.max_length_m)
+        n = math.ceil((b - a) / max_length_m)
         out.extend(float(a + (b - a) * i / n) for i in range(1, n))
         if k < len(cuts):
             out.append(cuts[k])
@@ -71,7 +71,7 @@ def plan_submaps(T_map_cam: np.ndarray, settings: SubmapSettings | None = None) 
     slabs = np.array_split(order, math.ceil(len(posed) / s.max_frames))
     # Cut halfway between neighbouring slabs: every point of the floor has one core.
     cuts = [(along[a[-1]] + along[b[0]]) / 2 for a, b in zip(slabs[:-1], slabs[1:])]
-    edges = [-np.inf, *_shorter_cores(cuts, float(along.min()), float(along.max()), s), np.inf]
+    edges = [-np.inf, *_shorter_cores(cuts, float(along.min()), float(along.max()), s.max_length_m), np.inf]
     submaps, lo = [], edges[0]
     for hi in edges[1:]:
         near = (along >= lo - s.overlap_m) & (along <= hi + s.overlap_m)
