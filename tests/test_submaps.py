@@ -212,6 +212,7 @@ def test_a_run_keeps_only_the_resident_submap_fields_loaded():
     np.testing.assert_allclose(framed.bounds, [[-1, -1, 0], [1, 1, 1]])
 
 
+@pytest.mark.slow
 def test_submap_fields_trained_side_by_side_equal_those_trained_one_after_another(sim_walk, tmp_path):
     """Two submaps of a simulated survey (posed by the simulator: the field stage alone), grid
     fields of 40 steps, on two worker processes and in this process: the same checkpoints."""
@@ -345,6 +346,7 @@ def test_a_slab_keeps_the_depth_points_of_its_part_of_the_floor():
     assert left[1:, : int(K.cx) - 1].all() and not left[:, int(K.cx) + 1:].any()
 
 
+@pytest.mark.slow
 def test_a_submap_of_a_floor_keeps_its_grid_to_its_part_of_the_floor(tmp_path):
     """A three-room floor cut into three submaps: each grid ends ``reach_m`` beyond its core,
     the middle one is its part of the floor (before, a middle room's grid ran down the floor:
