@@ -172,7 +172,7 @@ class _NewKeyframes:
     @classmethod
     def read(cls, sequence, keys: np.ndarray, index: _MapIndex, config, progress: bool = False) -> "_NewKeyframes":
         width = None if index.width < 0 else index.width
-        kept = index.frames[0].intrinsics
+        kept = index.frames.intrinsics
         descriptors, frames, features = [], [], []
         for i in progress_bar(keys, desc="new keyframes", unit="keyframe", disable=not progress, mininterval=2.0):
             frame = sequence[int(i)]
@@ -295,7 +295,7 @@ def cross_pairs(views: _NewKeyframes, keys: np.ndarray, T_new_key: np.ndarray, i
         for b in np.argsort(-similarities(views.descriptors[a], index.descriptors), kind="stable")[: extend.appearance_k]:
             b = int(b)
             if b not in features:
-                features[b] = detect_features(index.frames[b].rgb, config.max_features, matcher=config.matcher)
+                features[b] = detect_features(index.frames.rgb[b], config.max_features, matcher=config.matcher)
             loop = verified_loop(query, Keyframe(int(index.indices[b]), index.frames[b], features[b]), a, b, "map",
                                  config, rule)
             pairs.append(_cross_pair(loop, index.T_map_key[b], T_new_key[a]))

@@ -283,7 +283,7 @@ class Relocaliser:
         """Kept keyframe ``k``'s local features, detected once (all of them when the
         relocaliser is made, unless the ranking is off)."""
         if k not in self._keyframe_features:
-            rgb = self.keyframe_frames[k].rgb  # type: ignore[index]
+            rgb = self.keyframe_frames.rgb[k]  # type: ignore[union-attr]  # the colour alone: no depth made
             self._keyframe_features[k] = detect_features(rgb, self.config.max_features, matcher=self.config.matcher)
         return self._keyframe_features[k]
 
@@ -306,8 +306,9 @@ class Relocaliser:
         ``detected``: ``(shape, features)`` of the frame already detected at that shape."""
         if self.keyframe_frames is None:
             return None
-        small = at_width(frame, self.keyframe_frames[0].intrinsics.width)
-        if small.intrinsics.width != self.keyframe_frames[0].intrinsics.width:
+        kept_width = self.keyframe_frames.intrinsics.width
+        small = at_width(frame, kept_width)
+        if small.intrinsics.width != kept_width:
             return None  # a query narrower than the map's images: render from the keyframes' poses
         if detected is not None and detected[0] == small.intrinsics.shape:
             return Keyframe(-1, small, detected[1])
