@@ -391,3 +391,71 @@ def test_a_submap_of_a_floor_keeps_its_grid_to_its_part_of_the_floor(tmp_path):
     middle = np.ptp(field.fields[1].field.bounds, axis=0)  # in its grid's frame: x along the floor
     length_m = floor.walls_x[-1] - floor.walls_x[0]
     assert middle[0] < np.ptp(plan[1].core) + 2 * reach_m + 0.5 < length_m - 3.0, middle
+
+
+class _LookingAlongX:
+    """A survey of cameras looking along +x, each seeing a wall ``depth_m[i]`` ahead (0: none)."""
+
+    def __init__(self, T_map_cam: np.ndarray, depth_m: np.ndarray):
+        from nap3d_graph.sims.sequence import default_intrinsics
+
+        self.T, self.depth_m, self.K = T_map_cam, depth_m, default_intrinsics(32, 24)
+
+    def __len__(self) -> int:
+        return len(self.T)
+
+    def __getitem__(self, i: int):
+        from nap3d_graph.camera import RGBDFrame
+
+        depth = np.full((24, 32), self.depth_m[i], dtype=np.float32)
+        return RGBDFrame(np.zeros((24, 32, 3), np.uint8), depth, self.K)
+
+
+def _along_x_looking_forward(n: int, length_m: float) -> np.ndarray:
+    T = _walk_along_x(n, length_m)
+    T[:, :3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0.0]])  # OpenCV z forward = world +x
+    return T
+
+
+def test_a_submap_also_trains_on_the_frames_that_looked_into_it_from_elsewhere():
+    """900 cameras along 18 m cut into three submaps; twenty of the first submap's cameras see a
+    wall 7 m ahead (the middle submap's part of the floor), the rest one 0.5 m ahead (their own):
+    the middle submap takes those twenty and no other, the others take none, and the cap holds."""
+    from nap3d_graph.mapping.submaps import with_viewing_frames
+
+    T = _along_x_looking_forward(900, 18.0)
+    depth = np.full(900, 0.5)
+    depth[100:120] = 7.0  # cameras at x = 2.0-2.4 m look at x = 9.0-9.4 m
+    depth[300] = 0.0  # a frame without depth looks nowhere
+    survey = _LookingAlongX(T, depth)
+    settings = SubmapSettings(max_frames=300, overlap_m=0.5, max_length_m=10.0)
+    plan = plan_submaps(T, settings)
+    assert len(plan) == 3
+    grown = with_viewing_frames(plan, survey, T, settings)
+    middle = next(k for k, s in enumerate(plan) if s.distance_m(np.array([9.2, 0.0, 0.0])) == 0.0)
+    for k, (before, after) in enumerate(zip(plan, grown)):
+        added = sorted(set(after.frames) - set(before.frames))
+        assert added == (list(range(100, 120)) if k == middle else []), k
+        assert set(before.frames) <= set(after.frames) and np.array_equal(after.core, before.core)
+    capped = with_viewing_frames(plan, survey, T, SubmapSettings(max_frames=300, overlap_m=0.5, max_length_m=10.0,
+                                                                 viewing_frames=5))
+    assert len(set(capped[middle].frames) - set(plan[middle].frames)) == 5
+    off = with_viewing_frames(plan, survey, T, SubmapSettings(max_frames=300, viewing_frames=0))
+    assert all(np.array_equal(a.frames, b.frames) for a, b in zip(off, plan))
+
+
+def test_a_submap_grid_holds_its_slab_not_the_cameras_that_looked_in_from_afar():
+    """Two cameras see the same wall at x = 2 m, one standing in the slab [0, 3] m at x = 1, one
+    5 m before it: with the slab the box spans the first camera and the wall (plus the margin);
+    without, the far camera stretches it to x = -5."""
+    from nap3d_graph.fields.training_data import scene_bounds_from_depth
+    from nap3d_graph.sims.sequence import default_intrinsics
+
+    T = _along_x_looking_forward(2, 1.0)
+    T[:, 0, 3] = [1.0, -5.0]
+    T[:, 2, 3] = 0.0
+    depth = np.stack([np.full((12, 16), 1.0), np.full((12, 16), 7.0)])
+    K = default_intrinsics(16, 12)
+    slab = scene_bounds_from_depth(depth, T, K, margin_m=0.1, slab_m=(1.0, 0.0, 0.0, 0.0, 3.0))
+    assert slab[0, 0] == pytest.approx(0.9) and slab[1, 0] == pytest.approx(2.1)
+    assert scene_bounds_from_depth(depth, T, K, margin_m=0.1)[0, 0] == pytest.approx(-5.1)

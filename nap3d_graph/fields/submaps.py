@@ -59,7 +59,15 @@ class SubmapSettings:
     max_length_m: a cut survey's submap cores no longer than this along the floor (a one-room
     field's span: the simulated room's grid is 5.7 m along it): where the survey crossed rooms
     quickly, as many frames lay along 10 m and that submap's grid, twice a room's, was the map's
-    and the run's peak memory."""
+    and the run's peak memory.
+    viewing_frames: survey frames whose camera stood outside a submap but whose depth saw into its
+    core (at least ``viewing_share`` of their sampled depth points there) that it trains on too,
+    this many at most, those that saw most of it first (their depth outside its slab masked as
+    every frame's is; 0: its own cameras' frames alone). A camera looks down a row of rooms at
+    the far walls and the ceiling, which its own submap's grid does not hold, while the cameras
+    that stood under that ceiling looked at the floor and walls around them: trained by its own
+    cameras alone, no field of the 6-room floor held what the upper fifth of a view along the
+    floor saw, and such views rendered 15-18 dB where a room's own views render 27."""
 
     max_frames: int = 300
     overlap_m: float = 0.75
@@ -67,12 +75,16 @@ class SubmapSettings:
     resident: int = 2
     reach_m: float = 1.5
     max_length_m: float = 6.0
+    viewing_frames: int = 150
+    viewing_share: float = 0.1
 
     def __post_init__(self):
         if (self.max_frames < 2 or self.overlap_m < 0 or self.look_ahead_m < 0 or self.resident < 1
-                or self.reach_m < 0 or not self.max_length_m > 0):
+                or self.reach_m < 0 or not self.max_length_m > 0 or self.viewing_frames < 0
+                or not 0 < self.viewing_share <= 1):
             raise ValueError(f"submaps need max_frames >= 2, overlap_m >= 0, look_ahead_m >= 0, resident >= 1, "
-                             f"reach_m >= 0 and max_length_m > 0; got {self}")
+                             f"reach_m >= 0, max_length_m > 0, viewing_frames >= 0 and 0 < viewing_share <= 1; "
+                             f"got {self}")
 
     def to_dict(self) -> dict:
         return asdict(self)

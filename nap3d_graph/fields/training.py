@@ -250,7 +250,7 @@ def _train(sequence, config: TrainConfig, device, progress, eval_sequence, eval_
     started = time.perf_counter()
     rays = TrainingRays.from_sequence(sequence, train_idx, config, device, progress=progress, timing=timing)
     bounds = scene_bounds_from_depth(rays.depth.cpu().numpy(), ray_poses(rays),
-                                     rays.intrinsics, margin_m=config.bounds_margin_m)
+                                     rays.intrinsics, margin_m=config.bounds_margin_m, slab_m=config.slab_m)
     load_seconds = time.perf_counter() - started
     log.info("training on %d frames (%d rays with depth), bounds %s", len(train_idx), rays.num_valid,
              bounds.round(2).tolist())

@@ -181,13 +181,16 @@ BOUNDS_MAX_DEPTH_M = 8.0
 
 def scene_bounds_from_depth(depth_m: np.ndarray, T_world_cam: np.ndarray, intrinsics: Intrinsics,
                             margin_m: float = 0.15, stride: int = 4, percentile: float = 0.02,
-                            max_depth_m: float = BOUNDS_MAX_DEPTH_M) -> np.ndarray:
+                            max_depth_m: float = BOUNDS_MAX_DEPTH_M, slab_m: tuple | None = None) -> np.ndarray:
     """World box (2, 3) that holds what the depth images see and the cameras.
 
     depth_m (F, H, W) z-depth metres (0 = missing); T_world_cam (F, 4, 4). Points are
     back-projected on every ``stride``-th pixel up to ``max_depth_m``; the box spans their
     ``percentile`` to ``100 - percentile`` percentiles per axis (stray far returns do not blow it
-    up), grown by ``margin_m`` so windows behind the farthest surfaces still fit.
+    up), grown by ``margin_m`` so windows behind the farthest surfaces still fit. With ``slab_m``
+    (:func:`outside_slab`'s) only the cameras inside the slab: one that stood rooms away and
+    looked into it (a submap's viewing frame) would stretch the box down the floor; its rays
+    enter the box from outside.
     """
     depth_m = np.asarray(depth_m)
     chunks = []
@@ -201,8 +204,13 @@ def scene_bounds_from_depth(depth_m: np.ndarray, T_world_cam: np.ndarray, intrin
     lo = np.percentile(points, percentile, axis=0)
     hi = np.percentile(points, 100.0 - percentile, axis=0)
     cams = T_world_cam[:, :3, 3]
-    lo = np.minimum(lo, cams.min(axis=0))
-    hi = np.maximum(hi, cams.max(axis=0))
+    if slab_m is not None:
+        along = cams @ np.asarray(slab_m[:3], dtype=float)
+        lo_m = -np.inf if slab_m[3] is None else float(slab_m[3])
+        hi_m = np.inf if slab_m[4] is None else float(slab_m[4])
+        cams = cams[(along >= lo_m) & (along <= hi_m)]
+    if len(cams):
+        lo, hi = np.minimum(lo, cams.min(axis=0)), np.maximum(hi, cams.max(axis=0))
     return np.stack([lo - margin_m, hi + margin_m])
 
 

@@ -64,7 +64,7 @@ from .relocalise import load_keyframe_frames, save_keyframe_frames, write_keyfra
 from .report import write_outputs
 from .retrieval import Vocabulary, vlad
 from .submap_fields import submap_minutes, train_submap_fields
-from .submaps import plan_submaps
+from .submaps import plan_submaps, with_viewing_frames
 from .survey import (
     SurveyOdometry,
     joined_run,
@@ -490,7 +490,8 @@ def _field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: M
     plan = plan_submaps(T_map_cam, settings.submaps)
     if len(plan) > 1:
         field_settings["submaps"] = settings.submaps.to_dict()
-        _submap_field_stage(sequence, T_map_cam, folder, settings, plan, field_settings, started, say, device, pool)
+        _submap_field_stage(sequence, T_map_cam, folder, settings, plan, field_settings, started, say, device, pool,
+                            progress)
         return
     if folder.info["stages"].get("field", {}).get("settings") == field_settings and folder.field.is_file():
         return
@@ -513,7 +514,8 @@ def _field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: M
 
 
 def _submap_field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, settings: MapSettings, plan: list,
-                        field_settings: dict, started: float, say, device: str | None, pool) -> None:
+                        field_settings: dict, started: float, say, device: str | None, pool,
+                        progress: bool = False) -> None:
     """Stage 5 for a survey cut into submaps: each its own field and budget (a one-room map's
     budget less its share of the stages before), trained on ``pool``."""
     stage = folder.info["stages"].get("field", {})
@@ -529,6 +531,7 @@ def _submap_field_stage(sequence, T_map_cam: np.ndarray, folder: MapFolder, sett
               f"and {settings.submaps.max_length_m:g} m along the floor (each its own field)")
     if folder.field.is_file():
         folder.field.unlink()  # a one-field map of these poses made before: the submaps replace it
+    plan = with_viewing_frames(plan, sequence, T_map_cam, settings.submaps, progress)
     train_submap_fields(sequence, T_map_cam, folder, plan, settings, settings.submaps, field_settings, minutes,
                         pool or SerialPool(), device, say)
     folder.info["stages"].setdefault("field", {}).update(seconds=round(time.perf_counter() - t0, 2), model=settings.model,

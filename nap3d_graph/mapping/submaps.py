@@ -5,12 +5,20 @@ each training on its slab and ``overlap_m`` beyond."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
+from nap3d_graph.camera import backproject_depth
+from nap3d_graph.conventions import transform_points
 from nap3d_graph.fields.submaps import Submap, SubmapSettings
+from nap3d_graph.progress import progress_bar
 
-__all__ = ["plan_submaps", "level_frame"]
+__all__ = ["plan_submaps", "level_frame", "with_viewing_frames"]
+
+#: Every this many rows and columns of a depth image count where a frame looked (a 320 x 240
+#: frame: 300 points).
+VIEW_STRIDE = 16
 
 
 def level_frame(T_map_cam: np.ndarray, axis: np.ndarray) -> np.ndarray:
@@ -81,3 +89,37 @@ def plan_submaps(T_map_cam: np.ndarray, settings: SubmapSettings | None = None) 
                               R_grid_map=level_frame(T[posed[near]], axis)))
         lo = hi
     return submaps
+
+
+def with_viewing_frames(submaps: list[Submap], sequence, T_map_cam: np.ndarray, settings: SubmapSettings,
+                        progress: bool = False) -> list[Submap]:
+    """``submaps`` (cut by :func:`plan_submaps`), each with the survey frames whose camera stood
+    outside it but whose depth saw into its core: at least ``settings.viewing_share`` of a frame's
+    sampled depth points (every ``VIEW_STRIDE``-th pixel, at ``T_map_cam`` (N, 4, 4)), the
+    ``settings.viewing_frames`` that saw most of it (:class:`~nap3d_graph.fields.submaps.SubmapSettings`
+    says why). ``sequence``: the survey, read once for its depth. A map of one submap, or
+    ``viewing_frames`` 0, is returned as it is."""
+    if len(submaps) < 2 or settings.viewing_frames == 0:
+        return submaps
+    along = _depth_along(sequence, T_map_cam, submaps[0].axis, progress)
+    out = []
+    for s in submaps:
+        own = set(int(i) for i in s.frames)
+        share = {i: float(np.mean((a >= s.core[0]) & (a < s.core[1]))) for i, a in along.items()
+                 if i not in own and a.size}
+        seen = sorted((i for i, v in share.items() if v >= settings.viewing_share), key=lambda i: -share[i])
+        extra = np.asarray(seen[: settings.viewing_frames], dtype=int)
+        out.append(replace(s, frames=np.union1d(s.frames, extra).astype(int)))
+    return out
+
+
+def _depth_along(sequence, T_map_cam: np.ndarray, axis: np.ndarray, progress: bool) -> dict[int, np.ndarray]:
+    """Each posed frame's sampled depth points, as metres along ``axis`` (3,) in the map's frame."""
+    T = np.asarray(T_map_cam, dtype=float)
+    posed = np.flatnonzero(np.all(np.isfinite(T.reshape(len(T), -1)), axis=1))
+    along = {}
+    for i in progress_bar(posed, desc="where frames looked", unit="frame", disable=not progress, leave=False):
+        frame = sequence[int(i)]
+        p_cam, _ = backproject_depth(np.nan_to_num(frame.depth_m), frame.intrinsics, VIEW_STRIDE)
+        along[int(i)] = transform_points(T[i], p_cam) @ axis
+    return along
