@@ -370,7 +370,8 @@ def test_a_dropped_stretch_leaves_keyframe_files_and_edges_renumbered(tmp_path):
                         centres=np.zeros((3, 2)), matcher="sift", width=-1)
     K = Intrinsics(50.0, 50.0, 8.0, 6.0, 16, 12)
     write_keyframe_frames(folder.keyframe_frames, [RGBDFrame(np.full((12, 16, 3), k, np.uint8),
-                                                             np.full((12, 16), 1.0, np.float32), K) for k in range(12)])
+                                                             np.full((12, 16), 1.0, np.float32), K) for k in range(12)],
+                          "sift")
 
     def matches(a, b):
         return PairMatches(a, b, np.zeros((1, 2)), np.zeros((1, 2)), np.ones(1), np.ones(1))
@@ -405,7 +406,7 @@ def test_kept_keyframe_images_read_back_as_written_and_are_made_frames_when_aske
     depths[:, 0, 0] = np.nan  # missing
     written = [RGBDFrame(rng.integers(0, 255, (12, 16, 3), dtype=np.uint8), d, K) for d in depths]
     path = tmp_path / "keyframe_frames.npz"
-    write_keyframe_frames(path, written)
+    write_keyframe_frames(path, written, "sift")
     kept = load_keyframe_frames(path)
     assert len(kept) == 5 and kept.rgb.dtype == np.uint8 and kept.depth_mm.dtype == np.uint16
     for a, b in zip(written, kept):
@@ -417,6 +418,44 @@ def test_kept_keyframe_images_read_back_as_written_and_are_made_frames_when_aske
     np.testing.assert_array_equal(kept[2].rgb, written[4].rgb)
     np.testing.assert_allclose(kept[2].depth_m[1:], written[4].depth_m[1:], atol=5e-4)
     assert load_keyframe_frames(tmp_path / "none.npz") is None
+
+
+def test_kept_keyframes_are_mapped_from_the_file_with_the_features_the_relocaliser_would_detect(tmp_path):
+    """A run reads only the kept keyframes it tries: the images (over a megabyte) are mapped
+    from the file, not read, and each keyframe's stored features are exactly what the
+    relocaliser would detect in its image; an item replaced changes the run's copy, never the
+    map's file; a file of a map made before features were kept (compressed, images only) reads
+    whole, without features."""
+    from nap3d_graph.camera import Intrinsics, RGBDFrame
+    from nap3d_graph.mapping.relocalise import load_keyframe_frames, write_keyframe_frames
+    from nap3d_graph.nap3d.config import AlignConfig
+    from nap3d_graph.nap3d.matching import detect_features
+
+    K = Intrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+    rng = np.random.default_rng(1)
+    blocks = rng.integers(0, 255, (8, 30, 40, 3), dtype=np.uint8)  # 8-pixel squares: corners SIFT finds
+    written = [RGBDFrame(np.kron(b, np.ones((8, 8, 1), np.uint8)), np.full((240, 320), 1.5, np.float32), K)
+               for b in blocks]
+    path = tmp_path / "keyframe_frames.npz"
+    write_keyframe_frames(path, written, "sift")
+    before = path.read_bytes()
+    kept, features = load_keyframe_frames(path, with_features=True)
+    assert isinstance(kept.rgb, np.memmap) and isinstance(kept.depth_mm, np.memmap)
+    assert len(features) == 8 and features.matcher == "sift" and features.max_features == AlignConfig().max_features
+    for k, frame in enumerate(written):
+        np.testing.assert_array_equal(kept[k].rgb, frame.rgb)
+        fresh = detect_features(frame.rgb, AlignConfig().max_features, matcher="sift")
+        assert len(fresh) > 50 and features[k].image_size == (320, 240)
+        np.testing.assert_array_equal(features[k].uv, fresh.uv)
+        np.testing.assert_array_equal(features[k].descriptors, fresh.descriptors)
+    kept[0] = written[7]
+    np.testing.assert_array_equal(kept[0].rgb, written[7].rgb)
+    assert path.read_bytes() == before
+    old = tmp_path / "old.npz"
+    np.savez_compressed(old, rgb=np.stack([f.rgb for f in written]), depth_mm=np.full((8, 240, 320), 1500, np.uint16),
+                        camera=np.array([200.0, 200.0, 160.0, 120.0, 320, 240]))
+    frames, none = load_keyframe_frames(old, with_features=True)
+    assert none is None and not isinstance(frames.rgb, np.memmap) and frames[3].depth_m[0, 0] == np.float32(1.5)
 
 
 def test_a_survey_that_loses_the_camera_is_joined_again_by_its_loops(sim_walk, tmp_path):

@@ -282,7 +282,8 @@ def _keyframe_stage(sequence, keys: np.ndarray, folder: MapFolder, settings: Map
     with np.load(folder.keyframes) as data:
         keys, descriptors = data["indices"], data["descriptors"]
     if not folder.keyframe_frames.is_file():  # a map made before the relocaliser read them gets them now
-        save_keyframe_frames(folder.keyframe_frames, keyframes or read_keyframes(sequence, keys, settings, progress))
+        save_keyframe_frames(folder.keyframe_frames, keyframes or read_keyframes(sequence, keys, settings, progress),
+                             settings.matcher)
     return keys, keyframes, descriptors
 
 
@@ -359,7 +360,7 @@ def _keep_keyframes(folder: MapFolder, keys: np.ndarray, first: int, last: int, 
     tmp.replace(folder.keyframes)
     frames = load_keyframe_frames(folder.keyframe_frames)
     if frames is not None:
-        write_keyframe_frames(folder.keyframe_frames, frames[first:last + 1])
+        write_keyframe_frames(folder.keyframe_frames, frames[first:last + 1], str(arrays["matcher"]))
     chain = [replace(e, a=e.a - first, b=e.b - first) for e in chain if kept(e.a, e.b)]
     loops = [replace(lp, a=lp.a - first, b=lp.b - first, matches_kept=moved(lp.matches_kept))
              for lp in loops if kept(lp.a, lp.b)]

@@ -504,7 +504,7 @@ def _write_index(merged: MapFolder, index: _MapIndex, views: _NewKeyframes, keys
         surveys=np.concatenate([index.surveys, np.full(len(keys), number)]),
         descriptors=np.concatenate([index.descriptors, views.descriptors]), centres=index.vocabulary.centres,
         matcher=index.matcher, width=index.width))
-    _replace(merged.keyframe_frames, lambda p: write_keyframe_frames(p, [*index.frames, *views.frames]))
+    _replace(merged.keyframe_frames, lambda p: write_keyframe_frames(p, [*index.frames, *views.frames], index.matcher))
     _replace(merged.keyframe_poses, lambda p: np.save(p, np.concatenate([index.T_map_key, T_map_newkey])))
 
 

@@ -27,7 +27,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import struct
 import time
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +41,7 @@ from nap3d_graph.conventions import inv_T, log_se3
 from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correct import at_width, correct_pose, real_features
-from nap3d_graph.nap3d.matching import detect_features
+from nap3d_graph.nap3d.matching import Features, detect_features
 from nap3d_graph.nap3d.rolling_shutter import at_one_instant
 
 from .folder import MapFolder, load_map_info
@@ -47,7 +49,7 @@ from .loops import Keyframe, verify_pair
 from .retrieval import Vocabulary, shared_matches, similarities, vlad
 from .verification import Verification, worst_sigmas
 
-__all__ = ["KeptFrames", "Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames",
+__all__ = ["KeptFeatures", "KeptFrames", "Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames",
            "write_keyframe_frames", "load_keyframe_frames", "pose_gap"]
 
 log = logging.getLogger(__name__)
@@ -56,20 +58,30 @@ log = logging.getLogger(__name__)
 KEYFRAME_WIDTH = 320
 
 
-def save_keyframe_frames(path: Path, keyframes) -> None:
-    """The survey keyframes' colour and depth at ``KEYFRAME_WIDTH``, in one compressed file
-    (:func:`write_keyframe_frames`)."""
-    write_keyframe_frames(path, [at_width(k.frame, KEYFRAME_WIDTH) for k in keyframes])
+def save_keyframe_frames(path: Path, keyframes, matcher: str) -> None:
+    """The survey keyframes' colour and depth at ``KEYFRAME_WIDTH``, with their features by
+    ``matcher``, in one file (:func:`write_keyframe_frames`)."""
+    write_keyframe_frames(path, [at_width(k.frame, KEYFRAME_WIDTH) for k in keyframes], matcher)
 
 
-def write_keyframe_frames(path: Path, frames: list[RGBDFrame]) -> None:
+def write_keyframe_frames(path: Path, frames: list[RGBDFrame], matcher: str) -> None:
     """Frames already at the kept width, one camera: colour (K, H, W, 3) uint8 and depth (K, H, W)
-    uint16 millimetres (0: none), with the camera, in one compressed file (atomically)."""
+    uint16 millimetres (0: none), with the camera and each frame's local features as the
+    relocaliser detects them (``matcher``, :class:`AlignConfig`'s ``max_features``): keypoints
+    ``uv`` (M, 2) float32 and ``descriptors`` (M, D) float32 of all frames in order, frame ``k``'s
+    rows ``feature_offsets[k]:feature_offsets[k + 1]``. Written atomically and uncompressed, so a
+    run maps the file and reads only the keyframes it tries (:func:`load_keyframe_frames`): read
+    whole, a 6-room floor's 609 kept images and their features were 350 MB of the run."""
     K = frames[0].intrinsics
-    depth_mm = [_depth_mm(f.depth_m) for f in frames]
+    max_features = AlignConfig().max_features
+    features = [detect_features(f.rgb, max_features, matcher=matcher) for f in frames]
     tmp = path.with_suffix(".tmp.npz")
-    np.savez_compressed(tmp, rgb=np.stack([f.rgb for f in frames]), depth_mm=np.stack(depth_mm),
-                        camera=np.array([K.fx, K.fy, K.cx, K.cy, K.width, K.height], dtype=float))
+    np.savez(tmp, rgb=np.stack([f.rgb for f in frames]), depth_mm=np.stack([_depth_mm(f.depth_m) for f in frames]),
+             camera=np.array([K.fx, K.fy, K.cx, K.cy, K.width, K.height], dtype=float),
+             uv=np.concatenate([f.uv for f in features]).astype(np.float32).reshape(-1, 2),
+             descriptors=np.concatenate([f.descriptors for f in features]).astype(np.float32),
+             feature_offsets=np.cumsum([0] + [len(f) for f in features]), feature_matcher=np.array(matcher),
+             feature_max=np.array(max_features))
     tmp.replace(path)
 
 
@@ -78,7 +90,7 @@ class KeptFrames(Sequence):
     uint8 and depth (K, H, W) uint16 millimetres, each :class:`RGBDFrame` (float depth in
     metres) made when it is asked for: a float depth image of every keyframe held at once was
     190 MB of a run on a 6-room floor's map. A slice gives a list of frames; an item can be
-    replaced by a frame of the same camera."""
+    replaced by a frame of the same camera (in memory: a mapped file is never written)."""
 
     def __init__(self, rgb: np.ndarray, depth_mm: np.ndarray, intrinsics: Intrinsics):
         self.rgb, self.depth_mm, self.intrinsics = rgb, depth_mm, intrinsics
@@ -89,10 +101,29 @@ class KeptFrames(Sequence):
     def __getitem__(self, k):
         if isinstance(k, slice):
             return [self[i] for i in range(len(self))[k]]
-        return RGBDFrame(self.rgb[k], self.depth_mm[k].astype(np.float32) / np.float32(1000.0), self.intrinsics)
+        return RGBDFrame(np.array(self.rgb[k]), self.depth_mm[k].astype(np.float32) / np.float32(1000.0),
+                         self.intrinsics)
 
     def __setitem__(self, k: int, frame: RGBDFrame) -> None:
         self.rgb[k], self.depth_mm[k] = frame.rgb, _depth_mm(frame.depth_m)
+
+
+class KeptFeatures:
+    """The kept keyframes' local features as :func:`write_keyframe_frames` stored them (arrays
+    that may be mapped from the file): keyframe ``k``'s :class:`Features` made when asked for."""
+
+    def __init__(self, arrays: dict, intrinsics: Intrinsics):
+        self.uv, self.descriptors, self.offsets = arrays["uv"], arrays["descriptors"], arrays["feature_offsets"]
+        self.matcher, self.max_features = str(arrays["feature_matcher"]), int(arrays["feature_max"])
+        self.image_size = (intrinsics.width, intrinsics.height)
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def __getitem__(self, k: int) -> Features:
+        a, b = int(self.offsets[k]), int(self.offsets[k + 1])
+        return Features(np.asarray(self.uv[a:b], dtype=float), np.array(self.descriptors[a:b]), self.matcher,
+                        self.image_size)
 
 
 def _depth_mm(depth_m: np.ndarray) -> np.ndarray:
@@ -100,19 +131,56 @@ def _depth_mm(depth_m: np.ndarray) -> np.ndarray:
     return np.rint(np.clip(np.nan_to_num(depth_m), 0, 65.535) * 1000).astype(np.uint16)
 
 
-def load_keyframe_frames(path: Path) -> KeptFrames | None:
-    """The frames :func:`write_keyframe_frames` kept, or None when the map has none or the
-    file cannot be read (relocalisation then renders at the keyframes' poses alone)."""
+#: Arrays of a kept-frames file smaller than this are read; larger ones are mapped from it.
+MAP_FROM_BYTES = 1 << 20
+
+
+def _npz_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an ``.npz``: those stored uncompressed and larger than ``MAP_FROM_BYTES``
+    mapped from the file (copy-on-write: pages read when touched, shared with the page cache,
+    never written back), the rest read (a compressed file, as maps before this one wrote it,
+    is read whole)."""
+    out = {}
+    with zipfile.ZipFile(path) as archive, open(path, "rb") as f:
+        for info in archive.infolist():
+            name = info.filename.removesuffix(".npy")
+            if info.compress_type != zipfile.ZIP_STORED:
+                out[name] = np.load(archive.open(info))
+                continue
+            f.seek(info.header_offset + 26)
+            name_len, extra_len = struct.unpack("<HH", f.read(4))
+            f.seek(info.header_offset + 30 + name_len + extra_len)  # the member's .npy, as written
+            version = np.lib.format.read_magic(f)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(f)
+            size = int(np.prod(shape)) * dtype.itemsize
+            if size < MAP_FROM_BYTES or dtype.hasobject:
+                f.seek(info.header_offset + 30 + name_len + extra_len)
+                out[name] = np.lib.format.read_array(f, allow_pickle=False)
+            else:
+                out[name] = np.memmap(path, dtype=dtype, mode="c", offset=f.tell(), shape=shape,
+                                      order="F" if fortran else "C")
+    return out
+
+
+def load_keyframe_frames(path: Path, with_features: bool = False):
+    """The frames :func:`write_keyframe_frames` kept (:class:`KeptFrames`, mapped from the file
+    where it is uncompressed), or None when the map has none or the file cannot be read
+    (relocalisation then renders at the keyframes' poses alone). ``with_features``: a pair,
+    the frames and their :class:`KeptFeatures` (None when the file holds none: a map made
+    before they were kept)."""
     if not path.is_file():
-        return None
+        return (None, None) if with_features else None
     try:
-        with np.load(path) as data:
-            fx, fy, cx, cy, w, h = data["camera"]
-            K = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
-            return KeptFrames(data["rgb"], data["depth_mm"], K)
-    except (OSError, ValueError, KeyError) as exc:
+        arrays = _npz_arrays(path)
+        fx, fy, cx, cy, w, h = arrays["camera"]
+        K = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(w), int(h))
+        frames = KeptFrames(arrays["rgb"], arrays["depth_mm"], K)
+        features = KeptFeatures(arrays, K) if "feature_offsets" in arrays else None
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, struct.error) as exc:
         log.warning("%s unreadable (%s): relocalising from renders at the keyframes' poses alone", path, exc)
-        return None
+        return (None, None) if with_features else None
+    return (frames, features) if with_features else frames
 
 
 @dataclass(frozen=True)
@@ -251,9 +319,12 @@ class Relocaliser:
         self.config = dataclasses.replace(config or AlignConfig(matcher=self.matcher), estimate_scale=False)
         self.render_intrinsics = render_intrinsics
         self.settings = settings or RelocaliseSettings()
-        self.keyframe_frames = load_keyframe_frames(folder.keyframe_frames)
+        self.keyframe_frames, kept = load_keyframe_frames(folder.keyframe_frames, with_features=True)
+        # The features the map kept, when they are what this relocaliser would detect.
+        self._kept_features = kept if (kept is not None and kept.matcher == self.config.matcher
+                                       and kept.max_features == self.config.max_features) else None
         self._keyframe_features: dict[int, object] = {}
-        if self.keyframe_frames is not None and self.settings.shortlist > 0:
+        if self.keyframe_frames is not None and self._kept_features is None and self.settings.shortlist > 0:
             # Every kept keyframe's features now (~15 ms each at 320 px), not while a frame
             # waits: the ranking's shortlist asks for 20 of them at the first attempt.
             t0 = time.perf_counter()
@@ -280,8 +351,10 @@ class Relocaliser:
         return self.T_map_key[k] @ inv_T(T_query_key), True
 
     def _features(self, k: int):
-        """Kept keyframe ``k``'s local features, detected once (all of them when the
-        relocaliser is made, unless the ranking is off)."""
+        """Kept keyframe ``k``'s local features: as the map kept them, else detected once (all of
+        them when the relocaliser is made, unless the ranking is off)."""
+        if self._kept_features is not None:
+            return self._kept_features[k]
         if k not in self._keyframe_features:
             rgb = self.keyframe_frames.rgb[k]  # type: ignore[union-attr]  # the colour alone: no depth made
             self._keyframe_features[k] = detect_features(rgb, self.config.max_features, matcher=self.config.matcher)
