@@ -26,7 +26,10 @@ def load_state(path: Path) -> dict:
     import torch
 
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
+        # Mapped, not read: a checkpoint's tensors are its file's pages (shared with the page
+        # cache, private if written to), so a field read again costs no copy and letting it go
+        # returns its memory at once: a run across a floor reads its submaps' fields over and over.
+        state = torch.load(path, map_location="cpu", weights_only=True, mmap=True)
     except pickle.UnpicklingError:
         raise FieldError(f"{path}: not a readable field checkpoint (it holds pickled objects other than tensors "
                          "and plain values, which are refused)") from None
