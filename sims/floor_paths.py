@@ -14,7 +14,7 @@
 Each path is sampled densely along its arc length, its corners smoothed (a Gaussian over
 ``_SMOOTH_M`` of path), and interpolated by cubic splines, so position and angles have smooth
 first and second derivatives (the IMU simulator differentiates them). The camera moves at a
-constant speed along the path, easing in and out at its ends.
+constant walking pace along the path, starting and stopping over ``_EASE_S``.
 """
 
 from __future__ import annotations
@@ -31,25 +31,45 @@ __all__ = ["floor_survey", "floor_traverse"]
 _STEP_M = 0.02  # path sampling
 _SMOOTH_M = 0.35  # corners rounded over about this much path
 _MARGIN_M = 1.5  # the free middle of a room keeps this far from its walls
+_EASE_S = 1.5  # a walker starts and stops over this long
 
 
 def _timed(samples: np.ndarray, duration_s: float, kind: str) -> Trajectory:
     """A trajectory through ``samples`` (M, 6): x, y, z, yaw, pitch, roll along the path at
-    ``_STEP_M`` spacing, smoothed, at constant speed with eased ends over ``duration_s``."""
+    ``_STEP_M`` spacing, smoothed, at a constant walking pace between a start and a stop of
+    ``_EASE_S`` each (a quarter of ``duration_s`` at most)."""
     sigma = _SMOOTH_M / _STEP_M
     smooth = gaussian_filter1d(samples, sigma, axis=0, mode="nearest")
     arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(smooth[:, :3], axis=0), axis=1))])
     keep = np.concatenate([[True], np.diff(arc) > 1e-9])
     spline = CubicSpline(arc[keep], smooth[keep], axis=0)
-    length, duration = float(arc[-1]), float(duration_s)
+    s_of = _walking_pace(float(arc[-1]), float(duration_s))
+    return Trajectory(lambda t: spline(s_of(t))[:3], lambda t: tuple(float(a) for a in spline(s_of(t))[3:]),
+                      float(duration_s), kind)
+
+
+def _walking_pace(length_m: float, duration_s: float):
+    """``s_of(t)``: the distance along a path of ``length_m`` walked at time ``t`` (s) of
+    ``duration_s``. The pace is constant but for a start and a stop of ``_EASE_S`` (speed
+    ``(1 - cos)/2`` up and down, so velocity and acceleration are zero at both ends): a walker,
+    not a sweep that is slowest at its ends and fastest in its middle (an easing over the whole
+    duration surveyed a 6-room floor's middle rooms at twice its end rooms' pace, a third of
+    their frames)."""
+    ease = min(_EASE_S, duration_s / 4)
+    speed = length_m / (duration_s - ease)  # each ramp covers half its time at full speed
+
+    def ramp(t: float) -> float:  # the distance covered in the first t (<= ease) seconds
+        return speed * (t / 2 - ease / (2 * np.pi) * np.sin(np.pi * t / ease))
 
     def s_of(t: float) -> float:
-        # Ease in and out so velocity and acceleration start and end at zero.
-        u = np.clip(t / duration, 0.0, 1.0)
-        return length * (u - np.sin(2 * np.pi * u) / (2 * np.pi))
+        t = float(np.clip(t, 0.0, duration_s))
+        if t < ease:
+            return ramp(t)
+        if t > duration_s - ease:
+            return length_m - ramp(duration_s - t)
+        return speed * (t - ease / 2)
 
-    return Trajectory(lambda t: spline(s_of(t))[:3], lambda t: tuple(float(a) for a in spline(s_of(t))[3:]),
-                      duration, kind)
+    return s_of
 
 
 def _line(a: np.ndarray, b: np.ndarray) -> np.ndarray:
