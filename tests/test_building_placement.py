@@ -122,6 +122,36 @@ def test_a_placement_needs_the_travel_its_settings_ask_for():
         PlacementSettings(confirm_travel_m=-1.0)
 
 
+class _Failed:
+    success, num_inliers, reason = False, 0, "too few matches (4 < 8)"
+
+
+def test_a_candidate_that_agreed_waits_through_a_keyframe_that_measured_nothing():
+    """A door passage matches nothing: that says nothing against a candidate a keyframe already
+    agreed with, which waits (``max_unmeasured`` in a row) and is placed by the next that agree;
+    one more failure in a row, or a failure before any agreement, drops it."""
+    settings = PlacementSettings(confirmations=1, confirm_travel_m=0.5, max_unmeasured=2)
+    placement = MapPlacement(_Answers([_found(0.0)]), settings)
+    placement.propose(0, 0, None, np.eye(4))
+    T = [exp_se3(np.array([0, 0, 0, x, 0, 0.0])) for x in (0.2, 0.3, 0.4, 0.6)]
+    verdicts = [placement.confirm(1, 1, _Correction(T[0]), T[0]), placement.confirm(2, 2, _Failed(), T[1]),
+                placement.confirm(3, 3, _Failed(), T[2]), placement.confirm(4, 4, _Correction(T[3]), T[3])]
+    assert verdicts == ["agrees", "unmeasured", "unmeasured", "confirmed"]
+    assert [k for k, _, _ in placement.candidate.confirmed] == [1, 4]
+    assert "waits: 2 of 2 in a row" in placement.events[-2]["reason"]
+    # A third failure in a row drops it; so does a failure before any keyframe agreed.
+    placement = MapPlacement(_Answers([_found(0.0)]), settings)
+    placement.propose(0, 0, None, np.eye(4))
+    placement.confirm(1, 1, _Correction(T[0]), T[0])
+    assert [placement.confirm(k, k, _Failed(), T[1]) for k in (2, 3, 4)] == ["unmeasured", "unmeasured", "refuted"]
+    assert placement.candidate is None
+    placement = MapPlacement(_Answers([_found(0.0)]), settings)
+    placement.propose(0, 0, None, np.eye(4))
+    assert placement.confirm(1, 1, _Failed(), T[0]) == "refuted"
+    with pytest.raises(ValueError, match="max_unmeasured"):
+        PlacementSettings(max_unmeasured=-1)
+
+
 class _TwinRooms:
     """A map along x from 0 to 20 m whose field shows a wall 2 m ahead everywhere but a
     doorway (5 m of depth) seen from x in [1, 5): the place at x and its look-alike 11 m on

@@ -83,8 +83,8 @@ class MapRecovery:
 
     def _confirm(self, record: KeyframeRecord, i: int, frame, lost: bool) -> bool:
         """Keyframe i measured where the pending candidate puts it: True when that settles the
-        keyframe (confirmed and placed, agreeing so far, refuted while recovering, or not
-        measurable), False when the candidate was refuted and the run relocalises afresh.
+        keyframe (confirmed and placed, agreeing so far, not measured while the candidate waits,
+        refuted while recovering, or not measurable), False when the candidate was refuted and the run relocalises afresh.
         ``lost``: a recovery, not the start."""
         run, placement = self.run, self.placement
         assert placement is not None
@@ -100,6 +100,8 @@ class MapRecovery:
             self._place(record, i)
         elif verdict == "agrees":
             record.reason = "relocalised in the map: confirming (agrees so far)"
+        elif verdict == "unmeasured":
+            record.reason = f"relocalised in the map: confirming ({placement.events[-1]['reason']})"
         elif lost:  # refuted while recovering: back to counting refusals
             record.reason = f"recovery refuted: {placement.events[-1].get('reason', '')}"
         else:
