@@ -140,3 +140,28 @@ def test_a_walker_keeps_its_heading_while_the_camera_turns_its_head():
         first_blind = ok.index(False)
         assert ok[first_blind:].count(False) >= 10
         assert np.linalg.norm(error_m[-1] - error_m[first_blind - 1]) < 0.04
+
+
+def test_a_step_on_few_inliers_as_the_colour_runs_out_is_fused_with_the_depth(monkeypatch):
+    """The last steps before the features run out rest on a handful of inliers and are 7 cm off
+    (their covariance says so, but nothing later corrects them): their translations fused with
+    the depth's own step's, each by its information, none is 2 cm off, and the walk ends within
+    5 cm of where it stopped (4.2 / 1.4 cm; 4.9 / 10.3 cm unfused)."""
+    fused_steps = {}
+    for fuse in (True, False):
+        if not fuse:
+            monkeypatch.setattr(VisualOdometry, "_with_depth", lambda self, prev, frame, T, cov, timings: (T, cov))
+        for sweep_deg in (0.0, 15.0):
+            poses, frames = _walk_to_the_end_wall(sweep_deg)
+            odometry = VisualOdometry(initial_pose=poses[0], width=160)
+            odometry.prime(frames[0])
+            T, errors = poses[0].copy(), []
+            for i in range(1, len(frames)):
+                step = odometry.increment(i, frames[i])
+                T = T @ step.T_prev_cur
+                if step.ok:  # measured by the features
+                    errors.append(np.linalg.norm((inv_T(poses[i - 1]) @ poses[i])[:3, 3] - step.T_prev_cur[:3, 3]))
+            fused_steps[fuse, sweep_deg] = (max(errors), np.linalg.norm(T[:3, 3] - poses[-1][:3, 3]))
+    for sweep_deg in (0.0, 15.0):
+        assert fused_steps[False, sweep_deg][0] > 0.05 and fused_steps[True, sweep_deg][0] < 0.02
+        assert fused_steps[True, sweep_deg][1] < 0.05

@@ -152,7 +152,9 @@ class VisualOdometry:
     camera does not change speed by a metre per second in one frame; a wrong match does).
     A step without features to match (a blank wall) is measured by the depths alone where they
     agree, the constant-velocity guess holding what they cannot see (``depth_fallback``,
-    :mod:`.depth_step`); else it is that guess with a large covariance.
+    :mod:`.depth_step`); else it is that guess with a large covariance. A step on fewer than
+    ``min_good_inliers`` inliers has its translation fused with that depth step's
+    (:meth:`_with_depth`).
 
     ``width``: detect and align each frame resized to this many pixels wide (area for colour,
     nearest for depth; None: as read). At the keyframe render's size (320) a keyframe's
@@ -242,11 +244,17 @@ class VisualOdometry:
         if not a.success:
             return self._stepped(self._without_features(i, prev, frame, a.reason, timings))
         # T_real_rendered maps frame i-1's camera into frame i's: T_cur_prev.
-        T_prev_cur = inv_T(a.T_real_rendered)
-        covariance = self._step_covariance(a, T_prev_cur)
-        self._last_good = T_prev_cur
+        T_features = inv_T(a.T_real_rendered)
+        cov_features = self._step_covariance(a, T_features)
+        T_prev_cur, covariance = T_features, cov_features
+        if self.depth_fallback and a.num_inliers < self.min_good_inliers:
+            T_prev_cur, covariance = self._with_depth(prev, frame, T_features, cov_features, timings)
+        # The guesses (constant velocity, the walker's heading) are held from what the features
+        # measured: a fused step's unseen part is the guess's own, and feeding it back would lock
+        # in whatever heading the guess had.
+        self._last_good = T_features
         R = self._R_odom_prev
-        self._recent_steps.append((R @ T_prev_cur[:3, 3], np.linalg.inv(R @ covariance[3:, 3:] @ R.T)))
+        self._recent_steps.append((R @ T_features[:3, 3], np.linalg.inv(R @ cov_features[3:, 3:] @ R.T)))
         return self._stepped(Increment(T_prev_cur, covariance, timings_s=timings))
 
     def _stepped(self, increment: Increment) -> Increment:
@@ -270,6 +278,33 @@ class VisualOdometry:
         # The guess stays the last step the features measured: a depth step's unseen directions
         # are that guess already, and chaining them would let their noise wander step by step.
         return Increment(step.T_prev_cur, step.covariance, False, f"{reason}; stepped by depth alone", timings)
+
+    def _with_depth(self, prev: RGBDFrame, frame: RGBDFrame, T_prev_cur: np.ndarray, covariance: np.ndarray,
+                    timings: dict) -> tuple[np.ndarray, np.ndarray]:
+        """A step the features measured on few inliers (``T_prev_cur`` (4, 4), its (6, 6)
+        covariance) with its translation fused with the depths' own measurement of it
+        (:func:`~.depth_step.depth_step` under the constant-velocity guess), each weighted by its
+        information. Why: as the colour runs out (a blank wall coming into view) the last steps
+        rest on a handful of matches and are off by centimetres (6.7 cm on a 5.4 cm step on a
+        simulated floor's end wall) with a covariance that says so; nothing later corrects them,
+        and the depths measure the distance to the wall to millimetres. On fr1/desk (15 Hz, the
+        odometry alone, from the first pose) 4 / 16 steps of its halves were fused: ATE 7.9 ->
+        4.2 / 5.6 -> 4.7 cm, SE(3)-aligned 2.8 -> 2.7 / 2.0 -> 2.2 cm; the kitchen's 500 frames
+        have no step so weak."""
+        t0 = time.perf_counter()
+        step = depth_step(prev.depth_m, prev.intrinsics, frame.depth_m, frame.intrinsics, self._steady_guess())
+        timings["depth_step"] = time.perf_counter() - t0
+        if step is None:
+            return T_prev_cur, covariance
+        # The rotation stays the features': on fr1/desk's fast half the depth steps' tilts were
+        # 2 deg off where the features' were 1 deg (its depth is not the colour's instant).
+        info_features, info_depth = np.linalg.inv(covariance[3:, 3:]), np.linalg.inv(step.covariance[3:, 3:])
+        fused = np.linalg.inv(info_features + info_depth)
+        T = T_prev_cur.copy()
+        T[:3, 3] = fused @ (info_features @ T_prev_cur[:3, 3] + info_depth @ step.T_prev_cur[:3, 3])
+        cov = covariance.copy()
+        cov[3:, 3:] = 0.5 * (fused + fused.T)
+        return T, cov
 
     def _steady_guess(self) -> np.ndarray:
         """The constant-velocity guess with the mean translation of the last few measured steps
