@@ -159,6 +159,7 @@ def test_a_step_on_few_inliers_as_the_colour_runs_out_is_fused_with_the_depth(mo
             for i in range(1, len(frames)):
                 step = odometry.increment(i, frames[i])
                 T = T @ step.T_prev_cur
+                assert np.linalg.eigvalsh(step.covariance).min() > 0  # a covariance GTSAM takes
                 if step.ok:  # measured by the features
                     errors.append(np.linalg.norm((inv_T(poses[i - 1]) @ poses[i])[:3, 3] - step.T_prev_cur[:3, 3]))
             fused_steps[fuse, sweep_deg] = (max(errors), np.linalg.norm(T[:3, 3] - poses[-1][:3, 3]))

@@ -300,9 +300,14 @@ class VisualOdometry:
         # 2 deg off where the features' were 1 deg (its depth is not the colour's instant).
         info_features, info_depth = np.linalg.inv(covariance[3:, 3:]), np.linalg.inv(step.covariance[3:, 3:])
         fused = np.linalg.inv(info_features + info_depth)
+        from_features = fused @ info_features  # the share of the features' translation in the fused one
         T = T_prev_cur.copy()
-        T[:3, 3] = fused @ (info_features @ T_prev_cur[:3, 3] + info_depth @ step.T_prev_cur[:3, 3])
+        T[:3, 3] = from_features @ T_prev_cur[:3, 3] + fused @ info_depth @ step.T_prev_cur[:3, 3]
         cov = covariance.copy()
+        # The rotation keeps its covariance; with the fused translation it shares only the
+        # features' part (the depth step is an independent measurement).
+        cov[:3, 3:] = covariance[:3, 3:] @ from_features.T
+        cov[3:, :3] = cov[:3, 3:].T
         cov[3:, 3:] = 0.5 * (fused + fused.T)
         return T, cov
 
