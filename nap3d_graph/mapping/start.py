@@ -202,8 +202,9 @@ class MapPlacement:
         ``T_map_cam_pred``, the candidate's placement of it) against the candidate: returns
         "confirmed" (enough keyframes agreed), "agrees" (one more needed), "unmeasured" (the
         correction failed; the candidate, which a keyframe already agreed with, waits for the
-        next: ``max_unmeasured``) or "refuted" (the candidate is dropped). ``frame`` (the keyframe's RGBDFrame, or None): its depth is also
-        compared with the field's at the corrected pose (:func:`~.verification.depth_disagreement`)."""
+        next: ``max_unmeasured``) or "refuted" (the candidate is dropped). ``frame`` (the
+        keyframe's RGBDFrame, or None): its depth is also compared with the field's at the
+        corrected pose (:func:`~.verification.depth_disagreement`)."""
         s, cand = self.settings, self.candidate
         if cand is None:
             raise RuntimeError("no candidate to confirm: propose one first")
