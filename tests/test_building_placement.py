@@ -187,6 +187,43 @@ def test_after_a_rival_a_start_is_placed_only_once_the_camera_tells_the_look_ali
     assert [e["look_alikes_ruled_out"] for e in confirms] == ["1 of 2", "1 of 2", "2 of 2"]
 
 
+def test_the_look_alikes_a_survey_met_are_ruled_out_before_a_start_with_no_rival_is_placed(tmp_path):
+    """The survey of a map along x refused a loop between keyframes 11 m apart as a look-alike
+    place (its odometry could not have drifted so far): the map keeps that pair, and a start
+    whose first answer met no rival (the twin alone verified, or the right room alone) is still
+    placed only once the camera tells the two places apart, as after a rival."""
+    from nap3d_graph.camera import Intrinsics, RGBDFrame
+    from nap3d_graph.mapping.folder import MapFolder
+    from nap3d_graph.mapping.loops import Loop, LoopSettings, refuse_look_alikes, save_edges
+    from nap3d_graph.mapping.relocalise import look_alike_offsets
+
+    T_map_key = np.stack([exp_se3(np.array([0, 0, 0, x, 0, 0.0])) for x in (0.5, 1.5, 11.5, 12.5)])
+    # Keyframe 2 (x 11.5) matched keyframe 0's view as if it stood 2 cm from keyframe 0 (x 0.52).
+    look_alike = Loop(0, 2, 0, 20, "appearance", 90, 80, 0.005, 0.004, 0.1,
+                      T_a_b=exp_se3(np.array([0, 0, 0, 0.02, 0, 0.0])), covariance=np.eye(6) * 1e-6, status="verified")
+    revisit = Loop(1, 3, 5, 25, "proximity", 90, 80, 0.005, 0.004, 0.1, T_a_b=inv_T(T_map_key[1]) @ T_map_key[3],
+                   covariance=np.eye(6) * 1e-6, status="verified")
+    assert refuse_look_alikes([look_alike, revisit], T_map_key, LoopSettings(drift_per_m=0.0)) == 1
+    folder = MapFolder(tmp_path)
+    save_edges(folder.edges, [], [look_alike, revisit], [])
+    offsets = look_alike_offsets(folder, T_map_key)
+    assert [round(T[0, 3], 6) for T in offsets] == [-10.98, 10.98]
+    assert look_alike_offsets(MapFolder(tmp_path / "no map"), T_map_key) == []
+
+    relocaliser = _Answers([_found(0.0)])  # no rival met
+    relocaliser.field, relocaliser.look_alike_offsets = _TwinRooms(), offsets
+    placement = MapPlacement(relocaliser, PlacementSettings(confirmations=1, confirm_travel_m=0.5))
+    assert placement.propose(0, 0, None, np.eye(4)) is not None
+    K = Intrinsics(80.0, 80.0, 80.0, 60.0, 160, 120)
+    verdicts = []
+    for k, x in enumerate((0.2, 0.6, 1.2)):
+        T = exp_se3(np.array([0, 0, 0, x, 0, 0.0]))
+        frame = RGBDFrame(np.zeros((120, 160, 3), np.uint8), _TwinRooms().render(T, K).depth_m, K)
+        verdicts.append(placement.confirm(k + 1, k + 1, _Correction(T), T, frame))
+    # The travel is there at 0.6 m, but only the doorway (x >= 1) rules out the place 11 m on.
+    assert verdicts == ["agrees", "agrees", "confirmed"]
+
+
 def test_a_survey_loop_between_twin_rooms_is_refused_and_a_revisit_kept():
     """Keyframes every 0.1 m along a 12 m walk. A revisit after 6 m of walking that the
     odometry put 20 cm off (it drifted) is kept; a loop between twin rooms 5.7 m apart, which

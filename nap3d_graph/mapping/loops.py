@@ -36,7 +36,7 @@ from .retrieval import similarities
 from .verification import Verification, worst_sigmas
 
 __all__ = ["Keyframe", "Loop", "LoopSettings", "as_view", "candidates", "verify", "verify_pair", "consecutive_edges",
-           "save_edges", "load_edges", "write_loops_csv", "refuse_look_alikes", "verify_on_pool", "verify_chunk", "verified_loop",
+           "save_edges", "load_edges", "write_loops_csv", "refuse_look_alikes", "LOOK_ALIKE_REASON", "verify_on_pool", "verify_chunk", "verified_loop",
            "POOL_MIN_PAIRS"]
 
 log = logging.getLogger(__name__)
@@ -255,6 +255,11 @@ def verify_on_pool(keyframes: list[Keyframe], pairs: list[tuple[int, int, str]],
     return [loop for k in range(len(handles)) for loop in results[k]]
 
 
+#: How a loop refused as a look-alike place begins its reason (``edges.npz`` keeps it: a run's
+#: placement reads the map's look-alike pairs back from there).
+LOOK_ALIKE_REASON = "look-alike place"
+
+
 def refuse_look_alikes(loops: list[Loop], T_odom_key: np.ndarray, settings: LoopSettings) -> int:
     """Refuse each verified loop whose measured ``T_a_b`` puts keyframe b further from where
     the odometry ``T_odom_key`` (K, 4, 4) puts it (seen from a) than ``max_jump_m`` plus
@@ -272,7 +277,7 @@ def refuse_look_alikes(loops: list[Loop], T_odom_key: np.ndarray, settings: Loop
         allowed = settings.max_jump_m + settings.drift_per_m * abs(walked[loop.b] - walked[loop.a])
         if jump > allowed:
             loop.status = "refused"
-            loop.reason = (f"look-alike place: the loop moves keyframe b {jump:.2f} m from where the odometry puts it "
+            loop.reason = (f"{LOOK_ALIKE_REASON}: the loop moves keyframe b {jump:.2f} m from where the odometry puts it "
                            f"(> {allowed:.2f} m it can have drifted)")
             refused += 1
     return refused

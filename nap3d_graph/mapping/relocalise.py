@@ -45,7 +45,7 @@ from nap3d_graph.nap3d.matching import Features, detect_features
 from nap3d_graph.nap3d.rolling_shutter import at_one_instant
 
 from .folder import MapFolder, load_map_info
-from .loops import Keyframe, verify_pair
+from .loops import LOOK_ALIKE_REASON, Keyframe, verify_pair
 from .retrieval import Vocabulary, shared_matches, similarities, vlad
 from .verification import Verification, worst_sigmas
 
@@ -312,6 +312,9 @@ class Relocaliser:
         #: Whether the map repeats itself: its survey found look-alike places a room apart (loops
         #: refused against its odometry); None when the map does not say (made without a loop stage).
         self.look_alikes = _look_alikes(folder)
+        #: The map-frame moves (4, 4) from a place to its look-alike that its survey met
+        #: (:func:`look_alike_offsets`): a start is placed only once it has ruled them out.
+        self.look_alike_offsets = look_alike_offsets(folder, self.T_map_key)
         self.field = field_obj
         # The capture timing the map's field recorded: what a frame given its twist is aligned with.
         self.timing, _ = resolve_capture_timing(field_obj)
@@ -542,6 +545,33 @@ def _look_alikes(folder: MapFolder) -> bool | None:
     except (OSError, ValueError, KeyError, TypeError):
         return None
     return None if count is None else bool(count)
+
+
+def add_look_alike(offsets: list[np.ndarray], offset: np.ndarray) -> None:
+    """Add the map-frame move ``offset`` (4, 4) from a place to its look-alike to ``offsets``,
+    both ways, unless one within a metre is there already (one per look-alike pair: answers a
+    few centimetres apart are the same move)."""
+    for T in (np.asarray(offset, dtype=float), inv_T(offset)):
+        if all(np.linalg.norm(T[:3, 3] - known[:3, 3]) > 1.0 for known in offsets):
+            offsets.append(T)
+
+
+def look_alike_offsets(folder: MapFolder, T_map_key: np.ndarray) -> list[np.ndarray]:
+    """The moves between look-alike places the map's survey met (:func:`add_look_alike`): a
+    loop refused as a look-alike place matched keyframe b's view to keyframe a's as if b stood
+    at ``T_map_a @ T_a_b``, so ``T_map_a @ T_a_b @ inv(T_map_b)`` moves b's place to where
+    it looks the same. ``T_map_key`` (K, 4, 4): the map's keyframe poses. [] when the map keeps
+    no loops (``edges.npz``) or met no look-alike."""
+    try:
+        with np.load(folder.edges) as data:
+            pairs, T_a_b, text = data["loop_abij"][:, :2], data["loop_T"], data["loop_text"]
+    except (OSError, KeyError, ValueError):
+        return []
+    offsets: list[np.ndarray] = []
+    for (a, b), T, (_, status, reason) in zip(pairs, T_a_b, text):
+        if status == "refused" and str(reason).startswith(LOOK_ALIKE_REASON) and max(a, b) < len(T_map_key):
+            add_look_alike(offsets, T_map_key[a] @ T @ inv_T(T_map_key[b]))
+    return offsets
 
 
 def pose_gap(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:

@@ -46,7 +46,7 @@ from nap3d_graph.fields import resolve_field
 from nap3d_graph.nap3d.config import AlignConfig
 from nap3d_graph.nap3d.correct import at_width
 
-from .relocalise import Relocalisation, Relocaliser
+from .relocalise import Relocalisation, Relocaliser, add_look_alike
 from .verification import DEPTH_DISAGREEMENT_BAD, depth_disagreement
 
 __all__ = ["PlacementSettings", "Candidate", "MapPlacement", "map_relocaliser"]
@@ -118,7 +118,9 @@ class MapPlacement:
     """Where a run stands in a map: ``placed`` once a candidate was confirmed (``T_map_run``
     then says how its provisional frame moved into the map's), the pending ``candidate``,
     ``look_alike_offsets``: (4, 4) map-frame moves from a place to a look-alike, one each way
-    for every rival met, and ``events``: every attempt and its outcome (metrics.json's record)."""
+    for every look-alike pair the map's survey met (:func:`~.relocalise.look_alike_offsets`) and
+    every rival a relocalisation met, and ``events``: every attempt and its outcome
+    (metrics.json's record)."""
 
     def __init__(self, relocaliser, settings: PlacementSettings | None = None, placed: bool = False):
         self.relocaliser = relocaliser
@@ -127,7 +129,10 @@ class MapPlacement:
         self.T_map_run: np.ndarray | None = np.eye(4) if placed else None
         self.placed_at: int | None = None
         self.candidate: Candidate | None = None
-        self.look_alike_offsets: list[np.ndarray] = []
+        # The look-alikes the map's survey met, ruled out before any start is placed (not only
+        # after a relocalisation met a rival: a start in a twin room first verified in the twin
+        # alone, with no rival, agreed there over 0.997 m of the 1 m asked).
+        self.look_alike_offsets: list[np.ndarray] = [T.copy() for T in getattr(relocaliser, "look_alike_offsets", ())]
         self.events: list[dict] = []
 
     # --- the steps -------------------------------------------------------------------------
@@ -263,10 +268,7 @@ class MapPlacement:
         """Each rival of ``found`` as a look-alike offset, both ways (one per look-alike pair:
         answers a few centimetres apart are the same offset)."""
         for rival in found.rivals:
-            offset = np.asarray(rival["T_map_cam"]) @ inv_T(found.T_map_cam)
-            for T in (offset, inv_T(offset)):
-                if all(np.linalg.norm(T[:3, 3] - known[:3, 3]) > 1.0 for known in self.look_alike_offsets):
-                    self.look_alike_offsets.append(T)
+            add_look_alike(self.look_alike_offsets, np.asarray(rival["T_map_cam"]) @ inv_T(found.T_map_cam))
 
     def _tells_apart(self, cand: Candidate, small, T_map_cam: np.ndarray, event: dict) -> bool:
         """Whether every look-alike of the candidate is ruled out once the keyframe ``small``
