@@ -50,7 +50,7 @@ from .retrieval import Vocabulary, shared_matches, similarities, vlad
 from .verification import Verification, worst_sigmas
 
 __all__ = ["KeptFeatures", "KeptFrames", "Relocalisation", "Relocaliser", "RelocaliseSettings", "save_keyframe_frames",
-           "write_keyframe_frames", "load_keyframe_frames", "pose_gap"]
+           "write_keyframe_frames", "load_keyframe_frames", "pose_gap", "add_look_alike", "look_alike_offsets"]
 
 log = logging.getLogger(__name__)
 
