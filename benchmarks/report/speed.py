@@ -324,7 +324,7 @@ SECTIONS: list[Section] = [
         odometry_table,
         "Profile rows time one step on one thread, stage by stage; vo_fr1_desk rows are whole runs of the odometry "
         "alone with its drift. Since commit 5def546 a VO step on few inliers has its translation fused with the "
-        "depth's own step (4 of this half's 138 steps; before, ATE 7.89 cm, final 5.05): that it fuses the "
+        "depth's own step (the file's version before commit ae45104 has the odometry without it): that it fuses the "
         "translation only was chosen looking at this half's steps, so this half is tuning data for it.",
     ),
     Section(
