@@ -166,21 +166,29 @@ class _TwinRooms:
         return SimpleNamespace(depth_m=depth, opacity=np.full(shape, float(0.0 <= x < 20.0), np.float32))
 
 
-def test_after_a_rival_a_start_is_placed_only_once_the_camera_tells_the_look_alikes_apart():
+def _walk_to_the_doorway(placement: MapPlacement, first_key: int) -> list[str]:
+    """Confirm the pending candidate with keyframes at x 0.2, 0.6 and 1.2 m of :class:`_TwinRooms`
+    (keys from ``first_key``), each corrected where it stands: the doorway comes into view at
+    x 1 m. Returns the verdicts."""
     from nap3d_graph.camera import Intrinsics, RGBDFrame
 
+    K = Intrinsics(80.0, 80.0, 80.0, 60.0, 160, 120)
+    verdicts = []
+    for k, x in enumerate((0.2, 0.6, 1.2), start=first_key):
+        T = exp_se3(np.array([0, 0, 0, x, 0, 0.0]))
+        frame = RGBDFrame(np.zeros((120, 160, 3), np.uint8), _TwinRooms().render(T, K).depth_m, K)
+        verdicts.append(placement.confirm(k, k, _Correction(T), T, frame))
+    return verdicts
+
+
+def test_after_a_rival_a_start_is_placed_only_once_the_camera_tells_the_look_alikes_apart():
     relocaliser = _Answers([_found(1.0, [12.0]), _found(0.0)])
     relocaliser.field = _TwinRooms()
     placement = MapPlacement(relocaliser, PlacementSettings(confirmations=1, confirm_travel_m=0.5))
     assert placement.propose(0, 0, None, np.eye(4)) is None  # ambiguous: 11 m apart
     assert [round(T[0, 3], 6) for T in placement.look_alike_offsets] == [11.0, -11.0]
     assert placement.propose(1, 1, None, np.eye(4)) is not None  # no rival this time: a candidate
-    K = Intrinsics(80.0, 80.0, 80.0, 60.0, 160, 120)
-    verdicts = []
-    for k, x in enumerate((0.2, 0.6, 1.2)):
-        T = exp_se3(np.array([0, 0, 0, x, 0, 0.0]))
-        frame = RGBDFrame(np.zeros((120, 160, 3), np.uint8), _TwinRooms().render(T, K).depth_m, K)
-        verdicts.append(placement.confirm(k + 2, k + 2, _Correction(T), T, frame))
+    verdicts = _walk_to_the_doorway(placement, first_key=2)
     # 0.6 m of travel is enough, but both places explain the wall; the doorway tells them apart.
     assert verdicts == ["agrees", "agrees", "confirmed"]
     confirms = [e for e in placement.events if e["step"] == "confirm"]
@@ -192,7 +200,6 @@ def test_the_look_alikes_a_survey_met_are_ruled_out_before_a_start_with_no_rival
     place (its odometry could not have drifted so far): the map keeps that pair, and a start
     whose first answer met no rival (the twin alone verified, or the right room alone) is still
     placed only once the camera tells the two places apart, as after a rival."""
-    from nap3d_graph.camera import Intrinsics, RGBDFrame
     from nap3d_graph.mapping.folder import MapFolder
     from nap3d_graph.mapping.loops import Loop, LoopSettings, refuse_look_alikes, save_edges
     from nap3d_graph.mapping.relocalise import look_alike_offsets
@@ -214,12 +221,7 @@ def test_the_look_alikes_a_survey_met_are_ruled_out_before_a_start_with_no_rival
     relocaliser.field, relocaliser.look_alike_offsets = _TwinRooms(), offsets
     placement = MapPlacement(relocaliser, PlacementSettings(confirmations=1, confirm_travel_m=0.5))
     assert placement.propose(0, 0, None, np.eye(4)) is not None
-    K = Intrinsics(80.0, 80.0, 80.0, 60.0, 160, 120)
-    verdicts = []
-    for k, x in enumerate((0.2, 0.6, 1.2)):
-        T = exp_se3(np.array([0, 0, 0, x, 0, 0.0]))
-        frame = RGBDFrame(np.zeros((120, 160, 3), np.uint8), _TwinRooms().render(T, K).depth_m, K)
-        verdicts.append(placement.confirm(k + 1, k + 1, _Correction(T), T, frame))
+    verdicts = _walk_to_the_doorway(placement, first_key=1)
     # The travel is there at 0.6 m, but only the doorway (x >= 1) rules out the place 11 m on.
     assert verdicts == ["agrees", "agrees", "confirmed"]
 

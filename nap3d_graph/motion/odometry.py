@@ -266,10 +266,7 @@ class VisualOdometry:
         """A step the features could not measure: by the depths alone where they agree
         (:func:`~.depth_step.depth_step`, the constant-velocity guess holding what they cannot
         see), else the guess. Either way ``ok`` is False: part of the step is guessed."""
-        t0 = time.perf_counter()
-        step = (depth_step(prev.depth_m, prev.intrinsics, frame.depth_m, frame.intrinsics, self._steady_guess())
-                if self.depth_fallback else None)
-        timings["depth_step"] = time.perf_counter() - t0
+        step = self._depth_step(prev, frame, timings) if self.depth_fallback else None
         if step is None:
             log.info("VO failed at frame %d (%s); constant-velocity guess", i, reason)
             return Increment(self._last_good.copy(), self._fallback_cov, False, reason, timings)
@@ -278,6 +275,14 @@ class VisualOdometry:
         # The guess stays the last step the features measured: a depth step's unseen directions
         # are that guess already, and chaining them would let their noise wander step by step.
         return Increment(step.T_prev_cur, step.covariance, False, f"{reason}; stepped by depth alone", timings)
+
+    def _depth_step(self, prev: RGBDFrame, frame: RGBDFrame, timings: dict):
+        """The step from ``prev`` to ``frame`` by their depths under the constant-velocity guess
+        (:func:`~.depth_step.depth_step`; None where they do not agree), timed into ``timings``."""
+        t0 = time.perf_counter()
+        step = depth_step(prev.depth_m, prev.intrinsics, frame.depth_m, frame.intrinsics, self._steady_guess())
+        timings["depth_step"] = time.perf_counter() - t0
+        return step
 
     def _with_depth(self, prev: RGBDFrame, frame: RGBDFrame, T_prev_cur: np.ndarray, covariance: np.ndarray,
                     timings: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -296,9 +301,7 @@ class VisualOdometry:
         surveys, and a map's pose graph that trusted it bent its loops to it (a survey across a
         loss of the camera 2.9 cm off instead of under 1); the fused mean is the better guess
         where nothing else measures the step, and where loops or corrections do, they move it."""
-        t0 = time.perf_counter()
-        step = depth_step(prev.depth_m, prev.intrinsics, frame.depth_m, frame.intrinsics, self._steady_guess())
-        timings["depth_step"] = time.perf_counter() - t0
+        step = self._depth_step(prev, frame, timings)
         if step is None:
             return T_prev_cur, covariance
         # The rotation stays the features': on fr1/desk's fast half the depth steps' tilts were
