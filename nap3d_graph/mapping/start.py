@@ -49,7 +49,7 @@ from nap3d_graph.nap3d.correct import at_width
 from .relocalise import Relocalisation, Relocaliser, add_look_alike
 from .verification import DEPTH_DISAGREEMENT_BAD, depth_disagreement
 
-__all__ = ["PlacementSettings", "Candidate", "MapPlacement", "map_relocaliser"]
+__all__ = ["PlacementSettings", "Candidate", "Measured", "MapPlacement", "map_relocaliser"]
 
 #: Width in pixels at which a confirming keyframe's depth is checked against the field (a check of
 #: the frame's layout, not of its detail).
@@ -114,13 +114,29 @@ class Candidate:
     unmeasured: int = 0
 
 
+@dataclass(frozen=True)
+class Measured:
+    """A keyframe's pose in the map measured while the run was not yet placed (a relocalisation,
+    or a correction rendered where some candidate put it): ``frame``/``key`` (frame index, graph
+    key), ``T_map_cams``: (4, 4) poses it may be (a relocalisation's answer and its rivals: which
+    one is right is known only once the run is placed), ``covariance`` (6, 6, GTSAM order),
+    ``inliers``."""
+
+    frame: int
+    key: int
+    T_map_cams: tuple
+    covariance: np.ndarray
+    inliers: int
+
+
 class MapPlacement:
     """Where a run stands in a map: ``placed`` once a candidate was confirmed (``T_map_run``
     then says how its provisional frame moved into the map's), the pending ``candidate``,
     ``look_alike_offsets``: (4, 4) map-frame moves from a place to a look-alike, one each way
     for every look-alike pair the map's survey met (:func:`~.relocalise.look_alike_offsets`) and
-    every rival a relocalisation met, and ``events``: every attempt and its outcome
-    (metrics.json's record)."""
+    every rival a relocalisation met, ``measured``: the keyframes' poses measured before the
+    run was placed (:class:`Measured`; what :meth:`earlier` gives the placed run), and ``events``:
+    every attempt and its outcome (metrics.json's record)."""
 
     def __init__(self, relocaliser, settings: PlacementSettings | None = None, placed: bool = False):
         self.relocaliser = relocaliser
@@ -133,6 +149,7 @@ class MapPlacement:
         # after a relocalisation met a rival: a start in a twin room first verified in the twin
         # alone, with no rival, agreed there over 0.997 m of the 1 m asked).
         self.look_alike_offsets: list[np.ndarray] = [T.copy() for T in getattr(relocaliser, "look_alike_offsets", ())]
+        self.measured: list[Measured] = []
         self.events: list[dict] = []
 
     # --- the steps -------------------------------------------------------------------------
@@ -157,6 +174,10 @@ class MapPlacement:
         event.update(keyframe=int(found.keyframe), inliers=int(found.inliers), agreeing=int(found.agreeing),
                      sigma_m=round(float(found.sigma_m), 4), sigma_deg=round(float(found.sigma_deg), 3),
                      at_m=np.round(found.T_map_cam[:3, 3], 3).tolist())
+        if not self.placed:  # ambiguous or not, it measured the keyframe at one of these places
+            poses = (found.T_map_cam, *(np.asarray(r["T_map_cam"]) for r in found.rivals))
+            self.measured.append(Measured(int(i), int(key), tuple(np.array(T) for T in poses),
+                                          np.asarray(found.covariance, dtype=float), int(found.inliers)))
         refusal = self._placed_answer(found, T_run_cam) if self.placed else self._unique(found)
         if refusal:
             event.update(success=False, reason=refusal)
@@ -232,6 +253,10 @@ class MapPlacement:
             moved_m, moved_deg = pose_error(correction.T_world_cam_corrected, T_map_cam_pred)
             event.update(moved_m=round(float(moved_m), 4), moved_deg=round(float(moved_deg), 3),
                          inliers=int(correction.num_inliers))
+            if not self.placed and np.all(np.isfinite(correction.covariance)):
+                self.measured.append(Measured(int(i), int(key), (np.array(correction.T_world_cam_corrected),),
+                                              np.asarray(correction.covariance, dtype=float),
+                                              int(correction.num_inliers)))
             travel_m = float(np.linalg.norm(T_map_cam_pred[:3, 3] - cand.found.T_map_cam[:3, 3]))
             event["travel_m"] = round(travel_m, 3)
             if moved_m <= s.agree_m and moved_deg <= s.agree_deg:
@@ -309,6 +334,20 @@ class MapPlacement:
         self.events.append({"frame": int(i), "step": "placed", "candidate_frame": cand.frame,
                             "confirmed_by": [c[0] for c in cand.confirmed]})
         return cand
+
+    def earlier(self, cand: Candidate) -> list[Measured]:
+        """What the run measured before ``cand`` placed it (relocalisations and corrections of
+        candidates dropped on the way), less the keyframes ``cand`` itself carries: once the
+        run is placed, those that agree with where the placement puts their keyframe measure
+        its poses before the placement as well (:class:`~nap3d_graph.run.recovery.MapRecovery`)."""
+        carried = {cand.key, *(key for _, key, _ in cand.confirmed)}
+        return [m for m in self.measured if m.key not in carried]
+
+    def note_earlier(self, i: int, frames: list[int], tried: int) -> None:
+        """Record that at keyframe ``i`` the measurements of ``frames`` (of ``tried`` keyframes
+        measured before the placement) joined the run's graph."""
+        self.events.append({"frame": int(i), "step": "earlier", "added_frames": [int(f) for f in frames],
+                            "tried": int(tried)})
 
     # --- what it says ----------------------------------------------------------------------
 

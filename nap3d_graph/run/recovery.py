@@ -15,7 +15,7 @@ import logging
 import numpy as np
 
 from nap3d_graph.conventions import pose_error
-from nap3d_graph.mapping.start import MapPlacement
+from nap3d_graph.mapping.start import MapPlacement, Measured
 from nap3d_graph.nap3d.keyframe import measure_keyframe
 from nap3d_graph.results import Alignment, Correction
 from nap3d_graph.run.records import KeyframeRecord
@@ -111,7 +111,8 @@ class MapRecovery:
     def _place(self, record: KeyframeRecord, i: int) -> None:
         """The pending candidate is confirmed at keyframe i: at the start, everything so far
         moves into the map's frame (:meth:`_reframe`); then the relocalisation and each
-        confirming correction enter the graph past the gate."""
+        confirming correction enter the graph past the gate, and at the start what was measured
+        before and agrees with them (:meth:`_add_earlier`)."""
         run, placement = self.run, self.placement
         assert placement is not None
         first = not placement.placed
@@ -119,8 +120,7 @@ class MapRecovery:
         if first:
             self._reframe(cand.T_map_run)
         found = cand.found
-        alignment = Alignment(success=True, num_inliers=int(found.inliers), covariance=found.covariance)
-        relocalised = Correction(found.T_map_cam, found.T_map_cam, found.covariance, alignment, 1, True, "", {})
+        relocalised = _measured_pose(found.T_map_cam, found.covariance, int(found.inliers))
         T_pred = run.T_world_kf_pred
         for frame_index, key, correction in [(cand.frame, cand.key, relocalised), *cand.confirmed]:
             if not run.graph.has(key) and key != record.key:
@@ -130,6 +130,8 @@ class MapRecovery:
             except ValueError as exc:  # a covariance GTSAM cannot use: that one stays out
                 log.warning("frame %d: relocalisation not usable (%s)", frame_index, exc)
         run.update_graph(extra_step=True, record=record)
+        if first and self._add_earlier(i, placement.earlier(cand)):
+            run.update_graph(extra_step=True, record=record)
         last = cand.confirmed[-1][2] if cand.confirmed else relocalised
         record.correction_m, record.correction_deg = pose_error(last.T_world_cam_corrected, T_pred)
         record.accepted = True
@@ -140,6 +142,37 @@ class MapRecovery:
         else:
             self._recovered(i, cand, found, T_pred, run.graph.pose(record.key))
         self.refused_in_a_row = 0
+
+    def _add_earlier(self, i: int, earlier: list[Measured]) -> int:
+        """The keyframes measured before the start's placement at keyframe i (``earlier``:
+        relocalisations, ambiguous ones too, and corrections of dropped candidates) enter the
+        graph where they agree with it: of each keyframe's measured poses the one nearest where
+        the placed graph puts it, within the placement's agreement radius (``agree_m`` /
+        ``agree_deg``). Without them the poses before the placement hang on the odometry from
+        the placed keyframe alone. A look-alike room's answer is metres away and stays out.
+        Returns how many keyframes were added."""
+        run, placement = self.run, self.placement
+        assert placement is not None
+        settings = placement.settings
+        nearest: dict[int, tuple[float, Measured, np.ndarray]] = {}
+        for m in earlier:
+            if not run.graph.has(m.key):
+                continue
+            T_est = run.graph.pose(m.key)
+            for T in m.T_map_cams:
+                moved_m, moved_deg = pose_error(T, T_est)
+                if (moved_m <= settings.agree_m and moved_deg <= settings.agree_deg
+                        and moved_m < nearest.get(m.key, (np.inf,))[0]):
+                    nearest[m.key] = (moved_m, m, T)
+        added = []
+        for _, m, T in nearest.values():
+            try:
+                run.graph.add_past_gate(m.key, _measured_pose(T, m.covariance, m.inliers), m.frame)
+                added.append(m.frame)
+            except ValueError as exc:  # a covariance GTSAM cannot use: that one stays out
+                log.warning("frame %d: earlier measurement not usable (%s)", m.frame, exc)
+        placement.note_earlier(i, sorted(added), len({m.key for m in earlier}))
+        return len(added)
 
     def _recovered(self, i: int, cand, found, T_pred: np.ndarray, T_now: np.ndarray) -> None:
         """Record and say a recovery confirmed at keyframe i (the estimate jumped from
@@ -161,3 +194,10 @@ class MapRecovery:
         run.online = run.online.mapped(lambda T_run_cam: T @ T_run_cam)
         run.T_world_kf_pred = T @ run.T_world_kf_pred
         run.graph = run.graph.reframed(T)
+
+
+def _measured_pose(T_map_cam: np.ndarray, covariance: np.ndarray, inliers: int) -> Correction:
+    """A pose found in the map (a relocalisation, (4, 4) ``T_map_cam`` with its (6, 6)
+    ``covariance``) as the correction the graph takes."""
+    alignment = Alignment(success=True, num_inliers=inliers, covariance=covariance)
+    return Correction(T_map_cam, T_map_cam, covariance, alignment, 1, True, "", {})
