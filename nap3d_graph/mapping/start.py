@@ -365,8 +365,11 @@ class MapPlacement:
     def describe(self) -> str:
         """One line for the user."""
         if self.placed_at is not None:
+            earlier = next((e for e in self.events if e["step"] == "earlier"), None)
+            measured = (f", {len(earlier['added_frames'])} of the {earlier['tried']} keyframes measured before it "
+                        "agreeing and correcting them" if earlier and earlier["tried"] else "")
             return (f"placed in the map at frame {self.placed_at} after {self.attempts()} relocalisation attempt(s); "
-                    "every pose before it moved into the map's frame with it")
+                    f"every pose before it moved into the map's frame with it{measured}")
         if self.placed:
             return "started at a given pose in the map"
         return (f"never placed in the map ({self.attempts()} relocalisation attempt(s), none confirmed): the run's "

@@ -146,31 +146,23 @@ class MapRecovery:
     def _add_earlier(self, i: int, earlier: list[Measured]) -> int:
         """The keyframes measured before the start's placement at keyframe i (``earlier``:
         relocalisations, ambiguous ones too, and corrections of dropped candidates) enter the
-        graph where they agree with it: of each keyframe's measured poses the one nearest where
-        the placed graph puts it, within the placement's agreement radius (``agree_m`` /
-        ``agree_deg``). Without them the poses before the placement hang on the odometry from
-        the placed keyframe alone. A look-alike room's answer is metres away and stays out.
+        graph as corrections do, through the gate against the placed graph: of each keyframe's
+        measured poses the one nearest where the graph puts it, when within ``max_jump_m`` (a
+        look-alike room's answer is metres away and stays out altogether). Without them the
+        poses before the placement hang on the odometry from the placed keyframe alone.
         Returns how many keyframes were added."""
         run, placement = self.run, self.placement
         assert placement is not None
-        settings = placement.settings
         nearest: dict[int, tuple[float, Measured, np.ndarray]] = {}
         for m in earlier:
             if not run.graph.has(m.key):
                 continue
-            T_est = run.graph.pose(m.key)
-            for T in m.T_map_cams:
-                moved_m, moved_deg = pose_error(T, T_est)
-                if (moved_m <= settings.agree_m and moved_deg <= settings.agree_deg
-                        and moved_m < nearest.get(m.key, (np.inf,))[0]):
-                    nearest[m.key] = (moved_m, m, T)
-        added = []
-        for _, m, T in nearest.values():
-            try:
-                run.graph.add_past_gate(m.key, _measured_pose(T, m.covariance, m.inliers), m.frame)
-                added.append(m.frame)
-            except ValueError as exc:  # a covariance GTSAM cannot use: that one stays out
-                log.warning("frame %d: earlier measurement not usable (%s)", m.frame, exc)
+            p_est = run.graph.pose(m.key)[:3, 3]
+            jump_m, T = min(((float(np.linalg.norm(T[:3, 3] - p_est)), T) for T in m.T_map_cams), key=lambda o: o[0])
+            if jump_m <= placement.settings.max_jump_m and jump_m < nearest.get(m.key, (np.inf,))[0]:
+                nearest[m.key] = (jump_m, m, T)
+        added = [m.frame for _, m, T in nearest.values()
+                 if run.graph.gated_correction(m.key, _measured_pose(T, m.covariance, m.inliers), m.frame)[0] is not None]
         placement.note_earlier(i, sorted(added), len({m.key for m in earlier}))
         return len(added)
 
