@@ -153,6 +153,8 @@ class MapRecovery:
         Returns how many keyframes were added."""
         run, placement = self.run, self.placement
         assert placement is not None
+        if not earlier:
+            return 0
         nearest: dict[int, tuple[float, Measured, np.ndarray]] = {}
         for m in earlier:
             if not run.graph.has(m.key):
