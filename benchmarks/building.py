@@ -267,8 +267,30 @@ def _traverse_run(traverse, map_dir: Path, run_dir: Path, log: Path) -> dict:
     row.update(ate_m=((metrics["estimate"].get("ate_m") or {}).get("rmse")),
                odometry_ate_m=((metrics["odometry"].get("ate_m") or {}).get("rmse")),
                max_error_m=((metrics["estimate"].get("ate_m") or {}).get("max")),
-               placed_at_frame=placement.get("placed_at_frame"), accepted=metrics.get("corrections_accepted"))
+               placed_at_frame=placement.get("placed_at_frame"), accepted=metrics.get("corrections_accepted"),
+               **_ate_around_placement(run_dir / "latest", placement.get("placed_at_frame")))
     return row
+
+
+def _ate_around_placement(run: Path, placed_at: int | None) -> dict:
+    """The run's ATE (m, against its tied ground truth, ``groundtruth.txt``) over the frames
+    before its placement and from it on: the first hang on what the run measured before it
+    was placed, the others on the corrections."""
+    from nap3d_graph.trajectory import read_tum_trajectory
+
+    if placed_at is None:
+        return {}
+    stamps_gt, T_gt = read_tum_trajectory(run / "groundtruth.txt")
+    stamps, T_est = read_tum_trajectory(run / "estimate.txt")
+    row_of = {round(float(t), 6): k for k, t in enumerate(stamps)}
+    pairs = [(row_of[round(float(t), 6)], j) for j, t in enumerate(stamps_gt) if round(float(t), 6) in row_of]
+    errors = np.array([np.linalg.norm(T_est[k][:3, 3] - T_gt[j][:3, 3]) for k, j in pairs])
+    before = np.array([k < placed_at for k, _ in pairs])
+
+    def rmse(e: np.ndarray):
+        return round(float(np.sqrt(np.mean(e**2))), 4) if e.size else None
+
+    return {"ate_before_placement_m": rmse(errors[before]), "ate_from_placement_m": rmse(errors[~before])}
 
 
 def _map_row(args, floor, survey, map_dir: Path, log: Path) -> dict:

@@ -89,9 +89,11 @@ def floor_map_table() -> str:
         psnr = ", ".join(f"{room}: {v['median_db']:.1f} ({v['frames']})"
                          for room, v in (m.get("held_out_psnr_per_room") or {}).items())
         wrong_room = (run.get("max_error_m") or 0.0) >= WRONG_ROOM_M
+        around = (f" (ATE before it {cm(run['ate_before_placement_m'])}, from it on {cm(run['ate_from_placement_m'])})"
+                  if run.get("ate_from_placement_m") is not None else "")
         crossed = (f"{'**off by metres**: ' if wrong_room else ''}{cm(run.get('ate_m'))} "
                    f"({cm(run.get('max_error_m'))}), {cm(run.get('odometry_ate_m'))}; "
-                   f"{run.get('placed_at_frame')}" if run.get("placed_at_frame") is not None
+                   f"{run.get('placed_at_frame')}{around}" if run.get("placed_at_frame") is not None
                    else f"**never placed** in its {f['traverse_frames']} frames ({f['traverse_m']:.1f} m): no tied ATE")
         kept = f" ({m['kept_frames']} kept)" if m.get("kept_frames") is not None else ""
         rows.append(f"| {rooms} | {f['survey_frames']}{kept} | {cm(m.get('survey_ate_m'))} | "
