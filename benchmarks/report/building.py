@@ -170,7 +170,10 @@ SECTIONS = [
             note="Drifting odometry of the simulator, the exact field. 'In the twin' is a placement 10 m or more "
                  "from the truth: every pose of that run is in the wrong room. 'After' is the defaults with the "
                  "look-alike rule of 61e669b (after a rival, placed only once a keyframe rules out the rival's "
-                 "place)."),
+                 "place). ATE over every frame of the run, those before its placement too: since commit 788e5fb "
+                 "what the run measured before it was placed (its ambiguous relocalisations' answer or rival "
+                 "where the placed graph puts the keyframe) joins the graph once it is placed; before, the poses "
+                 "before the placement hung on the odometry from the placed keyframe (this file's history)."),
     Section("A floor of a building, the field stage side by side: the 3-room floor's submap fields (its survey at its "
             "true poses, fixed steps) trained one after another, on 2 processes and as 2 Ray tasks, on two cores",
             (WORKERS_FILE,), "python benchmarks/building.py --part workers --rooms 3 --frames-per-room 150 --out ...",
