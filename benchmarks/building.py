@@ -282,10 +282,10 @@ def _ate_around_placement(run: Path, placed_at: int | None) -> dict:
         return {}
     stamps_gt, T_gt = read_tum_trajectory(run / "groundtruth.txt")
     stamps, T_est = read_tum_trajectory(run / "estimate.txt")
-    row_of = {round(float(t), 6): k for k, t in enumerate(stamps)}
-    pairs = [(row_of[round(float(t), 6)], j) for j, t in enumerate(stamps_gt) if round(float(t), 6) in row_of]
-    errors = np.array([np.linalg.norm(T_est[k][:3, 3] - T_gt[j][:3, 3]) for k, j in pairs])
-    before = np.array([k < placed_at for k, _ in pairs])
+    # The frames with ground truth: estimate rows k (the run's frame indices), ground-truth rows j.
+    _, k, j = np.intersect1d(np.round(stamps, 6), np.round(stamps_gt, 6), return_indices=True)
+    errors = np.linalg.norm(T_est[k, :3, 3] - T_gt[j, :3, 3], axis=1)
+    before = k < placed_at
 
     def rmse(e: np.ndarray):
         return round(float(np.sqrt(np.mean(e**2))), 4) if e.size else None
