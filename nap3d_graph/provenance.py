@@ -1,10 +1,13 @@
 """Where a result came from, written into each result file: the commit of the code (with
-``+dirty`` when the tree had changes; None outside a git checkout), the command as the
+``+dirty`` when the tree had changes; outside a git checkout, the commit named by
+``NAP3D_GRAPH_COMMIT`` for a copy of a checkout made without its ``.git`` (as a lent GPU
+machine receives it), else None), the command as the
 process was started, the settings it ran with, and when (UTC). The results page
 (``benchmarks/tables.py``) shows them beside each figure."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import time
@@ -50,5 +53,7 @@ def provenance(settings: dict | None = None) -> dict:
     commit = _git("rev-parse", "--short=12", "HEAD")
     if commit and _git("status", "--porcelain", "--untracked-files=no"):
         commit += "+dirty"
+    elif commit is None:
+        commit = os.environ.get("NAP3D_GRAPH_COMMIT") or None
     return {"commit": commit, "command": _command(), "settings": _plain(dict(settings or {})),
             "written": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}

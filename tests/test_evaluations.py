@@ -234,3 +234,17 @@ def test_survey_alignment_reports_orientation_errors_and_their_common_part():
     T_random = np.stack([T @ exp_se3(np.r_[rng.normal(size=3) * 0.02, 0.0, 0.0, 0.0]) for T in T_ref])
     scattered = aligned_errors(np.arange(50.0), T_ref, T_other_ref @ T_random).summary()
     assert scattered["rotation_median_deg"] > 1.0 and scattered["rotation_common_deg"] < 0.4
+
+
+def test_a_result_made_outside_a_checkout_names_the_commit_it_was_given(tmp_path, monkeypatch):
+    """A copy of the checkout without its .git (a lent GPU machine) records the commit named in
+    NAP3D_GRAPH_COMMIT; a git checkout records its own and ignores the variable."""
+    from nap3d_graph import provenance as prov
+
+    monkeypatch.setenv("NAP3D_GRAPH_COMMIT", "0123456789ab")
+    own = prov.provenance()["commit"]
+    assert own is not None and own.split("+")[0] != "0123456789ab"
+    monkeypatch.setattr(prov, "ROOT", tmp_path)
+    assert prov.provenance()["commit"] == "0123456789ab"
+    monkeypatch.delenv("NAP3D_GRAPH_COMMIT")
+    assert prov.provenance()["commit"] is None
