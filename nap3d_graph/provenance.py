@@ -1,8 +1,7 @@
 """Where a result came from, written into each result file: the commit of the code (with
 ``+dirty`` when the tree had changes; outside a git checkout, the commit named by
-``NAP3D_GRAPH_COMMIT`` for a copy of a checkout made without its ``.git`` (as a lent GPU
-machine receives it), else None), the command as the
-process was started, the settings it ran with, and when (UTC). The results page
+``NAP3D_GRAPH_COMMIT`` for a copy of a checkout made without its ``.git``, else None), the
+command as the process was started, the settings it ran with, and when (UTC). The results page
 (``benchmarks/tables.py``) shows them beside each figure."""
 
 from __future__ import annotations

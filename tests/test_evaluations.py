@@ -237,7 +237,7 @@ def test_survey_alignment_reports_orientation_errors_and_their_common_part():
 
 
 def test_a_result_made_outside_a_checkout_names_the_commit_it_was_given(tmp_path, monkeypatch):
-    """A copy of the checkout without its .git (a lent GPU machine) records the commit named in
+    """A copy of the checkout without its .git records the commit named in
     NAP3D_GRAPH_COMMIT; a git checkout records its own and ignores the variable."""
     from nap3d_graph import provenance as prov
 
