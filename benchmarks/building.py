@@ -386,10 +386,13 @@ def workers_part(args, work: Path) -> dict:
         fields[name] = resolve_field(str(root))
         out["pools"][name] = {"wall_s": round(seconds, 1)}
         print(f"{name}: {seconds:.0f} s")
+    def grid(f):  # a submap trained in a level frame of its own is framed: compare its grid
+        return getattr(f, "field", f)
+
     base = fields["serial"]
     for name, field in fields.items():
-        same = all(torch.equal(v, b.state_dict()[k]) for a, b in zip(field.fields, base.fields)
-                   for k, v in a.state_dict().items() if isinstance(v, torch.Tensor))
+        same = all(torch.equal(v, grid(b).state_dict()[k]) for a, b in zip(field.fields, base.fields)
+                   for k, v in grid(a).state_dict().items() if isinstance(v, torch.Tensor))
         out["pools"][name].update(same_fields_as_serial=bool(same),
                                   ratio_to_serial=round(out["pools"][name]["wall_s"] / out["pools"]["serial"]["wall_s"],
                                                         3))
