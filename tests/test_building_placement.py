@@ -267,19 +267,3 @@ def test_what_a_start_measured_before_its_candidate_is_kept_with_every_place_it_
     placement.propose(3, 13, None, exp_se3(np.array([0, 0, 0, 3.0, 0, 0.0])))
     assert [m.key for m in placement.measured] == [10, 11, 12]
 
-
-def test_rivals_are_looked_for_beyond_a_shortlist_that_holds_only_the_answers_room():
-    """The keyframes a rival is looked for among: those over rival_m from the answer, the
-    shortlist's first, then the most similar others of them across the map (a shortlist of the
-    answer's room alone left a start on the 6-room floor placed in its twin)."""
-    from nap3d_graph.mapping.relocalise import Relocaliser, RelocaliseSettings
-
-    relocaliser = Relocaliser.__new__(Relocaliser)  # the ranking alone: no map folder read
-    relocaliser.settings = RelocaliseSettings(shortlist=4, rival_m=1.0)
-    relocaliser.T_map_key = np.tile(np.eye(4), (20, 1, 1))
-    relocaliser.T_map_key[10:, 0, 3] = 10.0  # keyframes 10-19 in the twin room, 10 m along
-    order = list(range(20))  # the descriptor's order: the answer's room first
-    assert relocaliser._far_ranked(None, np.eye(4), order, ranked=list(range(6))) == [10, 11, 12, 13]
-    assert relocaliser._far_ranked(None, np.eye(4), order, ranked=[12, 0, 1]) == [12, 10, 11, 13]
-    relocaliser.T_map_key[10:, 0, 3] = 0.5  # nothing over rival_m away: no rival to look for
-    assert relocaliser._far_ranked(None, np.eye(4), order, ranked=list(range(6))) == []

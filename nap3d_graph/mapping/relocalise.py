@@ -211,12 +211,9 @@ class RelocaliseSettings:
 
     Rivals: a floor repeats itself (offices with the same furniture), and a frame of one can
     verify in its twin as well as in itself: the first answer found is not the only one there.
-    Once an answer is found, the keyframes that stand more than ``rival_m`` from it are ranked
-    as the shortlist is (the descriptor's ``shortlist`` most similar of them, re-ranked by shared
-    matches): looked for among the first shortlist alone, the twin room went unseen when that
-    shortlist held only the answer's room (a start on the 6-room floor was placed in its twin).
-    Those whose real-vs-real step puts the frame that far from the answer too are tried, the
-    best-ranked ``rival_checks`` of them; a verified answer there (or one among those already tried) with at
+    Once an answer is found, the shortlist's keyframes that stand more than ``rival_m`` from it
+    and whose real-vs-real step puts the frame that far from it too are tried, the best-ranked
+    ``rival_checks`` of them; a verified answer there (or one among those already tried) with at
     least ``rival_ratio`` of the answer's inliers is a *rival*:
     the relocalisation reports it, and a run that is not yet placed stays unplaced
     (:class:`~.start.MapPlacement`) until a frame that only one place explains. 1 m: twins
@@ -366,35 +363,19 @@ class Relocaliser:
             self._keyframe_features[k] = detect_features(rgb, self.config.max_features, matcher=self.config.matcher)
         return self._keyframe_features[k]
 
-    def _ranked(self, frame: RGBDFrame, query) -> tuple[list[int], list[int]]:
-        """``(order, ranked)``: every keyframe (indices into the map's keyframes) by the global
-        descriptor's similarity, and the shortlist of candidates, most likely first: the
-        descriptor's ``shortlist`` most similar, re-ranked by the distinctive local matches each
-        shares with ``query`` (ties: the descriptor's order); the first ``top_k`` are the
-        candidates."""
+    def _ranked(self, frame: RGBDFrame, query) -> list[int]:
+        """The shortlist of candidate keyframes (indices into the map's keyframes), most likely
+        first: the global descriptor's ``shortlist`` most similar, re-ranked by the distinctive
+        local matches each shares with ``query`` (ties: the descriptor's order); the first
+        ``top_k`` are the candidates, the rest where rivals are looked for."""
         s = self.settings
         order = [int(k) for k in np.argsort(-similarities(self.descriptor(frame), self.descriptors), kind="stable")]
-        return order, self._reranked(query, order[: max(s.shortlist, s.top_k)])
-
-    def _reranked(self, query, keys: list[int]) -> list[int]:
-        """``keys`` in order of the distinctive local matches each shares with ``query`` (ties:
-        their given order); as given without a shortlist or a query."""
-        if self.settings.shortlist <= 0 or query is None:
-            return keys
-        shared = [shared_matches(query.features.descriptors, self._features(k).descriptors,
-                                 self.settings.distinct_ratio) for k in keys]
-        return [keys[i] for i in np.argsort(-np.asarray(shared), kind="stable")]
-
-    def _far_ranked(self, query, T_answer: np.ndarray, order: list[int], ranked: list[int]) -> list[int]:
-        """The keyframes over ``rival_m`` from ``T_answer``: the shortlist's (``ranked``) first,
-        then the descriptor's (``order``) most similar others of them, ``shortlist`` in all,
-        re-ranked (see :class:`RelocaliseSettings`, rivals)."""
-        s = self.settings
-        far = {k for k, T in enumerate(self.T_map_key) if pose_gap(T_answer, T)[0] > s.rival_m}
-        known = [k for k in ranked if k in far]
-        shortlisted = set(ranked)
-        more = [k for k in order if k in far and k not in shortlisted][: max(s.shortlist - len(known), 0)]
-        return known + self._reranked(query, more)
+        if s.shortlist <= 0 or query is None:
+            return order[: max(s.shortlist, s.top_k)]
+        short = order[: max(s.shortlist, s.top_k)]
+        shared = [shared_matches(query.features.descriptors, self._features(k).descriptors, s.distinct_ratio)
+                  for k in short]
+        return [short[i] for i in np.argsort(-np.asarray(shared), kind="stable")]
 
     def _query(self, frame: RGBDFrame, detected=None):
         """The query at the kept images' width with its features (None without kept images);
@@ -443,7 +424,7 @@ class Relocaliser:
         render_intrinsics = self.render_intrinsics or frame.intrinsics
         feats_real, _ = real_features(frame, render_intrinsics, self.config)
         query = self._query(frame, (render_intrinsics.shape, feats_real))
-        order, ranked = self._ranked(frame, query)
+        ranked = self._ranked(frame, query)
         queue, tried_keys = ranked[: s.top_k], set()
         while queue:
             k = queue.pop(0)
@@ -474,28 +455,26 @@ class Relocaliser:
         # Rivals are weighed against the answer's first round, as theirs is (the extra round from
         # where it landed gives the answer alone more inliers).
         first_round = max(f[4] for f in found)
-        rivals = self._rivals(frame, query, feats_real, motion, (T, first_round), every_verified, (order, ranked),
-                              tried_keys)
+        rivals = self._rivals(frame, query, feats_real, motion, (T, first_round), every_verified, ranked, tried_keys)
         return Relocalisation(True, T @ shift, cov, int(self.indices[k]), inliers, sigma_m, sigma_deg, len(found) - 1,
                               tried, time.perf_counter() - started, wide_baseline=wide, rival_checks=len(tried_keys) - tried,
                               rivals=[{**r, "T_map_cam": r["T_map_cam"] @ shift} for r in rivals])
 
-    def _rivals(self, frame: RGBDFrame, query, feats_real, motion, answer: tuple, verified: list, ranking: tuple,
+    def _rivals(self, frame: RGBDFrame, query, feats_real, motion, answer: tuple, verified: list, ranked: list[int],
                 tried_keys: set) -> list[dict]:
         """Other places the frame verifies in (see :class:`RelocaliseSettings`): among the
-        candidates ``verified`` already and the ``rival_checks`` best of the keyframes that stand
-        over ``rival_m`` from ``answer`` (``(T_map_cam, inliers)``; :meth:`_far_ranked` of
-        ``ranking``, :meth:`_ranked`'s pair), each one landing over ``rival_m`` from it with
-        ``rival_ratio`` of its inliers; ``tried_keys`` grows."""
+        candidates ``verified`` already and the ``rival_checks`` best of ``ranked`` whose
+        keyframes stand over ``rival_m`` from ``answer`` (``(T_map_cam, inliers)``), each one
+        landing over ``rival_m`` from it with ``rival_ratio`` of its inliers; ``tried_keys`` grows."""
         s = self.settings
         if s.rival_m <= 0:
             return []
         T_answer, inliers = answer
         checked = 0
-        for k in self._far_ranked(query, T_answer, *ranking):
+        for k in ranked:
             if checked >= s.rival_checks:
                 break
-            if k in tried_keys:
+            if k in tried_keys or pose_gap(T_answer, self.T_map_key[k])[0] <= s.rival_m:
                 continue
             tried_keys.add(k)
             # The real-vs-real step says cheaply where this keyframe puts the frame: a keyframe
