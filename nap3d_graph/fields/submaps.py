@@ -236,12 +236,6 @@ class SubmapField:
         self._loaded[k] = field
         return field
 
-    def let_go(self) -> None:
-        """Release every loaded submap field (a later render reads its field again): what a run
-        calls once its frames are done, so that its results and plots are written without two
-        rooms' grids held (they were the run's peak memory on the 6-room floor)."""
-        self._loaded.clear()
-
     @property
     def fields(self) -> list:
         """Every submap's field (reads each that is not loaded, keeping none of them resident)."""

@@ -202,9 +202,6 @@ class Pipeline:
                 worker.close()
             self.worker = None
             self.frames.close()
-            # The final solve and the results render nothing: a map's submap fields can go.
-            if hasattr(self.field, "let_go"):
-                self.field.let_go()
         result = self.result(max(done, 1))
         result.partial = partial
         return result
