@@ -266,4 +266,3 @@ def test_what_a_start_measured_before_its_candidate_is_kept_with_every_place_it_
     answers.answers.append(_found(3.0))
     placement.propose(3, 13, None, exp_se3(np.array([0, 0, 0, 3.0, 0, 0.0])))
     assert [m.key for m in placement.measured] == [10, 11, 12]
-
