@@ -176,9 +176,14 @@ SECTIONS = [
                  "before the placement hung on the odometry from the placed keyframe (this file's history)."),
     Section("A floor of a building, the field stage side by side: the 3-room floor's submap fields (its survey at its "
             "true poses, fixed steps) trained one after another, on 2 processes and as 2 Ray tasks, on two cores",
-            (WORKERS_FILE,), "python benchmarks/building.py --part workers --rooms 3 --frames-per-room 150 --out ...",
+            (WORKERS_FILE,), "python benchmarks/building.py --part workers --rooms 3 --frames-per-room 150 --steps 3600 "
+                             "--out ...",
             workers_table,
-            note="Each job runs with one thread; one after another runs in the map's own process."),
+            note="Each job runs with one thread; one after another runs in the map's own process. 3600 grid steps a "
+                 "submap: about what a one-room field trains in the map's default budget on two cores (its "
+                 "field.report.json in the map folder counts them); at 400 steps the fixed costs of each job (reading "
+                 "the survey, the field error on held-out frames, a Ray instance's start) weighed more (this file's "
+                 "history)."),
     Section("A floor of a building, mapped and crossed: `nap3d-graph map` of each floor's room-by-room survey as a "
             "user runs it (defaults, 270 frames a room at 3.75 Hz), then a traverse across the floor from its own start "
             "in that map (`run --odom vo`)",
