@@ -43,7 +43,12 @@ def test_a_start_in_a_twin_room_waits_for_what_tells_the_rooms_apart(twin_floor)
     T_gt, T_odom = np.asarray(walk.T_world_cam_gt), np.asarray(walk.T_world_cam_odom)
     pipeline = Pipeline(walk, field, RecordedOdometry(inv_T(T_odom[0]) @ T_odom),
                         PipelineConfig(keyframe_every=3, align=AlignConfig(matcher="sift")))
-    pipeline.start_in_map(Relocaliser(index, field, AlignConfig(matcher="sift")))
+    relocaliser = Relocaliser(index, field, AlignConfig(matcher="sift"))
+    # The posed index met the twins as a map's survey does: loops a room from the given poses.
+    twin_m = floor.walls_x[2] - floor.walls_x[0]
+    assert relocaliser.look_alikes and relocaliser.look_alike_offsets
+    assert all(abs(np.linalg.norm(T[:3, 3]) - twin_m) < 0.5 for T in relocaliser.look_alike_offsets)
+    pipeline.start_in_map(relocaliser)
     run = pipeline.run()
     events = run.placement["events"]
     relocalised = [e for e in events if e["step"] == "relocalise" and "at_m" in e]
@@ -52,7 +57,7 @@ def test_a_start_in_a_twin_room_waits_for_what_tells_the_rooms_apart(twin_floor)
     # not guessed.
     answered = [e for e in relocalised if e["success"] or e.get("reason", "").startswith("ambiguous")]
     assert ambiguous and answered[0] is ambiguous[0], relocalised
-    assert all(abs(r["distance_m"] - (floor.walls_x[2] - floor.walls_x[0])) < 0.5 for e in ambiguous
+    assert all(abs(r["distance_m"] - twin_m) < 0.5 for e in ambiguous
                for r in e["rivals"])
     # No answer taken as a candidate is in the wrong room.
     for e in relocalised:

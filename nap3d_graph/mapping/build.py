@@ -179,9 +179,10 @@ def index_posed_survey(sequence, out: Path, T_map_cam: np.ndarray, settings: Map
                        progress: bool = False) -> MapFolder:
     """The relocalisation index of a survey whose poses are already known, ``T_map_cam`` (N, 4, 4)
     for every frame of ``sequence`` (motion capture, a simulator's truth): its keyframes chosen
-    as ``map`` chooses them, their descriptors, vocabulary and small images, and their poses;
-    no odometry, loops, graph or field (bring the field: a :class:`~.relocalise.Relocaliser`
-    takes any). What a study of relocalisation alone reads, apart from every survey error."""
+    as ``map`` chooses them, their descriptors, vocabulary and small images, their poses, and
+    the look-alike places its loops meet (:func:`_look_alike_stage`); no odometry, graph or
+    field (bring the field: a :class:`~.relocalise.Relocaliser` takes any). What a study of
+    relocalisation alone reads, apart from every survey error."""
     settings = settings or MapSettings()
     T_map_cam = np.asarray(T_map_cam, dtype=float)
     if T_map_cam.shape != (len(sequence), 4, 4):
@@ -189,11 +190,35 @@ def index_posed_survey(sequence, out: Path, T_map_cam: np.ndarray, settings: Map
     folder = _open_folder(sequence, out, settings)
     keys = keyframe_indices(T_map_cam, 0, len(sequence), settings.keyframe_every, settings.keyframe_distance_m,
                             settings.keyframe_angle_deg)
-    _keyframe_stage(sequence, keys, folder, settings, progress)
+    keys, keyframes, descriptors = _keyframe_stage(sequence, keys, folder, settings, progress)
+    _look_alike_stage(sequence, keys, keyframes, descriptors, T_map_cam[keys], folder, settings, progress)
     np.save(folder.keyframe_poses, T_map_cam[keys])
     folder.info["posed_by"] = "given poses (index_posed_survey)"
     folder.save()
     return folder
+
+
+def _look_alike_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, descriptors: np.ndarray,
+                      T_map_key: np.ndarray, folder: MapFolder, settings: MapSettings, progress: bool) -> None:
+    """A posed survey's loops as stage 3 finds them (candidates verified), those that put a
+    keyframe a room from its given pose ``T_map_key`` (K, 4, 4) refused as look-alike places
+    (:func:`~.loops.refuse_look_alikes`, the given poses standing for the odometry), saved as a
+    map saves them: a relocaliser then knows where the survey looks alike, as in a map made
+    by ``map`` (without it, a start in a twin room was placed after a metre of views both twins
+    share). Reused when finished before."""
+    if folder.finished("loops", folder.edges):
+        return
+    t0 = time.perf_counter()
+    if keyframes is None:
+        keyframes = read_keyframes(sequence, keys, settings, progress)
+        for k, d in zip(keyframes, descriptors):
+            k.descriptor = d
+    pairs = candidates(T_map_key, descriptors, settings.loops)
+    loops = verify_on_pool(keyframes, pairs, align_config(settings), settings.loops, None, progress)
+    look_alikes = refuse_look_alikes(loops, T_map_key, settings.loops)
+    save_edges(folder.edges, [], loops, [])
+    folder.done("loops", time.perf_counter() - t0, candidates=len(pairs),
+                verified=sum(lp.status == "verified" for lp in loops), look_alikes=look_alikes)
 
 
 def _open_folder(sequence, out: Path, settings: MapSettings) -> MapFolder:
