@@ -49,8 +49,9 @@ SURVEY_FPS = 3.75  # every fourth frame of a 15 Hz recording, as the one-room su
 TRAVERSE_FPS = 7.5
 WALK_SPEED_MPS = 0.5
 #: Placement rules compared on the twin starts: before issue 61, its rival check alone, and its
-#: defaults (rivals a room away refuse an answer; 1 m of confirmed travel).
-VARIANTS = (("before", 0.0, 0.0), ("rivals_only", 1.0, 0.0), ("after", 1.0, 1.0))
+#: defaults (rivals a room away refuse an answer; 1 m of confirmed travel; the look-alike places the
+#: index's survey met ruled out first: the two others do not know them).
+VARIANTS = (("before", 0.0, 0.0, False), ("rivals_only", 1.0, 0.0, False), ("after", 1.0, 1.0, True))
 
 
 def _simulate(folder: Path, **settings):
@@ -119,10 +120,11 @@ def relocalise_traverse(floor, index: Path, traverse, every: int) -> dict:
     return {"attempts": len(seconds), **rows, "seconds": _spread(seconds), "error_m": _spread(errors_m)}
 
 
-def place_from_start(floor, index: Path, walk, rival_m: float, travel_m: float) -> dict:
+def place_from_start(floor, index: Path, walk, rival_m: float, travel_m: float, look_alikes: bool) -> dict:
     """A run of ``walk`` from its own start (the simulator's drifting odometry, the exact field)
-    placed in the index with the rival check at ``rival_m`` (0: off) and ``travel_m`` of
-    confirmed travel (0: one confirming keyframe, as before issue 61)."""
+    placed in the index with the rival check at ``rival_m`` (0: off), ``travel_m`` of
+    confirmed travel (0: one confirming keyframe, as before issue 61) and, with
+    ``look_alikes``, the look-alike places the index's survey met to be ruled out first."""
     from nap3d_graph.conventions import inv_T
     from nap3d_graph.mapping.relocalise import Relocaliser, RelocaliseSettings
     from nap3d_graph.mapping.start import PlacementSettings
@@ -133,8 +135,10 @@ def place_from_start(floor, index: Path, walk, rival_m: float, travel_m: float) 
     field = walk.oracle_field()
     T_gt, T_odom = np.asarray(walk.T_world_cam_gt), np.asarray(walk.T_world_cam_odom)
     pipeline = Pipeline(walk, field, RecordedOdometry(inv_T(T_odom[0]) @ T_odom), PipelineConfig(keyframe_every=3))
-    pipeline.start_in_map(Relocaliser(index, field, settings=RelocaliseSettings(rival_m=rival_m)),
-                          PlacementSettings(confirm_travel_m=travel_m))
+    relocaliser = Relocaliser(index, field, settings=RelocaliseSettings(rival_m=rival_m))
+    if not look_alikes:
+        relocaliser.look_alike_offsets = []
+    pipeline.start_in_map(relocaliser, PlacementSettings(confirm_travel_m=travel_m))
     run = pipeline.run()
     placement = run.placement
     errors = np.linalg.norm(run.T_world_cam_estimate[:, :3, 3] - T_gt[:, :3, 3], axis=1)
@@ -166,8 +170,8 @@ def twin_starts(args, floor, index: Path, work: Path) -> list[dict]:
                              scene_seed=FLOOR_SEED, rooms=floor.rooms, start_room=room, end_room=end,
                              look_aside_deg=80.0)
             row = {"start_room": room, "twin": floor.twins(room), "seed": seed}
-            for name, rival_m, travel_m in VARIANTS:
-                row[name] = place_from_start(floor, index, walk, rival_m, travel_m)
+            for name, rival_m, travel_m, look_alikes in VARIANTS:
+                row[name] = place_from_start(floor, index, walk, rival_m, travel_m, look_alikes)
                 print(f"  start in room {room} seed {seed} {name}: {row[name]}")
             out.append(row)
     return out
