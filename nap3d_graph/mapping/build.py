@@ -204,21 +204,30 @@ def _look_alike_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | No
     keyframe a room from its given pose ``T_map_key`` (K, 4, 4) refused as look-alike places
     (:func:`~.loops.refuse_look_alikes`, the given poses standing for the odometry), saved as a
     map saves them: a relocaliser then knows where the survey looks alike, as in a map made
-    by ``map`` (without it, a start in a twin room was placed after a metre of views both twins
-    share). Reused when finished before."""
+    by ``map``, and a study of placement measures the rules a map's run has. Reused when
+    finished before."""
     if folder.finished("loops", folder.edges):
         return
     t0 = time.perf_counter()
-    if keyframes is None:
-        keyframes = read_keyframes(sequence, keys, settings, progress)
-        for k, d in zip(keyframes, descriptors):
-            k.descriptor = d
+    keyframes = _keyframes_read(sequence, keys, keyframes, descriptors, settings, progress)
     pairs = candidates(T_map_key, descriptors, settings.loops)
     loops = verify_on_pool(keyframes, pairs, align_config(settings), settings.loops, None, progress)
     look_alikes = refuse_look_alikes(loops, T_map_key, settings.loops)
     save_edges(folder.edges, [], loops, [])
     folder.done("loops", time.perf_counter() - t0, candidates=len(pairs),
                 verified=sum(lp.status == "verified" for lp in loops), look_alikes=look_alikes)
+
+
+def _keyframes_read(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, descriptors: np.ndarray,
+                    settings: MapSettings, progress: bool) -> list[Keyframe]:
+    """``keyframes`` as stage 2 left them, or read again with their ``descriptors`` (K, D) when
+    stage 2 finished before (it keeps no keyframes in memory then)."""
+    if keyframes is not None:
+        return keyframes
+    keyframes = read_keyframes(sequence, keys, settings, progress)
+    for k, d in zip(keyframes, descriptors):
+        k.descriptor = d
+    return keyframes
 
 
 def _open_folder(sequence, out: Path, settings: MapSettings) -> MapFolder:
@@ -325,10 +334,7 @@ def _loop_stage(sequence, keys: np.ndarray, keyframes: list[Keyframe] | None, de
         _say(say, "loops: finished before, reused")
         return (keys, *load_edges(folder.edges))
     t0 = time.perf_counter()
-    if keyframes is None:
-        keyframes = read_keyframes(sequence, keys, settings, progress)
-        for k, d in zip(keyframes, descriptors):
-            k.descriptor = d
+    keyframes = _keyframes_read(sequence, keys, keyframes, descriptors, settings, progress)
     config = align_config(settings)
     chain, chain_kinds, chain_matches = consecutive_edges(keyframes, survey, config, settings.loops.min_inliers,
                                                           settings.gate_p, settings.edge_floor_rad,
