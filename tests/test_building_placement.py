@@ -271,3 +271,15 @@ def test_what_a_start_measured_before_its_candidate_is_kept_with_every_place_it_
     answers.answers.append(_found(3.0))
     placement.propose(3, 13, None, exp_se3(np.array([0, 0, 0, 3.0, 0, 0.0])))
     assert [m.key for m in placement.measured] == [10, 11, 12]
+
+
+def test_two_twin_pairs_a_room_apart_keep_their_own_look_alike_moves():
+    """Twin pairs 10.4 and 11.3 m apart are two moves (merged, a start in the second pair was
+    checked against the first pair's move, 0.9 m off, and placed in its twin); one pair's
+    answers a few centimetres apart are one move."""
+    from nap3d_graph.mapping.relocalise import add_look_alike
+
+    offsets: list = []
+    for x_m in (10.42, 10.45, 11.29, 11.31):
+        add_look_alike(offsets, exp_se3(np.array([0, 0, 0, x_m, 0, 0.0])))
+    np.testing.assert_allclose(sorted(T[0, 3] for T in offsets), [-11.29, -10.42, 10.42, 11.29])

@@ -547,12 +547,20 @@ def _look_alikes(folder: MapFolder) -> bool | None:
     return None if count is None else bool(count)
 
 
+#: Look-alike moves (metres) closer than this are one move. Two twin pairs of a row of rooms can
+#: stand 10.4 and 11.3 m apart: at a metre, the second pair's move was taken for the first's,
+#: and a start in one of them was "ruled out" of its own room at a pose 0.9 m off (and placed in
+#: its twin). One pair's moves from loops over a floor spread by a few decimetres (a tenth of a
+#: degree turns a move 20 m from the map's origin by 3 cm).
+SAME_LOOK_ALIKE_M = 0.5
+
+
 def add_look_alike(offsets: list[np.ndarray], offset: np.ndarray) -> None:
     """Add the map-frame move ``offset`` (4, 4) from a place to its look-alike to ``offsets``,
-    both ways, unless one within a metre is there already (one per look-alike pair: answers a
-    few centimetres apart are the same move)."""
+    both ways, unless one within ``SAME_LOOK_ALIKE_M`` is there already (one per look-alike pair:
+    its answers a few centimetres apart are the same move)."""
     for T in (np.asarray(offset, dtype=float), inv_T(offset)):
-        if all(np.linalg.norm(T[:3, 3] - known[:3, 3]) > 1.0 for known in offsets):
+        if all(np.linalg.norm(T[:3, 3] - known[:3, 3]) > SAME_LOOK_ALIKE_M for known in offsets):
             offsets.append(T)
 
 
