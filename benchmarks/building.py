@@ -261,19 +261,36 @@ def per_room_psnr(floor, map_dir: Path, survey) -> dict:
     return {str(r): {"median_db": round(float(np.median(v)), 2), "frames": len(v)} for r, v in sorted(by_room.items())}
 
 
-def _traverse_run(traverse, map_dir: Path, run_dir: Path, log: Path) -> dict:
-    """``nap3d-graph run --odom vo`` of the traverse in the map from its own start: time, memory,
-    its ATE (and max) through the survey's alignment, the odometry's, where it was placed."""
-    row = _timed([sys.executable, "-m", "nap3d_graph", "run", "--data", str(traverse.path), "--field", str(map_dir),
-                  "--odom", "vo", "--out", str(run_dir)], log)
-    metrics = json.loads((run_dir / "latest" / "metrics.json").read_text())
-    placement = (metrics.get("map") or {}).get("placement") or {}
-    row.update(ate_m=((metrics["estimate"].get("ate_m") or {}).get("rmse")),
-               odometry_ate_m=((metrics["odometry"].get("ate_m") or {}).get("rmse")),
-               max_error_m=((metrics["estimate"].get("ate_m") or {}).get("max")),
-               placed_at_frame=placement.get("placed_at_frame"), accepted=metrics.get("corrections_accepted"),
-               **_ate_around_placement(run_dir / "latest", placement.get("placed_at_frame")))
+def _traverse_run(traverse, map_dir: Path, run_dir: Path, log: Path, repeats: int = 1) -> dict:
+    """``nap3d-graph run --odom vo`` of the traverse in the map from its own start, ``repeats``
+    times: time and peak memory (the median over the repeats, each repeat's listed: a run's peak
+    varies from one repeat of the same command to the next, its native heap growing differently),
+    its ATE (and max) through the survey's alignment, the odometry's, where it was placed (of the
+    first repeat; ``same_estimate_each_repeat`` says whether the others matched it)."""
+    command = [sys.executable, "-m", "nap3d_graph", "run", "--data", str(traverse.path), "--field", str(map_dir),
+               "--odom", "vo", "--out", str(run_dir)]
+    timed, estimates, row = [], [], {}
+    for _ in range(repeats):
+        shutil.rmtree(run_dir, ignore_errors=True)
+        timed.append(_timed(command, log))
+        estimates.append((run_dir / "latest" / "estimate.txt").read_text())
+        row = row or _traverse_figures(run_dir / "latest")
+    row.update({key: float(np.median([t[key] for t in timed])) for key in timed[0]})
+    row.update({f"{key}_each": [t[key] for t in timed] for key in ("wall_s", "peak_memory_gb")},
+               same_estimate_each_repeat=len(set(estimates)) == 1)
     return row
+
+
+def _traverse_figures(run: Path) -> dict:
+    """A traverse run's ATE (and max) through the survey's alignment, the odometry's, where it
+    was placed, its corrections accepted."""
+    metrics = json.loads((run / "metrics.json").read_text())
+    placement = (metrics.get("map") or {}).get("placement") or {}
+    return dict(ate_m=((metrics["estimate"].get("ate_m") or {}).get("rmse")),
+                odometry_ate_m=((metrics["odometry"].get("ate_m") or {}).get("rmse")),
+                max_error_m=((metrics["estimate"].get("ate_m") or {}).get("max")),
+                placed_at_frame=placement.get("placed_at_frame"), accepted=metrics.get("corrections_accepted"),
+                **_ate_around_placement(run, placement.get("placed_at_frame")))
 
 
 def _ate_around_placement(run: Path, placed_at: int | None) -> dict:
@@ -338,7 +355,7 @@ def map_part(args, work: Path) -> dict:
             shutil.rmtree(run_dir, ignore_errors=True)
         else:
             row["map"] = _map_row(args, floor, survey, map_dir, work / f"{name}_map.log")
-        row["run"] = _traverse_run(traverse, map_dir, run_dir, work / f"{name}_run.log")
+        row["run"] = _traverse_run(traverse, map_dir, run_dir, work / f"{name}_run.log", args.run_repeats)
         print(f"floor of {rooms} room(s): {json.dumps(row)}")
         floors[str(rooms)] = row
     out = {"floor_seed": FLOOR_SEED, "size": [args.width, args.height], "frames_per_room": args.frames_per_room,
@@ -415,6 +432,8 @@ def main() -> None:
     parser.add_argument("--runs-only", action="store_true",
                         help="map part: keep the maps (in --work) and their figures (in --out) of an earlier map part "
                              "and run the traverses in them again")
+    parser.add_argument("--run-repeats", type=int, default=3,
+                        help="map part: each traverse run this many times (its time and peak memory: the median)")
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
     parser.add_argument("--work", type=Path, default=Path("/tmp/nap3d_building"))

@@ -74,7 +74,7 @@ def floor_map_table() -> str:
     one = floors.get("1") or {}
     rows = ["| rooms | survey frames (kept by the map: its first to its last placed frame) | survey ATE of the kept frames, camera alone | map: s per frame (against one "
             "room); peak GB of one process (against one room), of all together | held-out PSNR per room, dB "
-            "(frames) | traverse from its own start: ATE (max), odometry alone; placed at frame; peak GB |",
+            "(frames) | traverse from its own start: ATE (max), odometry alone; placed at frame; peak GB (median of its runs) |",
             "|---|---|---|---|---|---|"]
     for f in floors.values():  # time per frame from the stages' own seconds (a resumed map's wall is not its time)
         f["map"]["stage_seconds_per_frame"] = sum(f["map"]["stages_s"].values()) / f["survey_frames"]
@@ -100,7 +100,7 @@ def floor_map_table() -> str:
                     f"{m['stage_seconds_per_frame']:.2f}{against('stage_seconds_per_frame')}; {m['peak_memory_gb']:.2f}"
                     f"{against('peak_memory_gb')}, {_s(m.get('peak_memory_all_processes_gb'))}"
                     f"{against('peak_memory_all_processes_gb')} | {psnr} | {crossed}; {run['peak_memory_gb']:.2f}"
-                    f"{against('peak_memory_gb', 'run')} |")
+                    f"{against('peak_memory_gb', 'run')}{_each(run)} |")
     peaks = [_peak_line(rooms, f["map"]) for rooms, f in floors.items() if f["map"].get("stages_peak_memory_gb")]
     if peaks:
         rows.append("\nWhere each map's peak memory was (GB): " + "; ".join(peaks) + ".")
@@ -109,6 +109,13 @@ def floor_map_table() -> str:
         rows.append(f"\nThe maps (and their columns) at commit {maps['commit']}; the traverses run in them again at the "
                     "file's commit.")
     return "\n".join(rows)
+
+
+def _each(run: dict) -> str:
+    """A traverse's peak memory in each repeat of its run, where it was run more than once
+    (the column's figure is their median)."""
+    each = run.get("peak_memory_gb_each") or []
+    return f" (runs: {', '.join(f'{v:.2f}' for v in each)})" if len(each) > 1 else ""
 
 
 def _peak_line(rooms: str, m: dict) -> str:
@@ -216,7 +223,9 @@ SECTIONS = [
                  "over seeds. cm against the simulator's truth through the survey's own SE(3) alignment. Timings "
                  "and memory on two cores, the submap fields on 2 worker processes at once; peak memory of one "
                  "process is the largest resident set (/usr/bin/time's %M), of all together the sum over the "
-                 "map's processes sampled every 0.5 s."),
+                 "map's processes sampled every 0.5 s; a traverse's run is repeated (the file's run_repeats "
+                 "setting; once in files without it) and its peak given as the median, each repeat's beside it: the same command's "
+                 "peak varies from run to run by a tenth of a GB or more."),
     Section("A map grown across days: fr1/desk (15 Hz) in two halves as two days' surveys, the first half's map grown "
             "by the second (`map --extend`), against the whole recording's map; the second half run in each from its "
             "own start (`--odom vo`, xfeat, grid fields on the map's default budget)",
