@@ -459,3 +459,39 @@ def test_a_submap_grid_holds_its_slab_not_the_cameras_that_looked_in_from_afar()
     slab = scene_bounds_from_depth(depth, T, K, margin_m=0.1, slab_m=(1.0, 0.0, 0.0, 0.0, 3.0))
     assert slab[0, 0] == pytest.approx(0.9) and slab[1, 0] == pytest.approx(2.1)
     assert scene_bounds_from_depth(depth, T, K, margin_m=0.1)[0, 0] == pytest.approx(-5.1)
+
+
+def test_a_submap_file_read_again_is_scanned_for_non_finite_weights_only_at_its_first_read(tmp_path, monkeypatch):
+    """A run crossing a floor reads the same submap checkpoints again and again: each is scanned
+    once, unless it changed on disk since (then a corrupt one is refused as at its first read)."""
+    import os
+
+    import torch
+
+    import nap3d_graph.fields.grid as grid
+    from nap3d_graph.fields import FieldError, load_field
+    from nap3d_graph.fields.grid import GridField
+    from nap3d_graph.fields.submaps import load_submap_field, write_submaps_index
+
+    axis = np.array([1.0, 0.0, 0.0])
+    submaps = [Submap(k, axis, np.array(core), np.arange(3)) for k, core in enumerate([(-np.inf, 1.0), (1.0, np.inf)])]
+    for s, x0 in zip(submaps, (0.0, 1.0)):
+        (tmp_path / s.file).parent.mkdir(exist_ok=True)
+        GridField.empty([[x0, -0.5, -0.5], [x0 + 1.0, 0.5, 0.5]], voxel_size=0.1, device="cpu").save(tmp_path / s.file)
+    write_submaps_index(tmp_path, submaps, SubmapSettings(resident=1), {})
+    scans = []
+    real_scan = grid._all_finite
+    monkeypatch.setattr(grid, "_all_finite", lambda t, *a: scans.append(t.ndim) or real_scan(t, *a))
+    field = load_submap_field(tmp_path, load_field)
+    assert len(scans) == 4  # each file's density and colour, read once for the records
+    for k in (0, 1, 0, 1):  # one resident: every read here reads a file again
+        field.field_of(k)
+    assert len(scans) == 4 and list(field._loaded) == [1]
+    bad = GridField.empty([[0.0, -0.5, -0.5], [1.0, 0.5, 0.5]], voxel_size=0.1, device="cpu")
+    with torch.no_grad():
+        bad.density[0, 0, 0, 0, 0] = float("nan")
+    bad.save(tmp_path / submaps[0].file)
+    stat = (tmp_path / submaps[0].file).stat()
+    os.utime(tmp_path / submaps[0].file, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))  # a new file on disk
+    with pytest.raises(FieldError, match="non-finite"):
+        field.field_of(0)

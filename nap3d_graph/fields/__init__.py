@@ -16,12 +16,15 @@ from .submaps import SUBMAPS_INDEX, load_submap_field
 __all__ = ["RadianceField", "FieldError", "load_field", "resolve_field", "frames_seen_in_training"]
 
 
-def load_field(path: str | Path):
+def load_field(path: str | Path, scanned: bool = False):
     """Open a field by what ``path`` is.
 
     * a simulated sequence folder or its ``scene.json``: the exact oracle field of that room;
     * a ``.pt`` checkpoint written by ``nap3d-graph train-field``: the grid, splat or view field it holds;
     * a nerfstudio ``config.yml``: the trained nerfstudio model (needs the optional extra).
+
+    ``scanned``: this process has read the same file before and found its grid's weights finite
+    (a submap read again, :func:`~.submaps.load_submap_field`): they are not scanned again.
     """
     path = Path(path)
     if path.is_dir() and (path / "scene.json").exists():
@@ -41,7 +44,7 @@ def load_field(path: str | Path):
         state = load_state(path)
         kind = state.get("format")
         if kind == CHECKPOINT_FORMAT:
-            return GridField.from_state_dict(state, source=str(path))
+            return GridField.from_state_dict(state, source=str(path), scan=not scanned)
         if kind == SPLAT_FORMAT:
             return SplatField.from_state_dict(state, source=str(path))
         if kind == VIEW_FORMAT:

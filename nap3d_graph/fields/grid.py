@@ -328,7 +328,9 @@ class GridField(GridRenderer):
         return save_state(self.state_dict(), path)
 
     @classmethod
-    def from_state_dict(cls, state: dict, device=None, source: str = "checkpoint") -> "GridField":
+    def from_state_dict(cls, state: dict, device=None, source: str = "checkpoint", scan: bool = True) -> "GridField":
+        """The field of a :meth:`state_dict`; :class:`FieldError` on a foreign, wrong-version or
+        malformed one, and (``scan``) on non-finite weights."""
         if not isinstance(state, dict) or state.get("format") != CHECKPOINT_FORMAT:
             raise FieldError(f"{source}: not a nap3d-graph grid field checkpoint")
         version = state.get("version")
@@ -345,7 +347,7 @@ class GridField(GridRenderer):
         density, color = state["density_raw"], state["color_raw"]
         if not (isinstance(density, torch.Tensor) and isinstance(color, torch.Tensor)):
             raise FieldError(f"{source}: density_raw and color_raw must be tensors")
-        if not (_all_finite(density) and _all_finite(color)):
+        if scan and not (_all_finite(density) and _all_finite(color)):
             raise FieldError(f"{source}: checkpoint holds non-finite weights")
         try:
             meta = json.loads(state.get("meta", "{}"))

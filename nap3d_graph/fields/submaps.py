@@ -321,6 +321,16 @@ def write_submaps_index(folder: Path, submaps: list[Submap], settings: SubmapSet
                                                      "submaps": [s.to_dict() for s in submaps], **extra})
 
 
+def _file_state(path: Path) -> tuple:
+    """(size, modification time in ns) of ``path``; () when it cannot be read (then
+    :func:`~nap3d_graph.fields.load_field` says why)."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return ()
+    return stat.st_size, stat.st_mtime_ns
+
+
 def load_submap_field(folder, load_field) -> SubmapField:
     """The :class:`SubmapField` of a map folder with ``submaps.json``, each submap's checkpoint
     opened by ``load_field`` (:func:`nap3d_graph.fields.load_field`); ``FileNotFoundError``
@@ -334,9 +344,19 @@ def load_submap_field(folder, load_field) -> SubmapField:
                                 "map' stopped in the field stage); run the same map command again to finish them")
     settings = SubmapSettings.from_dict(index["settings"])
 
+    scanned: set[tuple] = set()
+
     def loader(s: Submap):
         def load():
-            field = load_field(folder / s.file)
+            # A run crossing a floor reads the same submap files again and again (a view through a
+            # door renders from three submaps, two kept): each file's weights are scanned for
+            # non-finite values at its first read only, unless it changed on disk since (the scan
+            # was a quarter of a 6-room traverse's time).
+            path = folder / s.file
+            key = (s.file, *_file_state(path))
+            field = load_field(path, scanned=key in scanned)
+            if len(key) > 1:
+                scanned.add(key)
             return field if s.R_grid_map is None else FramedField(field, s.R_grid_map)
         return load
 
