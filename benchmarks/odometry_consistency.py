@@ -7,9 +7,12 @@ odometry's over the interval since the last keyframe: its steps' covariances cha
 cautious" (median d2 0.36 against a chi-square band from 0.87). This measures, on recordings
 with ground truth, the NEES (e^T C^-1 e, 6 dof: median 5.35 when consistent) of the odometry
 against the ground truth over intervals of 1, 2, 3, 5 (the default keyframe interval) and 10
-frames, for the chained step covariances alone and with the drift model, with spread.
+frames, for the chained step covariances alone and with the drift model, with spread; and for
+the steps chained as if a share of each step's covariance were its frames' own registration
+noise (:func:`frame_noise_chain`), a model of why the chain is too cautious.
 
-    python benchmarks/odometry_consistency.py --data ../shared/data/tum/rgbd_dataset_freiburg1_desk \
+    nap3d-graph simulate /tmp/sim_walk30 --count 300 --path traverse --scene-seed 3 --seed 2
+    python benchmarks/odometry_consistency.py --data /tmp/sim_walk30 ../shared/data/tum/rgbd_dataset_freiburg1_desk \
         ../shared/data/7scenes/redkitchen ../shared/data/tum/rgbd_dataset_freiburg1_xyz \
         --out benchmarks/results/odometry_consistency.json
 
@@ -46,11 +49,27 @@ def odometry_steps(sequence, width: int) -> list:
     return [odometry.increment(i, sequence[i]) for i in range(1, len(sequence))]
 
 
-def interval_nees(sequence, steps, n: int, config: PipelineConfig) -> dict:
+def frame_noise_chain(steps, share: float) -> np.ndarray:
+    """(6, 6) the covariance of ``steps`` chained as if ``share`` of each step's covariance were
+    its two frames' own registration noise (half each), which a chain of steps cancels inside
+    (a frame's error enters the step into it and the step out of it with opposite signs) and
+    keeps only at its two ends, and the rest a walk that adds up step by step. ``share`` 0: the
+    steps' covariances chained as independent (what the run does)."""
+    walk, first = np.zeros((6, 6)), share / 2 * steps[0].covariance
+    for k, step in enumerate(steps):
+        walk = compose_covariance(walk, step.T_prev_cur, (1.0 - share) * step.covariance)
+        if k:  # the first frame's noise carried to the interval's end frame
+            first = compose_covariance(first, step.T_prev_cur, np.zeros((6, 6)))
+    return walk + first + share / 2 * steps[-1].covariance
+
+
+def interval_nees(sequence, steps, n: int, config: PipelineConfig, shares=()) -> dict:
     """NEES over non-overlapping intervals of ``n`` frames: chained step covariances alone and
-    with the drift model; the error's norm (mm, mrad) against the covariance's per-axis sigma."""
+    with the drift model; the error's norm (mm, mrad) against the covariance's per-axis sigma;
+    for each of ``shares``, the NEES of the steps chained by :func:`frame_noise_chain` (alone)."""
     T_gt, stamps = np.asarray(sequence.T_world_cam_gt), np.asarray(sequence.timestamps)
     alone, with_drift, err_mm, sigma_mm, err_mrad, sigma_mrad = [], [], [], [], [], []
+    by_share: dict[float, list] = {f: [] for f in shares}
     for a in range(0, len(steps) - n + 1, n):
         if not (np.isfinite(T_gt[a]).all() and np.isfinite(T_gt[a + n]).all()):
             continue
@@ -59,6 +78,8 @@ def interval_nees(sequence, steps, n: int, config: PipelineConfig) -> dict:
             T, C = T @ step.T_prev_cur, compose_covariance(C, step.T_prev_cur, step.covariance)
         D = C + config.drift_covariance(T, float(stamps[a + n] - stamps[a]))
         e = log_se3(inv_T(inv_T(T_gt[a]) @ T_gt[a + n]) @ T)
+        for f in shares:
+            by_share[f].append(float(e @ np.linalg.solve(frame_noise_chain(steps[a:a + n], f), e)))
         alone.append(float(e @ np.linalg.solve(C, e)))
         with_drift.append(float(e @ np.linalg.solve(D, e)))
         err_mm.append(1e3 * float(np.linalg.norm(e[3:])) / np.sqrt(3))
@@ -67,13 +88,16 @@ def interval_nees(sequence, steps, n: int, config: PipelineConfig) -> dict:
         sigma_mrad.append(1e3 * float(np.sqrt(np.trace(D[:3, :3]) / 3)))
     return {"frames": n, "nees_steps_alone": _spread(alone), "nees_with_drift": _spread(with_drift),
             "error_mm_per_axis": _spread(err_mm), "sigma_mm_per_axis": _spread(sigma_mm),
-            "error_mrad_per_axis": _spread(err_mrad), "sigma_mrad_per_axis": _spread(sigma_mrad)}
+            "error_mrad_per_axis": _spread(err_mrad), "sigma_mrad_per_axis": _spread(sigma_mrad),
+            "nees_by_frame_share": {str(f): _spread(v) for f, v in by_share.items()}}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", type=Path, nargs="+", required=True, help="recordings with ground truth")
     ap.add_argument("--width", type=int, default=320, help="the odometry's width (the run's --vo-width at pace)")
+    ap.add_argument("--frame-shares", type=float, nargs="*", default=[0.0, 0.2, 0.4, 0.6, 0.8],
+                    help="shares of a step's covariance taken as its frames' own noise (frame_noise_chain)")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
     config = PipelineConfig()
@@ -81,13 +105,14 @@ def main() -> None:
     for path in args.data:
         sequence = open_sequence(path)
         steps = odometry_steps(sequence, args.width)
-        rows = [interval_nees(sequence, steps, n, config) for n in INTERVALS if n < len(steps)]
+        rows = [interval_nees(sequence, steps, n, config, args.frame_shares) for n in INTERVALS if n < len(steps)]
         recordings[path.name] = {"frames": len(sequence), "steps_without_features": sum(not s.ok for s in steps),
                                  "intervals": rows}
         for r in rows:
             print(f"{path.name} {r['frames']:2d} frames: NEES alone {r['nees_steps_alone']['median']:.2f}, "
                   f"with drift {r['nees_with_drift']['median']:.2f} (consistent: {CHI2_6_MEDIAN}); error "
-                  f"{r['error_mm_per_axis']['median']:.1f} mm against sigma {r['sigma_mm_per_axis']['median']:.1f}")
+                  f"{r['error_mm_per_axis']['median']:.1f} mm against sigma {r['sigma_mm_per_axis']['median']:.1f}; "
+                  "by frame share " + ", ".join(f"{f}: {v['median']:.2f}" for f, v in r["nees_by_frame_share"].items()))
     write_result(args.out, {"width": args.width, "keyframe_every": config.keyframe_every,
                             "chi2_6_median": CHI2_6_MEDIAN, "recordings": recordings}, args)
 
