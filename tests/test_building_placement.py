@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from nap3d_graph.conventions import exp_se3, inv_T
-from nap3d_graph.mapping.relocalise import Relocalisation
+from nap3d_graph.mapping.relocalise import Relocalisation, add_look_alike
 from nap3d_graph.mapping.start import MapPlacement, PlacementSettings
 
 
@@ -277,8 +277,6 @@ def test_two_twin_pairs_a_room_apart_keep_their_own_look_alike_moves():
     """Twin pairs 10.4 and 11.3 m apart are two moves (merged, a start in the second pair was
     checked against the first pair's move, 0.9 m off, and placed in its twin); one pair's
     answers a few centimetres apart are one move."""
-    from nap3d_graph.mapping.relocalise import add_look_alike
-
     offsets: list = []
     for x_m in (10.42, 10.45, 11.29, 11.31):
         add_look_alike(offsets, exp_se3(np.array([0, 0, 0, x_m, 0, 0.0])))
