@@ -20,8 +20,9 @@ import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import X
 
-from nap3d_graph.conventions import T_to_pose3, compose_covariance, log_se3
+from nap3d_graph.conventions import T_to_pose3, log_se3
 from nap3d_graph.factors import odometry_factor, pose_prior_factor
+from nap3d_graph.motion.interval import IntervalCovariance
 from nap3d_graph.run.chain import chain_from_nearest_keyframe
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.graph import KeyframeGraph
@@ -105,7 +106,8 @@ class MotionModel(Protocol):
 
 class OdometryMotion:
     """A frame odometry between keyframes. Each keyframe's factor is the increments since the
-    last one composed, their covariances propagated (``compose_covariance``), plus
+    last one composed, their covariances chained (:class:`~nap3d_graph.motion.interval.IntervalCovariance`:
+    what an increment says is its frames' own noise cancels inside the interval), plus
     ``PipelineConfig.drift_covariance`` of the interval; frames are chained from the keyframes
     with the increments."""
 
@@ -120,7 +122,7 @@ class OdometryMotion:
         self.T_world_cam_odom: FrameLog[np.ndarray] = FrameLog([odometry.initial_pose()])
         self.increments: FrameLog[np.ndarray] = FrameLog([np.eye(4)])
         self.T_kf_cam = np.eye(4)
-        self.cov_since_kf = np.zeros((6, 6))
+        self.interval = IntervalCovariance()  # the steps' covariance since the last keyframe
         self.dt_since_kf = 0.0
         self.T_world_kf = self.T_world_cam_odom[0]  # the latest keyframe's estimate (frame 0 is always one)
         self._doubted = False
@@ -146,7 +148,7 @@ class OdometryMotion:
         self._doubted = self._doubted or not getattr(inc, "ok", True)
         self.increments.append(inc.T_prev_cur)
         self.T_world_cam_odom.append(self.T_world_cam_odom[-1] @ inc.T_prev_cur)
-        self.cov_since_kf = compose_covariance(self.cov_since_kf, inc.T_prev_cur, inc.covariance)
+        self.interval.add(inc.T_prev_cur, inc.covariance, getattr(inc, "frame_noise", None))
         self.T_kf_cam = self.T_kf_cam @ inc.T_prev_cur
         self.dt_since_kf += dt
 
@@ -169,12 +171,12 @@ class OdometryMotion:
             factor = pose_prior_factor(X(0), T_world_kf_pred, rot_sigma_rad=self.config.prior_rot_sigma_rad,
                                        trans_sigma_m=self.config.prior_trans_sigma_m)
         else:
-            cov = self.cov_since_kf + self.config.drift_covariance(self.T_kf_cam, self.dt_since_kf)
+            cov = self.interval.value + self.config.drift_covariance(self.T_kf_cam, self.dt_since_kf)
             factor = odometry_factor(X(j - 1), X(j), self.T_kf_cam, cov)
             interval = (self.T_kf_cam.copy(), cov.copy())
             T_world_kf_pred = self.T_world_kf @ self.T_kf_cam
         self.T_kf_cam = np.eye(4)
-        self.cov_since_kf = np.zeros((6, 6))
+        self.interval.reset()
         self.dt_since_kf = 0.0
         self._doubted = False
         return KeyframeEntry(T_world_kf_pred, [factor], [(X(j), T_to_pose3(T_world_kf_pred))], interval)
