@@ -81,7 +81,11 @@ def run_query(data, traj, frames, field, out: Path, extra=(), seed: int = 0) -> 
                       "--odom", "vo", "--out", str(out), *extra)
     metrics = json.loads((out / "latest" / "metrics.json").read_text())
     config = (out / "latest" / "config.yaml").read_text()
+    from nap3d_graph.run.report import read_run_report
     from nap3d_graph.trajectory import read_tum_trajectory
+
+    report = read_run_report(out / "latest")
+    d2 = [k.gate_d2 for k in report.keyframes if np.isfinite(k.gate_d2)]
 
     stamps, T_est = read_tum_trajectory(out / "latest" / "estimate.txt")
     _, T_online = read_tum_trajectory(out / "latest" / "estimate_online.txt")
@@ -90,6 +94,8 @@ def run_query(data, traj, frames, field, out: Path, extra=(), seed: int = 0) -> 
             "odometry_ate_m": metrics["odometry"]["ate_m"]["rmse"],
             "accepted": metrics.get("corrections_accepted"), "seconds": round(seconds, 1),
             "start": _start_of(config),
+            "report": {"past_bad_line": report.bad, "gate_d2_median": float(np.median(d2)) if d2 else None,
+                       "gate_d2_measured": len(d2)},
             "_stamps": stamps, "_T": T_est, "_T_online": T_online}
 
 

@@ -62,29 +62,13 @@ def run_case(data: Path, frames: str, map_dir: Path, out: Path, extra=()) -> dic
         entry["error"] = err.strip().splitlines()[-1] if err.strip() else "no output"
         return entry
     metrics = json.loads(metrics_path.read_text())
-    from nap3d_graph.run.report import run_report
+    from nap3d_graph.run.report import read_run_report
 
-    keyframes = _records(out / "latest" / "corrections.csv")
-    report = run_report(keyframes, metrics)
+    report = read_run_report(out / "latest")
     entry.update({"past_bad_line": report.bad, "rows": [list(r) for r in report.rows],
                   "ate_m": ((metrics.get("estimate") or {}).get("ate_m") or {}).get("rmse"),
                   "ate_se3_aligned_m": (metrics.get("estimate") or {}).get("ate_se3_aligned_m")})
     return entry
-
-
-def _records(path: Path) -> list:
-    """corrections.csv's rows as keyframe records (what the report reads)."""
-    import csv
-
-    from nap3d_graph.run.records import KeyframeRecord
-
-    out = []
-    with path.open(newline="") as f:
-        for row in csv.DictReader(f):
-            out.append(KeyframeRecord(int(row["run_index"]), float(row["timestamp"]), 0, accepted=row["accepted"] == "1",
-                                      reason=row["reason"], gate_d2=float(row["gate_d2"] or "nan"),
-                                      correction_m=float(row["correction_m"] or "nan")))
-    return out
 
 
 def blurred_map(map_dir: Path, out: Path, cell_m: float) -> Path:

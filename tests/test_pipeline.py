@@ -17,6 +17,7 @@ from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.intrinsics_model import FIXED_ONLY
 from nap3d_graph.run.output import write_results
 from nap3d_graph.run.pipeline import Pipeline
+from nap3d_graph.run.report import read_run_report
 from nap3d_graph.sims.sensors import CameraTiming, OdometryNoise
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
@@ -160,6 +161,10 @@ def test_results_folder_loads_with_evo(baseline, tmp_path):
     assert rmse == pytest.approx(json.loads((run / "metrics.json").read_text())["estimate"]["ate_m"]["rmse"], rel=1e-4)
     lines = (run / "corrections.csv").read_text().splitlines()
     assert lines[0].startswith("frame_index,run_index,timestamp,key,matches,inliers") and len(lines) == 1 + len(baseline.keyframes)
+    # The report built again from the folder's files is the report.md the run wrote.
+    again = read_run_report(run)
+    report_md = (run / "report.md").read_text()
+    assert len(again.rows) >= 4 and all(f"| {a} | {b} | {c} | {d} |" in report_md for a, b, c, d in again.rows)
 
 
 class HalfField:

@@ -23,6 +23,8 @@ from what the figures are, not from a recording's scores:
 
 from __future__ import annotations
 
+import csv
+import json
 import logging
 from pathlib import Path
 
@@ -32,9 +34,9 @@ from nap3d_graph.factors.gate import chi2_threshold
 from nap3d_graph.figure_report import FigureReport
 from nap3d_graph.plots import pyplot
 
-from .records import refusal_kind
+from .records import KeyframeRecord, refusal_kind
 
-__all__ = ["RunReport", "run_report", "write_run_report", "ACCEPTED_SHARE_BAD", "COVERAGE_BAD"]
+__all__ = ["RunReport", "run_report", "write_run_report", "read_run_report", "ACCEPTED_SHARE_BAD", "COVERAGE_BAD"]
 
 log = logging.getLogger(__name__)
 
@@ -169,3 +171,17 @@ def write_run_report(run_dir: Path, keyframes, metrics: dict) -> RunReport:
             log.warning("corrections.png not written (%s)", exc)
     report.write(run_dir / "report.md", "Did the run work?", "![corrections over the run](corrections.png)")
     return report
+
+
+def read_run_report(run_dir: Path) -> RunReport:
+    """The report of a run already written to ``run_dir``, built again from its
+    ``corrections.csv`` and ``metrics.json`` (what ``report.md`` was built from)."""
+    run_dir = Path(run_dir)
+    keyframes = []
+    with (run_dir / "corrections.csv").open(newline="") as f:
+        for row in csv.DictReader(f):
+            keyframes.append(KeyframeRecord(int(row["run_index"]), float(row["timestamp"]), 0,
+                                            accepted=row["accepted"] == "1", reason=row["reason"],
+                                            gate_d2=float(row["gate_d2"] or "nan"),
+                                            correction_m=float(row["correction_m"] or "nan")))
+    return run_report(keyframes, json.loads((run_dir / "metrics.json").read_text()))
