@@ -726,6 +726,22 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     report = map_report(bent)
     assert report.values["loop_residual"]["median_m"] > LOOP_RESIDUAL_BAD[0]
     assert any(figure.startswith("loop residual") for figure in report.bad)
+    assert report.values["turned_away"] == {"loops": 0, "missed": 0, "allowed": 2}
+    # A graph that followed a false loop turns away the true loops across the bend: those its
+    # final poses miss count against the map, beyond two (a wrong loop verification let through).
+    # (the later keyframes 10 cm away, as the fault benchmark's look-alike loop bends a map).
+    folded = tmp_path / "folded"
+    shutil.copytree(map_folder, folded)
+    T = np.load(folded / "keyframe_poses.npy")
+    T[len(T) // 2:] = T[len(T) // 2:] @ exp_se3(np.array([0.0, 0.0, 0.0, 0.10, 0.0, 0.0]))
+    np.save(folded / "keyframe_poses.npy", T)
+    _turn_away(folded, info["loops"]["verified"], across=len(T) // 2)
+    turned = map_report(folded).values["turned_away"]
+    assert turned["missed"] == turned["loops"] >= 3
+    assert any(figure.startswith("verified loops the map turned away") for figure in map_report(folded).bad)
+    _turn_away(folded, info["loops"]["verified"], across=len(T) // 2, at_most=1)
+    assert map_report(folded).values["turned_away"]["missed"] == 1
+    assert not any(figure.startswith("verified loops the map turned away") for figure in map_report(folded).bad)
     # A survey that closed no loop.
     alone = tmp_path / "alone"
     shutil.copytree(map_folder, alone)
@@ -749,6 +765,29 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     (blind / "field.report.json").write_text(json.dumps(field_report))
     told = map_report(blind).bad
     assert any("depth error" in figure for figure in told) and any("covered" in figure for figure in told)
+
+
+def _turn_away(folder, verified: int, across: int, at_most: int | None = None) -> None:
+    """``loops.csv`` of ``folder`` with the kept loops from before keyframe ``across`` to after
+    it (``at_most`` of them) marked 'rejected', as a graph that followed a false loop leaves
+    them; the rest as ``map`` kept them."""
+    import csv
+
+    with (folder / "loops.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    with np.load(folder / "edges.npz") as d:
+        spans = [(a < across <= b) or (b < across <= a) for a, b, *_ in d["loop_abij"]]
+    turned = 0
+    for row, span in zip(rows, spans):
+        kept = row["status"] in ("accepted", "rejected")
+        row["status"] = "rejected" if kept and span and (at_most is None or turned < at_most) else (
+            "accepted" if kept else row["status"])
+        turned += row["status"] == "rejected"
+    assert turned >= min(3, at_most or 3) and verified >= turned
+    with (folder / "loops.csv").open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 def test_the_grid_trains_for_what_the_map_budget_leaves():

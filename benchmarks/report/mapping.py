@@ -544,22 +544,29 @@ def _map_fault_ate(case: dict, values: dict) -> str:
             f" after the bundle ({scores['loops_kept']} loops kept, {scores['loops_admitted']} admitted)")
 
 
+def _spread_cell(spread: dict | None) -> str:
+    """'median (p10, p90)' of a spread, '-' where the file has none."""
+    return "-" if not spread else f"{spread['median']:.2f} ({spread['p10']:.2f}, {spread['p90']:.2f})"
+
+
 def odometry_consistency_table() -> str:
     """NEES of the feature odometry against the ground truth over intervals of frames."""
     r = read("odometry_consistency.json")
     rows = [f"consistent: NEES median {r.get('chi2_6_median')}", "",
-            "| recording (frames; steps without features) | interval, frames | NEES median (p10, p90): chained steps "
-            "| with the drift model | error mm per axis, median | the covariance's sigma mm per axis, median | "
-            "NEES median, chained steps with this share of each step's covariance its frames' own noise |",
-            "|---|---|---|---|---|---|---|"]
+            "| recording (frames; steps without features) | interval, frames | NEES median (p10, p90): steps chained "
+            "as independent | with the drift model | as the run chains them (frames' own noise cancelling) | with the "
+            "drift model (the run's prediction) | error mm per axis, median | the old chain's sigma mm per axis, "
+            "median | NEES median, chained steps with this share of each step's covariance its frames' own noise |",
+            "|---|---|---|---|---|---|---|---|---|"]
     for name, rec in (r.get("recordings") or {}).items():
         for row in rec["intervals"]:
             a, d = row["nees_steps_alone"], row["nees_with_drift"]
+            ra, rd = (_spread_cell(row.get(k)) for k in ("nees_run_interval_alone", "nees_run_interval_with_drift"))
             mark = " (the run's)" if row["frames"] == r.get("keyframe_every") else ""
             shares = ", ".join(f"{f}: {v['median']:.2f}" for f, v in (row.get("nees_by_frame_share") or {}).items())
             rows.append(f"| {name} ({rec['frames']}; {rec['steps_without_features']}) | {row['frames']}{mark} | "
                         f"{a['median']:.2f} ({a['p10']:.2f}, {a['p90']:.2f}) | {d['median']:.2f} ({d['p10']:.2f}, "
-                        f"{d['p90']:.2f}) | {row['error_mm_per_axis']['median']:.1f} | "
+                        f"{d['p90']:.2f}) | {ra} | {rd} | {row['error_mm_per_axis']['median']:.1f} | "
                         f"{row['sigma_mm_per_axis']['median']:.1f} | {shares or '-'} |")
     return "\n".join(rows)
 
@@ -684,21 +691,21 @@ SECTIONS = [
                  "too, and bends the map; the mesh's walls are the figure that tells it. The covariance cases scale "
                  "the defaults; where the clean run's gate consistency already reads too cautious, ten times smaller "
                  "covariances land nearer the chi-square's median, not past its line."),
-    Section("Why the gate reads too cautious: the feature odometry's covariance against the ground truth over "
-            "intervals of frames (every frame of the recording, 320 px wide; chained as the run chains them between "
-            "keyframes)",
+    Section("The feature odometry's covariance against the ground truth over intervals of frames (every frame of "
+            "the recording, 320 px wide): the prediction the run's gate compares a correction with",
             ("odometry_consistency.json",),
             "python benchmarks/odometry_consistency.py --data D1 D2 D3 --out ...", odometry_consistency_table,
             note="A consistent covariance puts the NEES median at the chi-square's (6 dof); below it, the "
-                 "covariance is too cautious. One step's covariance is about right on the real recordings; over "
-                 "intervals the chained covariance grows as if the steps' errors were independent, and they are "
-                 "not (a frame's own error enters the step into it and the step out of it with opposite signs), so "
-                 "the prediction the gate compares a correction with is too cautious by the interval. "
-                 "The run's default keyframe interval is marked. The last column chains the steps as if that "
-                 "share of each step's covariance were its two frames' own registration noise, which cancels inside "
-                 "a chain and stays only at its two ends (benchmarks/odometry_consistency.py, frame_noise_chain; "
-                 "share 0: the run's chaining). No share is chosen from it: the simulated walk (`nap3d-graph "
-                 "simulate ... --count 300 --path traverse --scene-seed 3 --seed 2`, 30 Hz), the data a share would "
-                 "be fitted on, has steps whose own covariance is too cautious already at one frame, which a share "
-                 "cannot change."),
+                 "covariance is too cautious. One step's covariance is about right on the real recordings; chained "
+                 "as if the steps' errors were independent (the run before 4283ecb), it grows over an interval far "
+                 "faster than the error does: a frame's own error enters the step into it and the step out of it "
+                 "with opposite signs. The run now chains them as `motion/interval.py` (IntervalCovariance) says: "
+                 "each step's disagreement with constant velocity is its two frames' own registration noise, which "
+                 "cancels inside the interval and stays at its two ends, and the alignment's own covariance adds up "
+                 "step by step. The run's default keyframe interval is marked. The last column chains the steps as "
+                 "if a fixed share of each whole step's covariance were the frames' noise (frame_noise_chain): no "
+                 "one share fits every recording, where the split by constant velocity needs no share. These "
+                 "recordings are the interval model's tuning data: the simulated walk (`nap3d-graph simulate ... "
+                 "--count 300 --path traverse --scene-seed 3 --seed 2`, 30 Hz), fr1/desk at 15 Hz, the kitchen's "
+                 "first 500 frames and the fr1/xyz frames."),
 ]
