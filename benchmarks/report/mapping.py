@@ -688,9 +688,13 @@ SECTIONS = [
             note="A false loop forced into the pose graph alone does not reach the map: the bundle adjustment solves "
                  "the keyframes again from the images and takes back the loops the bent graph turned away (the ATE "
                  "column). A look-alike place's loop brings matches that agree with the false pose into the bundle "
-                 "too, and bends the map; the mesh's walls are the figure that tells it. The covariance cases scale "
-                 "the defaults; where the clean run's gate consistency already reads too cautious, ten times smaller "
-                 "covariances land nearer the chi-square's median, not past its line."),
+                 "too, and bends the map; the map turns away the true loops that disagree with the bend, and the "
+                 "verified loops it turned away and misses are the figure that tells it (the mesh's walls move "
+                 "too). The covariance cases scale the corrections' covariances (NAP3D's and the field's); the "
+                 "gate's d2 weighs a correction against the odometry's prediction under both covariances, and "
+                 "where the prediction is as uncertain as the corrections' errors, ten times smaller correction "
+                 "covariances move the median d2 without taking it past the chi-square's 99% point: the report "
+                 "cannot tell that case (docs/limits.md)."),
     Section("The feature odometry's covariance against the ground truth over intervals of frames (every frame of "
             "the recording, 320 px wide): the prediction the run's gate compares a correction with",
             ("odometry_consistency.json",),
