@@ -18,8 +18,9 @@ def map_survey_table() -> str:
     ground truth's frame."""
     rows = ["| recording (file) | survey ATE cm: map / odometry alone [2nd GT] | loops accepted / verified | query ATE "
             "cm (causal) [2nd GT]: self-posed map | GT-posed map | 2nd-GT-posed map | ratio to the nearer GT's map | "
-            "relocalised within 5 cm / 3 deg [2nd GT]; >10 cm; s per attempt (median, max) | map s |",
-            "|---|---|---|---|---|---|---|---|---|"]
+            "relocalised within 5 cm / 3 deg [2nd GT]; >10 cm; s per attempt (median, max) | map s | run reports "
+            "(self-posed, GT-posed, 2nd-GT-posed): gate d2 median, and what is past its bad line |",
+            "|---|---|---|---|---|---|---|---|---|---|"]
     for name in MAP_SURVEY_FILES:
         path = RESULTS / name
         if not path.is_file():
@@ -50,8 +51,22 @@ def map_survey_table() -> str:
             f"| {ratio:.2f}{' (2nd GT)' if nearer_second else ''} "
             f"| {reloc['within_5cm_3deg']}/{reloc['attempts']}{reloc_second}; {reloc['accepted_farther_than_10cm']}; "
             f"{reloc['seconds_median']:.2f}, {reloc['seconds_max']:.2f} "
-            f"| {sum(survey['stages_s'].values()):.0f} |")
+            f"| {sum(survey['stages_s'].values()):.0f} | {_reports_cell(runs)} |")
     return "\n".join(rows)
+
+
+def _reports_cell(runs: dict) -> str:
+    """Each run's report: its median gate d2 and the figures past their bad lines (the gate's
+    consistency band is 0.87-16.8), '-' where the file predates the reports being recorded."""
+    cells = []
+    for key in ("self_posed", "gt_posed", "sfm_posed"):
+        report = (runs.get(key) or {}).get("report")
+        if report is None:
+            continue
+        d2 = report.get("gate_d2_median")
+        bad = "; ".join(b.split(":")[0] for b in report["past_bad_line"]) or "nothing"
+        cells.append(f"{d2:.2f}, {bad}" if d2 is not None else bad)
+    return " / ".join(cells) or "-"
 
 
 def _range_cm(summary: dict) -> str:
