@@ -27,6 +27,7 @@ from pathlib import Path
 import gtsam
 import numpy as np
 from provenance import write_result
+from scoring import spread
 
 import nap3d_graph.run.graph as run_graph
 from nap3d_graph.cli import main as cli_main
@@ -35,12 +36,7 @@ from nap3d_graph.factors.gate import factor_error_and_covariance
 from nap3d_graph.trajectory import read_tum_trajectory
 
 AXES = ("rx", "ry", "rz", "tx", "ty", "tz")
-
-
-def _spread(values) -> dict:
-    v = np.asarray(values, dtype=float)
-    return {"n": int(v.size), "median": round(float(np.median(v)), 3), "mean": round(float(np.mean(v)), 3),
-            "p90": round(float(np.percentile(v, 90)), 3)}
+STATS = ("median", "mean", "p90")
 
 
 def gated_corrections(argv: list[str]) -> list[dict]:
@@ -83,8 +79,8 @@ def case_figures(seen: list[dict], run_dir: Path) -> dict:
         nees.append(float(e @ np.linalg.solve(s["R"], e)))
     E = np.asarray(errors)
     sigma = np.sqrt(np.array([np.diag(s["R"]) for s in seen]))
-    return {"corrections": len(seen), "gate_d2": _spread([s["d2"] for s in seen]),
-            "nees_against_ground_truth": _spread(nees),
+    return {"corrections": len(seen), "gate_d2": spread([s["d2"] for s in seen], STATS),
+            "nees_against_ground_truth": spread(nees, STATS),
             "error_rms_mrad_mm": dict(zip(AXES, np.round(np.sqrt((E**2).mean(axis=0)) * 1e3, 2).tolist())),
             "sigma_median_mrad_mm": dict(zip(AXES, np.round(np.median(sigma, axis=0) * 1e3, 2).tolist())),
             "lag1_correlation": dict(zip(AXES, [round(float(np.corrcoef(E[:-1, a], E[1:, a])[0, 1]), 2)

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 from provenance import write_result
+from scoring import spread
 
 from nap3d_graph.conventions import compose_covariance, inv_T, log_se3
 from nap3d_graph.datasets import open_sequence
@@ -40,12 +41,7 @@ from nap3d_graph.run.config import PipelineConfig
 
 INTERVALS = (1, 2, 3, 5, 10)
 CHI2_6_MEDIAN = 5.348
-
-
-def _spread(values) -> dict:
-    v = np.asarray(values, dtype=float)
-    return {"n": int(v.size), "median": round(float(np.median(v)), 3), "p10": round(float(np.percentile(v, 10)), 3),
-            "p90": round(float(np.percentile(v, 90)), 3)}
+STATS = ("median", "p10", "p90")
 
 
 def odometry_steps(sequence, width: int) -> list:
@@ -97,11 +93,11 @@ def interval_nees(sequence, steps, n: int, config: PipelineConfig, shares=()) ->
         sigma_mm.append(1e3 * float(np.sqrt(np.trace(D[3:, 3:]) / 3)))
         err_mrad.append(1e3 * float(np.linalg.norm(e[:3])) / np.sqrt(3))
         sigma_mrad.append(1e3 * float(np.sqrt(np.trace(D[:3, :3]) / 3)))
-    return {"frames": n, "nees_steps_alone": _spread(alone), "nees_with_drift": _spread(with_drift),
-            "nees_run_interval_alone": _spread(run_alone), "nees_run_interval_with_drift": _spread(run_with_drift),
-            "error_mm_per_axis": _spread(err_mm), "sigma_mm_per_axis": _spread(sigma_mm),
-            "error_mrad_per_axis": _spread(err_mrad), "sigma_mrad_per_axis": _spread(sigma_mrad),
-            "nees_by_frame_share": {str(f): _spread(v) for f, v in by_share.items()}}
+    figures = {"nees_steps_alone": alone, "nees_with_drift": with_drift, "nees_run_interval_alone": run_alone,
+               "nees_run_interval_with_drift": run_with_drift, "error_mm_per_axis": err_mm,
+               "sigma_mm_per_axis": sigma_mm, "error_mrad_per_axis": err_mrad, "sigma_mrad_per_axis": sigma_mrad}
+    return {"frames": n, **{name: spread(v, STATS) for name, v in figures.items()},
+            "nees_by_frame_share": {str(f): spread(v, STATS) for f, v in by_share.items()}}
 
 
 def main() -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -13,6 +14,7 @@ import pytest
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
 from nap3d_graph.mapping.build import MapSettings, build_map, place_frames
 from nap3d_graph.mapping.pose_graph import Edge, solve
+from nap3d_graph.mapping.report import LOOP_RESIDUAL_BAD, loop_residuals, map_report
 from nap3d_graph.mapping.start import PlacementSettings
 from nap3d_graph.mapping.survey import joined_run, lost_frames, tracked_segment, tracked_segments
 
@@ -486,8 +488,6 @@ def test_a_survey_that_loses_the_camera_is_joined_again_by_its_loops(sim_walk, t
 def test_a_camera_without_ground_truth_maps_then_runs_in_its_map(tum_path, tmp_path, capsys):
     """A user's own camera: no groundtruth.txt anywhere. The odometry-only run needs no start
     pose; ``map`` builds the map; ``run --field MAP`` finds its start in it by itself."""
-    import shutil
-
     from nap3d_graph.cli import main
 
     survey = tmp_path / "my_camera"
@@ -700,12 +700,8 @@ def test_a_run_never_found_in_the_map_says_so(xyz_map, sim_walk):
 
 def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_map, tmp_path):
     """The map's report without ground truth: nothing past its bad line on the real frames; a
-    map bent away from its own loops and a survey that closed no loop are told."""
-    import shutil
-
-    from nap3d_graph.conventions import exp_se3
-    from nap3d_graph.mapping.report import LOOP_RESIDUAL_BAD, loop_residuals, map_report
-
+    survey that closed no loop, a depth camera off against its images and a field that covers
+    nothing are told (a map bent away from its own loops: the next test)."""
     map_folder = xyz_map[1].folder
 
     info = json.loads((map_folder / "map.json").read_text())
@@ -716,32 +712,6 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     assert ("reason" in depth) or (not depth["bad"] and depth["observations"] >= 150), depth
     residuals = loop_residuals(map_folder)
     assert len(residuals) == info["loops"]["accepted"] and np.median(residuals[:, 0]) < 0.01
-    # A map bent away from its own loops (what a false loop forced into the graph does): the
-    # later keyframes moved 5 cm and turned 2 degrees.
-    bent = tmp_path / "bent"
-    shutil.copytree(map_folder, bent)
-    T = np.load(bent / "keyframe_poses.npy")
-    T[len(T) // 2:] = T[len(T) // 2:] @ exp_se3(np.array([0.0, 0.035, 0.0, 0.05, 0.0, 0.0]))
-    np.save(bent / "keyframe_poses.npy", T)
-    report = map_report(bent)
-    assert report.values["loop_residual"]["median_m"] > LOOP_RESIDUAL_BAD[0]
-    assert any(figure.startswith("loop residual") for figure in report.bad)
-    assert report.values["turned_away"] == {"loops": 0, "missed": 0, "allowed": 2}
-    # A graph that followed a false loop turns away the true loops across the bend: those its
-    # final poses miss count against the map, beyond two (a wrong loop verification let through).
-    # (the later keyframes 10 cm away, as the fault benchmark's look-alike loop bends a map).
-    folded = tmp_path / "folded"
-    shutil.copytree(map_folder, folded)
-    T = np.load(folded / "keyframe_poses.npy")
-    T[len(T) // 2:] = T[len(T) // 2:] @ exp_se3(np.array([0.0, 0.0, 0.0, 0.10, 0.0, 0.0]))
-    np.save(folded / "keyframe_poses.npy", T)
-    _turn_away(folded, info["loops"]["verified"], across=len(T) // 2)
-    turned = map_report(folded).values["turned_away"]
-    assert turned["missed"] == turned["loops"] >= 3
-    assert any(figure.startswith("verified loops the map turned away") for figure in map_report(folded).bad)
-    _turn_away(folded, info["loops"]["verified"], across=len(T) // 2, at_most=1)
-    assert map_report(folded).values["turned_away"]["missed"] == 1
-    assert not any(figure.startswith("verified loops the map turned away") for figure in map_report(folded).bad)
     # A survey that closed no loop.
     alone = tmp_path / "alone"
     shutil.copytree(map_folder, alone)
@@ -767,12 +737,45 @@ def test_the_map_report_is_good_and_tells_a_bent_map_and_one_without_loops(xyz_m
     assert any("depth error" in figure for figure in told) and any("covered" in figure for figure in told)
 
 
+def _bent_copy(map_folder, folder, twist: np.ndarray) -> np.ndarray:
+    """A copy of the map in ``folder`` with its later half of keyframes moved by ``twist`` (6,)
+    (rotation, translation); returns the bent keyframe poses (K, 4, 4)."""
+    shutil.copytree(map_folder, folder)
+    T = np.load(folder / "keyframe_poses.npy")
+    T[len(T) // 2:] = T[len(T) // 2:] @ exp_se3(twist)
+    np.save(folder / "keyframe_poses.npy", T)
+    return T
+
+
+def test_the_map_report_tells_a_map_bent_away_from_its_own_loops(xyz_map, tmp_path):
+    map_folder = xyz_map[1].folder
+    info = json.loads((map_folder / "map.json").read_text())
+    # A map bent away from its own loops (what a false loop forced into the graph does): the
+    # later keyframes moved 5 cm and turned 2 degrees.
+    bent = tmp_path / "bent"
+    _bent_copy(map_folder, bent, np.array([0.0, 0.035, 0.0, 0.05, 0.0, 0.0]))
+    report = map_report(bent)
+    assert report.values["loop_residual"]["median_m"] > LOOP_RESIDUAL_BAD[0]
+    assert any(figure.startswith("loop residual") for figure in report.bad)
+    assert report.values["turned_away"] == {"loops": 0, "missed": 0, "allowed": 2}
+    # A graph that followed a false loop turns away the true loops across the bend: those its
+    # final poses miss count against the map, beyond two (a wrong loop verification let through).
+    # (the later keyframes 10 cm away, as the fault benchmark's look-alike loop bends a map).
+    folded = tmp_path / "folded"
+    T = _bent_copy(map_folder, folded, np.array([0.0, 0.0, 0.0, 0.10, 0.0, 0.0]))
+    _turn_away(folded, info["loops"]["verified"], across=len(T) // 2)
+    turned = map_report(folded).values["turned_away"]
+    assert turned["missed"] == turned["loops"] >= 3
+    assert any(figure.startswith("verified loops the map turned away") for figure in map_report(folded).bad)
+    _turn_away(folded, info["loops"]["verified"], across=len(T) // 2, at_most=1)
+    assert map_report(folded).values["turned_away"]["missed"] == 1
+    assert not any(figure.startswith("verified loops the map turned away") for figure in map_report(folded).bad)
+
+
 def _turn_away(folder, verified: int, across: int, at_most: int | None = None) -> None:
     """``loops.csv`` of ``folder`` with the kept loops from before keyframe ``across`` to after
     it (``at_most`` of them) marked 'rejected', as a graph that followed a false loop leaves
     them; the rest as ``map`` kept them."""
-    import csv
-
     with (folder / "loops.csv").open(newline="") as f:
         rows = list(csv.DictReader(f))
     with np.load(folder / "edges.npz") as d:

@@ -43,6 +43,7 @@ The figures and the lines past which they say something went wrong:
 
 from __future__ import annotations
 
+import csv
 import json
 import logging
 from pathlib import Path
@@ -97,9 +98,6 @@ def loop_residuals(folder: Path, statuses: tuple[str, ...] = ("accepted",)) -> n
     poses of each loop whose status in ``loops.csv`` is one of ``statuses`` (default: the loops
     the graph kept; measurements in ``edges.npz``, in the same order; poses in
     ``keyframe_poses.npy``); (0, 2) when none."""
-    import csv
-
-
     files = MapFolder(Path(folder))
     edges, poses, table = files.edges, files.keyframe_poses, files.loops_table
     if not (edges.is_file() and poses.is_file() and table.is_file()):
