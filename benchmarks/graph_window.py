@@ -126,7 +126,7 @@ def run(walk: ImagelessWalk, window: int, retire: bool) -> dict:
             "keyframes": len(isam_ms), "run_s": run_s, "final_solve_s": final_s,
             "isam_ms_median_per_1000_keyframes": blocks, "isam_ms_p90_last_1000": float(np.percentile(isam_ms[-1000:], 90)),
             "rss_mb_at": {str(k): v for k, v in memory.items()}, "accepted": result.num_accepted, "ate_m": ate,
-            "graph_variables_at_end": int(pipeline.graph.isam.calculateEstimate().size())}
+            "graph_variables_at_end": int(pipeline.state.graph.isam.calculateEstimate().size())}
 
 
 def main() -> None:

@@ -427,7 +427,7 @@ def test_imu_run_survives_a_failed_isam2_update(walk, monkeypatch):
     odometry = ImuOdometry.from_sequence(seq)
     pipeline = Pipeline(seq, seq.oracle_field(), odometry, CONFIG)
     result = pipeline.run()
-    assert pipeline.graph.rebuilds == 1
+    assert pipeline.state.graph.rebuilds == 1
     assert result.num_accepted >= 0.8 * len(result.keyframes)
     errors = [np.linalg.norm(a[:3, 3] - b[:3, 3]) for a, b in zip(result.T_world_cam_estimate, result.T_world_cam_gt)]
     assert np.sqrt(np.mean(np.square(errors))) < 0.01

@@ -17,9 +17,9 @@ from nap3d_graph.sims.trajectories import ImagelessWalk
 
 
 def _graph_size(pipeline) -> tuple[int, int]:
-    factors = pipeline.graph.isam.getFactorsUnsafe()
+    factors = pipeline.state.graph.isam.getFactorsUnsafe()
     live = sum(factors.at(i) is not None for i in range(factors.size()))
-    return pipeline.graph.isam.calculateEstimate().size(), live
+    return pipeline.state.graph.isam.calculateEstimate().size(), live
 
 
 @pytest.mark.slow
@@ -77,9 +77,10 @@ def test_graph_window_is_refused_where_it_does_not_apply():
 
 def _kept(pipeline) -> int:
     """The most per-frame or per-keyframe items the run holds."""
-    motion = pipeline.motion
-    return max(len(motion.T_world_cam_odom._items), len(motion.increments._items), len(pipeline.online._items),
-               len(pipeline.keyframe_indices._items), len(pipeline.records._items), len(pipeline.graph.frozen))
+    state = pipeline.state
+    motion = state.motion
+    return max(len(motion.T_world_cam_odom._items), len(motion.increments._items), len(state.online._items),
+               len(state.keyframe_indices._items), len(state.records._items), len(state.graph.frozen))
 
 
 @pytest.mark.slow

@@ -579,7 +579,7 @@ def test_a_run_that_loses_track_recovers_by_relocalising_in_the_map(xyz_map):
                                                                                           min_opacity=0.5)), 4, jump)
         pipeline = Pipeline(in_map, field, odometry, PipelineConfig(keyframe_every=1, align=AlignConfig(matcher="sift")))
         if recover:
-            pipeline.relocaliser = Relocaliser(result.folder, field, AlignConfig(matcher="sift"))
+            pipeline.recover_in_map(Relocaliser(result.folder, field, AlignConfig(matcher="sift")))
         run = pipeline.run()
         # What the robot had at each frame (causal): the final smoothing can mend a jump afterwards,
         # a robot needs its pose back while it moves.

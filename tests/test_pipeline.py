@@ -243,8 +243,8 @@ def test_field_sigma_makes_a_biased_fields_corrections_honest(walk, baseline):
 
     tight, tight_result = run(0.0)
     loose, loose_result = run(0.03)
-    k = max(loose.stream.corrections)
-    added = loose.stream.corrections[k][1] - tight.stream.corrections[k][1]
+    k = max(loose.state.stream.corrections)
+    added = loose.state.stream.corrections[k][1] - tight.state.stream.corrections[k][1]
     # (the two runs render from slightly different poses: their own covariances differ by ~1e-8)
     np.testing.assert_allclose(added, np.diag([(0.03 / 2.0) ** 2] * 3 + [0.03**2] * 3), atol=1e-6)
     assert loose_result.num_accepted > tight_result.num_accepted

@@ -500,6 +500,6 @@ def _give_map(runner, start_record: dict, field_obj, sequence, args) -> None:
         runner.start_in_map(map_relocaliser(start_record["map"], field_obj, sequence, args))
     elif start_record.get("map"):
         # A map's relocaliser: recovers a run lost ``relocalise_after`` keyframes in a row.
-        runner.relocaliser = map_relocaliser(start_record["map"], field_obj, sequence, args)
+        runner.recover_in_map(map_relocaliser(start_record["map"], field_obj, sequence, args))
 
 

@@ -161,8 +161,8 @@ class DriftCorrector:
         self.pipeline = Pipeline(self._frames, field, self._odometry, config, on_retire=retire)
         if relocaliser is not None and T_world_cam_start is None:
             self.pipeline.start_in_map(relocaliser)
-        else:
-            self.pipeline.relocaliser = relocaliser
+        elif relocaliser is not None:
+            self.pipeline.recover_in_map(relocaliser)
         self.pipeline.start()
         self._worker = CorrectionWorker(field, self.pipeline.config) if self.pipeline.overlaps() else None
 
@@ -188,7 +188,6 @@ class DriftCorrector:
         self._frames.append(frame)
         pipeline = self.pipeline
         records, keyframes = len(pipeline.records), len(pipeline.keyframe_indices)
-        pipeline.last_correction = pipeline.last_factor = None
         pipeline.step(i, self._worker)
         update = LiveUpdate(pipeline.current_estimate, keyframe=len(pipeline.keyframe_indices) > keyframes,
                             placed=pipeline.placed)

@@ -15,10 +15,12 @@ prediction. The motion model chains the frames between keyframes.
 Its parts, each with a public interface the overlapped path (:mod:`nap3d_graph.run.overlapped`)
 uses as the inline one does: :class:`~nap3d_graph.run.frames.FrameReader` (``frames``),
 :class:`~nap3d_graph.run.jobs.KeyframeJobs` (``jobs``: what measuring a keyframe needs),
-:class:`~nap3d_graph.run.corrections.CorrectionGate` (``corrections``: the graph half, with the
-refusal watch), :class:`~nap3d_graph.run.recovery.MapRecovery` (``recovery``: placement in a
-map and recovery), :class:`~nap3d_graph.run.stream.MeasurementStream` (``stream``) and
-:func:`~nap3d_graph.run.retire.retired_segment` (a bounded graph's retirement).
+:class:`~nap3d_graph.run.corrections.CorrectionGate` (``corrections``: the gate, with the
+refusal watch; it returns the factor it added, and the run solves),
+:class:`~nap3d_graph.run.recovery.MapRecovery` (``recovery``: placement in a map and recovery)
+and :func:`~nap3d_graph.run.retire.retired_segment` (a bounded graph's retirement). None of
+them holds the run: what the run holds between frames is one
+:class:`~nap3d_graph.run.state.RunState` (``state``), handed to a part for the length of its call.
 """
 
 from __future__ import annotations
@@ -54,6 +56,7 @@ from nap3d_graph.run.records import KeyframeRecord, RunResult, ground_truth_read
 from nap3d_graph.run.recovery import MapRecovery
 from nap3d_graph.run.retire import retired_segment
 from nap3d_graph.run.selection import KeyframeSelector
+from nap3d_graph.run.state import RunState
 from nap3d_graph.run.stream import MeasurementStream
 
 __all__ = ["Pipeline", "motion_model", "motion_kind", "trained_frames"]
@@ -95,23 +98,10 @@ class Pipeline:
     """
 
     # The run's state and parts, made fresh by start().
-    motion: MotionModel
-    graph: KeyframeGraph
-    anchored: bool
-    keyframe_indices: FrameLog[int]  # by keyframe number; with on_retire the oldest are dropped
-    records: FrameLog[KeyframeRecord]  # in the order they were done
-    online: FrameLog[np.ndarray]  # each frame's pose as known at that frame (causal)
-    T_world_kf_pred: np.ndarray  # (4, 4) the latest keyframe's prediction
-    pending_record: KeyframeRecord | None  # the keyframe being measured
-    last_correction: Correction | None  # the latest keyframe's correction and factor (a live caller reads them)
-    last_factor: gtsam.NonlinearFactor | None
-    last_correction_frame: int
+    state: RunState
     selector: KeyframeSelector
     frames: FrameReader
     jobs: KeyframeJobs
-    depth_scale: DepthScaleTracker
-    intrinsics_model: IntrinsicsModelTracker
-    stream: MeasurementStream
     corrections: CorrectionGate
     recovery: MapRecovery
     _trained: np.ndarray
@@ -125,25 +115,30 @@ class Pipeline:
         self.field = field
         self.odometry = odometry
         # The field's own error, as it measured it when it was built, unless told otherwise.
-        self.config = with_field_error(config or PipelineConfig(), field)
+        self._config = with_field_error(config or PipelineConfig(), field)
         self.correction_hook = correction_hook
-        # A map's relocaliser (nap3d_graph.mapping.relocalise.Relocaliser), set by whoever has the
-        # map: after config.relocalise_after keyframes refused in a row, the frame is found in the
-        # map afresh and enters as a correction past the gate (the prediction it would be gated
-        # against is what went wrong). Each recovery is listed in ``recoveries``.
-        self.relocaliser = None
-        self.recoveries: list[dict] = []
+        self.relocaliser = None  # a map's (recover_in_map, start_in_map)
+        self._recoveries: list[dict] = []
         # Placing the run in the map (nap3d_graph.mapping.start): None when the start is given;
         # set by start_in_map for a run that starts from anywhere in a map.
         self._placement_settings: PlacementSettings | None = None
         self._starts_unplaced = False
-        self.placement: MapPlacement | None = None
+        self._placement: MapPlacement | None = None
         motion = motion_kind(odometry)
         if self.config.use_anchor and motion.estimates_field_frame:
             raise ValueError("`use_anchor` does not apply with `odometry='imu'`: the IMU path estimates the field's frame's "
                              "tilt (its gravity) itself")
         if self.config.graph_window and (self.config.use_anchor or not motion.allows_graph_window):
             raise ValueError("graph_window (a bounded graph) does not apply with the map anchor or the IMU path")
+
+    def recover_in_map(self, relocaliser) -> None:
+        """Recover in a map when lost (before :meth:`run` or :meth:`start`): after
+        ``config.relocalise_after`` keyframes refused in a row, the frame is found afresh by
+        ``relocaliser`` (the map's :class:`~nap3d_graph.mapping.relocalise.Relocaliser`) and,
+        once the next keyframes confirm it, enters as a correction past the gate (the
+        prediction it would be gated against is what went wrong). Each recovery is listed in
+        ``recoveries``."""
+        self.relocaliser = relocaliser
 
     def start_in_map(self, relocaliser, settings: PlacementSettings | None = None) -> None:
         """Start from anywhere in a map (before :meth:`run` or :meth:`start`): the odometry
@@ -161,11 +156,58 @@ class Pipeline:
         self._placement_settings = settings
         self._starts_unplaced = True
 
+    # --- what a caller reads --------------------------------------------------------------
+
+    @property
+    def config(self) -> PipelineConfig:
+        """The run's settings, with the field's own error resolved (:func:`with_field_error`)."""
+        return self._config
+
+    @property
+    def placement(self) -> MapPlacement | None:
+        """Where the run is in its map (None: no map, or before :meth:`start`)."""
+        return self._placement
+
     @property
     def placed(self) -> bool:
         """Whether the run's poses are in the field's (map's) frame: always, unless it started
         from anywhere in a map and has not been placed yet."""
-        return self.placement is None or self.placement.placed
+        return self._placement is None or self._placement.placed
+
+    @property
+    def recoveries(self) -> list[dict]:
+        """Each relocalisation tried after refusals and each recovery (metrics.json's record)."""
+        return self._recoveries
+
+    @property
+    def records(self) -> FrameLog[KeyframeRecord]:
+        """Each keyframe's record, in the order they were done (with ``on_retire`` the oldest
+        are dropped)."""
+        return self.state.records
+
+    @property
+    def keyframe_indices(self) -> FrameLog[int]:
+        """The frame of each keyframe, by keyframe number."""
+        return self.state.keyframe_indices
+
+    @property
+    def last_correction(self) -> Correction | None:
+        """The latest correction measured in this frame's step (None: none), its factor when it
+        entered the graph (:attr:`last_factor`) and its keyframe (:attr:`last_correction_frame`)."""
+        return self.state.last_correction
+
+    @property
+    def last_factor(self) -> gtsam.NonlinearFactor | None:
+        return self.state.last_factor
+
+    @property
+    def last_correction_frame(self) -> int:
+        return self.state.last_correction_frame
+
+    @property
+    def current_estimate(self) -> np.ndarray:
+        """(4, 4) the latest frame's pose as known now (the causal estimate)."""
+        return np.array(self.state.online[-1])
 
     # --- the run, as its steps ---------------------------------------------------------
 
@@ -212,8 +254,10 @@ class Pipeline:
         :class:`nap3d_graph.run.live.DriftCorrector` calls it a frame at a time. With a
         ``worker`` the keyframe is measured on it while the run goes on
         (:mod:`nap3d_graph.run.overlapped`)."""
+        state = self.state
+        state.last_correction = state.last_factor = None  # what this frame's step measures
         if worker is not None:
-            self._overlapped(worker).step(i, on_keyframe)
+            self._overlapped(worker).step(state, i, on_keyframe)
             return
         frame = self.predict(i, self.frames.for_odometry(i))
         if self.is_keyframe(i, frame, idle=False):
@@ -221,28 +265,24 @@ class Pipeline:
             frame = self.frames.for_keyframe(i, frame, needed=self.field is not None)
             self._correct_keyframe(i, frame)  # measured, gated, added, solved
             tell(on_keyframe, self.finish_keyframe())
-        self.online.append(self.motion.causal_pose())
+        state.online.append(state.motion.causal_pose())
 
     def overlaps(self) -> bool:
         """Whether keyframes are measured on a worker thread (``config.overlap``, a field, and a
         motion model that allows it); after :meth:`start`."""
-        return bool(self.config.overlap) and self.field is not None and self.motion.allows_overlap
+        return bool(self.config.overlap) and self.field is not None and self.state.motion.allows_overlap
 
     def land_pending(self, worker: CorrectionWorker, on_keyframe=None) -> None:
         """The measurement still in flight, if any, waited for and put in the graph (the end of
         an overlapped run)."""
-        self._overlapped(worker).land_pending(on_keyframe)
+        self._overlapped(worker).land_pending(self.state, on_keyframe)
 
     def _overlapped(self, worker: CorrectionWorker) -> OverlappedSteps:
         """The overlapped steps of this run with ``worker`` (made once per worker)."""
         if self._overlap is None or self._overlap.worker is not worker:
-            self._overlap = OverlappedSteps(self, worker)
+            self._overlap = OverlappedSteps(self, worker, self.frames, self.selector, self.jobs, self.config,
+                                            self.sequence)
         return self._overlap
-
-    @property
-    def current_estimate(self) -> np.ndarray:
-        """(4, 4) the latest frame's pose as known now (the causal estimate)."""
-        return np.array(self.online[-1])
 
     # --- a frame's steps (the inline path here; nap3d_graph.run.overlapped the other) -------
 
@@ -250,138 +290,150 @@ class Pipeline:
         """Frame i's odometry step (the motion model's prediction of its pose); returns ``frame``."""
         if i > 0:
             t = float(self.sequence.timestamps[i])
-            self.motion.frame(i, frame, t, t - float(self.sequence.timestamps[i - 1]))
+            self.state.motion.frame(i, frame, t, t - float(self.sequence.timestamps[i - 1]))
         return frame
 
     def is_keyframe(self, i: int, frame, idle: bool) -> bool:
         """Whether frame i is a keyframe (``idle``: an overlapped run's worker has nothing in flight)."""
-        last = self.keyframe_indices[-1] if self.keyframe_indices else None
-        return self.selector.is_keyframe(i, frame, last, self.motion.doubted, self.motion.since_keyframe(), idle)
+        motion = self.state.motion
+        return self.selector.is_keyframe(i, frame, self.state.last_keyframe, motion.doubted, motion.since_keyframe(),
+                                         idle)
 
     def add_keyframe(self, i: int) -> None:
         """Frame i becomes a keyframe: its pose enters iSAM2 with its motion factor (that is
         the prediction), and its record is pending (:meth:`pending`) until it is measured."""
-        j = len(self.keyframe_indices)
-        self.keyframe_indices.append(i)
-        entry = self.motion.add_keyframe(j, i, float(self.sequence.timestamps[i]))
-        self.graph.enter(entry)
-        self.T_world_kf_pred = entry.T_world_kf_pred
+        state = self.state
+        j = len(state.keyframe_indices)
+        state.keyframe_indices.append(i)
+        entry = state.motion.add_keyframe(j, i, float(self.sequence.timestamps[i]))
+        state.graph.enter(entry)
+        state.T_world_kf_pred = entry.T_world_kf_pred
         if entry.interval is not None:
-            self.stream.add_interval(i, entry.interval)
+            state.stream.add_interval(i, entry.interval)
         why, sharp, waited = self.selector.take()
         trained = bool(self._trained[i]) if i < len(self._trained) else False  # a live run's frames: unknown
-        self.pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j), trained_frame=trained,
-                                             why=why, sharpness=sharp, postponed=waited)
-        self.update_graph()
+        state.pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j), trained_frame=trained,
+                                              why=why, sharpness=sharp, postponed=waited)
+        state.update_graph()
 
     def pending(self) -> KeyframeRecord:
         """The record of the keyframe being measured (between :meth:`add_keyframe` and
         :meth:`finish_keyframe`, or an overlapped run's launch)."""
-        if self.pending_record is None:
-            raise RuntimeError("no keyframe is pending: add_keyframe comes first")
-        return self.pending_record
+        return self.state.pending()
+
+    def placing(self) -> bool:
+        """Whether the next keyframe goes to finding the run in its map, not to a correction."""
+        return self.recovery.placing()
+
+    def place_keyframe(self, i: int, frame) -> None:
+        """The pending keyframe i relocalised in the map, or confirming where it was found."""
+        self.recovery.place_keyframe(self.state, self.state.pending(), i, frame)
 
     def _correct_keyframe(self, i: int, frame) -> None:
         """Measure the pending keyframe's correction and give it to the graph, now; then the
         motion model hears whether it landed, and adds its own notes of the interval."""
-        record = self.pending()
-        if self.recovery.placing():
-            self.recovery.place_keyframe(record, i, frame)
-        elif (job := self.jobs.job(record, i, frame)) is not None:
-            self.corrections.apply(record, i, measure_keyframe(job, self.field, self.config), job.T_field_cam_render)
-            self.recovery.recover_if_lost(record, i, frame)
-        if notes := self.motion.interval_notes():
+        state = self.state
+        record = state.pending()
+        if self.placing():
+            self.place_keyframe(i, frame)
+        elif (job := self.jobs.job(state, record, i, frame)) is not None:
+            correction = measure_keyframe(job, self.field, self.config)
+            self.apply_correction(record, i, correction, job.T_field_cam_render, frame)
+        if notes := state.motion.interval_notes():
             record.reason = f"{record.reason}; {notes}" if record.reason else notes
-        self.motion.after_correction(i, frame, record.accepted)
+        state.motion.after_correction(i, frame, record.accepted)
+
+    def apply_correction(self, record: KeyframeRecord, i: int, correction: Correction, T_field_cam_render,
+                         frame, latest: bool = True) -> None:
+        """Keyframe i's measured ``correction`` through the gate; when it enters the graph, the
+        solve; then, for the ``latest`` keyframe, a recovery in the map if the run is lost."""
+        if self.corrections.apply(self.state, record, i, correction, T_field_cam_render) is not None:
+            # Two iSAM2 steps: a correction can move the pose a long way from its linearisation.
+            self.state.update_graph(extra_step=True, record=record)
+        if latest:
+            self.recovery.recover_if_lost(self.state, record, i, frame)
+
+    def keyframe_estimated(self) -> None:
+        """The motion model hears the latest keyframe's estimate as the graph has it now."""
+        state = self.state
+        j = len(state.keyframe_indices) - 1
+        state.motion.keyframe_estimated(state.graph, j, float(self.sequence.timestamps[state.keyframe_indices[j]]))
 
     def finish_keyframe(self) -> KeyframeRecord | None:
         """The latest keyframe is done: the motion model hears its estimate, its record is kept
         and returned (None when it was already handed on)."""
-        j = len(self.keyframe_indices) - 1
-        self.motion.keyframe_estimated(self.graph, j, float(self.sequence.timestamps[self.keyframe_indices[j]]))
-        record, self.pending_record = self.pending_record, None
+        state = self.state
+        self.keyframe_estimated()
+        record, state.pending_record = state.pending_record, None
         if record is not None:
-            self.records.append(record)
+            state.records.append(record)
         return record
 
-    def update_graph(self, extra_step: bool = False, record: KeyframeRecord | None = None) -> None:
-        """An iSAM2 step (two with ``extra_step``); with a bounded graph, what left its window
-        is forgotten (and handed to ``on_retire``). The time goes to ``record``'s timings (the
-        pending keyframe's when not given)."""
-        t0 = time.perf_counter()
-        self.graph.update(extra_step)
-        # Until the run is placed in the map its graph holds every keyframe (it will be moved whole).
-        cut = self.graph.bound(len(self.keyframe_indices)) if self.placed else None
-        if cut is not None:  # the window moved: the stream forgets what left it
-            self.stream.forget_before(self.keyframe_indices[cut])
-            if self.on_retire is not None and (segment := retired_segment(self, cut)) is not None:
-                self.on_retire(segment)
-        record = record or self.pending_record
-        if record is not None:
-            record.timings_s["isam"] = round(record.timings_s.get("isam", 0.0) + time.perf_counter() - t0, 5)
+    def _retire(self, cut: int) -> None:
+        """Keyframes before ``cut`` left the bounded graph: the frames now final go to ``on_retire``."""
+        if self.on_retire is not None and (segment := retired_segment(self.state, self.sequence, cut)) is not None:
+            self.on_retire(segment)
 
     # --- start and result ------------------------------------------------------------------
 
     def start(self) -> None:
         """A fresh graph and state, before frame 0 (:meth:`run` starts itself)."""
         self._overlap = None
-        stamps = self.sequence.timestamps
+        config, stamps = self.config, self.sequence.timestamps
         # A live run (DriftCorrector) starts before its first frame: no stamp yet.
-        self.motion = motion_model(self.odometry, self.config, float(stamps[0]) if len(stamps) else 0.0)
-        anchor = self.motion.anchor_prior()
-        self.anchored = self.config.use_anchor or anchor is not None
-        self.graph = KeyframeGraph(self.config, self.anchored)
-        self.keyframe_indices, self.records, self.online = FrameLog(), FrameLog(), FrameLog()
-        self.T_world_kf_pred = self.motion.T_world_cam_odom[0]
-        self.pending_record, self.last_correction, self.last_factor, self.last_correction_frame = None, None, None, -1
+        motion = motion_model(self.odometry, config, float(stamps[0]) if len(stamps) else 0.0)
+        anchor = motion.anchor_prior()
+        anchored = config.use_anchor or anchor is not None
         self._trained = trained_frames(self.field, self.sequence)
-        self.selector = KeyframeSelector(self.config)
-        self.frames = FrameReader(self.sequence, self.motion.prime,
-                                  lambda: self.motion.needs_frames or self.selector.reads_every_frame)
-        self.jobs = KeyframeJobs(self)
+        self.selector = KeyframeSelector(config)
+        self.frames = FrameReader(self.sequence, motion.prime,
+                                  lambda: motion.needs_frames or self.selector.reads_every_frame)
+        self.jobs = KeyframeJobs(self.field, config, self.odometry, stamps, lambda: self.frames.error)
         timing = self.jobs.timing()
-        self.depth_scale = DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, self.config)
-        self.intrinsics_model = IntrinsicsModelTracker.for_run(self.config)
-        self.stream = MeasurementStream()
-        self.corrections = CorrectionGate(self)
-        placement_settings = self._placement_settings or PlacementSettings(
-            confirm_travel_m=self.config.placement_travel_m)
-        self.placement = None if self.relocaliser is None else MapPlacement(
-            self.relocaliser, placement_settings, placed=not self._starts_unplaced)
-        self.recovery = MapRecovery(self, self.placement)
-        self.recoveries = self.recovery.recoveries
-        if self.config.use_anchor:  # the field's frame in the odometry's world, to be estimated
-            anchor = (anchor_prior_factor(M(0), np.eye(4), self.config.anchor_rot_sigma_rad,
-                                          self.config.anchor_trans_sigma_m), np.eye(4))
+        settings = self._placement_settings or PlacementSettings(confirm_travel_m=config.placement_travel_m)
+        self._placement = None if self.relocaliser is None else MapPlacement(
+            self.relocaliser, settings, placed=not self._starts_unplaced)
+        self.state = RunState(motion, KeyframeGraph(config, anchored), anchored, MeasurementStream(),
+                              DepthScaleTracker(timing.depth_scale if timing is not None else 1.0, config),
+                              IntrinsicsModelTracker.for_run(config), self._placement,
+                              motion.T_world_cam_odom[0], retire=self._retire)
+        self.corrections = CorrectionGate(config, self.correction_hook)
+        self.recovery = MapRecovery(self._placement, self.field, config, self.jobs)
+        self._recoveries = self.recovery.recoveries
+        if config.use_anchor:  # the field's frame in the odometry's world, to be estimated
+            anchor = (anchor_prior_factor(M(0), np.eye(4), config.anchor_rot_sigma_rad,
+                                          config.anchor_trans_sigma_m), np.eye(4))
         if anchor is not None:
-            self.graph.add_anchor(*anchor)
+            self.state.graph.add_anchor(*anchor)
 
     def result(self, n: int) -> RunResult:
         """The run over its first ``n`` frames as it stands: the final solve, every frame's
         pose (``run`` returns this at its end)."""
-        first = self.online.start  # frames before it were retired (on_retire)
+        state = self.state
+        motion, graph, keyframe_indices = state.motion, state.graph, state.keyframe_indices
+        first = state.online.start  # frames before it were retired (on_retire)
         T_world_cam_gt = ground_truth_reader(self.sequence, first, n)
         stamps = np.asarray(self.sequence.timestamps[first:n], dtype=float)
-        if not len(self.keyframe_indices):  # stopped before the first keyframe: odometry is all there is
-            T_world_cam_odom = np.stack(self.motion.T_world_cam_odom[:n])
+        if not len(keyframe_indices):  # stopped before the first keyframe: odometry is all there is
+            T_world_cam_odom = np.stack(motion.T_world_cam_odom[:n])
             return RunResult(stamps, T_world_cam_odom, T_world_cam_odom, T_world_cam_gt, [], [], T_world_cam_online=T_world_cam_odom)
-        accepted = {r.frame_index for r in self.records if r.accepted}
-        estimate = self.graph.final_estimate(accepted)
-        frozen = self.graph.frozen
+        accepted = {r.frame_index for r in state.records if r.accepted}
+        estimate = graph.final_estimate(accepted)
+        frozen = graph.frozen
         T_world_kf_by_frame = {idx: frozen[j] if j in frozen else pose3_to_T(estimate.atPose3(X(j)))
-                               for j, idx in self.keyframe_indices.items()}
-        T_world_cam_est = self.motion.smoothed(estimate, T_world_kf_by_frame, self.keyframe_indices, stamps)
-        T_online = self.motion.causal(self.online, stamps)
+                               for j, idx in keyframe_indices.items()}
+        T_world_cam_est = motion.smoothed(estimate, T_world_kf_by_frame, keyframe_indices, stamps)
+        T_online = motion.causal(state.online, stamps)
         T_map = pose3_to_T(estimate.atPose3(M(0))) if self.config.use_anchor else None
-        result = RunResult(stamps, T_world_cam_est, np.stack(self.motion.T_world_cam_odom[:n]), T_world_cam_gt,
-                           list(self.records), list(self.keyframe_indices), T_map, T_world_cam_online=T_online,
-                           gnc_outliers=list(self.graph.gnc_outliers), gnc_recovered=list(self.graph.gnc_recovered),
-                           depth_scale=self.depth_scale.scale, interval_odometry=dict(self.stream.interval_odometry),
-                           corrections=dict(self.stream.corrections), increments=list(self.motion.increments[:n]),
+        result = RunResult(stamps, T_world_cam_est, np.stack(motion.T_world_cam_odom[:n]), T_world_cam_gt,
+                           list(state.records), list(keyframe_indices), T_map, T_world_cam_online=T_online,
+                           gnc_outliers=list(graph.gnc_outliers), gnc_recovered=list(graph.gnc_recovered),
+                           depth_scale=state.depth_scale.scale, interval_odometry=dict(state.stream.interval_odometry),
+                           corrections=dict(state.stream.corrections), increments=list(motion.increments[:n]),
                            first_frame=first)
-        self.motion.finish(estimate, self.graph, accepted, self.keyframe_indices, result)
-        if self.placement is not None:
-            result.placement = self.placement.summary()
+        motion.finish(estimate, graph, accepted, keyframe_indices, result)
+        if self._placement is not None:
+            result.placement = self._placement.summary()
         return result
 
 

@@ -18,7 +18,9 @@ from nap3d_graph.conventions import pose_error
 from nap3d_graph.mapping.start import MapPlacement, Measured
 from nap3d_graph.nap3d.keyframe import measure_keyframe
 from nap3d_graph.results import Alignment, Correction
+from nap3d_graph.run.jobs import KeyframeJobs
 from nap3d_graph.run.records import KeyframeRecord
+from nap3d_graph.run.state import RunState
 
 __all__ = ["MapRecovery"]
 
@@ -26,14 +28,15 @@ log = logging.getLogger(__name__)
 
 
 class MapRecovery:
-    """Placement and recovery of ``run`` (a :class:`~nap3d_graph.run.pipeline.Pipeline`: its
-    field, graph, motion model, causal poses and prediction) in the map of ``placement``
-    (None: the run has no map; nothing to do). ``recoveries``: each relocalisation tried after
-    refusals, and each recovery (metrics.json's record)."""
+    """Placement and recovery of a run in the map of ``placement`` (None: the run has no map;
+    nothing to do), measuring with ``field`` and ``jobs`` (the run's
+    :class:`~nap3d_graph.run.jobs.KeyframeJobs`) as ``config`` says; each call takes the run's
+    state (:class:`~nap3d_graph.run.state.RunState`: its graph, motion model, causal poses and
+    prediction) for its length. ``recoveries``: each relocalisation tried after refusals, and
+    each recovery (metrics.json's record)."""
 
-    def __init__(self, run, placement: MapPlacement | None):
-        self.run = run
-        self.placement = placement
+    def __init__(self, placement: MapPlacement | None, field, config, jobs: KeyframeJobs):
+        self.placement, self.field, self.config, self.jobs = placement, field, config, jobs
         self.recoveries: list[dict] = []
         self.refused_in_a_row = 0
 
@@ -42,17 +45,17 @@ class MapRecovery:
         not placed yet, or a recovery waits for its confirmation."""
         return self.placement is not None and (not self.placement.placed or self.placement.candidate is not None)
 
-    def recover_if_lost(self, record: KeyframeRecord, i: int, frame) -> None:
+    def recover_if_lost(self, state: RunState, record: KeyframeRecord, i: int, frame) -> None:
         """After ``relocalise_after`` keyframes refused in a row (the estimate drifted off the
         map, or the odometry lost track), relocalise keyframe i in the map: a verified
         relocalisation becomes a candidate that the next keyframes confirm
         (:meth:`place_keyframe`)."""
         self.refused_in_a_row = 0 if record.accepted else self.refused_in_a_row + 1
-        after, placement = self.run.config.relocalise_after, self.placement
+        after, placement = self.config.relocalise_after, self.placement
         if (placement is None or frame is None or not after or self.refused_in_a_row < after
-                or self.run.anchored):
+                or state.anchored):
             return
-        found = placement.propose(i, record.key, frame, self.run.T_world_kf_pred, self.run.jobs.velocity(i))
+        found = placement.propose(i, record.key, frame, state.T_world_kf_pred, self.jobs.velocity(state, i))
         entry = {"frame": int(i), "step": "relocalise", "refused_in_a_row": self.refused_in_a_row,
                  "found": found is not None, "seconds": placement.events[-1]["seconds"]}
         if found is None:  # tried again at the next keyframe
@@ -60,44 +63,44 @@ class MapRecovery:
         else:
             self.refused_in_a_row = 0
             if placement.settings.confirmations == 0:
-                self._place(record, i)
+                self._place(state, record, i)
         self.recoveries.append(entry)
 
-    def place_keyframe(self, record: KeyframeRecord, i: int, frame) -> None:
+    def place_keyframe(self, state: RunState, record: KeyframeRecord, i: int, frame) -> None:
         """Keyframe i while the run is not placed in the map (or a recovery waits): it confirms
         the pending candidate (rendered where the candidate puts it), or relocalises afresh.
         Nothing enters the graph until a candidate is confirmed."""
-        run, placement = self.run, self.placement
+        placement = self.placement
         assert placement is not None
-        if frame is None or run.field is None:
+        if frame is None or self.field is None:
             record.reason = "no frame to relocalise" if frame is None else "no field"
             return
-        if placement.candidate is not None and self._confirm(record, i, frame, lost=placement.placed):
+        if placement.candidate is not None and self._confirm(state, record, i, frame, lost=placement.placed):
             return
-        found = placement.propose(i, record.key, frame, run.T_world_kf_pred, run.jobs.velocity(i))
+        found = placement.propose(i, record.key, frame, state.T_world_kf_pred, self.jobs.velocity(state, i))
         if found is not None and placement.settings.confirmations == 0:
-            self._place(record, i)
+            self._place(state, record, i)
             return
         record.reason = ("not yet placed in the map: relocalised, to be confirmed by the next keyframe" if found
                          else f"not yet placed in the map: {placement.events[-1].get('reason', 'not found')}")
 
-    def _confirm(self, record: KeyframeRecord, i: int, frame, lost: bool) -> bool:
+    def _confirm(self, state: RunState, record: KeyframeRecord, i: int, frame, lost: bool) -> bool:
         """Keyframe i measured where the pending candidate puts it: True when that settles the
         keyframe (confirmed and placed, agreeing so far, not measured while the candidate waits,
         refuted while recovering, or not measurable), False when the candidate was refuted and the run relocalises afresh.
         ``lost``: a recovery, not the start."""
-        run, placement = self.run, self.placement
+        placement = self.placement
         assert placement is not None
-        T_map_cam_pred = placement.predicted(run.T_world_kf_pred)
-        job = run.jobs.job(record, i, frame, T_field_cam_render=T_map_cam_pred)
+        T_map_cam_pred = placement.predicted(state.T_world_kf_pred)
+        job = self.jobs.job(state, record, i, frame, T_field_cam_render=T_map_cam_pred)
         if job is None:
             return True
-        correction = measure_keyframe(job, run.field, run.config)
+        correction = measure_keyframe(job, self.field, self.config)
         record.matches, record.inliers, record.iterations = (correction.num_matches, correction.num_inliers,
                                                              correction.iterations)
         verdict = placement.confirm(i, record.key, correction, T_map_cam_pred, frame)
         if verdict == "confirmed":
-            self._place(record, i)
+            self._place(state, record, i)
         elif verdict == "agrees":
             record.reason = "relocalised in the map: confirming (agrees so far)"
         elif verdict == "unmeasured":
@@ -108,42 +111,42 @@ class MapRecovery:
             return False
         return True
 
-    def _place(self, record: KeyframeRecord, i: int) -> None:
+    def _place(self, state: RunState, record: KeyframeRecord, i: int) -> None:
         """The pending candidate is confirmed at keyframe i: at the start, everything so far
-        moves into the map's frame (:meth:`_reframe`); then the relocalisation and each
+        moves into the map's frame (:meth:`RunState.reframe`); then the relocalisation and each
         confirming correction enter the graph past the gate, and at the start what was measured
         before and agrees with them (:meth:`_add_earlier`)."""
-        run, placement = self.run, self.placement
+        placement = self.placement
         assert placement is not None
         first = not placement.placed
         cand = placement.accept(i)
         if first:
-            self._reframe(cand.T_map_run)
+            state.reframe(cand.T_map_run)
         found = cand.found
         relocalised = _measured_pose(found.T_map_cam, found.covariance, int(found.inliers))
-        T_pred = run.T_world_kf_pred
+        T_pred = state.T_world_kf_pred
         for frame_index, key, correction in [(cand.frame, cand.key, relocalised), *cand.confirmed]:
-            if not run.graph.has(key) and key != record.key:
+            if not state.graph.has(key) and key != record.key:
                 continue  # left a bounded graph meanwhile
             try:
-                run.graph.add_past_gate(key, correction, frame_index)
+                state.graph.add_past_gate(key, correction, frame_index)
             except ValueError as exc:  # a covariance GTSAM cannot use: that one stays out
                 log.warning("frame %d: relocalisation not usable (%s)", frame_index, exc)
-        run.update_graph(extra_step=True, record=record)
-        if first and self._add_earlier(i, placement.earlier(cand)):
-            run.update_graph(extra_step=True, record=record)
+        state.update_graph(extra_step=True, record=record)
+        if first and self._add_earlier(state, i, placement.earlier(cand)):
+            state.update_graph(extra_step=True, record=record)
         last = cand.confirmed[-1][2] if cand.confirmed else relocalised
         record.correction_m, record.correction_deg = pose_error(last.T_world_cam_corrected, T_pred)
         record.accepted = True
         record.reason = ""
-        run.last_correction, run.last_correction_frame = last, i
+        state.last_correction, state.last_correction_frame = last, i
         if first:
             log.warning("frame %d: %s", i, placement.describe())
         else:
-            self._recovered(i, cand, found, T_pred, run.graph.pose(record.key))
+            self._recovered(i, cand, found, T_pred, state.graph.pose(record.key))
         self.refused_in_a_row = 0
 
-    def _add_earlier(self, i: int, earlier: list[Measured]) -> int:
+    def _add_earlier(self, state: RunState, i: int, earlier: list[Measured]) -> int:
         """The keyframes measured before the start's placement at keyframe i (``earlier``:
         relocalisations, ambiguous ones too, and corrections of dropped candidates) enter the
         graph as corrections do, through the gate against the placed graph: of each keyframe's
@@ -151,20 +154,20 @@ class MapRecovery:
         look-alike room's answer is metres away and stays out altogether). Without them the
         poses before the placement hang on the odometry from the placed keyframe alone.
         Returns how many keyframes were added."""
-        run, placement = self.run, self.placement
+        placement, graph = self.placement, state.graph
         assert placement is not None
         if not earlier:
             return 0
         nearest: dict[int, tuple[float, Measured, np.ndarray]] = {}
         for m in earlier:
-            if not run.graph.has(m.key):
+            if not graph.has(m.key):
                 continue
-            p_est = run.graph.pose(m.key)[:3, 3]
+            p_est = graph.pose(m.key)[:3, 3]
             jump_m, T = min(((float(np.linalg.norm(T[:3, 3] - p_est)), T) for T in m.T_map_cams), key=lambda o: o[0])
             if jump_m <= placement.settings.max_jump_m and jump_m < nearest.get(m.key, (np.inf,))[0]:
                 nearest[m.key] = (jump_m, m, T)
         added = [m.frame for _, m, T in nearest.values()
-                 if run.graph.gated_correction(m.key, _measured_pose(T, m.covariance, m.inliers), m.frame)[0] is not None]
+                 if graph.gated_correction(m.key, _measured_pose(T, m.covariance, m.inliers), m.frame)[0] is not None]
         placement.note_earlier(i, sorted(added), len({m.key for m in earlier}))
         return len(added)
 
@@ -177,17 +180,6 @@ class MapRecovery:
                                 "keyframe": int(found.keyframe), "inliers": int(found.inliers), "success": True})
         log.warning("frame %d: recovered in the map (relocalised at frame %d, confirmed); the estimate jumped "
                     "%.2f m / %.1f deg", i, cand.frame, jump_m, jump_deg)
-
-    def _reframe(self, T_map_run: np.ndarray) -> None:
-        """Move the run so far from its provisional frame into the map's by ``T_map_run``
-        (4, 4): the odometry, the causal poses, the prediction and the graph (which drops its
-        provisional first-pose prior: the relocalisation now holds the gauge)."""
-        run = self.run
-        T = np.asarray(T_map_run, dtype=float)
-        run.motion.reframe(T)
-        run.online = run.online.mapped(lambda T_run_cam: T @ T_run_cam)
-        run.T_world_kf_pred = T @ run.T_world_kf_pred
-        run.graph = run.graph.reframed(T)
 
 
 def _measured_pose(T_map_cam: np.ndarray, covariance: np.ndarray, inliers: int) -> Correction:
