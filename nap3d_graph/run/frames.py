@@ -8,12 +8,13 @@ the first frame primes the motion model.
 from __future__ import annotations
 
 import logging
-from typing import Callable
 
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.datasets import DatasetError
 from nap3d_graph.datasets.protocol import FrameSource
+from nap3d_graph.run.motion import MotionModel
 from nap3d_graph.run.read_ahead import FrameReadAhead, reads_concurrently
+from nap3d_graph.run.selection import KeyframeSelector
 
 __all__ = ["FrameReader"]
 
@@ -23,22 +24,26 @@ log = logging.getLogger(__name__)
 class FrameReader:
     """Frames of ``sequence`` for one run.
 
-    prime: called with frame 0 when it is read (the motion model's first frame).
-    reads_every_frame: asked at each frame, whether the motion model or the keyframe selection
-        reads every frame now (else a run on recorded or IMU odometry reads its keyframes
-        alone; an IMU run falling back on visual odometry reads every frame while it does).
+    motion: the run's motion model: primed with frame 0 when it is read, and asked at each
+        frame whether it reads every frame now (else a run on recorded or IMU odometry reads
+        its keyframes alone; an IMU run falling back on visual odometry reads every frame
+        while it does).
+    selector: the run's keyframe selection (a sharpness window reads every frame).
     """
 
-    def __init__(self, sequence: FrameSource, prime: Callable, reads_every_frame: Callable[[], bool]):
+    def __init__(self, sequence: FrameSource, motion: MotionModel, selector: KeyframeSelector):
         self.sequence = sequence
         self.source: FrameSource | FrameReadAhead = sequence
-        self.prime = prime
-        self.reads_every_frame = reads_every_frame
+        self.motion, self.selector = motion, selector
         self.intrinsics: Intrinsics | None = None  # the last frame read's camera (a render made ahead uses it)
         self.error = "unknown error"  # why the last unreadable frame could not be read
         # The latest keyframe waits for the one in flight: a reader thread would only slow the
         # run down then (FrameReadAhead's ``wanted``).
         self.hold_back = False
+
+    def reads_every_frame(self) -> bool:
+        """Whether the motion model or the keyframe selection reads every frame now."""
+        return self.motion.needs_frames or self.selector.reads_every_frame
 
     def read_ahead(self, depth: int, n: int) -> None:
         """Read up to ``depth`` frames of the first ``n`` ahead on a thread of their own, when
@@ -61,7 +66,7 @@ class FrameReader:
             self.error = str(exc)
             return None
         if i == 0:
-            self.prime(frame)
+            self.motion.prime(frame)
         self.intrinsics = frame.intrinsics
         return frame
 

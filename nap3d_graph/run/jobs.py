@@ -9,6 +9,7 @@ import numpy as np
 from nap3d_graph.camera import Intrinsics
 from nap3d_graph.datasets.depth_timing import CaptureTiming, resolve_capture_timing
 from nap3d_graph.nap3d.keyframe import KeyframeJob
+from nap3d_graph.run.frames import FrameReader
 from nap3d_graph.run.records import KeyframeRecord
 from nap3d_graph.run.state import RunState
 
@@ -19,12 +20,12 @@ class KeyframeJobs:
     """Makes each keyframe's :class:`~nap3d_graph.nap3d.keyframe.KeyframeJob` of a run with
     ``field``, ``config`` (a :class:`~nap3d_graph.run.config.PipelineConfig`), ``odometry`` and
     frame ``timestamps`` (s), from the run's state as it is when asked
-    (:class:`~nap3d_graph.run.state.RunState`). ``frame_error()``: why the last frame read
-    could not be (what a keyframe without a frame records)."""
+    (:class:`~nap3d_graph.run.state.RunState`). ``frames``: the run's frame reader (why the
+    last frame could not be read is what a keyframe without a frame records)."""
 
-    def __init__(self, field, config, odometry, timestamps, frame_error):
+    def __init__(self, field, config, odometry, timestamps, frames: FrameReader):
         self.field, self.config, self.odometry = field, config, odometry
-        self.timestamps, self.frame_error = timestamps, frame_error
+        self.timestamps, self.frames = timestamps, frames
         self.capture_timing = resolve_capture_timing(field, given=config.timing, compensate=config.compensate_timing)[0]
 
     def timing(self) -> CaptureTiming | None:
@@ -53,7 +54,7 @@ class KeyframeJobs:
             record.reason = "no field"
             return None
         if frame is None:
-            record.reason = f"frame unreadable: {self.frame_error()}"
+            record.reason = f"frame unreadable: {self.frames.error}"
             return None
         if T_field_cam_render is None:
             T_field_cam_render = state.in_field_frame(state.T_world_kf_pred)

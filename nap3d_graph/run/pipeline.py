@@ -386,9 +386,8 @@ class Pipeline:
         anchored = config.use_anchor or anchor is not None
         self._trained = trained_frames(self.field, self.sequence)
         self.selector = KeyframeSelector(config)
-        self.frames = FrameReader(self.sequence, motion.prime,
-                                  lambda: motion.needs_frames or self.selector.reads_every_frame)
-        self.jobs = KeyframeJobs(self.field, config, self.odometry, stamps, lambda: self.frames.error)
+        self.frames = FrameReader(self.sequence, motion, self.selector)
+        self.jobs = KeyframeJobs(self.field, config, self.odometry, stamps, self.frames)
         timing = self.jobs.timing()
         settings = self._placement_settings or PlacementSettings(confirm_travel_m=config.placement_travel_m)
         self._placement = None if self.relocaliser is None else MapPlacement(
