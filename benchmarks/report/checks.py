@@ -1,4 +1,5 @@
-"""Checks made before any work: the depth unit, with and without poses."""
+"""Checks made before any work (the depth unit, with and without poses), and one of the code's own
+shape (a keyframe's calls between modules)."""
 
 from __future__ import annotations
 
@@ -42,6 +43,20 @@ def depth_unit_without_poses_table() -> str:
                   "Kinect v1 steps at (units per metre)"], rows)
 
 
+def keyframe_calls_table() -> str:
+    """One keyframe's step traced before and after the run's state became one object its parts
+    are handed: modules visited, distinct calls between modules, re-entries, calls back up."""
+    rows = []
+    for name, when in (("keyframe_calls_0c5e976.json", "before (0c5e976): parts hold the pipeline"),
+                       ("keyframe_calls.json", "now: parts take the run's state")):
+        r = load(name)
+        back = "; ".join(f"`{c}`" for c in r["calls_back"]) or "none"
+        rows.append([f"{when} `{name}`", r["modules_visited"], r["edges"], r["returns_to_a_module_left"],
+                     r["calls_back_up_the_stack"], back])
+    return table(["tree (file)", "modules visited", "distinct calls between modules", "into a module already entered",
+                  "back up into a module still on the stack", "those calls"], rows)
+
+
 SECTIONS = [
     Section("The depth unit, checked before a field is built", ("depth_unit.json",),
             "python benchmarks/depth_unit.py --data D1 --data D2 --data D3", depth_unit_table,
@@ -54,4 +69,10 @@ SECTIONS = [
             "A warning when a tenth of the depth is nearer than 0.2 m (what a D435 sees from) or the stored values "
             "show a Kinect v1's disparity steps (1/(8 x 580 x 0.075) m per square metre of depth) at another unit "
             "than the one read; both lines come from the sensors' specifications, not from these recordings."),
+    Section("One keyframe's calls from Pipeline.step, traced", ("keyframe_calls_0c5e976.json", "keyframe_calls.json"),
+            "python benchmarks/keyframe_calls.py --out ...", keyframe_calls_table,
+            "The third keyframe of a simulated walk (recorded odometry, the exact field), run inline, its step traced "
+            "as it runs. A call back up enters a module that is still waiting for what it called (a part calling "
+            "into the run that called it). Most re-entries are calls into the shared lower modules (conventions, "
+            "camera, the frame logs, the motion model) from several places, which layering allows."),
 ]
