@@ -39,13 +39,13 @@ import numpy as np
 from provenance import write_result
 from scoring import unaligned_ate_m
 
-from nap3d_graph.cli.sources import LAND_WITHIN_FRAME_SHARE
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields import load_field
 from nap3d_graph.motion.odometry import make_odometry
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.pacing import CameraPace
 from nap3d_graph.run.pipeline import Pipeline
+from nap3d_graph.run.settings import LAND_WITHIN_FRAME_SHARE
 
 
 def stage_ms(records, key: str) -> dict | None:

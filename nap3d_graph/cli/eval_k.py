@@ -4,19 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nap3d_graph.arguments import positive_int
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.datasets.depth_timing import resolve_capture_timing
 from nap3d_graph.fields import resolve_field
 from nap3d_graph.nap3d.config import AlignConfig
 
-from .common import (
-    add_frames_argument,
-    add_matcher_argument,
-    empty_or_new_dir,
-    parse_methods,
-    positive_int,
-    warn_trained_frames,
-)
+from .common import add_frames_argument, add_matcher_argument, empty_or_new_dir, parse_methods, warn_trained_frames
 from .options import add_output_folder, add_seed
 
 

@@ -5,10 +5,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from nap3d_graph.arguments import positive_int
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields.nerfstudio_export import export_nerfstudio
 
-from .common import add_frames_argument, empty_or_new_dir, positive_int
+from .common import add_frames_argument, empty_or_new_dir
 from .options import add_force
 
 

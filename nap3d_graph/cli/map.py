@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from nap3d_graph.arguments import RUN_MATCHER, non_negative_float, non_negative_int, positive_float, positive_int
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields.submaps import SubmapSettings
 from nap3d_graph.mapping.build import MapSettings, build_map
@@ -21,16 +22,11 @@ from nap3d_graph.pools import make_pool
 from nap3d_graph.rerun_sdk import VizError, check_viz_target
 
 from .common import (
-    RUN_MATCHER,
     UsageError,
     add_frames_argument,
     add_matcher_argument,
     add_topics_argument,
     add_unit_arguments,
-    non_negative_float,
-    non_negative_int,
-    positive_float,
-    positive_int,
     warn_depth_units,
 )
 from .sources import chosen_matcher, warn_guessed_camera

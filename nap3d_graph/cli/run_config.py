@@ -6,7 +6,7 @@ and what it found beside it (under ``resolved``: the frames read, the field's er
 pipeline's configuration as used...). Reading it back sets every option the command line did
 not give from the tree (a flag given wins over the file, even when it gives the option's
 default) and keeps the tree for the settings with no flag; the options and the tree are bound
-by one table (:mod:`nap3d_graph.cli.run_options`).
+by the fields of the tree, which declare their flags (:mod:`nap3d_graph.cli.run_options`).
 """
 
 from __future__ import annotations

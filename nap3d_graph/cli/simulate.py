@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from nap3d_graph.arguments import positive_float, positive_int
 from nap3d_graph.datasets import SimSequence
 from nap3d_graph.datasets.realsense_io import import_pyrealsense2
 from nap3d_graph.datasets.realsense_sim import write_realsense_recording
 from nap3d_graph.datasets.rosbag_write import write_sequence_bag
 from nap3d_graph.sims.sequence import SimConfig, simulate_sequence
 
-from .common import PartialOutput, StopOnSignal, UsageError, empty_or_new_dir, positive_float, positive_int
+from .common import PartialOutput, StopOnSignal, UsageError, empty_or_new_dir
 from .options import add_force
 
 

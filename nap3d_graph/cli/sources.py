@@ -25,11 +25,11 @@ from nap3d_graph.nap3d.matching import choose_matcher
 from nap3d_graph.run.default import embedded_default_inputs
 from nap3d_graph.run.imu import ImuOdometry
 from nap3d_graph.run.pipeline import Pipeline
-from nap3d_graph.run.settings import SettingsError
+from nap3d_graph.run.settings import LAND_WITHIN_FRAME_SHARE, SettingsError
 
 from .binding import add_options, settings_from_args
 from .common import UsageError, parse_pose, parse_size, warn_depth_units, warn_trained_frames
-from .run_options import LAND_WITHIN_FRAME_SHARE, SOURCE_OPTIONS
+from .run_options import SOURCE_OPTIONS
 
 __all__ = ["add_source_arguments", "prepare", "Prepared"]
 

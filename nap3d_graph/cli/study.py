@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from nap3d_graph.sweep.study import StudySettings, run_study
+from nap3d_graph.sweep.study import StudySettings, odometry_list, run_study
 
-from .binding import Option, add_options, settings_from_args
-from .common import RUN_MATCHER, TOPICS_OPTION, UsageError, empty_or_new_dir, matcher_option, positive_int
+from .binding import Option, add_options, flag_options, settings_from_args
+from .common import UsageError, empty_or_new_dir
 from .options import add_force
 from .run_config import apply_config
 
@@ -32,38 +32,8 @@ def add_parser(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _odometries(text: str) -> tuple[str, ...]:
-    return tuple(o.strip() for o in text.split(",") if o.strip())
-
-
-#: The study's options, bound to its settings tree (StudySettings) by one table.
-STUDY_OPTIONS: tuple[Option, ...] = (
-    Option("data", "recordings.data", type=Path, nargs="?", help="a recording with ground truth (TUM layout, "
-           "simulated, 7-Scenes), split in time; or use --map and --query"),
-    Option("--map", "recordings.map", dest="map_data", type=Path, metavar="REC_A",
-           help="the recording the field is built from (with --query)"),
-    Option("--map-frames", "recordings.map_frames", metavar="START:STOP", help="--map: its frames to use (default all)"),
-    Option("--query", "recordings.query", type=Path, metavar="REC_B", help="the recording corrected with --map's field"),
-    Option("--query-frames", "recordings.query_frames", metavar="START:STOP",
-           help="--query: its frames to correct (default all)"),
-    Option("--split", "study.split", type=float,
-           help="fraction of the frames the field is built on (default %(default)s)"),
-    Option("--model", "study.model", choices=("grid", "splat", "views"),
-           help="field model (default %(default)s; see train-field --help)"),
-    Option("--train-steps", "study.train_steps", type=positive_int, help="grid: training steps (default: 5 minutes)"),
-    Option("--keyframe-every", "study.keyframe_every", type=positive_int,
-           help="a correction every N frames (default %(default)s)"),
-    Option("--scenarios", "study.eval_k_scenarios", type=positive_int,
-           help="Evaluation K scenarios (default %(default)s)"),
-    Option("--eval-k-full", "study.eval_k_full", action="store_true",
-           help="all 16 cells of Evaluation K (blur x intrinsics), not only CLEAN / no blur"),
-    Option("--odom", "study.odometries", setting=_odometries, option=",".join,
-           help="odometries to run, comma-separated (default %(default)s)"),
-    Option("--seed", "study.seed", type=int,
-           help="seed of the training, the odometry noise and Evaluation K's scenarios (default %(default)s)"),
-    Option("--matcher", "study.matcher", **matcher_option(RUN_MATCHER)),
-    Option("--topics", "study.topics", **TOPICS_OPTION),
-)
+#: The study's options, generated from its settings tree (each field of StudySettings declares its flag).
+STUDY_OPTIONS: tuple[Option, ...] = flag_options(StudySettings)
 
 
 def run(args) -> int:
@@ -71,7 +41,7 @@ def run(args) -> int:
         apply_config(args, args.config, StudySettings, "study", older_section="study")
     if not 0.05 <= args.split <= 0.95:
         raise UsageError(f"--split must be in [0.05, 0.95], got {args.split}")
-    odometries = _odometries(args.odom)
+    odometries = odometry_list(args.odom)
     unknown = [o for o in odometries if o not in ("vo", "dense", "noisy", "recorded")]
     if unknown or not odometries:
         raise UsageError(f"--odom: unknown {unknown or 'empty list'}; choose from vo, dense, noisy, recorded")

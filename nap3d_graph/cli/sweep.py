@@ -5,13 +5,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from nap3d_graph.arguments import positive_int
 from nap3d_graph.pools import LocalPool, RayPool
 from nap3d_graph.sweep.report import write_report
 from nap3d_graph.sweep.run import SweepLocked, cell_status, run_sweep
 from nap3d_graph.sweep.spec import SweepError, SweepSpec
 
 from . import build_parser, main
-from .common import UsageError, positive_int
+from .common import UsageError
 
 __all__ = ["add_parser", "run"]
 

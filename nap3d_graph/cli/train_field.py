@@ -6,19 +6,16 @@ import json
 import sys
 from pathlib import Path
 
+from nap3d_graph.arguments import RUN_MATCHER, non_negative_int, positive_float, positive_int
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields.build import DepthUnitError, build_field
 
 from .common import (
-    RUN_MATCHER,
     UsageError,
     add_frames_argument,
     add_matcher_argument,
     add_topics_argument,
     add_unit_arguments,
-    non_negative_int,
-    positive_float,
-    positive_int,
     warn_depth_units,
     writable_file_parent,
 )

@@ -8,27 +8,54 @@ the odometry) and ``output`` (what is written). ``run`` writes the tree to ``con
 :meth:`RunSettings.from_dict` round-trip exactly, by construction (every field is plain
 YAML data: numbers, strings, booleans, None, lists and mappings).
 
-A field that sets a :class:`~nap3d_graph.run.config.PipelineConfig` field names it in its
-metadata (``pipeline``) and takes that field's default, so the tree and the library's
-config cannot disagree on a default; :meth:`RunSettings.pipeline_config` builds the
-``PipelineConfig`` from them. The command line binds its flags to the tree's fields in one
-table (``nap3d_graph.cli.run_options``).
+Each setting is declared once, as its section's field (:func:`setting`): its name, type,
+default, and the command-line flag that sets it with how argparse reads it and its help; the
+command line's options are generated from these fields (:func:`flagged`). A field that sets
+a :class:`~nap3d_graph.run.config.PipelineConfig` field names it in its metadata
+(``pipeline``) and takes that field's default, so the tree and the library's config cannot
+disagree on a default; :meth:`RunSettings.pipeline_config` builds the ``PipelineConfig`` from
+them. A setting without a flag is set in ``config.yaml``.
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import types
 import typing
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+from nap3d_graph.arguments import (
+    DEPTH_SCALE_OPTION,
+    FPS_OPTION,
+    RUN_MATCHER,
+    STAMPS_OPTION,
+    TOPICS_OPTION,
+    auto_or_non_negative,
+    frames_option,
+    gravity,
+    land_within,
+    matcher_option,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    probability,
+)
+from nap3d_graph.datasets import SOURCES
 from nap3d_graph.nap3d.config import AlignConfig
 
 from .config import PipelineConfig
 from .default import DEFAULT_TRAIN_STEPS
 
-__all__ = ["RunSettings", "SettingsTree", "SettingsError", "SECTIONS", "pipeline_name"]
+__all__ = ["RunSettings", "SettingsTree", "SettingsError", "SECTIONS", "pipeline_name", "setting", "flagged",
+           "LAND_WITHIN_FRAME_SHARE"]
+
+#: ``--land-within frame``: this share of the camera's frame period (the rest of the step:
+#: the graph update and handing the pose over).
+LAND_WITHIN_FRAME_SHARE = 0.9
 
 _PIPELINE_DEFAULTS = {f.name: f.default for f in dataclasses.fields(PipelineConfig)
                       if f.default is not dataclasses.MISSING}
@@ -39,14 +66,42 @@ class SettingsError(ValueError):
     wrong kind (one line, naming the setting)."""
 
 
-def _pipe(name: str) -> Any:
-    """A field bound to ``PipelineConfig.<name>``, with its default."""
-    return dataclasses.field(default=_PIPELINE_DEFAULTS[name], metadata={"pipeline": name})
+def setting(default: Any, flag: str | None = None, *, only_run: bool = False, pipeline: str | None = None,
+            **argparse_kwargs: Any) -> Any:
+    """A settings field with its ``default`` and, when it has one, the command-line ``flag``
+    that sets it: ``argparse_kwargs`` say how argparse reads it (type, choices, action, metavar,
+    help; never the default, which is the field's); ``only_run``: a flag of ``run`` alone (not
+    of ``compare``); ``pipeline``: the ``PipelineConfig`` field it sets."""
+    metadata: dict[str, Any] = {}
+    if pipeline is not None:
+        metadata["pipeline"] = pipeline
+    if flag is not None:
+        metadata["flag"] = {"flag": flag, "only_run": only_run, "argparse": argparse_kwargs}
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def _pipe(name: str, flag: str | None = None, **kwargs: Any) -> Any:
+    """A field bound to ``PipelineConfig.<name>``, with its default (and its flag, see :func:`setting`)."""
+    return setting(_PIPELINE_DEFAULTS[name], flag, pipeline=name, **kwargs)
 
 
 def pipeline_name(f: dataclasses.Field) -> str | None:
     """The ``PipelineConfig`` field a settings field sets (None: resolved by the run)."""
     return f.metadata.get("pipeline")
+
+
+def flagged(tree: type[SettingsTree], only_run: bool | None = None) -> list[tuple[str, dict]]:
+    """``(section.setting, flag)`` of each field of a settings tree's class (its ``SECTIONS``)
+    that has a command-line flag, in section and field order; ``flag``: ``{"flag", "only_run",
+    "argparse"}`` as :func:`setting` declared it. ``only_run``: only the flags of ``run`` alone
+    (True) or only those ``compare`` has too (False); None: all."""
+    out = []
+    for name, section in tree.SECTIONS.items():
+        for f in dataclasses.fields(section):
+            flag = f.metadata.get("flag")
+            if flag is not None and (only_run is None or flag["only_run"] == only_run):
+                out.append((f"{name}.{f.name}", flag))
+    return out
 
 
 @dataclass
@@ -63,23 +118,53 @@ class SourceSettings:
     camera's rate (None: as fast as they come); ``cache`` / ``train_steps``: the embedded
     default's cache folder and field budget."""
 
-    traj: str = "auto"
-    data: str | None = None
-    frames: str | None = None
-    depth_scale: float | None = None
-    stamps: str | None = None
-    fps: float | None = None
-    topics: str | None = None
-    groundtruth: str | None = None
-    realsense_config: str | None = None
-    record: str | None = None
-    seconds: float = 30.0
-    initial_pose: str | None = None
-    initial_pose_file: str | None = None
-    max_frames: int | None = _pipe("max_frames")
-    pace: float | None = None
-    cache: str | None = None
-    train_steps: int = DEFAULT_TRAIN_STEPS
+    traj: str = setting("auto", "--traj", choices=("auto", *SOURCES),
+        help="the data source (default auto: the one --data's path says, a simulator's folder, a TUM-layout or "
+             "7-Scenes folder, a RealSense or ROS bag; sim without --data): sim (a folder from 'nap3d-graph "
+             "simulate'), tum (a TUM RGB-D folder), realsense (a .bag/.db3 recording, or 'live': a connected "
+             "camera) or 7scenes (a 7-Scenes sequence folder: depth is warped into its colour camera, whose "
+             "focal length and centre are estimated from the data), or rosbag (a ROS 1 .bag or a ROS 2 bag "
+             "folder: colour, depth, camera info, IMU and ground truth from /tf or a pose topic; see --topics)")
+    data: str | None = setting(None, "--data", type=Path,
+        help="the sequence folder, or for realsense a recording or 'live', or for rosbag the .bag file or ROS 2 "
+             "bag folder; omit (with --traj sim) for the embedded default")
+    frames: str | None = setting(None, "--frames", **frames_option("the run (a field should not have been trained on them)"))
+    depth_scale: float | None = setting(None, "--depth-scale", **DEPTH_SCALE_OPTION)
+    stamps: str | None = setting(None, "--stamps", **STAMPS_OPTION)
+    fps: float | None = setting(None, "--fps", **FPS_OPTION)
+    topics: str | None = setting(None, "--topics", **TOPICS_OPTION)
+    groundtruth: str | None = setting(None, "--groundtruth", type=Path, metavar="TUM_FILE",
+        help="realsense: camera poses of the recording's frames, for ATE/RPE (without it the results report "
+             "correction statistics)")
+    realsense_config: str | None = setting(None, "--realsense-config", type=Path, metavar="YAML",
+        help="realsense: IMU extrinsics (T_depth_imu) and noise, which recordings do not store (default: "
+             "RECORDING.yaml beside the file if there is one, else D435i values)")
+    record: str | None = setting(None, "--record", type=Path, metavar="FILE.bag",
+        help="realsense live: keep what the camera streamed in this file (default: a temporary file)")
+    seconds: float = setting(30.0, "--seconds", type=positive_float,
+        help="realsense live: how long to capture before correcting (default %(default)g)")
+    initial_pose: str | None = setting(None, "--initial-pose", metavar="auto|'tx ty tz qx qy qz qw'",
+        help="where the camera starts in the field's frame, for --odom vo / dense. auto: found in the map (the "
+             "map's keyframes most like the first frame, the field rendered there, NAP3D aligned and verified; a"
+             " clear error when none verifies); the default with a map from 'nap3d-graph map' (its frame is not "
+             "the ground truth's). Otherwise the default is the ground truth's first pose, and with --field none"
+             " and no ground truth the identity")
+    initial_pose_file: str | None = setting(None, "--initial-pose-file", type=Path, metavar="TUM_FILE",
+        help="the same from the first line of a TUM trajectory file")
+    max_frames: int | None = _pipe("max_frames", "--max-frames", type=positive_int,
+        help="stop after this many frames")
+    pace: float | None = setting(None, "--pace", only_run=True, type=positive_float, nargs="?", const=1.0, metavar="SPEED",
+        help="feed the frames as the camera delivered them (SPEED times its rate; default 1): the causal "
+             "trajectory is then the one a robot riding along would have had, which for --overlap depends on the"
+             " camera's rate, not on how fast a replay goes. Takes the live settings unless told otherwise "
+             "(--overlap --land-within frame --keyframe-when-idle 1; --no-overlap runs inline). metrics.json "
+             "records how late the run took the frames")
+    cache: str | None = setting(None, "--cache", type=Path,
+        help="cache of the embedded default's data and field (default $NAP3D_GRAPH_CACHE or "
+             "~/.cache/nap3d-graph)")
+    train_steps: int = setting(DEFAULT_TRAIN_STEPS, "--train-steps", type=positive_int,
+        help="field training budget of the embedded default, in steps (default %(default)s, about two minutes on"
+             " two cores)")
 
 
 @dataclass
@@ -92,15 +177,41 @@ class OdometrySettings:
     gravity ('check', 'auto', a magnitude or [gx, gy, gz] m/s^2) and the frame odometry it
     falls back on; ``drift_*``: the odometry's bias-like drift (see ``PipelineConfig``)."""
 
-    kind: str | None = None
-    rot_sigma_rad: float = 2e-3
-    trans_sigma_m: float = 2e-3
-    seed: int = 0
-    vo_width: int | None = None
-    imu_noise: str | None = None
-    imu_extrinsics: str | None = None
-    gravity: str | float | list[float] = "check"
-    fallback: str = "dense"
+    kind: str | None = setting(None, "--odom", choices=("recorded", "noisy", "vo", "dense", "imu"),
+        help="motion between keyframes: recorded (the sequence's odometry.txt; default for sim), noisy (noise "
+             "injected on ground-truth increments; default for tum), vo (frame-to-frame RGB-D odometry with "
+             "NAP3D's matcher), dense (OpenCV's dense RGB-D odometry at 320 px wide: the camera's rate, about "
+             "the same drift on fr1/desk) or imu (the sequence's IMU preintegrated into CombinedImuFactors; "
+             "biases estimated; default for a realsense recording with an IMU)")
+    rot_sigma_rad: float = setting(2e-3, "--odom-rot-sigma", type=positive_float,
+        help="per-frame rotation noise of the odometry, rad (injected with --odom noisy, and the odometry "
+             "factors' sigma); default %(default)g")
+    trans_sigma_m: float = setting(2e-3, "--odom-trans-sigma", type=positive_float,
+        help="per-frame translation noise of the odometry, m; default %(default)g")
+    seed: int = setting(0, "--seed", type=int,
+        help="seed of injected odometry noise (default %(default)s)")
+    vo_width: int | None = setting(None, "--vo-width", type=positive_int, metavar="PX",
+        help="--odom vo: detect and align each frame resized to PX pixels wide (default: as read). At the "
+             "render's width (320 by default) each keyframe's correction reuses the features the odometry "
+             "detected: a higher frame rate, the odometry alone drifting more (measured against the frames as "
+             "read in docs/results.md, 'Feature odometry at the render's width'). --pace with --odom vo takes "
+             "the render's width unless told")
+    imu_noise: str | None = setting(None, "--imu-noise", metavar="'AN GN AW GW'",
+        help="IMU noise densities: accel m/s^2/sqrt(Hz), gyro rad/s/sqrt(Hz), accel bias walk m/s^3/sqrt(Hz), "
+             "gyro bias walk rad/s^2/sqrt(Hz) (default: the simulator's, 2e-3 2.4e-4 1e-4 2e-6)")
+    imu_extrinsics: str | None = setting(None, "--imu-extrinsics", metavar="'tx ty tz qx qy qz qw'",
+        help="T_cam_imu: the IMU frame in the camera frame (default identity, as simulated)")
+    gravity: str | float | list[float] = setting("check", "--gravity", type=gravity, metavar="check|auto|G|'gx gy gz'",
+        help="--odom imu: gravity in the field's frame as the run's graph starts it; the graph then refines its "
+             "tilt (a few degrees; the EKFs of compare keep it as given). 'check' (default): z-up (-9.81 m/s^2 "
+             "along z), unless the accelerometer over the first 0.5 s, with the starting pose, puts it more than"
+             " 10 deg away (a field's frame from COLMAP or nerfstudio, a y-down room): then the accelerometer's "
+             "direction, said on the terminal. 'auto': always the accelerometer's direction. A magnitude "
+             "(m/s^2): z-up, only warned about. Or the vector in m/s^2")
+    fallback: str = setting("dense", "--fallback-odom", choices=("dense", "vo", "none"),
+        help="--odom imu: the frame odometry the run falls back on between keyframes after 3 keyframes refused "
+             "in a row (the views left the field, say: the IMU alone then drifts by metres within seconds), "
+             "until a correction lands again (default %(default)s; none: the IMU alone)")
     drift_fraction: float = _pipe("odom_drift_fraction")
     drift_rad_per_m: float = _pipe("odom_drift_rad_per_m")
     drift_rad_per_rad: float = _pipe("odom_drift_rad_per_rad")
@@ -113,13 +224,25 @@ class KeyframeSettings:
     """When a correction is measured (see ``PipelineConfig``'s ``keyframe_*``);
     ``when_idle`` None: 1 for an overlapped paced run, else 0 (resolved by the run)."""
 
-    every: int = _pipe("keyframe_every")
-    distance_m: float = _pipe("keyframe_distance_m")
-    angle_deg: float = _pipe("keyframe_angle_deg")
-    window: int = _pipe("keyframe_window")
+    every: int = _pipe("keyframe_every", "--keyframe-every", type=positive_int,
+        help="a keyframe (and a correction) every N frames (default %(default)s)")
+    distance_m: float = _pipe("keyframe_distance_m", "--keyframe-distance", type=non_negative_float,
+        help="also a keyframe after this many metres of odometry (0: off)")
+    angle_deg: float = _pipe("keyframe_angle_deg", "--keyframe-angle", type=non_negative_float,
+        help="also a keyframe after this many degrees of rotation (0: off)")
+    window: int = _pipe("keyframe_window", "--keyframe-window", type=non_negative_int, metavar="N",
+        help="a due keyframe is taken at the first sharp frame (variance of the Laplacian at least 0.8 of the "
+             "median since the last keyframe) among the next N, the last of them if none is: motion blur starves"
+             " the matcher (0 or 1: the due frame; default %(default)s)")
     sharpness_fraction: float = _pipe("keyframe_sharpness_fraction")
-    on_doubt: bool = _pipe("keyframe_on_doubt")
-    when_idle: int | None = None
+    on_doubt: bool = _pipe("keyframe_on_doubt", "--keyframe-on-doubt", action=argparse.BooleanOptionalAction,
+        help="also a keyframe right after the odometry guessed a step (visual odometry lost track), so the jump "
+             "is corrected at once")
+    when_idle: int | None = setting(None, "--keyframe-when-idle", type=non_negative_int, metavar="N",
+        help="with --overlap: also a keyframe at any frame N or more after the last while the second thread is "
+             "idle, so corrections come as often as it can measure them (--keyframe-every is then the longest "
+             "interval; which frames are keyframes depends on the machine's speed, or with run --pace on the "
+             "camera's rate). Default: 1 for an overlapped run --pace (the live settings), else 0: off")
 
 
 @dataclass
@@ -133,13 +256,29 @@ class AlignmentSettings:
     (:class:`~nap3d_graph.nap3d.config.AlignConfig` field -> value) where they differ from its
     defaults, the matcher excepted."""
 
-    field: str | None = None
-    matcher: str = "auto"
-    iterations: int = _pipe("correction_iterations")
-    render_size: str = "320x240"
-    timing: str = "auto"
-    rolling_shutter_s: float | None = _pipe("rolling_shutter_s")
-    field_sigma_m: float | None = _pipe("field_sigma_m")
+    field: str | None = setting(None, "--field",
+        help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from 'nap3d-graph "
+             "train-field'), a nerfstudio config.yml, or 'none' (odometry only)")
+    matcher: str = setting("auto", "--matcher", **matcher_option(RUN_MATCHER))
+    iterations: int = _pipe("correction_iterations", "--iterations", type=positive_int,
+        help="render-align rounds per correction (default %(default)s; 2 re-renders at the corrected pose: a "
+             "little more accurate, twice the time)")
+    render_size: str = setting("320x240", "--render-size",
+        help="WxH the field renders at (default %(default)s)")
+    timing: str = setting("auto", "--timing", choices=("auto", "none"),
+        help="auto: move each keyframe's depth to its colour's capture instant with the capture timing the field"
+             " records, or, for a field that records none (the oracle, nerfstudio), the timing estimated from "
+             "this sequence's ground truth; none: take the stamps as they are")
+    rolling_shutter_s: float | None = _pipe("rolling_shutter_s", "--rolling-shutter", type=auto_or_non_negative, metavar="S|auto",
+        help="the colour camera's rolling-shutter readout, first row to last, in seconds: each keyframe's "
+             "matched points are moved along the odometry's velocity to the middle row's instant before the "
+             "alignment. Default auto: the readout train-field estimated from the recording's ground truth with "
+             "its capture timing (fr1/desk's Kinect: 24 ms; 0, a global shutter, where the data showed none or "
+             "the field records no timing); 0: a global shutter")
+    field_sigma_m: float | None = _pipe("field_sigma_m", "--field-sigma", type=auto_or_non_negative, metavar="M|auto",
+        help="the field's own geometric error in metres, added to every correction's covariance (rotation: M / 2"
+             " m per radian). Default auto: what the field measured of itself when train-field built it (0 for "
+             "the exact oracle and fields that record none); 0: take the field as exact")
     field_sigma_rad: float | None = _pipe("field_sigma_rad")
     field_sigma_depth_m: float = _pipe("field_sigma_depth_m")
     depth_scale_check: bool = _pipe("depth_scale_check")
@@ -157,9 +296,15 @@ class GraphSettings:
     solve, how many refused keyframes in a row call for relocalising in a map and how far a
     run started anywhere in a map travels confirming its placement."""
 
-    gate_p: float = _pipe("gate_p")
-    window: int = _pipe("graph_window")
-    anchor: bool = _pipe("use_anchor")
+    gate_p: float = _pipe("gate_p", "--gate-p", type=probability,
+        help="chi-square gate probability, in (0, 1) (default %(default)g)")
+    window: int = _pipe("graph_window", "--graph-window", type=non_negative_int, metavar="N",
+        help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their poses, so a "
+             "long run's graph and its updates stay bounded (default %(default)s: every keyframe, the whole "
+             "trajectory smoothed at the end; not with --odom imu or --anchor)")
+    anchor: bool = _pipe("use_anchor", "--anchor", only_run=True, action="store_true",
+        help="estimate the field's frame in the world (map anchor M(0)) instead of assuming it is the odometry's"
+             " world frame")
     robust: str | None = _pipe("robust")
     anchor_rot_sigma_rad: float = _pipe("anchor_rot_sigma_rad")
     anchor_trans_sigma_m: float = _pipe("anchor_trans_sigma_m")
@@ -178,11 +323,25 @@ class ThreadSettings:
     paced run, else off; ``land_within`` None: 'frame' for an overlapped paced run, else 0;
     'frame' waits 0.9 of the camera's frame period (both resolved by the run)."""
 
-    overlap: bool | None = None
-    render_ahead: bool = _pipe("render_ahead")
+    overlap: bool | None = setting(None, "--overlap", action=argparse.BooleanOptionalAction,
+        help="measure each keyframe's correction on a second thread while the odometry goes on; it enters the "
+             "graph when ready (faster on two cores; not bit-for-bit repeatable; not with --odom imu). Default: "
+             "on for run --pace (frames fed as the camera delivers them: with the live settings, --land-within "
+             "frame and --keyframe-when-idle 1, as accurate as inline and more often corrected), off for a "
+             "replay that goes as fast as it can (inline is repeatable there, and an overlapped run's causal "
+             "trajectory would depend on the machine's speed)")
+    render_ahead: bool = _pipe("render_ahead", "--render-ahead", action="store_true",
+        help="with --overlap: render the next keyframe at its one-step guessed pose while the second thread is "
+             "idle, so its correction lands sooner (for slow fields or fast cameras; its corrections can be "
+             "slightly worse where the motion turns fast)")
     render_ahead_m: float = _pipe("render_ahead_m")
     render_ahead_deg: float = _pipe("render_ahead_deg")
-    land_within: float | str | None = None
+    land_within: float | str | None = setting(None, "--land-within", type=land_within, metavar="S|frame",
+        help="with --overlap: wait up to S seconds after a frame arrives for the correction in flight, "
+             "so one that is done by then lands at that frame and not a later one; 'frame' waits "
+             f"{LAND_WITHIN_FRAME_SHARE:g} of the camera's frame period (only while a live run would idle "
+             "for the next frame; with run --pace, as a live camera feeds it). Default: 'frame' for run "
+             "--overlap --pace (the run would idle then anyway), else 0: never wait")
     detect_ahead: bool = _pipe("detect_ahead")
     read_ahead: int = _pipe("read_ahead")
     library_threads: int | None = _pipe("library_threads")
@@ -192,9 +351,18 @@ class ThreadSettings:
 class OutputSettings:
     """What is written: the results root, a ROS bag of the trajectories, a rerun recording."""
 
-    out: str = "results"
-    write_bag: str | None = None
-    viz: str | None = None
+    out: str = setting("results", "--out", only_run=True, type=Path,
+        help="results root (default ./%(default)s)")
+    write_bag: str | None = setting(None, "--write-bag", only_run=True, type=Path, metavar="OUT.bag|OUT_DIR",
+        help="also write the trajectories as a ROS bag in the input's time, to play next to the input in RViz: "
+             "causal, smoothed and odometry poses (PoseStamped), paths (nav_msgs/Path) and /tf from the world to"
+             " the corrected camera. A .bag path is a ROS 1 bag, any other a ROS 2 bag folder (MCAP when it ends"
+             " in .mcap)")
+    viz: str | None = setting(None, "--viz", only_run=True, metavar="RUN.rrd|spawn",
+        help="also record the run for the rerun viewer (extra 'viz': rerun-sdk): trajectories, each keyframe's "
+             "image, render and inlier matches, the corrections' covariance ellipsoids, accepted or refused with"
+             " the reason, on one timeline. RUN.rrd: a file to open with 'rerun RUN.rrd'; spawn: open the viewer"
+             " now (needs a display)")
 
 
 #: Section name -> its dataclass, in the order config.yaml lists them.

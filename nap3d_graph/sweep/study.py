@@ -23,8 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["StudyConfig", "StudyRecordings", "StudySettings", "run_study", "summary_markdown"]
+__all__ = ["odometry_list", "StudyConfig", "StudyRecordings", "StudySettings", "run_study", "summary_markdown"]
 
+from nap3d_graph.arguments import RUN_MATCHER, TOPICS_OPTION, matcher_option, positive_int
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.datasets.depth_timing import resolve_capture_timing
@@ -37,24 +38,39 @@ from nap3d_graph.provenance import provenance
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.output import write_results
 from nap3d_graph.run.pipeline import Pipeline
-from nap3d_graph.run.settings import SettingsTree
+from nap3d_graph.run.settings import SettingsTree, setting
 
 log = logging.getLogger(__name__)
 
 
+def odometry_list(text: str) -> tuple[str, ...]:
+    """``--odom``'s comma-separated odometries."""
+    return tuple(o.strip() for o in text.split(",") if o.strip())
+
+
 @dataclass
 class StudyConfig:
-    split: float = 0.5
-    model: str = "grid"
-    train_steps: int | None = None
-    keyframe_every: int = 5
-    odometries: tuple[str, ...] = ("vo", "noisy")
-    eval_k_scenarios: int = 40
-    eval_k_full: bool = False
-    seed: int = 0
-    matcher: str = "auto"  # choose_matcher's choice by the recording the field is built from
+    split: float = setting(0.5, "--split", type=float,
+        help="fraction of the frames the field is built on (default %(default)s)")
+    model: str = setting("grid", "--model", choices=("grid", "splat", "views"),
+        help="field model (default %(default)s; see train-field --help)")
+    train_steps: int | None = setting(None, "--train-steps", type=positive_int,
+        help="grid: training steps (default: 5 minutes)")
+    keyframe_every: int = setting(5, "--keyframe-every", type=positive_int,
+        help="a correction every N frames (default %(default)s)")
+    odometries: tuple[str, ...] = setting(("vo", "noisy"), "--odom", setting=odometry_list, option=",".join,
+        help="odometries to run, comma-separated (default %(default)s)")
+    eval_k_scenarios: int = setting(40, "--scenarios", type=positive_int,
+        help="Evaluation K scenarios (default %(default)s)")
+    eval_k_full: bool = setting(False, "--eval-k-full", action="store_true",
+        help="all 16 cells of Evaluation K (blur x intrinsics), not only CLEAN / no blur")
+    seed: int = setting(0, "--seed", type=int,
+        help="seed of the training, the odometry noise and Evaluation K's scenarios (default %(default)s)")
+    # "auto": choose_matcher's choice by the recording the field is built from.
+    matcher: str = setting(RUN_MATCHER, "--matcher", **matcher_option(RUN_MATCHER))
     progress: bool = True
-    topics: str | None = None  # ROS bags: which topics to read (BagTopics' text)
+    # ROS bags: which topics to read (BagTopics' text).
+    topics: str | None = setting(None, "--topics", **TOPICS_OPTION)
 
     def __post_init__(self) -> None:
         if not 0.05 <= self.split <= 0.95:
@@ -66,11 +82,17 @@ class StudyRecordings:
     """What a study reads: one recording split in time (``data``), or a map recording (its
     ``map_frames``) and a query recording (its ``query_frames``) of the same place."""
 
-    data: str | None = None
-    map: str | None = None
-    map_frames: str | None = None
-    query: str | None = None
-    query_frames: str | None = None
+    data: str | None = setting(None, "data", type=Path, nargs="?",
+        help="a recording with ground truth (TUM layout, simulated, 7-Scenes), split in time; or use --map and "
+             "--query")
+    map: str | None = setting(None, "--map", dest="map_data", type=Path, metavar="REC_A",
+        help="the recording the field is built from (with --query)")
+    map_frames: str | None = setting(None, "--map-frames", metavar="START:STOP",
+        help="--map: its frames to use (default all)")
+    query: str | None = setting(None, "--query", type=Path, metavar="REC_B",
+        help="the recording corrected with --map's field")
+    query_frames: str | None = setting(None, "--query-frames", metavar="START:STOP",
+        help="--query: its frames to correct (default all)")
 
 
 @dataclass
