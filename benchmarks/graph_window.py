@@ -39,10 +39,8 @@ CORRECTION_SIGMAS = np.r_[np.full(3, np.radians(0.5)), np.full(3, 0.01)]
 
 
 class DrawnCorrections(Pipeline):
-    """The run's graph with each keyframe's correction drawn around the truth."""
-
-    def _read_frame(self, i: int):
-        return None  # nothing to read: the correction is drawn
+    """The run's graph with each keyframe's correction drawn around the truth (no field: no
+    frame is read)."""
 
     def _correct_keyframe(self, i: int, frame) -> None:
         rng = np.random.default_rng(i)
@@ -50,8 +48,9 @@ class DrawnCorrections(Pipeline):
         T_measured = T_true @ exp_se3(rng.normal(0.0, CORRECTION_SIGMAS))
         covariance = np.diag(CORRECTION_SIGMAS**2)
         alignment = Alignment(covariance=covariance, num_matches=200, num_inliers=150, success=True)
-        correction = Correction(self.T_world_kf_pred, T_measured, covariance, alignment, 1, True)
-        self._apply_correction(self._pending_record, i, correction, self.T_world_kf_pred)
+        T_pred = self.state.T_world_kf_pred
+        correction = Correction(T_pred, T_measured, covariance, alignment, 1, True)
+        self.apply_correction(self.state.pending(), i, correction, T_pred, frame)
 
 
 def rss_mb() -> float:
@@ -100,7 +99,7 @@ def run(walk: ImagelessWalk, window: int, retire: bool) -> dict:
     folder = tempfile.TemporaryDirectory()
     errors = SquaredErrors()
     sink = RetiredToFiles(Path(folder.name), errors) if retire else None
-    pipeline = DrawnCorrections(walk, object(), make_odometry("noisy", walk, 1, 2e-3, 2e-3), config, on_retire=sink)
+    pipeline = DrawnCorrections(walk, None, make_odometry("noisy", walk, 1, 2e-3, 2e-3), config, on_retire=sink)
     memory, isam_ms = {}, []
 
     def on_keyframe(record):
