@@ -1,20 +1,53 @@
-"""How a setting is read from the command line, for the settings trees that declare their
-flags (:mod:`nap3d_graph.run.settings`) and the commands that add their own: argparse types
-that say their range, and the argparse settings several commands share (``--matcher``,
-``--topics``, ``--frames``, ``--depth-scale``, ``--stamps``, ``--fps``)."""
+"""How a setting is read from the command line: a settings field that declares its flag
+(:func:`setting`; the run's tree, :mod:`nap3d_graph.run.settings`, the study's and the map's
+settings), argparse types that say their range, and the argparse settings several commands
+share (``--matcher``, ``--topics``, ``--frames``, ``--depth-scale``, ``--stamps``, ``--fps``)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from nap3d_graph.nap3d.matching import AUTO, MATCHERS
 
-__all__ = ["positive_int", "non_negative_int", "positive_float", "non_negative_float", "probability", "gravity",
+__all__ = ["setting", "flagged", "positive_int", "non_negative_int", "positive_float", "non_negative_float", "probability", "gravity",
            "auto_or_non_negative", "land_within", "RUN_MATCHER", "matcher_option", "TOPICS_OPTION", "frames_option",
            "DEPTH_SCALE_OPTION", "STAMPS_OPTION", "FPS_OPTION"]
+
+
+def setting(default: Any, flag: str | None = None, *, only_run: bool = False, pipeline: str | None = None,
+            command_default: Any = dataclasses.MISSING, **argparse_kwargs: Any) -> Any:
+    """A settings field (a dataclass field) with its ``default`` and, when it has one, the
+    command-line ``flag`` that sets it: ``argparse_kwargs`` say how argparse reads it (type,
+    choices, action, metavar, help; not the default, which is the field's); ``only_run``: a flag
+    of ``run`` alone (not of ``compare``); ``pipeline``: the run's ``PipelineConfig`` field it
+    sets; ``command_default``: where the command line's default is not the library's (the
+    matcher: chosen by the data on the command line)."""
+    metadata: dict[str, Any] = {}
+    if pipeline is not None:
+        metadata["pipeline"] = pipeline
+    if flag is not None:
+        metadata["flag"] = {"flag": flag, "only_run": only_run, "argparse": argparse_kwargs}
+        if command_default is not dataclasses.MISSING:
+            metadata["flag"]["default"] = command_default
+    return dataclasses.field(default=default, metadata=metadata)
+
+
+def flagged(sections: dict[str, type], only_run: bool | None = None) -> list[tuple[str, dict]]:
+    """``(section.setting, flag)`` of each field of ``sections`` (name -> dataclass) that has a
+    command-line flag, in section and field order; ``flag``: ``{"flag", "only_run",
+    "argparse"[, "default"]}`` as :func:`setting` declared it. ``only_run``: only the flags of
+    ``run`` alone (True) or only those ``compare`` has too (False); None: all."""
+    out = []
+    for name, section in sections.items():
+        for f in dataclasses.fields(section):
+            flag = f.metadata.get("flag")
+            if flag is not None and (only_run is None or flag["only_run"] == only_run):
+                out.append((f"{name}.{f.name}", flag))
+    return out
 
 
 def _number(kind, text: str, what: str):

@@ -111,31 +111,53 @@ def test_every_option_is_bound_to_a_setting_with_its_default(command):
     assert unbound == meta
 
 
-def test_each_run_option_is_declared_in_one_place():
-    """A run or compare flag is declared once, by the settings field it sets (its name, type,
-    default, flag and help); the command line's options are generated from the fields. (Other
-    commands' flags of the same name, map's --keyframe-every say, are their own options.)"""
+def _declarations(flags: set[str], modules: list[str]) -> dict[str, list[str]]:
+    """Where each flag of ``flags`` is declared among ``modules`` (package-relative paths): a
+    call to setting/_pipe/Option/add_argument that names it."""
     import ast
     from pathlib import Path
 
     import nap3d_graph
 
     declaring = {"setting", "_pipe", "Option", "add_argument"}
-    flags = {o.flag for o in SOURCE_OPTIONS + RUN_OPTIONS}
     places: dict[str, list[str]] = {flag: [] for flag in flags}
     package = Path(nap3d_graph.__file__).parent
-    run_modules = ["run/settings.py", "run/config.py", "cli/run.py", "cli/compare.py", "cli/sources.py",
-                   "cli/run_options.py", "cli/binding.py", "cli/run_config.py"]
-    for path in (package / name for name in run_modules):
-        for node in ast.walk(ast.parse(path.read_text())):
+    for module in modules:
+        for node in ast.walk(ast.parse((package / module).read_text())):
             if not isinstance(node, ast.Call):
                 continue
             name = getattr(node.func, "id", getattr(node.func, "attr", ""))
             flag = next((a.value for a in node.args[:2] if isinstance(a, ast.Constant) and a.value in flags), None)
             if name in declaring and flag is not None:
-                places[flag].append(f"{path.relative_to(package)}:{node.lineno}")
+                places[flag].append(f"{module}:{node.lineno}")
+    return places
+
+
+def test_each_run_option_is_declared_in_one_place():
+    """A run or compare flag is declared once, by the settings field it sets (its name, type,
+    default, flag and help); the command line's options are generated from the fields. (Other
+    commands' flags of the same name, map's --keyframe-every say, are their own options.)"""
+    places = _declarations({o.flag for o in SOURCE_OPTIONS + RUN_OPTIONS},
+                           ["run/settings.py", "run/config.py", "cli/run.py", "cli/compare.py", "cli/sources.py",
+                            "cli/run_options.py", "cli/binding.py", "cli/run_config.py"])
     assert {flag: len(where) for flag, where in places.items() if len(where) != 1} == {}
     assert {where[0].split(":")[0] for where in places.values()} == {"run/settings.py"}
+
+
+def test_each_map_setting_flag_is_declared_once_by_its_field():
+    """map's flags that set its settings are declared by the fields of MapSettings and
+    SubmapSettings, with the fields' defaults (the matcher's excepted: chosen by the data)."""
+    from nap3d_graph.cli.binding import SectionDefaults
+    from nap3d_graph.cli.map import MAP_OPTIONS, MAP_SECTIONS
+
+    places = _declarations({o.flag for o in MAP_OPTIONS},
+                           ["cli/map.py", "mapping/build.py", "fields/submaps.py"])
+    assert {flag: len(where) for flag, where in places.items() if len(where) != 1} == {}
+    assert {where[0].split(":")[0] for where in places.values()} == {"mapping/build.py", "fields/submaps.py"}
+    parser = command_parsers(build_parser())["map"]
+    defaults = SectionDefaults(MAP_SECTIONS)
+    assert {o.flag: parser.get_default(o.dest) for o in MAP_OPTIONS if parser.get_default(o.dest) != defaults.get(o.path)} \
+        == {"--matcher": "auto"}
 
 
 def test_the_options_settings_come_back_from_a_config_unchanged():

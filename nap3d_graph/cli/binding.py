@@ -1,7 +1,7 @@
 """Command-line options bound to a settings tree (:class:`~nap3d_graph.run.settings.SettingsTree`)
 by :class:`Option` rows: each names its flag, the ``section.setting`` it sets and how argparse
 reads it, never its default (that is the setting's, taken from the tree). A tree whose fields
-declare their flags (:func:`~nap3d_graph.run.settings.setting`) gives its rows itself
+declare their flags (:func:`~nap3d_graph.arguments.setting`) gives its rows itself
 (:func:`flag_options`); another names them in a table. :func:`add_options` adds rows to a parser, :func:`settings_from_args` reads the tree back from
 the parsed options over a base tree (a ``--config`` file's, for the settings with no flag), and
 :func:`apply_settings` sets the options a config file gives where the command line gave none.
@@ -13,9 +13,13 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from nap3d_graph.run.settings import RunSettings, SettingsTree, flagged
+from nap3d_graph.arguments import flagged
+from nap3d_graph.run.settings import RunSettings, SettingsTree
 
-__all__ = ["Option", "add_options", "apply_settings", "settings_from_args", "flag_options"]
+__all__ = ["Option", "add_options", "apply_settings", "settings_from_args", "flag_options", "SectionDefaults",
+           "section_values"]
+
+_UNSET = object()
 
 
 class Option:
@@ -23,12 +27,13 @@ class Option:
     (``'section.setting'``); ``kwargs`` are argparse's (type, choices, action, help...).
     ``dest``: the parsed option's name when it is not the flag's; ``setting`` / ``option``:
     how a value goes from the parsed option to the tree and back when it is more than a path
-    (text) or a vector (a list)."""
+    (text) or a vector (a list); ``default``: the command line's default where it is not the
+    setting's (the map's matcher: chosen by the data)."""
 
     def __init__(self, flag: str, path: str, *, dest: str | None = None, setting: Callable | None = None,
-                 option: Callable | None = None, **kwargs: Any) -> None:
+                 option: Callable | None = None, default: Any = _UNSET, **kwargs: Any) -> None:
         self.flag, self.path, self.kwargs = flag, path, kwargs
-        self.dest_name, self.setting, self.option = dest, setting, option
+        self.dest_name, self.setting, self.option, self.command_default = dest, setting, option, default
 
     def __repr__(self) -> str:
         return f"Option({self.flag!r}, {self.path!r})"
@@ -52,14 +57,39 @@ class Option:
         return Path(value) if self.kwargs.get("type") is Path and value is not None else value
 
     def default_in(self, tree):
-        """The option's default: the setting's in ``tree`` (the defaults' tree)."""
-        return self.to_option(tree.get(self.path))
+        """The option's default: the command line's own, else the setting's in ``tree`` (the
+        defaults' tree)."""
+        return self.command_default if self.command_default is not _UNSET else self.to_option(tree.get(self.path))
 
 
-def flag_options(tree: type[SettingsTree], only_run: bool | None = None) -> tuple[Option, ...]:
-    """The options of the fields of ``tree`` that declare a flag (see
-    :func:`~nap3d_graph.run.settings.flagged` for ``only_run``), in section and field order."""
-    return tuple(Option(flag["flag"], path, **flag["argparse"]) for path, flag in flagged(tree, only_run))
+def flag_options(sections: type[SettingsTree] | dict[str, type], only_run: bool | None = None) -> tuple[Option, ...]:
+    """The options of the fields that declare a flag (:func:`~nap3d_graph.arguments.setting`)
+    in a settings tree's sections, or in ``sections`` (name -> dataclass), in section and field
+    order (see :func:`~nap3d_graph.arguments.flagged` for ``only_run``)."""
+    sections = sections if isinstance(sections, dict) else sections.SECTIONS
+    return tuple(Option(flag["flag"], path, **({"default": flag["default"]} if "default" in flag else {}),
+                        **flag["argparse"]) for path, flag in flagged(sections, only_run))
+
+
+class SectionDefaults:
+    """The defaults of settings ``sections`` (name -> dataclass) as :func:`add_options` asks
+    them (``get('section.setting')``), for settings that are not a tree."""
+
+    def __init__(self, sections: dict[str, type]):
+        self.defaults = {name: kind() for name, kind in sections.items()}
+
+    def get(self, path: str) -> Any:
+        section, name = path.split(".")
+        return getattr(self.defaults[section], name)
+
+
+def section_values(args, options: tuple[Option, ...]) -> dict[str, dict[str, Any]]:
+    """``{section: {setting: value}}`` of the parsed ``options`` (as the settings hold them)."""
+    values: dict[str, dict[str, Any]] = {}
+    for option in options:
+        section, name = option.path.split(".")
+        values.setdefault(section, {})[name] = option.to_setting(getattr(args, option.dest))
+    return values
 
 
 def add_options(parser, options: tuple[Option, ...], defaults=None) -> None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from nap3d_graph.arguments import RUN_MATCHER, non_negative_float, non_negative_int, positive_float, positive_int
+from nap3d_graph.arguments import positive_int
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.fields.submaps import SubmapSettings
 from nap3d_graph.mapping.build import MapSettings, build_map
@@ -21,15 +21,19 @@ from nap3d_graph.mapping.viz import write_map_recording
 from nap3d_graph.pools import make_pool
 from nap3d_graph.rerun_sdk import VizError, check_viz_target
 
+from .binding import SectionDefaults, add_options, flag_options, section_values
 from .common import (
     UsageError,
     add_frames_argument,
-    add_matcher_argument,
     add_topics_argument,
     add_unit_arguments,
     warn_depth_units,
 )
 from .sources import chosen_matcher, warn_guessed_camera
+
+#: The map's settings that have a flag: each field declares it (MapSettings, SubmapSettings).
+MAP_SECTIONS: dict[str, type] = {"map": MapSettings, "submaps": SubmapSettings}
+MAP_OPTIONS = flag_options(MAP_SECTIONS)
 
 
 def add_parser(sub) -> None:
@@ -53,28 +57,9 @@ def add_parser(sub) -> None:
     add_topics_argument(p)
     add_unit_arguments(p)
     add_frames_argument(p, "the survey")
-    p.add_argument("--odom", choices=("vo", "dense"), default="vo",
-                   help="frame-to-frame odometry of the survey: vo (features, the matcher's; default) or dense "
-                   "(OpenCV's RGB-D odometry at 320 px)")
-    add_matcher_argument(p, RUN_MATCHER)
-    p.add_argument("--width", type=positive_int, default=None, metavar="PX",
-                   help="keyframes and --odom vo work at this width (default: the frames' own)")
-    p.add_argument("--keyframe-every", type=positive_int, default=5,
-                   help="a keyframe every N frames, sooner after 10 cm or 10 deg of motion (default 5)")
-    p.add_argument("--model", choices=("grid", "splat", "views"), default="grid", help="the field (default grid)")
-    p.add_argument("--budget-minutes", type=non_negative_float, default=5.0, metavar="MIN",
-                   help="the whole map's time budget, field included: the grid trains for what the other stages "
-                   "leave (at least a minute; default 5; 0: no budget, the grid trains for --minutes or 5)")
-    p.add_argument("--minutes", type=positive_float, default=None,
-                   help="grid: its own training budget in minutes instead of what --budget-minutes leaves")
-    p.add_argument("--steps", type=positive_int, default=None,
-                   help="grid: training budget in steps instead of minutes (the same field on any machine)")
-    p.add_argument("--refine-rounds", type=non_negative_int, default=0, metavar="N",
-                   help="rounds of the depth refinement of the training poses (each frame's depth aligned with its "
-                   "neighbours', the poses solved again) before the field is trained (default 0)")
+    add_options(p, MAP_OPTIONS, SectionDefaults(MAP_SECTIONS))
     p.add_argument("--no-field", action="store_true", help="stop after the poses (no field)")
     _add_floor_arguments(p)
-    p.add_argument("--seed", type=int, default=0, help="random seed (vocabulary, training; default 0)")
     p.add_argument("--device", default=None, help="torch device for the grid (default: cuda if available, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=run)
@@ -85,13 +70,6 @@ def _add_floor_arguments(p) -> None:
     p.add_argument("--viz", metavar="MAP.rrd", default=None,
                    help="also write the map as a rerun recording (the survey's path, keyframes coloured by submap, "
                    "loops, the mesh, the report): open it with `rerun MAP.rrd`; needs pip install 'nap3d-graph[viz]'")
-    p.add_argument("--submap-frames", type=positive_int, default=300, metavar="N",
-                   help="a survey of more than N frames is cut by space into submaps of about N frames, each its own "
-                   "field over its own part of the floor and its own training budget, under the one pose graph "
-                   "(default %(default)s: a room's survey stays one field)")
-    p.add_argument("--submap-length", type=positive_float, default=SubmapSettings.max_length_m, metavar="M",
-                   help="a cut survey's submaps are at most M metres along the floor, however few frames lie there "
-                   "(default %(default)s: a room; a field's memory grows with the space it covers)")
     p.add_argument("--workers", type=positive_int, default=None, metavar="N",
                    help="submap fields trained, and the loop candidates of a long survey (200 pairs or more) verified, "
                    "side by side on N workers (default: this machine's cores; 1: one after another in this process)")
@@ -117,13 +95,11 @@ def run(args) -> int:
         raise UsageError(f"{args.data}: a survey needs at least 3 frames, got {len(sequence)}")
     warn_depth_units(sequence)
     warn_guessed_camera(sequence)
-    matcher = chosen_matcher(args.matcher, sequence)
-    settings = MapSettings(odometry=args.odom, matcher=matcher, width=args.width, keyframe_every=args.keyframe_every,
-                           model=args.model, minutes=None if args.steps else args.minutes, steps=args.steps,
-                           budget_minutes=args.budget_minutes or None,
-                           refine_rounds=args.refine_rounds, seed=args.seed,
-                           submaps=SubmapSettings(max_frames=args.submap_frames,
-                                                  max_length_m=args.submap_length))
+    given = section_values(args, MAP_OPTIONS)
+    settings = MapSettings(**{**given["map"], "matcher": chosen_matcher(args.matcher, sequence),
+                              "minutes": None if args.steps else args.minutes,
+                              "budget_minutes": args.budget_minutes or None},  # 0: no budget
+                           submaps=SubmapSettings(**given["submaps"]))
     if args.viz is not None:
         try:
             check_viz_target(args.viz)  # before the work: a bad target costs nothing

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.arguments import positive_float, positive_int, setting
 from nap3d_graph.camera import Intrinsics, RenderedView, backproject
 from nap3d_graph.textfiles import write_json_atomic
 
@@ -69,12 +70,17 @@ class SubmapSettings:
     cameras alone, no field of the 6-room floor held what the upper fifth of a view along the
     floor saw, and such views rendered 15-18 dB where a room's own views render 27."""
 
-    max_frames: int = 300
+    max_frames: int = setting(300, "--submap-frames", type=positive_int, metavar="N",
+        help="a survey of more than N frames is cut by space into submaps of about N frames, each its own field "
+             "over its own part of the floor and its own training budget, under the one pose graph (default "
+             "%(default)s: a room's survey stays one field)")
     overlap_m: float = 0.75
     look_ahead_m: float = 1.0
     resident: int = 2
     reach_m: float = 1.5
-    max_length_m: float = 6.0
+    max_length_m: float = setting(6.0, "--submap-length", type=positive_float, metavar="M",
+        help="a cut survey's submaps are at most M metres along the floor, however few frames lie there (default "
+             "%(default)s: a room; a field's memory grows with the space it covers)")
     viewing_frames: int = 150
     viewing_share: float = 0.1
 

@@ -30,6 +30,15 @@ from pathlib import Path
 
 import numpy as np
 
+from nap3d_graph.arguments import (
+    RUN_MATCHER,
+    matcher_option,
+    non_negative_float,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    setting,
+)
 from nap3d_graph.conventions import exp_se3, inv_T, log_se3
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.datasets.posed import PosedSequence
@@ -101,10 +110,14 @@ class MapSettings:
     ``bundle``: refine the pose graph's keyframes by the bundle adjustment over every verified
     match (:mod:`.bundle`)."""
 
-    odometry: str = "vo"
-    matcher: str = "xfeat"
-    width: int | None = None
-    keyframe_every: int = 5
+    odometry: str = setting("vo", "--odom", choices=("vo", "dense"),
+        help="frame-to-frame odometry of the survey: vo (features, the matcher's; default) or dense (OpenCV's "
+             "RGB-D odometry at 320 px)")
+    matcher: str = setting("xfeat", "--matcher", command_default=RUN_MATCHER, **matcher_option(RUN_MATCHER))
+    width: int | None = setting(None, "--width", type=positive_int, metavar="PX",
+        help="keyframes and --odom vo work at this width (default: the frames' own)")
+    keyframe_every: int = setting(5, "--keyframe-every", type=positive_int,
+        help="a keyframe every N frames, sooner after 10 cm or 10 deg of motion (default 5)")
     keyframe_distance_m: float = 0.10
     keyframe_angle_deg: float = 10.0
     max_guesses: int = 3
@@ -112,14 +125,20 @@ class MapSettings:
     edge_floor_m: float = 0.002
     edge_floor_rad: float = 0.002
     gate_p: float = 0.999
-    model: str = "grid"
-    minutes: float | None = None
-    steps: int | None = None
-    budget_minutes: float | None = 5.0
+    model: str = setting("grid", "--model", choices=("grid", "splat", "views"), help="the field (default grid)")
+    minutes: float | None = setting(None, "--minutes", type=positive_float,
+        help="grid: its own training budget in minutes instead of what --budget-minutes leaves")
+    steps: int | None = setting(None, "--steps", type=positive_int,
+        help="grid: training budget in steps instead of minutes (the same field on any machine)")
+    budget_minutes: float | None = setting(5.0, "--budget-minutes", type=non_negative_float, metavar="MIN",
+        help="the whole map's time budget, field included: the grid trains for what the other stages leave (at "
+             "least a minute; default 5; 0: no budget, the grid trains for --minutes or 5)")
     budget_reserve_s: float = 90.0
     min_train_minutes: float = 1.0
-    refine_rounds: int = 0
-    seed: int = 0
+    refine_rounds: int = setting(0, "--refine-rounds", type=non_negative_int, metavar="N",
+        help="rounds of the depth refinement of the training poses (each frame's depth aligned with its "
+             "neighbours', the poses solved again) before the field is trained (default 0)")
+    seed: int = setting(0, "--seed", type=int, help="random seed (vocabulary, training; default 0)")
     bundle: bool = True
     loops: LoopSettings = field(default_factory=LoopSettings)
     bundle_settings: BundleSettings = field(default_factory=BundleSettings)

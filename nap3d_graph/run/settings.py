@@ -10,7 +10,7 @@ YAML data: numbers, strings, booleans, None, lists and mappings).
 
 Each setting is declared once, as its section's field (:func:`setting`): its name, type,
 default, and the command-line flag that sets it with how argparse reads it and its help; the
-command line's options are generated from these fields (:func:`flagged`). A field that sets
+command line's options are generated from these fields (:func:`~nap3d_graph.arguments.flagged`). A field that sets
 a :class:`~nap3d_graph.run.config.PipelineConfig` field names it in its metadata
 (``pipeline``) and takes that field's default, so the tree and the library's config cannot
 disagree on a default; :meth:`RunSettings.pipeline_config` builds the ``PipelineConfig`` from
@@ -43,6 +43,7 @@ from nap3d_graph.arguments import (
     positive_float,
     positive_int,
     probability,
+    setting,
 )
 from nap3d_graph.datasets import SOURCES
 from nap3d_graph.nap3d.config import AlignConfig
@@ -50,8 +51,7 @@ from nap3d_graph.nap3d.config import AlignConfig
 from .config import PipelineConfig
 from .default import DEFAULT_TRAIN_STEPS
 
-__all__ = ["RunSettings", "SettingsTree", "SettingsError", "SECTIONS", "pipeline_name", "setting", "flagged",
-           "LAND_WITHIN_FRAME_SHARE"]
+__all__ = ["RunSettings", "SettingsTree", "SettingsError", "SECTIONS", "pipeline_name", "LAND_WITHIN_FRAME_SHARE"]
 
 #: ``--land-within frame``: this share of the camera's frame period (the rest of the step:
 #: the graph update and handing the pose over).
@@ -66,20 +66,6 @@ class SettingsError(ValueError):
     wrong kind (one line, naming the setting)."""
 
 
-def setting(default: Any, flag: str | None = None, *, only_run: bool = False, pipeline: str | None = None,
-            **argparse_kwargs: Any) -> Any:
-    """A settings field with its ``default`` and, when it has one, the command-line ``flag``
-    that sets it: ``argparse_kwargs`` say how argparse reads it (type, choices, action, metavar,
-    help; never the default, which is the field's); ``only_run``: a flag of ``run`` alone (not
-    of ``compare``); ``pipeline``: the ``PipelineConfig`` field it sets."""
-    metadata: dict[str, Any] = {}
-    if pipeline is not None:
-        metadata["pipeline"] = pipeline
-    if flag is not None:
-        metadata["flag"] = {"flag": flag, "only_run": only_run, "argparse": argparse_kwargs}
-    return dataclasses.field(default=default, metadata=metadata)
-
-
 def _pipe(name: str, flag: str | None = None, **kwargs: Any) -> Any:
     """A field bound to ``PipelineConfig.<name>``, with its default (and its flag, see :func:`setting`)."""
     return setting(_PIPELINE_DEFAULTS[name], flag, pipeline=name, **kwargs)
@@ -88,20 +74,6 @@ def _pipe(name: str, flag: str | None = None, **kwargs: Any) -> Any:
 def pipeline_name(f: dataclasses.Field) -> str | None:
     """The ``PipelineConfig`` field a settings field sets (None: resolved by the run)."""
     return f.metadata.get("pipeline")
-
-
-def flagged(tree: type[SettingsTree], only_run: bool | None = None) -> list[tuple[str, dict]]:
-    """``(section.setting, flag)`` of each field of a settings tree's class (its ``SECTIONS``)
-    that has a command-line flag, in section and field order; ``flag``: ``{"flag", "only_run",
-    "argparse"}`` as :func:`setting` declared it. ``only_run``: only the flags of ``run`` alone
-    (True) or only those ``compare`` has too (False); None: all."""
-    out = []
-    for name, section in tree.SECTIONS.items():
-        for f in dataclasses.fields(section):
-            flag = f.metadata.get("flag")
-            if flag is not None and (only_run is None or flag["only_run"] == only_run):
-                out.append((f"{name}.{f.name}", flag))
-    return out
 
 
 @dataclass

@@ -25,7 +25,7 @@ import numpy as np
 
 __all__ = ["odometry_list", "StudyConfig", "StudyRecordings", "StudySettings", "run_study", "summary_markdown"]
 
-from nap3d_graph.arguments import RUN_MATCHER, TOPICS_OPTION, matcher_option, positive_int
+from nap3d_graph.arguments import RUN_MATCHER, TOPICS_OPTION, matcher_option, positive_int, setting
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets import open_sequence
 from nap3d_graph.datasets.depth_timing import resolve_capture_timing
@@ -38,7 +38,7 @@ from nap3d_graph.provenance import provenance
 from nap3d_graph.run.config import PipelineConfig
 from nap3d_graph.run.output import write_results
 from nap3d_graph.run.pipeline import Pipeline
-from nap3d_graph.run.settings import SettingsTree, setting
+from nap3d_graph.run.settings import SettingsTree
 
 log = logging.getLogger(__name__)
 
