@@ -18,17 +18,19 @@ __all__ = ["setting", "flagged", "positive_int", "non_negative_int", "positive_f
            "DEPTH_SCALE_OPTION", "STAMPS_OPTION", "FPS_OPTION"]
 
 
-def setting(default: Any, flag: str | None = None, *, only_run: bool = False, pipeline: str | None = None,
+def setting(default: Any, flag: str | None = None, *, only_run: bool = False, tree: tuple[str, str] | None = None,
             command_default: Any = dataclasses.MISSING, **argparse_kwargs: Any) -> Any:
     """A settings field (a dataclass field) with its ``default`` and, when it has one, the
     command-line ``flag`` that sets it: ``argparse_kwargs`` say how argparse reads it (type,
     choices, action, metavar, help; not the default, which is the field's); ``only_run``: a flag
-    of ``run`` alone (not of ``compare``); ``pipeline``: the run's ``PipelineConfig`` field it
-    sets; ``command_default``: where the command line's default is not the library's (the
-    matcher: chosen by the data on the command line)."""
+    of ``run`` alone (not of ``compare``); ``tree``: ``(section, setting)``, where a field of the
+    run's ``PipelineConfig`` sits in the run's settings tree
+    (:class:`~nap3d_graph.run.settings.RunSettings` takes it from there); ``command_default``:
+    where the command line's default is not the library's (the matcher: chosen by the data on
+    the command line)."""
     metadata: dict[str, Any] = {}
-    if pipeline is not None:
-        metadata["pipeline"] = pipeline
+    if tree is not None:
+        metadata["tree"] = tree
     if flag is not None:
         metadata["flag"] = {"flag": flag, "only_run": only_run, "argparse": argparse_kwargs}
         if command_default is not dataclasses.MISSING:

@@ -113,13 +113,13 @@ def test_every_option_is_bound_to_a_setting_with_its_default(command):
 
 def _declarations(flags: set[str], modules: list[str]) -> dict[str, list[str]]:
     """Where each flag of ``flags`` is declared among ``modules`` (package-relative paths): a
-    call to setting/_pipe/Option/add_argument that names it."""
+    call to setting/Option/add_argument that names it."""
     import ast
     from pathlib import Path
 
     import nap3d_graph
 
-    declaring = {"setting", "_pipe", "Option", "add_argument"}
+    declaring = {"setting", "Option", "add_argument"}
     places: dict[str, list[str]] = {flag: [] for flag in flags}
     package = Path(nap3d_graph.__file__).parent
     for module in modules:
@@ -141,7 +141,22 @@ def test_each_run_option_is_declared_in_one_place():
                            ["run/settings.py", "run/config.py", "cli/run.py", "cli/compare.py", "cli/sources.py",
                             "cli/run_options.py", "cli/binding.py", "cli/run_config.py"])
     assert {flag: len(where) for flag, where in places.items() if len(where) != 1} == {}
-    assert {where[0].split(":")[0] for where in places.values()} == {"run/settings.py"}
+    assert {where[0].split(":")[0] for where in places.values()} == {"run/settings.py", "run/config.py"}
+    # ... and each setting of the tree once: a section's own field, or a PipelineConfig field
+    # that says where it sits in the tree (RunSettings takes it from there), never both.
+    import ast
+    from pathlib import Path
+
+    import nap3d_graph
+
+    source = (Path(nap3d_graph.__file__).parent / "run" / "settings.py").read_text()
+    own = {(cls.name, node.target.id) for cls in ast.parse(source).body if isinstance(cls, ast.ClassDef)
+           for node in cls.body if isinstance(node, ast.AnnAssign)}
+    from_config = {f.metadata["tree"] for f in dataclasses.fields(PipelineConfig) if "tree" in f.metadata}
+    for section, kind in SECTIONS.items():
+        for f in dataclasses.fields(kind):
+            declared = [(kind.__name__, f.name) in own, (section, f.name) in from_config]
+            assert declared.count(True) == 1, f"{section}.{f.name}"
 
 
 def test_each_map_setting_flag_is_declared_once_by_its_field():

@@ -3,10 +3,19 @@
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from nap3d_graph.arguments import (
+    auto_or_non_negative,
+    non_negative_float,
+    non_negative_int,
+    positive_int,
+    probability,
+    setting,
+)
 from nap3d_graph.conventions import pose_error
 from nap3d_graph.datasets.depth_timing import CaptureTiming
 from nap3d_graph.fields.base import field_sigmas
@@ -18,7 +27,10 @@ __all__ = ["PipelineConfig", "with_field_error"]
 
 @dataclass
 class PipelineConfig:
-    """Settings of one run.
+    """Settings of one run. A field the run's settings tree holds says where (``tree``: its
+    section and name in :class:`~nap3d_graph.run.settings.RunSettings` and ``config.yaml``) and,
+    when the command line sets it, its flag and help (:func:`~nap3d_graph.arguments.setting`):
+    declared here once.
 
     keyframe_every: a keyframe every N frames; keyframe_distance_m / keyframe_angle_deg
         (when > 0) also make one once the odometry moved that far since the last.
@@ -140,58 +152,86 @@ class PipelineConfig:
         no longer move those poses. Not with the map anchor or the IMU path.
     """
 
-    keyframe_every: int = 5
-    keyframe_distance_m: float = 0.0
-    keyframe_angle_deg: float = 0.0
-    keyframe_window: int = 0
-    keyframe_sharpness_fraction: float = 0.8
-    keyframe_on_doubt: bool = False
+    keyframe_every: int = setting(5, "--keyframe-every", tree=("keyframes", "every"), type=positive_int,
+        help="a keyframe (and a correction) every N frames (default %(default)s)")
+    keyframe_distance_m: float = setting(0.0, "--keyframe-distance", tree=("keyframes", "distance_m"), type=non_negative_float,
+        help="also a keyframe after this many metres of odometry (0: off)")
+    keyframe_angle_deg: float = setting(0.0, "--keyframe-angle", tree=("keyframes", "angle_deg"), type=non_negative_float,
+        help="also a keyframe after this many degrees of rotation (0: off)")
+    keyframe_window: int = setting(0, "--keyframe-window", tree=("keyframes", "window"), type=non_negative_int, metavar="N",
+        help="a due keyframe is taken at the first sharp frame (variance of the Laplacian at least 0.8 of the "
+             "median since the last keyframe) among the next N, the last of them if none is: motion blur starves"
+             " the matcher (0 or 1: the due frame; default %(default)s)")
+    keyframe_sharpness_fraction: float = setting(0.8, tree=("keyframes", "sharpness_fraction"))
+    keyframe_on_doubt: bool = setting(False, "--keyframe-on-doubt", tree=("keyframes", "on_doubt"), action=argparse.BooleanOptionalAction,
+        help="also a keyframe right after the odometry guessed a step (visual odometry lost track), so the jump "
+             "is corrected at once")
     keyframe_when_idle: int = 0
-    correction_iterations: int = MeasureSettings.correction_iterations
+    correction_iterations: int = setting(MeasureSettings.correction_iterations, "--iterations", tree=("alignment", "iterations"), type=positive_int,
+        help="render-align rounds per correction (default %(default)s; 2 re-renders at the corrected pose: a "
+             "little more accurate, twice the time)")
     render_width: int | None = 320
     render_height: int | None = 240
-    robust: str | None = "huber"
-    gate_p: float = 0.997
-    use_anchor: bool = False
-    anchor_rot_sigma_rad: float = 0.1
-    anchor_trans_sigma_m: float = 0.5
-    prior_rot_sigma_rad: float = 1e-3
-    prior_trans_sigma_m: float = 1e-3
-    relinearize_threshold: float = 1e-3
+    robust: str | None = setting("huber", tree=("graph", "robust"))
+    gate_p: float = setting(0.997, "--gate-p", tree=("graph", "gate_p"), type=probability,
+        help="chi-square gate probability, in (0, 1) (default %(default)g)")
+    use_anchor: bool = setting(False, "--anchor", tree=("graph", "anchor"), only_run=True, action="store_true",
+        help="estimate the field's frame in the world (map anchor M(0)) instead of assuming it is the odometry's"
+             " world frame")
+    anchor_rot_sigma_rad: float = setting(0.1, tree=("graph", "anchor_rot_sigma_rad"))
+    anchor_trans_sigma_m: float = setting(0.5, tree=("graph", "anchor_trans_sigma_m"))
+    prior_rot_sigma_rad: float = setting(1e-3, tree=("graph", "prior_rot_sigma_rad"))
+    prior_trans_sigma_m: float = setting(1e-3, tree=("graph", "prior_trans_sigma_m"))
+    relinearize_threshold: float = setting(1e-3, tree=("graph", "relinearize_threshold"))
     compensate_timing: bool = True
-    rolling_shutter_s: float | None = MeasureSettings.rolling_shutter_s
+    rolling_shutter_s: float | None = setting(MeasureSettings.rolling_shutter_s, "--rolling-shutter", tree=("alignment", "rolling_shutter_s"), type=auto_or_non_negative, metavar="S|auto",
+        help="the colour camera's rolling-shutter readout, first row to last, in seconds: each keyframe's "
+             "matched points are moved along the odometry's velocity to the middle row's instant before the "
+             "alignment. Default auto: the readout train-field estimated from the recording's ground truth with "
+             "its capture timing (fr1/desk's Kinect: 24 ms; 0, a global shutter, where the data showed none or "
+             "the field records no timing); 0: a global shutter")
     timing: CaptureTiming | dict | None = None
-    final_gnc: bool = True
-    gnc_p: float = 0.997
-    depth_scale_check: bool = MeasureSettings.depth_scale_check
-    depth_scale_tolerance: float = 0.02
-    depth_scale_sigmas: float = 4.0
-    depth_scale_window: int = 15
-    intrinsics_check_every: int = 5
-    odom_drift_fraction: float = 0.03
-    odom_drift_rad_per_m: float = 0.0175
-    odom_drift_rad_per_rad: float = 0.03
-    odom_drift_m_per_s: float = 0.01
-    odom_drift_rad_per_s: float = 0.0035
-    field_sigma_m: float | None = None
-    field_sigma_rad: float | None = None
-    field_sigma_depth_m: float = 2.0
+    final_gnc: bool = setting(True, tree=("graph", "final_gnc"))
+    gnc_p: float = setting(0.997, tree=("graph", "gnc_p"))
+    depth_scale_check: bool = setting(MeasureSettings.depth_scale_check, tree=("alignment", "depth_scale_check"))
+    depth_scale_tolerance: float = setting(0.02, tree=("alignment", "depth_scale_tolerance"))
+    depth_scale_sigmas: float = setting(4.0, tree=("alignment", "depth_scale_sigmas"))
+    depth_scale_window: int = setting(15, tree=("alignment", "depth_scale_window"))
+    intrinsics_check_every: int = setting(5, tree=("alignment", "intrinsics_check_every"))
+    odom_drift_fraction: float = setting(0.03, tree=("odometry", "drift_fraction"))
+    odom_drift_rad_per_m: float = setting(0.0175, tree=("odometry", "drift_rad_per_m"))
+    odom_drift_rad_per_rad: float = setting(0.03, tree=("odometry", "drift_rad_per_rad"))
+    odom_drift_m_per_s: float = setting(0.01, tree=("odometry", "drift_m_per_s"))
+    odom_drift_rad_per_s: float = setting(0.0035, tree=("odometry", "drift_rad_per_s"))
+    field_sigma_m: float | None = setting(None, "--field-sigma", tree=("alignment", "field_sigma_m"), type=auto_or_non_negative, metavar="M|auto",
+        help="the field's own geometric error in metres, added to every correction's covariance (rotation: M / 2"
+             " m per radian). Default auto: what the field measured of itself when train-field built it (0 for "
+             "the exact oracle and fields that record none); 0: take the field as exact")
+    field_sigma_rad: float | None = setting(None, tree=("alignment", "field_sigma_rad"))
+    field_sigma_depth_m: float = setting(2.0, tree=("alignment", "field_sigma_depth_m"))
     field_error_by_view: bool = False
     overlap: bool = False
-    detect_ahead: bool = True
-    render_ahead: bool = False
-    render_ahead_m: float = MeasureSettings.render_ahead_m
-    render_ahead_deg: float = MeasureSettings.render_ahead_deg
+    detect_ahead: bool = setting(True, tree=("threads", "detect_ahead"))
+    render_ahead: bool = setting(False, "--render-ahead", tree=("threads", "render_ahead"), action="store_true",
+        help="with --overlap: render the next keyframe at its one-step guessed pose while the second thread is "
+             "idle, so its correction lands sooner (for slow fields or fast cameras; its corrections can be "
+             "slightly worse where the motion turns fast)")
+    render_ahead_m: float = setting(MeasureSettings.render_ahead_m, tree=("threads", "render_ahead_m"))
+    render_ahead_deg: float = setting(MeasureSettings.render_ahead_deg, tree=("threads", "render_ahead_deg"))
     land_within_s: float = 0.0
-    read_ahead: int = 2
-    library_threads: int | None = 1
-    graph_window: int = 0
-    max_frames: int | None = None
+    read_ahead: int = setting(2, tree=("threads", "read_ahead"))
+    library_threads: int | None = setting(1, tree=("threads", "library_threads"))
+    graph_window: int = setting(0, "--graph-window", tree=("graph", "window"), type=non_negative_int, metavar="N",
+        help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their poses, so a "
+             "long run's graph and its updates stay bounded (default %(default)s: every keyframe, the whole "
+             "trajectory smoothed at the end; not with --odom imu or --anchor)")
+    max_frames: int | None = setting(None, "--max-frames", tree=("source", "max_frames"), type=positive_int,
+        help="stop after this many frames")
     progress: bool = False
-    relocalise_after: int = 3
+    relocalise_after: int = setting(3, tree=("graph", "relocalise_after"))
     #: A run started anywhere in a map is placed once the keyframes that confirm its
     #: relocalisation span this much of its own travel (metres; :class:`~nap3d_graph.mapping.start.PlacementSettings`).
-    placement_travel_m: float = 1.0
+    placement_travel_m: float = setting(1.0, tree=("graph", "placement_travel_m"))
     align: AlignConfig = field(default_factory=AlignConfig)
 
     def __post_init__(self) -> None:

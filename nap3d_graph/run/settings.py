@@ -8,13 +8,14 @@ the odometry) and ``output`` (what is written). ``run`` writes the tree to ``con
 :meth:`RunSettings.from_dict` round-trip exactly, by construction (every field is plain
 YAML data: numbers, strings, booleans, None, lists and mappings).
 
-Each setting is declared once, as its section's field (:func:`setting`): its name, type,
-default, and the command-line flag that sets it with how argparse reads it and its help; the
-command line's options are generated from these fields (:func:`~nap3d_graph.arguments.flagged`). A field that sets
-a :class:`~nap3d_graph.run.config.PipelineConfig` field names it in its metadata
-(``pipeline``) and takes that field's default, so the tree and the library's config cannot
-disagree on a default; :meth:`RunSettings.pipeline_config` builds the ``PipelineConfig`` from
-them. A setting without a flag is set in ``config.yaml``.
+Each setting is declared once (:func:`~nap3d_graph.arguments.setting`): its name, type,
+default and, when the command line sets it, its flag, how argparse reads it and its help; the
+command line's options are generated from the fields (:func:`~nap3d_graph.arguments.flagged`).
+A setting the pipeline takes is declared by its :class:`~nap3d_graph.run.config.PipelineConfig`
+field, which says where it sits in the tree (``tree``: section and name); each section adds
+those fields after its own (``pipeline`` metadata: the field they set), and
+:meth:`RunSettings.pipeline_config` builds the ``PipelineConfig`` from them. A setting
+without a flag is set in ``config.yaml``.
 """
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ import argparse
 import dataclasses
 import types
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from nap3d_graph.arguments import (
     DEPTH_SCALE_OPTION,
@@ -33,16 +35,13 @@ from nap3d_graph.arguments import (
     RUN_MATCHER,
     STAMPS_OPTION,
     TOPICS_OPTION,
-    auto_or_non_negative,
     frames_option,
     gravity,
     land_within,
     matcher_option,
-    non_negative_float,
     non_negative_int,
     positive_float,
     positive_int,
-    probability,
     setting,
 )
 from nap3d_graph.datasets import SOURCES
@@ -53,22 +52,41 @@ from .default import DEFAULT_TRAIN_STEPS
 
 __all__ = ["RunSettings", "SettingsTree", "SettingsError", "SECTIONS", "pipeline_name", "LAND_WITHIN_FRAME_SHARE"]
 
+T = TypeVar("T")
+
 #: ``--land-within frame``: this share of the camera's frame period (the rest of the step:
 #: the graph update and handing the pose over).
 LAND_WITHIN_FRAME_SHARE = 0.9
-
-_PIPELINE_DEFAULTS = {f.name: f.default for f in dataclasses.fields(PipelineConfig)
-                      if f.default is not dataclasses.MISSING}
-
 
 class SettingsError(ValueError):
     """A settings tree that cannot be read: an unknown section or setting, or a value of the
     wrong kind (one line, naming the setting)."""
 
 
-def _pipe(name: str, flag: str | None = None, **kwargs: Any) -> Any:
-    """A field bound to ``PipelineConfig.<name>``, with its default (and its flag, see :func:`setting`)."""
-    return setting(_PIPELINE_DEFAULTS[name], flag, pipeline=name, **kwargs)
+def _with_pipeline_fields(section: str) -> Callable[[type[T]], type[T]]:
+    """Class decorator: the settings section ``cls`` (a dataclass) with, after its own fields,
+    each :class:`PipelineConfig` field that declares it sits in ``section`` (its ``tree``
+    metadata: the setting's name there), with that field's type, default and flag, bound to it
+    (``pipeline`` metadata). A run setting the pipeline takes is declared once, in
+    ``PipelineConfig``."""
+
+    def with_fields(cls: type[T]) -> type[T]:
+        own = [(f.name, f.type, _copied(f)) for f in dataclasses.fields(cls)]  # type: ignore[arg-type]
+        bound = [(f.metadata["tree"][1], f.type,
+                  dataclasses.field(default=f.default, metadata={**f.metadata, "pipeline": f.name}))
+                 for f in dataclasses.fields(PipelineConfig) if f.metadata.get("tree", ("",))[0] == section]
+        made = dataclasses.make_dataclass(cls.__name__, own + bound)
+        made.__doc__, made.__module__, made.__qualname__ = cls.__doc__, cls.__module__, cls.__qualname__
+        return made
+
+    return with_fields
+
+
+def _copied(f: dataclasses.Field) -> Any:
+    """A new field with ``f``'s default (or factory) and metadata."""
+    if f.default_factory is not dataclasses.MISSING:
+        return dataclasses.field(default_factory=f.default_factory, metadata=f.metadata)
+    return dataclasses.field(default=f.default, metadata=f.metadata)
 
 
 def pipeline_name(f: dataclasses.Field) -> str | None:
@@ -76,6 +94,7 @@ def pipeline_name(f: dataclasses.Field) -> str | None:
     return f.metadata.get("pipeline")
 
 
+@_with_pipeline_fields("source")
 @dataclass
 class SourceSettings:
     """What is read. ``traj``: sim, tum, realsense, 7scenes, rosbag or auto (the source the
@@ -123,8 +142,6 @@ class SourceSettings:
              " and no ground truth the identity")
     initial_pose_file: str | None = setting(None, "--initial-pose-file", type=Path, metavar="TUM_FILE",
         help="the same from the first line of a TUM trajectory file")
-    max_frames: int | None = _pipe("max_frames", "--max-frames", type=positive_int,
-        help="stop after this many frames")
     pace: float | None = setting(None, "--pace", only_run=True, type=positive_float, nargs="?", const=1.0, metavar="SPEED",
         help="feed the frames as the camera delivered them (SPEED times its rate; default 1): the causal "
              "trajectory is then the one a robot riding along would have had, which for --overlap depends on the"
@@ -139,6 +156,7 @@ class SourceSettings:
              " two cores)")
 
 
+@_with_pipeline_fields("odometry")
 @dataclass
 class OdometrySettings:
     """The motion between keyframes. ``kind``: recorded, noisy, vo, dense or imu (None: the
@@ -184,32 +202,14 @@ class OdometrySettings:
         help="--odom imu: the frame odometry the run falls back on between keyframes after 3 keyframes refused "
              "in a row (the views left the field, say: the IMU alone then drifts by metres within seconds), "
              "until a correction lands again (default %(default)s; none: the IMU alone)")
-    drift_fraction: float = _pipe("odom_drift_fraction")
-    drift_rad_per_m: float = _pipe("odom_drift_rad_per_m")
-    drift_rad_per_rad: float = _pipe("odom_drift_rad_per_rad")
-    drift_m_per_s: float = _pipe("odom_drift_m_per_s")
-    drift_rad_per_s: float = _pipe("odom_drift_rad_per_s")
 
 
+@_with_pipeline_fields("keyframes")
 @dataclass
 class KeyframeSettings:
     """When a correction is measured (see ``PipelineConfig``'s ``keyframe_*``);
     ``when_idle`` None: 1 for an overlapped paced run, else 0 (resolved by the run)."""
 
-    every: int = _pipe("keyframe_every", "--keyframe-every", type=positive_int,
-        help="a keyframe (and a correction) every N frames (default %(default)s)")
-    distance_m: float = _pipe("keyframe_distance_m", "--keyframe-distance", type=non_negative_float,
-        help="also a keyframe after this many metres of odometry (0: off)")
-    angle_deg: float = _pipe("keyframe_angle_deg", "--keyframe-angle", type=non_negative_float,
-        help="also a keyframe after this many degrees of rotation (0: off)")
-    window: int = _pipe("keyframe_window", "--keyframe-window", type=non_negative_int, metavar="N",
-        help="a due keyframe is taken at the first sharp frame (variance of the Laplacian at least 0.8 of the "
-             "median since the last keyframe) among the next N, the last of them if none is: motion blur starves"
-             " the matcher (0 or 1: the due frame; default %(default)s)")
-    sharpness_fraction: float = _pipe("keyframe_sharpness_fraction")
-    on_doubt: bool = _pipe("keyframe_on_doubt", "--keyframe-on-doubt", action=argparse.BooleanOptionalAction,
-        help="also a keyframe right after the odometry guessed a step (visual odometry lost track), so the jump "
-             "is corrected at once")
     when_idle: int | None = setting(None, "--keyframe-when-idle", type=non_negative_int, metavar="N",
         help="with --overlap: also a keyframe at any frame N or more after the last while the second thread is "
              "idle, so corrections come as often as it can measure them (--keyframe-every is then the longest "
@@ -217,6 +217,7 @@ class KeyframeSettings:
              "camera's rate). Default: 1 for an overlapped run --pace (the live settings), else 0: off")
 
 
+@_with_pipeline_fields("alignment")
 @dataclass
 class AlignmentSettings:
     """How a keyframe is measured. ``field``: 'oracle', a checkpoint, a nerfstudio config,
@@ -232,35 +233,16 @@ class AlignmentSettings:
         help="'oracle' (the exact simulated room of --data), a field checkpoint (.pt, from 'nap3d-graph "
              "train-field'), a nerfstudio config.yml, or 'none' (odometry only)")
     matcher: str = setting("auto", "--matcher", **matcher_option(RUN_MATCHER))
-    iterations: int = _pipe("correction_iterations", "--iterations", type=positive_int,
-        help="render-align rounds per correction (default %(default)s; 2 re-renders at the corrected pose: a "
-             "little more accurate, twice the time)")
     render_size: str = setting("320x240", "--render-size",
         help="WxH the field renders at (default %(default)s)")
     timing: str = setting("auto", "--timing", choices=("auto", "none"),
         help="auto: move each keyframe's depth to its colour's capture instant with the capture timing the field"
              " records, or, for a field that records none (the oracle, nerfstudio), the timing estimated from "
              "this sequence's ground truth; none: take the stamps as they are")
-    rolling_shutter_s: float | None = _pipe("rolling_shutter_s", "--rolling-shutter", type=auto_or_non_negative, metavar="S|auto",
-        help="the colour camera's rolling-shutter readout, first row to last, in seconds: each keyframe's "
-             "matched points are moved along the odometry's velocity to the middle row's instant before the "
-             "alignment. Default auto: the readout train-field estimated from the recording's ground truth with "
-             "its capture timing (fr1/desk's Kinect: 24 ms; 0, a global shutter, where the data showed none or "
-             "the field records no timing); 0: a global shutter")
-    field_sigma_m: float | None = _pipe("field_sigma_m", "--field-sigma", type=auto_or_non_negative, metavar="M|auto",
-        help="the field's own geometric error in metres, added to every correction's covariance (rotation: M / 2"
-             " m per radian). Default auto: what the field measured of itself when train-field built it (0 for "
-             "the exact oracle and fields that record none); 0: take the field as exact")
-    field_sigma_rad: float | None = _pipe("field_sigma_rad")
-    field_sigma_depth_m: float = _pipe("field_sigma_depth_m")
-    depth_scale_check: bool = _pipe("depth_scale_check")
-    depth_scale_tolerance: float = _pipe("depth_scale_tolerance")
-    depth_scale_sigmas: float = _pipe("depth_scale_sigmas")
-    depth_scale_window: int = _pipe("depth_scale_window")
-    intrinsics_check_every: int = _pipe("intrinsics_check_every")
     nap3d: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
+@_with_pipeline_fields("graph")
 @dataclass
 class GraphSettings:
     """How a correction enters iSAM2 (see ``PipelineConfig``): the chi-square gate, the
@@ -268,27 +250,9 @@ class GraphSettings:
     solve, how many refused keyframes in a row call for relocalising in a map and how far a
     run started anywhere in a map travels confirming its placement."""
 
-    gate_p: float = _pipe("gate_p", "--gate-p", type=probability,
-        help="chi-square gate probability, in (0, 1) (default %(default)g)")
-    window: int = _pipe("graph_window", "--graph-window", type=non_negative_int, metavar="N",
-        help="keep the last N keyframes in iSAM2 (>= 3), marginalising older ones and fixing their poses, so a "
-             "long run's graph and its updates stay bounded (default %(default)s: every keyframe, the whole "
-             "trajectory smoothed at the end; not with --odom imu or --anchor)")
-    anchor: bool = _pipe("use_anchor", "--anchor", only_run=True, action="store_true",
-        help="estimate the field's frame in the world (map anchor M(0)) instead of assuming it is the odometry's"
-             " world frame")
-    robust: str | None = _pipe("robust")
-    anchor_rot_sigma_rad: float = _pipe("anchor_rot_sigma_rad")
-    anchor_trans_sigma_m: float = _pipe("anchor_trans_sigma_m")
-    prior_rot_sigma_rad: float = _pipe("prior_rot_sigma_rad")
-    prior_trans_sigma_m: float = _pipe("prior_trans_sigma_m")
-    relinearize_threshold: float = _pipe("relinearize_threshold")
-    final_gnc: bool = _pipe("final_gnc")
-    gnc_p: float = _pipe("gnc_p")
-    relocalise_after: int = _pipe("relocalise_after")
-    placement_travel_m: float = _pipe("placement_travel_m")
 
 
+@_with_pipeline_fields("threads")
 @dataclass
 class ThreadSettings:
     """What runs beside the odometry (see ``PipelineConfig``). ``overlap`` None: on for a
@@ -302,21 +266,12 @@ class ThreadSettings:
              "frame and --keyframe-when-idle 1, as accurate as inline and more often corrected), off for a "
              "replay that goes as fast as it can (inline is repeatable there, and an overlapped run's causal "
              "trajectory would depend on the machine's speed)")
-    render_ahead: bool = _pipe("render_ahead", "--render-ahead", action="store_true",
-        help="with --overlap: render the next keyframe at its one-step guessed pose while the second thread is "
-             "idle, so its correction lands sooner (for slow fields or fast cameras; its corrections can be "
-             "slightly worse where the motion turns fast)")
-    render_ahead_m: float = _pipe("render_ahead_m")
-    render_ahead_deg: float = _pipe("render_ahead_deg")
     land_within: float | str | None = setting(None, "--land-within", type=land_within, metavar="S|frame",
         help="with --overlap: wait up to S seconds after a frame arrives for the correction in flight, "
              "so one that is done by then lands at that frame and not a later one; 'frame' waits "
              f"{LAND_WITHIN_FRAME_SHARE:g} of the camera's frame period (only while a live run would idle "
              "for the next frame; with run --pace, as a live camera feeds it). Default: 'frame' for run "
              "--overlap --pace (the run would idle then anyway), else 0: never wait")
-    detect_ahead: bool = _pipe("detect_ahead")
-    read_ahead: int = _pipe("read_ahead")
-    library_threads: int | None = _pipe("library_threads")
 
 
 @dataclass
@@ -410,8 +365,8 @@ class RunSettings(SettingsTree):
         :class:`SettingsError` for the first found (named by the command line's flags). What
         the run resolves later (the odometry's kind, whether it overlaps) is checked once
         known: a None there passes, so a tree is validated before and again after it."""
-        source, odometry, graph, threads = self.source, self.odometry, self.graph, self.threads
-        kind, overlap = odometry.kind, threads.overlap
+        source, odometry, threads = self.source, self.odometry, self.threads
+        kind, overlap, window = odometry.kind, threads.overlap, self.get("graph.window")
         problems = (
             (source.traj not in ("realsense", "auto") and bool(source.groundtruth or source.realsense_config
                                                                or source.record),
@@ -420,7 +375,7 @@ class RunSettings(SettingsTree):
             (source.initial_pose == "auto" and source.initial_pose_file is not None,
              "give --initial-pose auto or --initial-pose-file, not both"),
             (odometry.vo_width is not None and kind not in (None, "vo"), f"--vo-width is for --odom vo, not --odom {kind}"),
-            (threads.render_ahead and overlap is False,
+            (self.get("threads.render_ahead") and overlap is False,
              "--render-ahead works ahead on the second thread: it needs --overlap"),
             (bool(self.keyframes.when_idle) and overlap is False,
              "--keyframe-when-idle takes keyframes while the second thread is idle: it needs --overlap"),
@@ -428,9 +383,9 @@ class RunSettings(SettingsTree):
              "--land-within waits for the second thread's correction: it needs --overlap"),
             (bool(overlap) and kind == "imu",
              "--overlap does not apply to --odom imu (the IMU keyframe state follows each correction)"),
-            (bool(graph.window) and (kind == "imu" or graph.anchor), "--graph-window does not apply to --odom imu or --anchor"),
-            (bool(graph.window) and graph.window < 3,
-             f"--graph-window must be 0 (every keyframe) or at least 3, got {graph.window}"),
+            (bool(window) and (kind == "imu" or self.get("graph.anchor")),
+             "--graph-window does not apply to --odom imu or --anchor"),
+            (bool(window) and window < 3, f"--graph-window must be 0 (every keyframe) or at least 3, got {window}"),
         )
         for problem, message in problems:
             if problem:
