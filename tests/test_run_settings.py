@@ -159,20 +159,27 @@ def test_each_run_option_is_declared_in_one_place():
             assert declared.count(True) == 1, f"{section}.{f.name}"
 
 
-def test_each_map_setting_flag_is_declared_once_by_its_field():
-    """map's flags that set its settings are declared by the fields of MapSettings and
-    SubmapSettings, with the fields' defaults (the matcher's excepted: chosen by the data)."""
+@pytest.mark.parametrize("command", ["map", "train-field"])
+def test_each_map_and_field_setting_flag_is_declared_once_by_its_field(command):
+    """map's and train-field's flags that set their settings are declared by the fields of
+    MapSettings and SubmapSettings, and of FieldSettings, with the fields' defaults but where
+    the command line's own differs (the matcher: chosen by the data; train-field's 5 minutes)."""
     from nap3d_graph.cli.binding import SectionDefaults
     from nap3d_graph.cli.map import MAP_OPTIONS, MAP_SECTIONS
+    from nap3d_graph.cli.train_field import FIELD_OPTIONS, FIELD_SECTIONS
 
-    places = _declarations({o.flag for o in MAP_OPTIONS},
-                           ["cli/map.py", "mapping/build.py", "fields/submaps.py"])
+    options, sections, modules, declared_in, differs = {
+        "map": (MAP_OPTIONS, MAP_SECTIONS, ["cli/map.py", "mapping/build.py", "fields/submaps.py"],
+                {"mapping/build.py", "fields/submaps.py"}, {"--matcher": "auto"}),
+        "train-field": (FIELD_OPTIONS, FIELD_SECTIONS, ["cli/train_field.py", "fields/build.py"], {"fields/build.py"},
+                        {"--matcher": "auto", "--minutes": 5.0})}[command]
+    places = _declarations({o.flag for o in options}, modules)
     assert {flag: len(where) for flag, where in places.items() if len(where) != 1} == {}
-    assert {where[0].split(":")[0] for where in places.values()} == {"mapping/build.py", "fields/submaps.py"}
-    parser = command_parsers(build_parser())["map"]
-    defaults = SectionDefaults(MAP_SECTIONS)
-    assert {o.flag: parser.get_default(o.dest) for o in MAP_OPTIONS if parser.get_default(o.dest) != defaults.get(o.path)} \
-        == {"--matcher": "auto"}
+    assert {where[0].split(":")[0] for where in places.values()} == declared_in
+    parser = command_parsers(build_parser())[command]
+    defaults = SectionDefaults(sections)
+    assert {o.flag: parser.get_default(o.dest) for o in options
+            if parser.get_default(o.dest) != defaults.get(o.path)} == differs
 
 
 def test_the_options_settings_come_back_from_a_config_unchanged():

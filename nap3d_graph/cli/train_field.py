@@ -6,20 +6,24 @@ import json
 import sys
 from pathlib import Path
 
-from nap3d_graph.arguments import RUN_MATCHER, non_negative_int, positive_float, positive_int
+from nap3d_graph.arguments import positive_int
 from nap3d_graph.datasets import open_sequence
-from nap3d_graph.fields.build import DepthUnitError, build_field
+from nap3d_graph.fields.build import DepthUnitError, FieldSettings, build_field
 
+from .binding import SectionDefaults, add_options, flag_options, section_values
 from .common import (
     UsageError,
     add_frames_argument,
-    add_matcher_argument,
     add_topics_argument,
     add_unit_arguments,
     warn_depth_units,
     writable_file_parent,
 )
 from .sources import chosen_matcher, warn_guessed_camera
+
+#: train-field's settings that have a flag: each field of FieldSettings declares it.
+FIELD_SECTIONS: dict[str, type] = {"field": FieldSettings}
+FIELD_OPTIONS = flag_options(FIELD_SECTIONS)
 
 
 def add_parser(sub) -> None:
@@ -51,61 +55,15 @@ def _source_arguments(p) -> None:
 
 
 def _training_arguments(p) -> None:
-    """The field's model, its budget and the frames it trains on."""
-    p.add_argument("--model", choices=("grid", "splat", "views"), default="grid",
-                   help="grid (default, chosen by measurement: see the README): a voxel-grid radiance field trained "
-                   "with torch; splat: surface splats fused from the frames, no training (seconds, not minutes); "
-                   "views: the survey's sharpest frames re-projected into the asked view, no training")
-    p.add_argument("--timing", choices=("auto", "none"), default="auto",
-                   help="auto: estimate when depth and colour were captured relative to the poses, and the colour "
-                   "camera's rolling-shutter readout, from the data (for recordings with depth stamps and ground "
-                   "truth; the depth scale is left to the run's calibration); none: use the stamps")
-    p.add_argument("--minutes", type=positive_float, default=5.0,
-                   help="grid: optimisation budget in minutes (default 5)")
-    p.add_argument("--steps", type=positive_int, default=None,
-                   help="optimisation budget in steps instead of minutes: the same field on any machine "
-                   "(--minutes is ignored when given)")
+    """The field's model, its budget and the frames it trains on (FieldSettings' flags)."""
+    add_options(p, FIELD_OPTIONS, SectionDefaults(FIELD_SECTIONS))
     add_unit_arguments(p)
     add_frames_argument(p, "training and evaluation (the checkpoint records which were trained on)")
-    p.add_argument("--every", type=positive_int, default=1,
-                   help="train on every K-th frame, hold out the rest for evaluation (default 1: every "
-                   "tenth frame is held out)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    p.add_argument("--voxel-size", type=positive_float, default=None,
-                   help="voxel in metres (default: 0.006 for splat, 0.03 for grid)")
-    p.add_argument("--eval-frames", type=non_negative_int, default=8, help="held-out frames to evaluate (default 8)")
     p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
-    p.add_argument("--device", default=None, help="torch device (default: cuda if available, else cpu)")
-    add_matcher_argument(p, RUN_MATCHER)
 
 
 def _refinement_and_check_arguments(p) -> None:
     """Pose refinement before training, the field's error and the depth unit's check."""
-    p.add_argument("--refine-poses", type=non_negative_int, default=0, metavar="ROUNDS",
-                   help="refine the training frames' poses first, for ROUNDS rounds (default 0: the poses as given; "
-                   "see --refine-method). The report gives each round and the multi-view depth agreement before "
-                   "and after")
-    p.add_argument("--refine-method", choices=("depth", "map"), default="depth",
-                   help="depth (default): each frame's depth aligned with its neighbours' (ICP), the poses solved in "
-                   "a graph that holds each to its input pose; map: each frame aligned (as a run would) with a splat "
-                   "map of the other half of the frames, fused with its input pose, the maps rebuilt")
-    p.add_argument("--error-growth", nargs="?", const="on", default="auto", choices=("auto", "on", "off"),
-                   help="grid / splat: also measure how the field's error grows away from its training frames, with "
-                   "a view field of the same frames (seconds), and record it: runs then add to each correction the "
-                   "error at its own distance from the frames, not the error near them everywhere (a view field "
-                   "always measures its own). auto (default): on for a camera's recording, off for a simulated one. "
-                   "On fr1/desk and redkitchen it took the grid's corrections' NEES from 9-37 to 5.4-7.8, at the "
-                   "chi-square band, the ATE the same or better; on the simulator's rooms, whose poses are exact, "
-                   "it did not help (README)")
-    p.add_argument("--no-field-error", action="store_true",
-                   help="do not measure the field's own error (by default each held-out frame is aligned with the "
-                   "render at its true pose, as a run would, and what the corrections miss beyond their covariance "
-                   "is recorded: runs of this field add it to every correction; --matcher picks the matcher "
-                   "of those alignments, use the runs' own)")
-    p.add_argument("--depth-unit", choices=("check", "trust"), default="check",
-                   help="check (default): before any work, stop when the depth agrees across the posed frames only "
-                        "at another unit's scale (e.g. millimetre PNGs read at TUM's 5000 per metre, 5x short); "
-                        "trust: build with the depth as read")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -125,15 +83,11 @@ def run(args) -> int:
 
     warn_guessed_camera(sequence)
     args.matcher = chosen_matcher(args.matcher, sequence)
+    given = section_values(args, FIELD_OPTIONS)["field"]
+    settings = FieldSettings(**{**given, "timing": "auto" if args.timing == "auto" else None, "progress": not args.quiet,
+                                "error_growth": {"on": True, "off": False}.get(args.error_growth, "auto")})
     try:
-        field, report = build_field(sequence, args.model, steps=args.steps, minutes=args.minutes, every=args.every,
-                                    eval_frames=args.eval_frames, seed=args.seed, voxel_size_m=args.voxel_size,
-                                    timing="auto" if args.timing == "auto" else None, device=args.device,
-                                    progress=not args.quiet, measure_error=not args.no_field_error,
-                                    matcher=args.matcher, refine_poses=args.refine_poses,
-                                    refine_method=args.refine_method,
-                                    error_growth={"on": True, "off": False}.get(args.error_growth, "auto"),
-                                    depth_unit=args.depth_unit)
+        field, report = build_field(sequence, settings=settings)
     except DepthUnitError as exc:  # before any training: say it in the command's words
         raise UsageError(f"{exc.check.message()}; fix the depth files, or add --depth-unit trust to train with the "
                          "depth as read") from None

@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass, replace
 
+from nap3d_graph.arguments import RUN_MATCHER, matcher_option, non_negative_int, positive_float, positive_int, setting
 from nap3d_graph.camera import colour_coverage
 from nap3d_graph.datasets.depth_timing import CaptureTiming, estimate_timing, multiview_agreement_mm
 from nap3d_graph.datasets.depth_unit import check_depth_unit
@@ -35,7 +37,7 @@ from .field_error import measure_error_by_view, measure_field_error
 from .pose_refinement import PoseCorrectedSequence, PoseRefinementConfig, refine_training_poses
 from .train_config import TrainConfig
 
-__all__ = ["MODELS", "DEFAULT_MODEL", "REFINE_METHODS", "build_field", "error_growth_for"]
+__all__ = ["MODELS", "DEFAULT_MODEL", "REFINE_METHODS", "FieldSettings", "build_field", "error_growth_for"]
 
 log = logging.getLogger(__name__)
 
@@ -61,39 +63,103 @@ def error_growth_for(value: bool | str, sequence) -> tuple[bool, str]:
     return True, "auto: a camera's recording"
 
 
-def build_field(sequence, model: str = DEFAULT_MODEL, *, steps: int | None = None, minutes: float | None = None,
-                every: int = 1, eval_frames: int = 8, seed: int = 0, voxel_size_m: float | None = None,
-                timing: str | dict | None = "auto", render_size: tuple[int, int] | None = (320, 240),
-                device: str | None = None, progress: bool = True, measure_error: bool = True,
-                matcher: str = "sift", refine_poses: int = 0, refine_method: str = "depth",
-                error_growth: bool | str = "auto", depth_unit: str = "check", slab_m: tuple | None = None):
-    """Make a field of type ``model`` from ``sequence``; returns ``(field, report)``.
+@dataclass(frozen=True)
+class FieldSettings:
+    """How a field is made (:func:`build_field`; ``train-field``'s flags are its fields').
 
-    ``steps`` / ``minutes``: the grid's training budget (ignored by ``splat``). ``every``,
-    ``eval_frames``: training frames and held-out frames (:func:`~nap3d_graph.fields.training_data.split_posed_frames`).
-    ``voxel_size_m``: the model's voxel (default: the model's own). ``timing``: ``"auto"``
-    (estimate it), ``None`` (use the stamps as they are) or a dict. ``render_size``: the
-    held-out evaluation renders at this size (the pipeline's; the frames' own when they are
-    smaller, or with ``None``). ``measure_error``: measure the field's own error on the
-    held-out frames with ``matcher`` (:mod:`~nap3d_graph.fields.field_error`), recorded in
-    ``field.meta["field_error"]`` and used by every run of the field to widen its corrections.
-    ``refine_poses``: rounds of training-pose refinement (0: the poses as given), by
-    ``refine_method``: ``"depth"`` (neighbouring frames' depths aligned with ICP, a pose graph
-    holding them to their input poses: :mod:`~nap3d_graph.fields.depth_refinement`) or
-    ``"map"`` (each frame aligned with NAP3D to a splat map of the others:
-    :mod:`~nap3d_graph.fields.pose_refinement`); the field is built with the refined poses,
-    which it records (``meta["pose_corrections"]``), and the report holds each round and the
-    frames' multi-view depth agreement before and after. ``error_growth``: a grid or splat
-    field also measures how its error grows away from its training frames, with a view field
-    of them (:mod:`~nap3d_graph.fields.error_growth`; a view field always measures its own);
-    ``"auto"`` (default): on for a camera's recording, off for a simulated one
-    (:func:`error_growth_for`). ``depth_unit``: ``"check"`` (default) looks, before any
-    work, whether the depth agrees across the posed frames only at another unit's scale
-    (:mod:`~nap3d_graph.datasets.depth_unit`) and raises :class:`DepthUnitError` if so;
-    ``"trust"`` builds with the depth as read. ``slab_m``: a grid trains only on the depth points
-    within this slab of the sequence's frame (:class:`~nap3d_graph.fields.train_config.TrainConfig`;
-    a submap's part of a floor); the other models ignore it.
+    ``model``: one of :data:`MODELS`. ``steps`` / ``minutes``: the grid's training budget
+    (ignored by ``splat``). ``every``, ``eval_frames``: training frames and held-out frames
+    (:func:`~nap3d_graph.fields.training_data.split_posed_frames`). ``voxel_size_m``: the model's
+    voxel (default: the model's own). ``timing``: ``"auto"`` (estimate it), ``None`` (use the
+    stamps as they are) or a dict. ``render_size``: the held-out evaluation renders at this size
+    (the pipeline's; the frames' own when they are smaller, or with ``None``).
+    ``measure_error``: measure the field's own error on the held-out frames with ``matcher``
+    (:mod:`~nap3d_graph.fields.field_error`), recorded in ``field.meta["field_error"]`` and used
+    by every run of the field to widen its corrections. ``refine_poses``: rounds of
+    training-pose refinement (0: the poses as given), by ``refine_method``: ``"depth"``
+    (neighbouring frames' depths aligned with ICP, a pose graph holding them to their input
+    poses: :mod:`~nap3d_graph.fields.depth_refinement`) or ``"map"`` (each frame aligned with
+    NAP3D to a splat map of the others: :mod:`~nap3d_graph.fields.pose_refinement`); the field
+    is built with the refined poses, which it records (``meta["pose_corrections"]``), and the
+    report holds each round and the frames' multi-view depth agreement before and after.
+    ``error_growth``: a grid or splat field also measures how its error grows away from its
+    training frames, with a view field of them (:mod:`~nap3d_graph.fields.error_growth`; a
+    view field always measures its own); ``"auto"`` (default): on for a camera's recording,
+    off for a simulated one (:func:`error_growth_for`). ``depth_unit``: ``"check"`` (default)
+    looks, before any work, whether the depth agrees across the posed frames only at another
+    unit's scale (:mod:`~nap3d_graph.datasets.depth_unit`) and raises :class:`DepthUnitError`
+    if so; ``"trust"`` builds with the depth as read. ``slab_m``: a grid trains only on the
+    depth points within this slab of the sequence's frame
+    (:class:`~nap3d_graph.fields.train_config.TrainConfig`; a submap's part of a floor); the
+    other models ignore it. ``device``: torch's (None: cuda if available, else cpu).
     """
+
+    model: str = setting(DEFAULT_MODEL, "--model", choices=("grid", "splat", "views"),
+        help="grid (default, chosen by measurement: see the README): a voxel-grid radiance field trained with "
+             "torch; splat: surface splats fused from the frames, no training (seconds, not minutes); views: "
+             "the survey's sharpest frames re-projected into the asked view, no training")
+    timing: str | dict | None = setting("auto", "--timing", choices=("auto", "none"),
+        help="auto: estimate when depth and colour were captured relative to the poses, and the colour camera's "
+             "rolling-shutter readout, from the data (for recordings with depth stamps and ground truth; the "
+             "depth scale is left to the run's calibration); none: use the stamps")
+    minutes: float | None = setting(None, "--minutes", command_default=5.0, type=positive_float,
+        help="grid: optimisation budget in minutes (default 5)")
+    steps: int | None = setting(None, "--steps", type=positive_int,
+        help="optimisation budget in steps instead of minutes: the same field on any machine (--minutes is "
+             "ignored when given)")
+    every: int = setting(1, "--every", type=positive_int,
+        help="train on every K-th frame, hold out the rest for evaluation (default 1: every tenth frame is held "
+             "out)")
+    seed: int = setting(0, "--seed", type=int, help="random seed (default 0)")
+    voxel_size_m: float | None = setting(None, "--voxel-size", type=positive_float,
+        help="voxel in metres (default: 0.006 for splat, 0.03 for grid)")
+    eval_frames: int = setting(8, "--eval-frames", type=non_negative_int,
+        help="held-out frames to evaluate (default 8)")
+    device: str | None = setting(None, "--device", help="torch device (default: cuda if available, else cpu)")
+    matcher: str = setting("sift", "--matcher", command_default=RUN_MATCHER, **matcher_option(RUN_MATCHER))
+    refine_poses: int = setting(0, "--refine-poses", type=non_negative_int, metavar="ROUNDS",
+        help="refine the training frames' poses first, for ROUNDS rounds (default 0: the poses as given; see "
+             "--refine-method). The report gives each round and the multi-view depth agreement before and after")
+    refine_method: str = setting("depth", "--refine-method", choices=("depth", "map"),
+        help="depth (default): each frame's depth aligned with its neighbours' (ICP), the poses solved in a "
+             "graph that holds each to its input pose; map: each frame aligned (as a run would) with a splat "
+             "map of the other half of the frames, fused with its input pose, the maps rebuilt")
+    error_growth: bool | str = setting("auto", "--error-growth", nargs="?", const="on", choices=("auto", "on", "off"),
+        help="grid / splat: also measure how the field's error grows away from its training frames, with a view "
+             "field of the same frames (seconds), and record it: runs then add to each correction the error at "
+             "its own distance from the frames, not the error near them everywhere (a view field always "
+             "measures its own). auto (default): on for a camera's recording, off for a simulated one. On "
+             "fr1/desk and redkitchen it took the grid's corrections' NEES from 9-37 to 5.4-7.8, at the "
+             "chi-square band, the ATE the same or better; on the simulator's rooms, whose poses are exact, it "
+             "did not help (README)")
+    measure_error: bool = setting(True, "--no-field-error", action="store_false",
+        help="do not measure the field's own error (by default each held-out frame is aligned with the render "
+             "at its true pose, as a run would, and what the corrections miss beyond their covariance is "
+             "recorded: runs of this field add it to every correction; --matcher picks the matcher of those "
+             "alignments, use the runs' own)")
+    depth_unit: str = setting("check", "--depth-unit", choices=("check", "trust"),
+        help="check (default): before any work, stop when the depth agrees across the posed frames only at "
+             "another unit's scale (e.g. millimetre PNGs read at TUM's 5000 per metre, 5x short); trust: build "
+             "with the depth as read")
+    render_size: tuple[int, int] | None = (320, 240)
+    progress: bool = True
+    slab_m: tuple | None = None
+
+
+def build_field(sequence, model: str | None = None, settings: FieldSettings | None = None, **changes):
+    """Make a field from ``sequence`` as ``settings`` say (:class:`FieldSettings`; its defaults
+    when None), with ``model`` and ``changes`` (its fields by name) in their place; returns
+    ``(field, report)``."""
+    settings = replace(settings or FieldSettings(), **({"model": model} if model is not None else {}), **changes)
+    return _build(sequence, settings)
+
+
+def _build(sequence, s: FieldSettings):
+    """:func:`build_field` with its settings resolved."""
+    model, steps, minutes, every, eval_frames, seed = s.model, s.steps, s.minutes, s.every, s.eval_frames, s.seed
+    voxel_size_m, timing, render_size, device, progress = s.voxel_size_m, s.timing, s.render_size, s.device, s.progress
+    matcher, refine_poses, refine_method, slab_m = s.matcher, s.refine_poses, s.refine_method, s.slab_m
+    error_growth, depth_unit, measure_error = s.error_growth, s.depth_unit, s.measure_error
     from .training_data import split_posed_frames
 
     error_growth, growth_why = error_growth_for(error_growth, sequence)
