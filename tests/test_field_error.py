@@ -59,8 +59,8 @@ def test_measured_field_error_brings_an_unseen_walks_nees_to_about_twice_the_chi
     measured, measured_result = run(None)  # the default: what the field measured
     exact, exact_result = run(0.0)
     assert measured.config.field_sigma_m == sigma_m and measured.config.field_sigma_rad == sigma_rad
-    k = min(set(measured.stream.corrections) & set(exact.stream.corrections))
-    added = measured.stream.corrections[k][1] - exact.stream.corrections[k][1]
+    k = min(set(measured.state.stream.corrections) & set(exact.state.stream.corrections))
+    added = measured.state.stream.corrections[k][1] - exact.state.stream.corrections[k][1]
     np.testing.assert_allclose(np.diag(added), [sigma_rad**2] * 3 + [sigma_m**2] * 3, rtol=0.05, atol=1e-9)
     nees_measured, nees_exact = correction_nees(measured_result), correction_nees(exact_result)
     assert len(nees_measured) >= 8

@@ -33,8 +33,8 @@ def test_a_long_run_keeps_a_bounded_graph_and_the_same_trajectory():
     assert len(result.keyframes) == 600
     variables, factors = np.max(sizes, axis=0)
     assert variables <= 31 and factors <= 40, (variables, factors)  # 1.5 x 20 keyframes at most
-    assert sizes[-1][0] <= 31 and bounded.graph.first_live >= 570
-    assert len(bounded.graph.factor_log) <= 40 and bounded.graph.graph_all.size() <= 40
+    assert sizes[-1][0] <= 31 and bounded.state.graph.first_live >= 570
+    assert len(bounded.state.graph.factor_log) <= 40 and bounded.state.graph.graph_all.size() <= 40
     whole = Pipeline(walk, None, make_odometry("noisy", walk, 1, 2e-3, 2e-3), base).run()
     # Odometry alone: every keyframe's estimate is its odometry, windowed or not.
     np.testing.assert_allclose(result.T_world_cam_estimate, whole.T_world_cam_estimate, atol=1e-6)
