@@ -301,7 +301,7 @@ class Pipeline:
 
     def add_keyframe(self, i: int) -> None:
         """Frame i becomes a keyframe: its pose enters iSAM2 with its motion factor (that is
-        the prediction), and its record is pending (:meth:`pending`) until it is measured."""
+        the prediction), and its record is pending (``state.pending_record``) until it is measured."""
         state = self.state
         j = len(state.keyframe_indices)
         state.keyframe_indices.append(i)
@@ -315,11 +315,6 @@ class Pipeline:
         state.pending_record = KeyframeRecord(i, float(self.sequence.timestamps[i]), X(j), trained_frame=trained,
                                               why=why, sharpness=sharp, postponed=waited)
         state.update_graph()
-
-    def pending(self) -> KeyframeRecord:
-        """The record of the keyframe being measured (between :meth:`add_keyframe` and
-        :meth:`finish_keyframe`, or an overlapped run's launch)."""
-        return self.state.pending()
 
     def placing(self) -> bool:
         """Whether the next keyframe goes to finding the run in its map, not to a correction."""
