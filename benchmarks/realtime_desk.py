@@ -118,7 +118,7 @@ def paced_runs(sequence, field, repeats: int, **settings) -> dict:
     return r
 
 
-def main() -> None:
+def _arguments() -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data", nargs="?", type=Path, default=Path("../shared/data/tum/rgbd_dataset_freiburg1_desk"))
     p.add_argument("--frames", default="0.5:1")
@@ -131,14 +131,24 @@ def main() -> None:
     p.add_argument("--paced-repeats", type=int, default=3, help="runs of each overlapped setting fed at the camera's "
                    "rate (the median one is reported, every causal ATE kept)")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/realtime_fr1_desk.json"))
-    args = p.parse_args()
-    sequence = open_sequence(args.data, frames=args.frames)
+    return p.parse_args()
+
+
+def _fields(items: list[str] | None) -> dict[str, Path]:
+    """``--field [NAME=]FIELD.pt`` items by name (default: the study's field)."""
     fields = {}
-    for item in args.field or ["benchmarks/results/study_fr1_desk/field.pt"]:
+    for item in items or ["benchmarks/results/study_fr1_desk/field.pt"]:
         name, sep, path = item.partition("=")
         if not sep or "/" in name:  # a bare path (which may hold '=' itself)
             name, path = "", item
         fields[name or Path(path).stem] = Path(path)
+    return fields
+
+
+def main() -> None:
+    args = _arguments()
+    sequence = open_sequence(args.data, frames=args.frames)
+    fields = _fields(args.field)
     out = {"data": args.data.name, "frames": args.frames, "fields": {k: str(v) for k, v in fields.items()},
            "odometry": "dense", "matcher": args.matcher,
            "camera_rate_hz": float(1.0 / np.median(np.diff(sequence.timestamps))), "runs": []}
@@ -147,64 +157,71 @@ def main() -> None:
         field = load_field(path)
         warm_up(sequence, field, args.matcher)
         for every in args.keyframe_every:
-            # As fast as it goes, inline and overlapped in turn --repeats times (the machine is
-            # shared: one pair's rates moved by 15% between runs of the command): the run
-            # with the median rate is kept per setting, every rate and each pair's ratio beside.
-            # At the smallest spacing, also overlapped with numpy's BLAS pool as it comes
-            # (library_threads None) beside each pair: what holding it to one thread gives.
-            settings = [(False, 1), (True, 1)] + ([(True, None)] if every == min(args.keyframe_every) else [])
-            pairs = [[run(sequence, field, overlap, every, args.matcher, library_threads=threads)
-                      for overlap, threads in settings] for _ in range(args.repeats)]
-            for k in range(len(settings)):
-                runs = [pair[k] for pair in pairs]
-                r = sorted(runs, key=lambda x: x["frames_per_s"])[len(runs) // 2]
-                r["field"] = name
-                r["frames_per_s_repeats"] = [x["frames_per_s"] for x in runs]
-                if k:
-                    r["overlapped_vs_inline_repeats"] = [pair[k]["frames_per_s"] / pair[0]["frames_per_s"]
-                                                         for pair in pairs]
-                if k == 2:  # BLAS's pool as it comes, against the same repeat's run with it at one thread
-                    r["vs_library_threads_1_repeats"] = [pair[2]["frames_per_s"] / pair[1]["frames_per_s"]
-                                                         for pair in pairs]
-                reference.setdefault(every, r["frames_per_s"])
-                r["frames_per_s_vs_first_inline"] = r["frames_per_s"] / reference[every]
-                out["runs"].append(r)
-                report(name, r)
-        # As a live camera delivers them: frames handed over at the recording's own rate, the
-        # keyframes measured inline and overlapped (a correction lands when it is ready, so how
-        # late it is in frames depends on the camera's rate, not on how fast a replay can go).
-        # An overlapped run depends on when each correction lands: it is repeated
-        # (--paced-repeats) and its spread kept; the inline run is deterministic.
-        # Overlapped, also with the wait bounded by the camera (--land-within frame: a correction
-        # done within 0.9 of a frame period of a frame's arrival lands at that frame).
-        land_s = LAND_WITHIN_FRAME_SHARE / out["camera_rate_hz"]
-        # And one that also takes a keyframe whenever the worker is idle (--keyframe-when-idle 1,
-        # keyframe_every still the longest interval): as many corrections as the second core keeps up with.
-        every = min(args.keyframe_every)
-        for overlap, ahead, land, idle in ((False, False, 0.0, 0), (True, False, 0.0, 0), (True, False, land_s, 0),
-                                           (True, True, 0.0, 0), (True, False, land_s, 1)):
-            r = paced_runs(sequence, field, args.paced_repeats if overlap else 1, overlap=overlap,
-                           keyframe_every=every, matcher=args.matcher, render_ahead=ahead, land_within_s=land,
-                           keyframe_when_idle=idle)
-            r.update(field=name, frames_per_s_vs_first_inline=r["frames_per_s"] / reference[every])
-            out["runs"].append(r)
-            report(name, r)
-        # A 30 Hz camera: the same frames handed over twice as fast (this copy of fr1/desk keeps
-        # every second frame of the 30 Hz recording), inline, overlapped with a keyframe every
-        # `every` frames (landing within a frame), overlapped with the live settings, and those
-        # again with each frame read when its step comes (no read-ahead: its decoding, 11-12 ms,
-        # then runs on the odometry's thread), and overlapped every `every` frames rendering the
-        # next keyframe ahead (its correction then waits for matching and alignment only).
-        for overlap, land, idle, ahead, render_ahead in (
-                (False, 0.0, 0, 2, False), (True, land_s / 2, 0, 2, False), (True, land_s / 2, 1, 2, False),
-                (True, land_s / 2, 1, 0, False), (True, land_s / 2, 0, 2, True)):
-            r = paced_runs(sequence, field, args.paced_repeats if overlap else 1, overlap=overlap,
-                           keyframe_every=every, matcher=args.matcher, land_within_s=land, keyframe_when_idle=idle,
-                           pace_speed=2.0, read_ahead=ahead, render_ahead=render_ahead)
-            r.update(field=name, frames_per_s_vs_first_inline=r["frames_per_s"] / reference[every])
-            out["runs"].append(r)
-            report(name, r)
+            _as_fast_as_they_go(sequence, field, name, every, args, reference, out)
+        _paced(sequence, field, name, args, reference, out)
     write_result(args.out, out, args)
+
+
+def _as_fast_as_they_go(sequence, field, name: str, every: int, args, reference: dict, out: dict) -> None:
+    """Inline and overlapped in turn --repeats times (the machine is shared: one pair's rates
+    moved by 15% between runs of the command): the run with the median rate is kept per setting,
+    every rate and each pair's ratio beside. At the smallest spacing, also overlapped with
+    numpy's BLAS pool as it comes (library_threads None) beside each pair: what holding it to
+    one thread gives."""
+    settings = [(False, 1), (True, 1)] + ([(True, None)] if every == min(args.keyframe_every) else [])
+    pairs = [[run(sequence, field, overlap, every, args.matcher, library_threads=threads)
+              for overlap, threads in settings] for _ in range(args.repeats)]
+    for k in range(len(settings)):
+        runs = [pair[k] for pair in pairs]
+        r = sorted(runs, key=lambda x: x["frames_per_s"])[len(runs) // 2]
+        r["field"] = name
+        r["frames_per_s_repeats"] = [x["frames_per_s"] for x in runs]
+        if k:
+            r["overlapped_vs_inline_repeats"] = [pair[k]["frames_per_s"] / pair[0]["frames_per_s"] for pair in pairs]
+        if k == 2:  # BLAS's pool as it comes, against the same repeat's run with it at one thread
+            r["vs_library_threads_1_repeats"] = [pair[2]["frames_per_s"] / pair[1]["frames_per_s"] for pair in pairs]
+        reference.setdefault(every, r["frames_per_s"])
+        r["frames_per_s_vs_first_inline"] = r["frames_per_s"] / reference[every]
+        out["runs"].append(r)
+        report(name, r)
+
+
+def _paced(sequence, field, name: str, args, reference: dict, out: dict) -> None:
+    """As a live camera delivers them, at the smallest keyframe spacing: frames handed over at
+    the recording's own rate, then twice as fast (a 30 Hz camera)."""
+    # At the recording's rate, the keyframes measured inline and overlapped (a correction lands
+    # when it is ready, so how late it is in frames depends on the camera's rate, not on how fast
+    # a replay can go). An overlapped run depends on when each correction lands: it is repeated
+    # (--paced-repeats) and its spread kept; the inline run is deterministic. Overlapped, also
+    # with the wait bounded by the camera (--land-within frame: a correction done within 0.9 of
+    # a frame period of a frame's arrival lands at that frame), and one that also takes a
+    # keyframe whenever the worker is idle (--keyframe-when-idle 1, keyframe_every still the
+    # longest interval): as many corrections as the second core keeps up with.
+    land_s = LAND_WITHIN_FRAME_SHARE / out["camera_rate_hz"]
+    every = min(args.keyframe_every)
+    for overlap, ahead, land, idle in ((False, False, 0.0, 0), (True, False, 0.0, 0), (True, False, land_s, 0),
+                                       (True, True, 0.0, 0), (True, False, land_s, 1)):
+        r = paced_runs(sequence, field, args.paced_repeats if overlap else 1, overlap=overlap,
+                       keyframe_every=every, matcher=args.matcher, render_ahead=ahead, land_within_s=land,
+                       keyframe_when_idle=idle)
+        r.update(field=name, frames_per_s_vs_first_inline=r["frames_per_s"] / reference[every])
+        out["runs"].append(r)
+        report(name, r)
+    # A 30 Hz camera: the same frames handed over twice as fast (this copy of fr1/desk keeps
+    # every second frame of the 30 Hz recording), inline, overlapped with a keyframe every
+    # `every` frames (landing within a frame), overlapped with the live settings, and those
+    # again with each frame read when its step comes (no read-ahead: its decoding, 11-12 ms,
+    # then runs on the odometry's thread), and overlapped every `every` frames rendering the
+    # next keyframe ahead (its correction then waits for matching and alignment only).
+    for overlap, land, idle, ahead, render_ahead in (
+            (False, 0.0, 0, 2, False), (True, land_s / 2, 0, 2, False), (True, land_s / 2, 1, 2, False),
+            (True, land_s / 2, 1, 0, False), (True, land_s / 2, 0, 2, True)):
+        r = paced_runs(sequence, field, args.paced_repeats if overlap else 1, overlap=overlap,
+                       keyframe_every=every, matcher=args.matcher, land_within_s=land, keyframe_when_idle=idle,
+                       pace_speed=2.0, read_ahead=ahead, render_ahead=render_ahead)
+        r.update(field=name, frames_per_s_vs_first_inline=r["frames_per_s"] / reference[every])
+        out["runs"].append(r)
+        report(name, r)
 
 
 def report(name: str, r: dict) -> None:
