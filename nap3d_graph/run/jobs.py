@@ -26,11 +26,11 @@ class KeyframeJobs:
     def __init__(self, field, config, odometry, timestamps, frames: FrameReader):
         self.field, self.config, self.odometry = field, config, odometry
         self.timestamps, self.frames = timestamps, frames
-        self.capture_timing = resolve_capture_timing(field, given=config.timing, compensate=config.compensate_timing)[0]
+        self._timing = resolve_capture_timing(field, given=config.timing, compensate=config.compensate_timing)[0]
 
     def timing(self) -> CaptureTiming | None:
         """The capture timing the run compensates: the config's, else the field's (None: off)."""
-        return self.capture_timing
+        return self._timing
 
     def render_intrinsics(self, intrinsics: Intrinsics) -> Intrinsics:
         """The render's camera: the frame's (``intrinsics``) at the configured render size."""
