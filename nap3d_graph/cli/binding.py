@@ -1,10 +1,13 @@
-"""Command-line options bound to a settings tree (:class:`~nap3d_graph.run.settings.SettingsTree`)
-by :class:`Option` rows: each names its flag, the ``section.setting`` it sets and how argparse
-reads it, never its default (that is the setting's, taken from the tree). A tree whose fields
-declare their flags (:func:`~nap3d_graph.arguments.setting`) gives its rows itself
-(:func:`flag_options`); another names them in a table. :func:`add_options` adds rows to a parser, :func:`settings_from_args` reads the tree back from
-the parsed options over a base tree (a ``--config`` file's, for the settings with no flag), and
-:func:`apply_settings` sets the options a config file gives where the command line gave none.
+"""Command-line options bound to settings by :class:`Option` rows: each names its flag, the
+``section.setting`` it sets and how argparse reads it, never its default (that is the
+setting's, unless the command line's differs). The rows are generated from the settings'
+fields, which declare their flags (:func:`~nap3d_graph.arguments.setting`;
+:func:`flag_options`), for a settings tree
+(:class:`~nap3d_graph.run.settings.SettingsTree`) or for plain sections. :func:`add_options`
+adds rows to a parser; :func:`settings_from_args` reads a tree back from the parsed options
+over a base tree (a ``--config`` file's, for the settings with no flag), and
+:func:`section_values` the sections' values; :func:`apply_settings` sets the options a config
+file gives where the command line gave none.
 """
 
 from __future__ import annotations
